@@ -1,0 +1,1 @@
+"""Firmware-equivalent motor control: the PID that runs on the device, encoder maths, tuning."""

@@ -1,0 +1,44 @@
+"""`vrscroll`: the command line. Each command lives in its own module with
+`add_arguments(parser)` and `run(args) -> int`; this file only wires them up.
+
+Errors the user can fix (bad target, bad mesh, bad port) are printed as one
+line on stderr with exit status 2, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# command name -> (module, one-line help)
+COMMANDS = {
+    "simulate": ("twin.commands.simulate", "move the twin's hinges to targets and report the step response"),
+    "model": ("twin.commands.model", "write or check the device MJCF generated from the spec"),
+}
+
+
+class UserError(Exception):
+    """Something the user can fix; printed without a traceback."""
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="vrscroll", description="VRScroll physics twin and MorphPatch tools.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        p.set_defaults(_module=module)
+        importlib.import_module(module).add_arguments(p)
+    args = parser.parse_args(argv)
+    try:
+        return importlib.import_module(args._module).run(args) or 0
+    except (UserError, ValueError, FileNotFoundError, OSError) as exc:
+        print(f"vrscroll {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"vrscroll {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

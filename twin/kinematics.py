@@ -1,0 +1,72 @@
+"""Forward kinematics of VRScroll's touch surface (pure numpy, device frame conventions).
+
+Device frame: x along the row of flaps (flap 0 -> flap n-1), y along the hinge
+axes, z the touch-surface normal; origin (the anchor) at the centre of the root
+flap's touch surface. Hinge k joins flap k and flap k+1 and lies on the touch
+surface; its angle is the outer flap's rotation relative to the inner one
+(the neighbour nearer the root), 0 = flat, positive = the touch surface bends
+concave (the outer flap's free end rises towards +z, as when wrapping a ball).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twin.spec import DeviceSpec
+
+
+def hinge_axis_sign(spec: DeviceSpec) -> np.ndarray:
+    """Per hinge, the sign s of its axis s*y in the inner flap's frame (+1 left of the root, -1 right)."""
+    k = np.arange(spec.n_hinges)
+    return np.where(k < spec.root_flap, 1.0, -1.0)
+
+
+def outer_flap(spec: DeviceSpec) -> np.ndarray:
+    """Per hinge, the index of the flap it moves (the one farther from the root)."""
+    k = np.arange(spec.n_hinges)
+    return np.where(k < spec.root_flap, k, k + 1)
+
+
+def rot_y(angle: np.ndarray) -> np.ndarray:
+    """Rotation matrices about +y, shape (..., 3, 3)."""
+    c, s = np.cos(angle), np.sin(angle)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def flap_frames(spec: DeviceSpec, angles, root_pose=None, widths=None) -> np.ndarray:
+    """Pose of each flap's touch-surface frame, shape (n_flaps, 4, 4).
+
+    angles: hinge angles, rad, shape (n_hinges,). root_pose: 4x4 world pose of
+    the anchor (identity if None). widths: per-flap length along x, m (the flap
+    pitch if None): a flap's outer hinge sits at its inner hinge + width.
+    The frame's origin is the centre of the flap's touch surface; its axes are the
+    device axes carried through the hinges.
+    """
+    angles = np.asarray(angles, dtype=float)
+    if angles.shape != (spec.n_hinges,):
+        raise ValueError(f"expected {spec.n_hinges} hinge angles, got shape {angles.shape}")
+    w = np.full(spec.n_flaps, spec.flap_pitch) if widths is None else np.asarray(widths, float)
+    rots = rot_y(hinge_axis_sign(spec) * angles)
+    frames = np.tile(np.eye(4), (spec.n_flaps, 1, 1))
+    r = spec.root_flap
+    for step, flaps in ((1, range(r + 1, spec.n_flaps)), (-1, range(r - 1, -1, -1))):
+        inner = frames[r]
+        for i in flaps:
+            hinge = i - 1 if step == 1 else i
+            hinge_point = inner[:3, 3] + inner[:3, :3] @ np.array([step * w[i - step] / 2, 0.0, 0.0])
+            rot = inner[:3, :3] @ rots[hinge]
+            frames[i, :3, :3] = rot
+            frames[i, :3, 3] = hinge_point + rot @ np.array([step * w[i] / 2, 0.0, 0.0])
+            inner = frames[i]
+    if root_pose is not None:
+        frames = np.asarray(root_pose, float) @ frames
+    return frames
+
+
+def pose_matrix(position, rotation) -> np.ndarray:
+    """4x4 homogeneous transform from a position (3,) and a rotation matrix (3, 3)."""
+    t = np.eye(4)
+    t[:3, :3] = rotation
+    t[:3, 3] = position
+    return t

@@ -1,0 +1,158 @@
+"""The device spec: every physical and firmware constant, read from models/vrscroll/spec.toml.
+
+All fields are SI (m, kg, rad, s, V, A, N*m); the TOML's rpm and degrees are
+converted here, once. Derived quantities (motor constant, counts per output
+revolution, flap mass) are properties so they can never disagree with their inputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from pathlib import Path
+
+MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+SPEC_PATH = MODELS_DIR / "vrscroll" / "spec.toml"
+
+_RPM = 2.0 * math.pi / 60.0
+
+
+@dataclasses.dataclass(frozen=True)
+class DeviceSpec:
+    """VRScroll's constants in SI units; see spec.toml for where each comes from."""
+
+    # geometry
+    n_flaps: int
+    length: float  # m, along the row of flaps (x)
+    depth: float  # m, along the hinge axes (y)
+    thickness: float  # m
+    usable_depth: float  # m
+    root_flap: int
+    hinge_limit: float  # rad, symmetric about flat
+    flap_gap: float  # m
+    # mass
+    mass_total: float  # kg
+    mass_motor: float  # kg
+    mass_electronics: float  # kg
+    # motor (output-shaft figures from the datasheet)
+    rated_voltage: float  # V
+    gear_ratio: float
+    no_load_speed: float  # rad/s at the output
+    stall_torque: float  # N*m at the output
+    stall_current: float  # A
+    resistance: float  # ohm
+    rotor_inertia: float  # kg*m^2, motor side
+    continuous_current: float  # A
+    gear_friction: float  # N*m at the output
+    gear_damping: float  # N*m*s/rad at the output
+    backlash: float  # rad
+    # encoder
+    counts_per_motor_rev: int
+    # power
+    supply_voltage: float  # V
+    drive_cap: float  # V at duty 1.0
+    # firmware
+    loop_rate: float  # Hz
+    kp: float  # duty per count
+    ki: float  # duty per count-second
+    kd: float  # duty per count/s
+    derivative_cutoff: float  # Hz
+    integral_limit: float  # duty
+    deadband_duty: float  # duty
+    hold_band: int  # counts
+    settle_band: int  # counts
+    settle_hold: float  # s
+    # simulation
+    timestep: float  # s
+
+    # ---- derived -------------------------------------------------------------
+    @property
+    def n_hinges(self) -> int:
+        return self.n_flaps - 1
+
+    @property
+    def flap_pitch(self) -> float:
+        """Flap length along x, m (hinge to hinge)."""
+        return self.length / self.n_flaps
+
+    @property
+    def flap_mass(self) -> float:
+        """Mass of one bare flap, kg: what is left of the total after motors and electronics."""
+        return (self.mass_total - self.n_hinges * self.mass_motor - self.mass_electronics) / self.n_flaps
+
+    @property
+    def counts_per_rev(self) -> float:
+        """Encoder counts per output revolution (12 x 100.37 = 1204.44)."""
+        return self.counts_per_motor_rev * self.gear_ratio
+
+    @property
+    def rad_per_count(self) -> float:
+        return 2.0 * math.pi / self.counts_per_rev
+
+    @property
+    def motor_constant(self) -> float:
+        """Back-EMF constant K, V*s/rad at the motor shaft, from the no-load speed."""
+        return self.rated_voltage / (self.no_load_speed * self.gear_ratio)
+
+    @property
+    def mechanical_resistance(self) -> float:
+        """Resistance, ohm, that makes K*V/R*N equal the datasheet's output stall torque.
+
+        The datasheet's stall torque already includes the gearbox's losses, and
+        MuJoCo's dcmotor has one constant for torque and back-EMF, so the model
+        carries the losses in R (see docs/device.md). Currents reported to the
+        user use the datasheet resistance instead (see `current`).
+        """
+        return self.motor_constant * self.rated_voltage * self.gear_ratio / self.stall_torque
+
+    @property
+    def gearbox_efficiency(self) -> float:
+        """Efficiency at stall implied by the datasheet: tau_stall / (N * K * I_stall)."""
+        return self.stall_torque / (self.gear_ratio * self.motor_constant * self.stall_current)
+
+    @property
+    def firmware_dt(self) -> float:
+        return 1.0 / self.loop_rate
+
+    def current(self, voltage, speed):
+        """Winding current, A, for terminal voltage (V) and output speed (rad/s): (V - K*N*w)/R."""
+        return (voltage - self.motor_constant * self.gear_ratio * speed) / self.resistance
+
+    def replace(self, **changes) -> "DeviceSpec":
+        """A copy with some fields changed (e.g. a calibrated or perturbed plant)."""
+        return dataclasses.replace(self, **changes)
+
+
+_CONVERT = {"deg": math.radians, "rpm": lambda v: v * _RPM}
+
+# TOML [section] key -> DeviceSpec field, where the names differ
+_FIELD = {
+    ("mass", "total"): "mass_total",
+    ("mass", "motor"): "mass_motor",
+    ("mass", "electronics"): "mass_electronics",
+}
+
+
+def load_spec(path: str | Path = SPEC_PATH) -> DeviceSpec:
+    """Read a spec TOML; every DeviceSpec field must be there exactly once."""
+    with open(path, "rb") as f:
+        raw = tomllib.load(f)
+    values = {}
+    for section, entries in raw.items():
+        for key, entry in entries.items():
+            field = _FIELD.get((section, key), key)
+            value = entry["value"]
+            values[field] = _CONVERT.get(entry.get("unit"), lambda v: v)(value)
+    names = {f.name for f in dataclasses.fields(DeviceSpec)}
+    missing, unknown = names - values.keys(), values.keys() - names
+    if missing or unknown:
+        raise ValueError(f"{path}: missing {sorted(missing)}, unknown {sorted(unknown)}")
+    return DeviceSpec(**values)
+
+
+def spec_sources(path: str | Path = SPEC_PATH) -> dict[str, str]:
+    """Field name -> where its value came from (paper, datasheet, assumption)."""
+    with open(path, "rb") as f:
+        raw = tomllib.load(f)
+    return {_FIELD.get((s, k), k): e["source"] for s, es in raw.items() for k, e in es.items()}
