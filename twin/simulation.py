@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import mujoco
+from mujoco.batch import Batch
 import numba
 import numpy as np
 
@@ -98,6 +99,7 @@ for _fn in (_mj_step1, _mj_step2, _mj_step):
     _fn.argtypes, _fn.restype = [ctypes.c_void_p, ctypes.c_void_p], None
 
 
+# not cacheable (it calls MuJoCo through ctypes pointers): compiled once per process, in Twin()
 @numba.njit(cache=False)
 def _firmware_loop(m, d, substeps, sensordata, qpos, qvel, ctrl, qfrc, enc_adr, qadr, dadr, cpr_motor, cap,
                    back_emf, resistance, target, prev, rate, integral, gains, dt, max_ticks, settle_band,
@@ -167,6 +169,7 @@ class Twin:
         self._root_body = self.model.body(f"flap{self.spec.root_flap}").id
         self._target = np.zeros(n, np.int64)
         self.reset()
+        self._run(np.zeros(n), 0.0, False)  # compile the loop now, so moves time only the simulation
 
     # ---- state ---------------------------------------------------------------
     def reset(self, angles=None) -> None:
@@ -250,7 +253,7 @@ class TwinBatch:
         self.nsim = nsim
         n = self.spec.n_hinges
         model = load_model(self.spec)
-        self.batch = mujoco.Batch(model, nsim, nthread=nthread, persistent=True)
+        self.batch = Batch(model, nsim, nthread=nthread, persistent=True)
         self._models = None
         if specs is not None:
             if len(specs) != nsim:
@@ -320,3 +323,30 @@ class TwinBatch:
         out["wall_time"] = time.perf_counter() - start
         out["time"] = np.arange(ticks) * s.firmware_dt
         return out
+
+
+def move_report(spec: DeviceSpec, trace: Trace) -> list[dict]:
+    """Per hinge: settle time (s), overshoot (deg), steady-state error (deg and counts), peak current (A).
+
+    Settling uses the firmware's settle band in encoder counts; the step starts
+    at the trace's first tick.
+    """
+    from twin.response import step_metrics
+
+    rows = []
+    for k in range(trace.angle.shape[1]):
+        in_counts = step_metrics(trace.time, trace.counts[:, k], float(trace.target_counts[0, k]), spec.settle_band,
+                                 tail=spec.settle_hold)
+        in_angle = step_metrics(trace.time, trace.angle[:, k], float(trace.target[0, k]),
+                                spec.settle_band * spec.rad_per_count, tail=spec.settle_hold)
+        rows.append({
+            "hinge": k,
+            "target_deg": round(math.degrees(trace.target[0, k]), 3),
+            "final_deg": round(math.degrees(trace.angle[-1, k]), 3),
+            "settle_time_s": round(in_counts.settle_time, 4),
+            "overshoot_deg": round(math.degrees(in_angle.overshoot), 3),
+            "steady_state_error_deg": round(math.degrees(in_angle.steady_state_error), 3),
+            "steady_state_error_counts": round(in_counts.steady_state_error, 2),
+            "peak_current_A": round(float(np.max(np.abs(trace.current[:, k]))), 3),
+        })
+    return rows

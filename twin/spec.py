@@ -92,8 +92,14 @@ class DeviceSpec:
 
     @property
     def motor_constant(self) -> float:
-        """Back-EMF constant K, V*s/rad at the motor shaft, from the no-load speed."""
-        return self.rated_voltage / (self.no_load_speed * self.gear_ratio)
+        """Back-EMF constant K, V*s/rad at the motor shaft.
+
+        The datasheet's no-load speed is reached against the gearbox's own
+        friction and damping, so the ideal (lossless) no-load speed is higher:
+        w_ideal = w0 / (1 - (friction + damping * w0) / stall_torque), and K = V / (N * w_ideal).
+        """
+        loss = (self.gear_friction + self.gear_damping * self.no_load_speed) / self.stall_torque
+        return self.rated_voltage * (1.0 - loss) / (self.no_load_speed * self.gear_ratio)
 
     @property
     def mechanical_resistance(self) -> float:

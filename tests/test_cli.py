@@ -1,0 +1,34 @@
+"""The command line, run as a user runs it."""
+
+import json
+import subprocess
+import sys
+
+
+def vrscroll(*args):
+    return subprocess.run([sys.executable, "-m", "twin.cli", *args], capture_output=True, text=True, timeout=120)
+
+
+def test_simulate_json_and_trace(tmp_path):
+    out = vrscroll("simulate", "60", "-45", "0", "30", "90", "-100", "--json", "--trace", str(tmp_path / "t.csv"))
+    assert out.returncode == 0, out.stderr
+    report = json.loads(out.stdout)
+    assert report["settled"] and len(report["hinges"]) == 6
+    assert {"settle_time_s", "overshoot_deg", "steady_state_error_counts", "peak_current_A"} <= set(report["hinges"][0])
+    assert (tmp_path / "t.csv").exists()
+
+
+def test_simulate_bad_angle_is_a_clear_error():
+    out = vrscroll("simulate", "60", "-45", "0", "30", "90", "130")
+    assert out.returncode == 2
+    assert "hinge 5: target 130.00 deg is outside the hinge range +-112.5 deg" in out.stderr
+    assert "Traceback" not in out.stderr
+    out = vrscroll("simulate", "1", "2")
+    assert out.returncode == 2 and "expected 6 hinge targets" in out.stderr
+
+
+def test_model_check_and_help():
+    assert vrscroll("model", "--check").returncode == 0
+    for cmd in ("simulate", "model"):
+        out = vrscroll(cmd, "--help")
+        assert out.returncode == 0 and "usage" in out.stdout

@@ -1,0 +1,93 @@
+"""The spec, the generated MJCF and the kinematics agree."""
+
+import math
+
+import mujoco
+import numpy as np
+import pytest
+
+from twin.kinematics import flap_frames
+from twin.model import MJCF_PATH, load_model, mjcf
+from twin.spec import SPEC_PATH, load_spec, spec_sources
+
+
+def test_every_constant_has_a_source():
+    sources = spec_sources()
+    assert sources and all(s.split(":")[0] in ("paper", "datasheet", "assumption") for s in sources.values())
+
+
+def test_spec_rejects_missing_and_unknown_fields(tmp_path):
+    text = SPEC_PATH.read_text()
+    bad = tmp_path / "spec.toml"
+    bad.write_text(text.replace("loop_rate", "loop_rat"))
+    with pytest.raises(ValueError, match="missing \\['loop_rate'\\], unknown \\['loop_rat'\\]"):
+        load_spec(bad)
+
+
+def test_derived_values(spec):
+    assert spec.n_hinges == 6
+    assert spec.flap_pitch == pytest.approx(0.188 / 7)
+    assert spec.counts_per_rev == pytest.approx(1204.44)
+    assert spec.hinge_limit == pytest.approx(math.radians(112.5))
+    assert spec.current(6.0, 0.0) == pytest.approx(1.6)  # stall current from the datasheet resistance
+
+
+def test_committed_mjcf_is_generated_from_spec():
+    assert MJCF_PATH.read_text() == mjcf(), "run `vrscroll model --write`"
+
+
+def test_compiled_model_matches_spec(spec):
+    m = mujoco.MjModel.from_xml_path(str(MJCF_PATH))
+    assert m.nu == m.njnt == spec.n_hinges
+    assert m.nbody == spec.n_flaps + 1
+    assert m.body_subtreemass[0] == pytest.approx(spec.mass_total, rel=1e-6)
+    assert m.opt.timestep == pytest.approx(spec.firmware_dt)
+    for k in range(spec.n_hinges):
+        j, a = m.joint(f"hinge{k}"), m.actuator(f"motor{k}")
+        assert np.degrees(j.range) == pytest.approx([-112.5, 112.5])
+        assert j.frictionloss[0] == pytest.approx(spec.gear_friction)
+        assert j.damping[0] == pytest.approx(spec.gear_damping)
+        assert a.gear[0] == pytest.approx(spec.gear_ratio)
+        assert m.actuator_armature[a.id] == pytest.approx(spec.rotor_inertia)
+        assert a.ctrlrange == pytest.approx([-spec.drive_cap, spec.drive_cap])
+        assert m.actuator_dyntype[a.id] == mujoco.mjtDyn.mjDYN_DCMOTOR
+        assert a.gainprm[:2] == pytest.approx([spec.mechanical_resistance, spec.motor_constant])
+    assert m.key("flat").qpos == pytest.approx(np.zeros(spec.n_hinges))
+
+
+def test_neighbours_never_collide_but_others_can(spec):
+    m = load_model(spec)
+    d = mujoco.MjData(m)
+    # fold hinges 3 and 4 fully concave: flaps 5 and 6 swing back over the root side
+    d.qpos[m.joint("hinge3").qposadr[0]] = spec.hinge_limit
+    d.qpos[m.joint("hinge4").qposadr[0]] = spec.hinge_limit
+    mujoco.mj_forward(m, d)
+    pairs = {tuple(sorted((m.geom(c.geom1).name, m.geom(c.geom2).name))) for c in d.contact[: d.ncon]}
+    flaps = [tuple(int(name[4]) for name in pair) for pair in pairs]
+    assert flaps and all(abs(a - b) > 1 for a, b in flaps)
+    flat = mujoco.MjData(m)
+    mujoco.mj_forward(m, flat)
+    assert flat.ncon == 0
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_kinematics_matches_mujoco(spec, seed):
+    """The approximation's forward kinematics and the MJCF put every flap in the same place."""
+    angles = np.random.default_rng(seed).uniform(-spec.hinge_limit, spec.hinge_limit, spec.n_hinges)
+    m = load_model(spec)
+    d = mujoco.MjData(m)
+    for k in range(spec.n_hinges):
+        d.qpos[m.joint(f"hinge{k}").qposadr[0]] = angles[k]
+    mujoco.mj_forward(m, d)
+    frames = flap_frames(spec, angles)
+    for i in range(spec.n_flaps):
+        site = m.site(f"surface{i}").id
+        assert d.site_xpos[site] == pytest.approx(frames[i, :3, 3], abs=1e-9)
+        assert d.site_xmat[site].reshape(3, 3) == pytest.approx(frames[i, :3, :3], abs=1e-9)
+
+
+def test_free_root_model_loads(spec):
+    m = load_model(spec, root="free")
+    assert m.nq == 7 + spec.n_hinges and m.key("flat").qpos[3] == 1.0
+    with pytest.raises(ValueError, match="root must be"):
+        mjcf(spec, root="floating")

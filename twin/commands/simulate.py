@@ -1,0 +1,50 @@
+"""`vrscroll simulate`: move the twin's hinges to targets (deg) and report each hinge's step response."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from twin.simulation import Twin, move_report
+
+
+def add_arguments(p) -> None:
+    p.add_argument("targets", nargs="+", type=float, metavar="DEG",
+                   help="hinge targets in degrees, one per hinge (hinge 0 first); positive bends concave")
+    p.add_argument("--max-time", type=float, default=3.0, help="longest the move may take, s (default 3)")
+    p.add_argument("--hold", action="store_true", help="run the full --max-time instead of stopping once settled")
+    p.add_argument("--trace", metavar="CSV", help="write the firmware-rate trace to this CSV file")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+
+
+def run(args) -> int:
+    twin = Twin()
+    if len(args.targets) != twin.spec.n_hinges:
+        raise ValueError(f"expected {twin.spec.n_hinges} hinge targets in degrees, got {len(args.targets)}")
+    trace = twin.move_to([math.radians(a) for a in args.targets], max_time=args.max_time,
+                         stop_when_settled=not args.hold)
+    rows = move_report(twin.spec, trace)
+    summary = {
+        "simulated_s": round(trace.duration, 3),
+        "wall_s": round(trace.wall_time, 4),
+        "real_time_factor": round(trace.real_time_factor, 1),
+        "settled": all(not math.isnan(r["settle_time_s"]) for r in rows),
+        "hinges": rows,
+    }
+    if args.trace:
+        trace.write_csv(args.trace)
+        summary["trace_csv"] = args.trace
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"{'hinge':>5} {'target_deg':>10} {'final_deg':>9} {'settle_s':>8} {'overshoot_deg':>13} "
+          f"{'ss_err_deg':>10} {'ss_err_counts':>13} {'peak_A':>6}")
+    for r in rows:
+        print(f"{r['hinge']:>5} {r['target_deg']:>10.2f} {r['final_deg']:>9.2f} {r['settle_time_s']:>8.3f} "
+              f"{r['overshoot_deg']:>13.2f} {r['steady_state_error_deg']:>10.2f} "
+              f"{r['steady_state_error_counts']:>13.1f} {r['peak_current_A']:>6.2f}")
+    print(f"simulated {summary['simulated_s']} s in {summary['wall_s']} s wall "
+          f"({summary['real_time_factor']}x real time); settled: {summary['settled']}")
+    if args.trace:
+        print(f"trace: {args.trace}")
+    return 0

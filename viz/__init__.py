@@ -1,0 +1,1 @@
+"""Pictures and plots of the twin (pyvista scenes, matplotlib charts)."""
