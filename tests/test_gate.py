@@ -1,0 +1,67 @@
+"""The gate on its own: each check, its numbers, and the override."""
+
+import math
+
+import numpy as np
+import pytest
+
+from controllers.pid import PidGains
+from twin.gate import GateRefused, check_move, enforce
+from twin.simulation import Twin
+
+
+@pytest.fixture(scope="module")
+def twin(spec):
+    return Twin(spec)
+
+
+def by_name(report):
+    return {c.name: c for c in report.checks}
+
+
+def test_safe_move_passes_every_check_with_numbers(spec, twin):
+    r = check_move(spec, np.zeros(6), np.radians([30, 10, 0, 0, -10, -30]), twin=twin)
+    assert r.passed, r.text()
+    c = by_name(r)
+    assert set(c) == {"range", "collision", "settle", "peak_current", "hold_current"}
+    assert c["settle"].value < 2.0 and c["peak_current"].limit == spec.stall_current
+    assert c["hold_current"].limit == spec.continuous_current
+    assert r.prediction is not None and len(r.prediction.time) > 10
+    assert enforce(r) is r
+
+
+def test_out_of_range_is_refused_naming_hinge_and_limit(spec, twin):
+    r = check_move(spec, np.zeros(6), np.radians([0, 0, 0, 0, 0, 120]), twin=twin)
+    assert not r.passed and [c.name for c in r.failed] == ["range"]
+    with pytest.raises(GateRefused, match=r"range 120.000 deg over limit 112.500 deg \(hinge 5\)"):
+        enforce(r)
+
+
+def test_curling_into_itself_is_a_collision(spec, twin):
+    r = check_move(spec, np.zeros(6), np.radians([60] * 6), twin=twin)
+    c = by_name(r)["collision"]
+    assert not c.passed and c.value > 0 and "flap0 and flap6" in c.detail
+
+
+def test_settle_and_current_limits_are_checked(spec, twin):
+    r = check_move(spec, np.zeros(6), np.radians([90, 0, 0, 0, 0, 0]), twin=twin, settle_limit=0.02,
+                   peak_current_limit=0.5, hold_current_limit=0.01)
+    failed = {c.name for c in r.failed}
+    assert failed == {"settle", "peak_current", "hold_current"}
+    assert by_name(r)["peak_current"].value == pytest.approx(spec.stall_current, rel=0.02)
+
+
+def test_override_is_the_only_way_past_and_is_marked(spec, twin):
+    r = check_move(spec, np.zeros(6), np.radians([60] * 6), twin=twin)
+    with pytest.raises(GateRefused):
+        enforce(r)
+    assert enforce(r, override=True).overridden
+    assert r.to_dict()["overridden"] is True
+
+
+def test_gate_uses_the_device_gains(spec, twin):
+    slow = PidGains.from_spec(spec).replace(kp=spec.kp / 20, ki=0.0)
+    fast = check_move(spec, np.zeros(6), np.radians([40, 0, 0, 0, 0, 0]), twin=twin)
+    weak = check_move(spec, np.zeros(6), np.radians([40, 0, 0, 0, 0, 0]), [slow] * 6, twin=twin)
+    assert by_name(weak)["settle"].value > by_name(fast)["settle"].value or not weak.passed
+    assert math.isfinite(by_name(fast)["settle"].value)

@@ -1,0 +1,228 @@
+"""The serial link, the gate and the live comparison, against the device emulator on a real pty.
+
+Each test starts its own emulator process (`python -m twin.emulator`) with the
+imperfections or faults it needs, and talks to it through pyserial like to a
+device on /dev/ttyACM0.
+"""
+
+import json
+import time
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from controllers.encoder import target_counts
+from twin import protocol as P
+from twin.cli import main as vrscroll
+from twin.emulator import EmulatorProcess
+from twin.gate import GateRefused
+from twin.link import Link, LinkError, LinkTimeout, NackError
+from twin.mirror import mirror
+
+SAFE_DEG = [25.0, 10.0, 0.0, 0.0, -10.0, -25.0]
+
+
+@pytest.fixture
+def emulator(tmp_path):
+    started = []
+
+    def start(*args):
+        e = EmulatorProcess(tmp_path / f"emulator{len(started)}.jsonl", *args)
+        started.append(e)
+        return e
+
+    yield start
+    for e in started:
+        e.stop()
+
+
+def session_log(path):
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_round_trip_mirror_settles_and_matches_the_twin(emulator, spec, tmp_path):
+    emu = emulator()
+    log = tmp_path / "session.jsonl"
+    targets = np.radians(SAFE_DEG)
+    with Link(emu.port, log_path=log) as link:
+        assert link.info.n_hinges == spec.n_hinges and link.info.watchdog_ms == 200
+        result = mirror(link, spec, targets, tolerance_deg=5.0)
+        state = link.get_state()
+        lost = link.telemetry_lost
+    assert result.ok, result.message
+    assert result.report.passed
+    # the device ends where it was sent, and never parted from the twin by more than the tolerance
+    assert np.all(np.abs(np.asarray(state.counts) - target_counts(spec, targets)) <= spec.settle_band)
+    assert result.max_deviation_deg.max() < 5.0
+    assert state.state == P.State.ACTIVE and state.faults == 0
+    # telemetry at 500 Hz: every frame arrived, in device time order, about 2 ms apart
+    assert lost == 0 and result.frames >= 0.8 * result.elapsed * 500
+    events = session_log(log)
+    kinds = {e["event"] for e in events}
+    assert {"open", "gate", "tx", "rx", "telemetry", "mirror_result", "close"} <= kinds
+    sent = [e for e in events if e["event"] == "tx" and e["msg"] == "SET_TARGETS"]
+    assert sent and sent[-1]["counts"] == target_counts(spec, targets).tolist()
+    assert [e["counts"] for e in emu.events("rx") if e["msg"] == "SET_TARGETS"] == [sent[-1]["counts"]]
+
+
+@pytest.mark.parametrize("deg, check", [([60.0] * 6, "collision"), ([130.0, 0, 0, 0, 0, 0], "range")])
+def test_unsafe_target_is_refused_and_never_reaches_the_device(emulator, spec, tmp_path, deg, check):
+    emu = emulator()
+    log = tmp_path / "session.jsonl"
+    with Link(emu.port, log_path=log) as link:
+        with pytest.raises(GateRefused) as refused:
+            mirror(link, spec, np.radians(deg))
+        link.get_state()  # the link is still fine
+    failed = [c.name for c in refused.value.report.failed]
+    assert check in failed
+    assert check in str(refused.value)
+    time.sleep(0.05)
+    received = {e["msg"] for e in emu.events("rx")}
+    assert "SET_TARGETS" not in received  # the emulator's own log: no target ever arrived
+    assert {"HELLO", "GET_STATE", "GET_GAINS"} <= received
+    assert any(e["event"] == "gate_refused" for e in session_log(log))
+
+
+def test_cli_mirror_and_status(emulator, tmp_path, capsys):
+    emu = emulator()
+    log = str(tmp_path / "cli.jsonl")
+    target = tmp_path / "target.json"
+    target.write_text(json.dumps({"angles_deg": SAFE_DEG}))
+    assert vrscroll(["mirror", str(target), "--port", emu.port, "--log", log]) == 0
+    assert "mirror: settled" in capsys.readouterr().out
+    assert vrscroll(["mirror", "--angles=130,0,0,0,0,0", "--port", emu.port, "--log", log]) == 2
+    assert "range 130.000 deg over limit 112.500 deg (hinge 0)" in capsys.readouterr().err
+    assert vrscroll(["status", "--port", emu.port]) == 0
+    out = capsys.readouterr().out
+    assert "firmware 0.1.0" in out and "angles" in out and "faults" in out
+
+
+def test_device_refuses_out_of_range_targets_itself(emulator, spec):
+    emu = emulator()
+    with Link(emu.port) as link:
+        limit = int(spec.hinge_limit / spec.rad_per_count)
+        with pytest.raises(NackError) as nack:
+            link.set_targets([0, 0, limit + 50, 0, 0, 0])
+        assert nack.value.reason == P.Nack.OUT_OF_RANGE and nack.value.detail == 2
+        with pytest.raises(NackError):
+            link.set_targets([0, 0])
+    assert [e["reason"] for e in emu.events("nack")] == ["OUT_OF_RANGE", "BAD_LENGTH"]
+
+
+@pytest.fixture
+def device(emulator):
+    emu = emulator()
+    with Link(emu.port) as link:
+        yield emu, link
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(garbage=st.binary(min_size=1, max_size=400))
+def test_garbage_into_the_device_is_counted_and_the_link_recovers(device, garbage):
+    emu, link = device
+    before = link.get_state().rx_bad_frames
+    link.write_raw(garbage)
+    state = link.get_state()  # a garbled first try is retried with the same sequence number
+    assert state.rx_bad_frames >= before
+    assert emu.proc.poll() is None  # the device did not crash
+
+
+def test_garbage_from_the_device_is_counted_and_the_link_recovers(emulator):
+    emu = emulator("--corrupt", "0.05", "--seed", "3")
+    with Link(emu.port, timeout=0.05, retries=8) as link:
+        link.set_telemetry_rate(500)
+        for _ in range(100):
+            assert link.get_state().firmware == (0, 1, 0)
+        time.sleep(0.3)
+        frames = link.drain_telemetry()
+        assert link.decoder.bad_frames > 0
+        assert len(frames) > 100  # telemetry still flows; damaged frames show as sequence gaps
+        assert all(isinstance(f, P.Telemetry) for _, f in frames)
+        assert link.telemetry_lost > 0
+
+
+def test_watchdog_stops_the_motors_when_the_host_goes_quiet(emulator, spec):
+    emu = emulator()
+    with Link(emu.port) as link:
+        state = link.get_state()
+        link.set_telemetry_rate(500)
+        link.set_targets(np.asarray(state.counts) + 30)  # a small move, then hold
+        time.sleep(0.3)
+        link.drain_telemetry()
+        link.stop_heartbeat()
+        quiet_from = time.monotonic()
+        stopped = None
+        while time.monotonic() - quiet_from < 1.0:
+            _, f = link.telemetry(timeout=0.5)
+            if f.faults & P.Fault.WATCHDOG:
+                stopped = f
+                break
+        assert stopped is not None, "watchdog never tripped"
+        assert stopped.state == P.State.FAULT and all(d == 0 for d in stopped.duty)
+        host_delay = time.monotonic() - quiet_from
+        after = [f for _, f in [link.telemetry(timeout=0.5) for _ in range(50)]]
+        assert all(f.state == P.State.FAULT and all(d == 0 for d in f.duty) for f in after)
+    fault = emu.events("fault")[0]
+    assert fault["fault"] == "WATCHDOG"
+    # device time from the last frame heard to motors off: the stated 200 ms, within one tick
+    assert 0.200 <= fault["t"] - fault["last_rx_t"] <= 0.200 + 2 * spec.firmware_dt
+    assert host_delay < 0.3
+
+
+def test_jammed_hinge_is_caught_by_the_live_comparison(emulator, spec, tmp_path):
+    emu = emulator("--jam-hinge", "2", "--jam-after", "0.0")
+    log = tmp_path / "session.jsonl"
+    targets = np.radians([20.0, 10.0, 40.0, 0.0, -10.0, -20.0])
+    with Link(emu.port, log_path=log) as link:
+        result = mirror(link, spec, targets, tolerance_deg=5.0)
+        state = link.get_state()
+    assert result.outcome == "diverged" and result.hinge == 2, result.message
+    assert "hinge 2 parted from the twin" in result.message
+    assert result.elapsed < 0.2  # caught while moving, long before the device's own stall detector
+    assert state.state == P.State.ESTOP
+    assert any(e["msg"] == "ESTOP" for e in emu.events("rx"))
+
+
+def test_port_disappearing_mid_run_is_a_clear_error_and_the_log_survives(emulator, tmp_path):
+    emu = emulator()
+    log = tmp_path / "session.jsonl"
+    link = Link(emu.port, log_path=log).open()
+    try:
+        link.set_telemetry_rate(200)
+        link.set_targets(link.get_state().counts)
+        time.sleep(0.3)
+        emu.kill()
+        with pytest.raises(LinkError, match="port went away"):
+            while True:
+                link.telemetry(timeout=2.0)
+        with pytest.raises(LinkError):
+            link.get_state()
+        received = link.telemetry_received
+    finally:
+        link.close()
+    events = session_log(log)  # every line is whole JSON
+    assert sum(e["event"] == "telemetry" for e in events) == received > 30
+    assert [e["event"] for e in events if e["event"] == "link_error"] == ["link_error"]
+    assert any(e["event"] == "tx" and e["msg"] == "SET_TARGETS" for e in events)
+
+
+def test_a_device_that_stops_answering_times_out(emulator):
+    emu = emulator("--drop-after", "0.5")
+    with Link(emu.port, timeout=0.05, retries=2) as link:
+        link.get_state()
+        time.sleep(0.6)
+        with pytest.raises(LinkTimeout, match="no reply to GET_STATE after 3 tries"):
+            link.get_state()
+
+
+def test_override_is_logged_and_the_device_limit_still_holds(emulator, tmp_path, capsys):
+    emu = emulator()
+    log = tmp_path / "override.jsonl"
+    rc = vrscroll(["mirror", "--angles=130,0,0,0,0,0", "--port", emu.port, "--log", str(log), "--override"])
+    assert rc == 2
+    assert "device refused SET_TARGETS: OUT_OF_RANGE (detail 0)" in capsys.readouterr().err
+    events = session_log(log)
+    assert any(e["event"] == "gate_override" and "range" in e["reason"] for e in events)
+    assert [e["reason"] for e in emu.events("nack")] == ["OUT_OF_RANGE"]

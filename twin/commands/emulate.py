@@ -1,0 +1,3 @@
+"""`vrscroll emulate`: a device emulator on a pseudo-terminal (see twin/emulator.py)."""
+
+from twin.emulator import add_arguments, run  # noqa: F401

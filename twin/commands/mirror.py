@@ -1,0 +1,78 @@
+"""`vrscroll mirror TARGET.json --port PORT`: gate a target on the twin, send it, watch the device follow."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from twin.cli import UserError
+from twin.gate import GateRefused
+from twin.link import Link, LinkError
+from twin.mirror import DeviceNotReady, mirror
+from twin.spec import load_spec
+
+
+def add_arguments(p) -> None:
+    p.add_argument("target", nargs="?", help='JSON file with {"angles_deg": [one per hinge]}')
+    p.add_argument("--angles", help="hinge targets in degrees, comma-separated, instead of TARGET.json "
+                   "(write --angles=-30,0,... when the first is negative)")
+    p.add_argument("--port", required=True, help="serial port or pyserial URL (a /dev/tty*, a pty, socket://...)")
+    p.add_argument("--tolerance-deg", type=float, default=5.0,
+                   help="e-stop when a hinge parts from the twin's prediction by more (default %(default)s)")
+    p.add_argument("--settle-limit", type=float, default=2.0, help="s the move may take (default %(default)s)")
+    p.add_argument("--telemetry-hz", type=int, default=500, help="telemetry rate (default %(default)s)")
+    p.add_argument("--log", default="vrscroll-session.jsonl", help="session log, JSON lines (default %(default)s)")
+    p.add_argument("--override", action="store_true",
+                   help="send even when the gate fails a check (logged); the device's own limits still apply")
+
+
+def read_targets(args, n: int) -> np.ndarray:
+    """Targets in rad from --angles or the JSON file; UserError for anything malformed."""
+    if (args.target is None) == (args.angles is None):
+        raise UserError("give either TARGET.json or --angles")
+    if args.angles is not None:
+        try:
+            deg = [float(a) for a in args.angles.split(",")]
+        except ValueError:
+            raise UserError(f"--angles {args.angles!r}: expected {n} numbers in degrees, comma-separated") from None
+    else:
+        try:
+            with open(args.target) as f:
+                deg = json.load(f)["angles_deg"]
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise UserError(f"{args.target}: expected JSON with an 'angles_deg' list ({exc})") from None
+    if not isinstance(deg, list) or len(deg) != n or not all(isinstance(a, (int, float)) for a in deg):
+        raise UserError(f"expected {n} hinge angles in degrees, got {deg!r}")
+    return np.radians(np.asarray(deg, float))
+
+
+def run(args) -> int:
+    spec = load_spec()
+    targets = read_targets(args, spec.n_hinges)
+    last = [0.0]
+
+    def show(t, device, predicted):
+        if t - last[0] >= 0.1:
+            last[0] = t
+            dev = np.abs(device - predicted)
+            print(f"t={t:6.3f} s  device " + " ".join(f"{a:7.1f}" for a in device)
+                  + f"  deg   largest deviation {dev.max():4.1f} deg (hinge {int(dev.argmax())})", flush=True)
+
+    try:
+        with Link(args.port, log_path=args.log) as link:
+            if args.override:
+                print("gate override requested: a failed check will be logged and the move sent anyway")
+            result = mirror(link, spec, targets, tolerance_deg=args.tolerance_deg, settle_limit=args.settle_limit,
+                            override=args.override, telemetry_hz=args.telemetry_hz, on_frame=show)
+    except GateRefused as exc:
+        print(exc.report.text())
+        raise UserError(f"{exc} (nothing was sent; --override to send anyway)") from None
+    except DeviceNotReady as exc:
+        raise UserError(str(exc)) from None
+    except LinkError as exc:
+        raise UserError(f"link: {exc} (session log: {args.log})") from None
+    print(result.report.text())
+    print(("mirror: " if result.ok else "mirror: STOPPED: ") + result.message)
+    print("final   " + " ".join(f"{a:7.1f}" for a in result.final_deg) + "  deg")
+    return 0 if result.ok else 3

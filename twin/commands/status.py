@@ -1,0 +1,44 @@
+"""`vrscroll status --port PORT`: the device's firmware version, state, faults and hinge angles."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from controllers.encoder import angle_from_counts
+from twin import protocol as P
+from twin.cli import UserError
+from twin.link import Link, LinkError
+from twin.mirror import faults_text
+from twin.spec import load_spec
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--port", required=True, help="serial port or pyserial URL")
+    p.add_argument("--clear-fault", action="store_true", help="clear an ESTOP or FAULT first")
+    p.add_argument("--estop", action="store_true", help="e-stop the device first")
+    p.add_argument("--log", help="session log, JSON lines")
+
+
+def run(args) -> int:
+    spec = load_spec()
+    try:
+        with Link(args.port, log_path=args.log) as link:
+            if args.estop:
+                link.estop()
+            if args.clear_fault:
+                link.clear_fault()
+            s = link.get_state()
+            info = link.info
+    except LinkError as exc:
+        raise UserError(str(exc)) from None
+    deg = np.degrees(angle_from_counts(spec, s.counts))
+    tgt = np.degrees(angle_from_counts(spec, s.targets))
+    print(f"firmware {'.'.join(map(str, s.firmware))}, protocol {info.protocol}, {info.n_hinges} hinges, "
+          f"loop {info.loop_rate_hz} Hz, watchdog {info.watchdog_ms} ms")
+    print(f"state    {P.State(s.state).name}")
+    print(f"faults   {faults_text(s.faults)}" + (f" (hinge {s.fault_hinge})" if s.fault_hinge != 0xFF else ""))
+    print("angles   " + " ".join(f"{a:7.1f}" for a in deg) + "  deg")
+    print("targets  " + " ".join(f"{a:7.1f}" for a in tgt) + "  deg")
+    print("counts   " + " ".join(f"{c:7d}" for c in s.counts))
+    print(f"device time {s.time_us / 1e6:.3f} s, bad frames received {s.rx_bad_frames}")
+    return 0

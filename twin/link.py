@@ -1,0 +1,341 @@
+"""The host end of the serial link: requests with acknowledgements, heartbeat, telemetry, a session log.
+
+`Link(url)` talks the protocol of twin/protocol.py over any pyserial URL: a real
+port (/dev/ttyACM0), a pty path (the emulator's), or socket://host:port. A reader
+thread decodes every byte (resyncing after garbage); replies go to the request
+waiting for them, telemetry into a queue that is never dropped from (or to a
+callback). A heartbeat thread keeps the device's watchdog fed. Everything sent
+and received is written, as it happens, to a JSON-lines session log, one flushed
+line per event, so a crash loses nothing before it.
+
+    with Link("/dev/pts/5", log_path="session.jsonl") as link:
+        link.set_telemetry_rate(500)
+        link.set_targets([0, 100, 0, 0, -100, 0])
+        frame = link.telemetry(timeout=1.0)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import queue
+import threading
+import time
+
+import serial
+
+from twin import protocol as P
+
+
+class LinkError(RuntimeError):
+    """The link failed: the port went away, or the device stopped answering."""
+
+
+class LinkTimeout(LinkError):
+    """No reply after every retry."""
+
+
+class NackError(LinkError):
+    """The device refused a command; `reason` is a protocol.Nack, `detail` its argument (e.g. a hinge)."""
+
+    def __init__(self, msg_name: str, reason: int, detail: int):
+        self.reason = P.Nack(reason) if reason in P.Nack._value2member_map_ else reason
+        self.detail = detail
+        name = self.reason.name if isinstance(self.reason, P.Nack) else f"reason {reason}"
+        super().__init__(f"device refused {msg_name}: {name} (detail {detail})")
+
+
+_CLOSED = object()  # put in the telemetry queue when the link ends
+
+
+class Link:
+    """One session with a device over a serial port.
+
+    timeout: s to wait for each reply; retries: resends (with the same sequence
+    number; every command is idempotent) before LinkTimeout; heartbeat: s between
+    heartbeats (None: none, e.g. to test the watchdog); telemetry_callback: called
+    from the reader thread with each (seq, Telemetry) instead of queueing it.
+    """
+
+    def __init__(self, url: str, log_path=None, baudrate: int = 921600, timeout: float = 0.1, retries: int = 3,
+                 heartbeat: float | None = 0.05, telemetry_callback=None, log_telemetry: bool = True):
+        self.url = url
+        self.timeout = timeout
+        self.retries = retries
+        self.heartbeat_interval = heartbeat
+        self.telemetry_callback = telemetry_callback
+        self.log_telemetry = log_telemetry
+        self._baudrate = baudrate
+        self._serial = None
+        self._log = open(log_path, "a", buffering=1) if log_path else None
+        self._log_lock = threading.Lock()
+        self._write_lock = threading.Lock()
+        self._pending: dict[int, list] = {}  # seq -> [event, reply]
+        self._pending_lock = threading.Lock()
+        self._seq = 0
+        self._stop = threading.Event()
+        self._heartbeat_off = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._last_sent = 0.0
+        self._telemetry: queue.Queue = queue.Queue()
+        self._last_telemetry_seq = None
+        self.decoder = P.Decoder()
+        self.error: LinkError | None = None
+        self.telemetry_received = 0
+        self.telemetry_lost = 0  # gaps in the device's telemetry sequence numbers
+        self.info: P.HelloReply | None = None
+
+    # ---- session ----------------------------------------------------------------------
+    def open(self, hello: bool = True) -> "Link":
+        """Open the port, start the reader and heartbeat threads, and (by default) shake hands."""
+        try:
+            self._serial = serial.serial_for_url(self.url, baudrate=self._baudrate, timeout=0.01)
+            self._serial.reset_input_buffer()
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise LinkError(f"cannot open {self.url}: {exc}") from exc
+        self.log("open", url=self.url)
+        self._start(self._reader, "link-reader")
+        if self.heartbeat_interval:
+            self._start(self._heartbeat, "link-heartbeat")
+        if hello:
+            self.hello()
+        return self
+
+    def _start(self, target, name) -> None:
+        t = threading.Thread(target=target, name=name, daemon=True)
+        t.start()
+        self._threads.append(t)
+
+    def close(self) -> None:
+        """Stop the threads and close the port and the log (safe to call twice)."""
+        self._stop.set()
+        for t in self._threads:
+            if t is not threading.current_thread():
+                t.join(timeout=1.0)
+        self._threads.clear()
+        if self._serial is not None:
+            try:
+                self._serial.close()
+            except Exception:  # the port may already be gone
+                pass
+            self._serial = None
+            self.log("close", rx_bad_frames=self.decoder.bad_frames, telemetry_received=self.telemetry_received,
+                     telemetry_lost=self.telemetry_lost)
+        if self._log:
+            with self._log_lock:
+                self._log.close()
+                self._log = None
+
+    def __enter__(self) -> "Link":
+        return self.open()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def log(self, event: str, **fields) -> None:
+        """One line in the session log, flushed: host time (s since the epoch), event, fields."""
+        if self._log is None:
+            return
+        line = json.dumps({"t": round(time.time(), 6), "event": event, **fields}, default=_jsonable)
+        with self._log_lock:
+            if self._log is not None:
+                self._log.write(line + "\n")
+
+    # ---- sending ----------------------------------------------------------------------
+    def _fail(self, why: str, exc: BaseException | None = None) -> LinkError:
+        if self.error is None:
+            self.error = LinkError(f"{self.url}: {why}" + (f" ({exc})" if exc else ""))
+            self.log("link_error", error=str(self.error))
+            self._stop.set()
+            with self._pending_lock:
+                for slot in self._pending.values():
+                    slot[0].set()
+            self._telemetry.put(_CLOSED)
+        return self.error
+
+    def _check(self) -> None:
+        if self.error is not None:
+            raise self.error
+        if self._serial is None:
+            raise LinkError(f"{self.url}: link is not open")
+
+    def _write(self, frame: bytes) -> None:
+        self._check()
+        try:
+            with self._write_lock:
+                self._serial.write(frame)
+                self._last_sent = time.monotonic()
+        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+            raise self._fail("port went away while writing", exc) from exc
+
+    def write_raw(self, data: bytes) -> None:
+        """Bytes straight onto the wire (for tests: garbage)."""
+        self.log("tx_raw", hex=data.hex())
+        self._write(data)
+
+    def send(self, msg) -> int:
+        """Send a message that expects no reply (HEARTBEAT); returns its sequence number."""
+        seq = self._next_seq()
+        self._write(P.encode(msg, seq))
+        return seq
+
+    def _next_seq(self) -> int:
+        with self._pending_lock:
+            self._seq = (self._seq + 1) & 0xFFFF
+            return self._seq
+
+    def request(self, msg, timeout: float | None = None, retries: int | None = None):
+        """Send a command and wait for its reply (ACK, or the data asked for); NackError on NACK.
+
+        Resends with the same sequence number up to `retries` times, each after
+        `timeout` s of silence; LinkTimeout after the last.
+        """
+        timeout = self.timeout if timeout is None else timeout
+        retries = self.retries if retries is None else retries
+        seq = self._next_seq()
+        slot = [threading.Event(), None]
+        with self._pending_lock:
+            self._pending[seq] = slot
+        frame = P.encode(msg, seq)
+        fields = _fields(msg)
+        try:
+            for attempt in range(retries + 1):
+                self.log("tx", msg=msg.MSG.name, seq=seq, attempt=attempt, **fields)
+                self._write(frame)
+                if slot[0].wait(timeout):
+                    break
+            else:
+                self.log("timeout", msg=msg.MSG.name, seq=seq)
+                raise LinkTimeout(f"{self.url}: no reply to {msg.MSG.name} after {retries + 1} tries "
+                                  f"of {timeout * 1000:.0f} ms")
+        finally:
+            with self._pending_lock:
+                self._pending.pop(seq, None)
+        self._check()
+        reply = slot[1]
+        if isinstance(reply, P.NackMsg):
+            raise NackError(msg.MSG.name, reply.reason, reply.detail)
+        return reply
+
+    # ---- commands -----------------------------------------------------------------------
+    def hello(self) -> P.HelloReply:
+        reply = self.request(P.Hello())
+        if reply.protocol != P.PROTOCOL_VERSION:
+            raise LinkError(f"{self.url}: device speaks protocol {reply.protocol}, this host {P.PROTOCOL_VERSION}")
+        self.info = reply
+        return reply
+
+    def get_state(self) -> P.StateMsg:
+        return self.request(P.GetState())
+
+    def get_gains(self, hinge: int) -> P.Gains:
+        return self.request(P.GetGains(hinge)).gains
+
+    def set_gains(self, gains, hinge: int = P.BROADCAST) -> P.Ack:
+        """gains: a controllers.pid.PidGains (SI) or protocol.Gains (wire units)."""
+        wire = gains if isinstance(gains, P.Gains) else P.Gains.from_pid(gains)
+        return self.request(P.SetGains(hinge, wire))
+
+    def set_targets(self, counts) -> P.Ack:
+        return self.request(P.SetTargets(tuple(int(c) for c in counts)))
+
+    def estop(self) -> P.Ack:
+        return self.request(P.EStop(), timeout=0.05, retries=5)
+
+    def clear_fault(self) -> P.Ack:
+        return self.request(P.ClearFault())
+
+    def set_telemetry_rate(self, rate_hz: int) -> P.Ack:
+        return self.request(P.SetTelemetryRate(int(rate_hz)))
+
+    # ---- telemetry --------------------------------------------------------------------
+    def telemetry(self, timeout: float | None = None):
+        """The next (seq, Telemetry) in order; None after `timeout` s; LinkError if the link died."""
+        try:
+            item = self._telemetry.get(timeout=timeout)
+        except queue.Empty:
+            self._check()
+            return None
+        if item is _CLOSED:
+            self._telemetry.put(_CLOSED)
+            raise self.error or LinkError(f"{self.url}: link closed")
+        return item
+
+    def drain_telemetry(self) -> list:
+        """Every (seq, Telemetry) queued now, oldest first."""
+        out = []
+        while True:
+            try:
+                item = self._telemetry.get_nowait()
+            except queue.Empty:
+                return out
+            if item is _CLOSED:
+                self._telemetry.put(_CLOSED)
+                return out
+            out.append(item)
+
+    # ---- threads ------------------------------------------------------------------------
+    def _reader(self) -> None:
+        ser = self._serial
+        while not self._stop.is_set():
+            try:
+                data = ser.read(max(1, ser.in_waiting))
+            except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+                if not self._stop.is_set():
+                    self._fail("port went away while reading", exc)
+                return
+            if not data:
+                continue
+            bad = self.decoder.bad_frames
+            for seq, msg in self.decoder.feed(data):
+                self._dispatch(seq, msg)
+            if self.decoder.bad_frames != bad:
+                self.log("rx_bad_frames", count=self.decoder.bad_frames, last_error=self.decoder.last_error)
+
+    def _dispatch(self, seq: int, msg) -> None:
+        if isinstance(msg, P.Telemetry):
+            if self._last_telemetry_seq is not None:
+                self.telemetry_lost += (seq - self._last_telemetry_seq - 1) & 0xFFFF
+            self._last_telemetry_seq = seq
+            self.telemetry_received += 1
+            if self.log_telemetry:
+                self.log("telemetry", seq=seq, **_fields(msg))
+            if self.telemetry_callback:
+                self.telemetry_callback(seq, msg)
+            else:
+                self._telemetry.put((seq, msg))
+            return
+        self.log("rx", msg=msg.MSG.name, seq=seq, **_fields(msg))
+        with self._pending_lock:
+            slot = self._pending.get(seq)
+        if slot is not None and not slot[0].is_set():
+            slot[1] = msg
+            slot[0].set()
+
+    def _heartbeat(self) -> None:
+        interval = self.heartbeat_interval
+        while not self._stop.wait(interval / 2) and not self._heartbeat_off.is_set():
+            if time.monotonic() - self._last_sent >= interval:
+                try:
+                    self.send(P.Heartbeat())
+                except LinkError:
+                    return
+
+    def stop_heartbeat(self) -> None:
+        """Stop feeding the device's watchdog (to test it); commands still feed it."""
+        self._heartbeat_off.set()
+        self.log("heartbeat_stopped")
+
+
+def _fields(msg) -> dict:
+    return {f.name: _jsonable(getattr(msg, f.name)) for f in dataclasses.fields(msg)}
+
+
+def _jsonable(v):
+    if dataclasses.is_dataclass(v):
+        return dataclasses.asdict(v)
+    if isinstance(v, tuple):
+        return list(v)
+    if hasattr(v, "item"):
+        return v.item()
+    return v

@@ -1,0 +1,170 @@
+"""Mirror a target onto the device: read its state, gate the move on the twin, send it,
+and compare the device with the twin's prediction as it moves.
+
+Time base: the device's ACK of SET_TARGETS carries the device time (us) at which
+the targets took effect; telemetry frame times are taken relative to it, so
+device and prediction share t = 0. Both are compared in encoder counts turned
+into angles (what the device can report). When a hinge parts from the prediction
+by more than `tolerance_deg`, the host sends ESTOP and names the hinge.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+from controllers.encoder import angle_from_counts, target_counts
+from twin import protocol as P
+from twin.gate import GateRefused, GateReport, check_move, enforce
+from twin.link import Link
+from twin.simulation import Twin
+from twin.spec import DeviceSpec
+
+
+class DeviceNotReady(RuntimeError):
+    """The device is in ESTOP or FAULT; clear it first."""
+
+
+@dataclasses.dataclass
+class MirrorResult:
+    report: GateReport
+    outcome: str  # "settled", "diverged" (host e-stopped), "device_fault", "timeout"
+    hinge: int | None  # the hinge that diverged or faulted
+    max_deviation_deg: np.ndarray  # per hinge, over the run
+    elapsed: float  # s of device time watched
+    frames: int
+    final_deg: np.ndarray  # device hinge angles at the end, deg
+    message: str
+
+    @property
+    def ok(self) -> bool:
+        return self.outcome == "settled"
+
+
+def faults_text(faults: int) -> str:
+    names = [f.name for f in P.Fault if f and faults & f]
+    return "|".join(names) if names else "none"
+
+
+def device_gains(link: Link, n: int) -> list:
+    """The device's PID gains, one PidGains per hinge, as the device holds them."""
+    return [link.get_gains(k).to_pid() for k in range(n)]
+
+
+REST_COUNTS = 2  # the device is at rest when no hinge moves more than this ...
+REST_TIME = 0.05  # ... in this many seconds
+
+
+def wait_for_rest(link: Link, spec: DeviceSpec, timeout: float = 3.0) -> P.StateMsg:
+    """The device's state once no hinge has moved more than REST_COUNTS in REST_TIME s."""
+    state = link.get_state()
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        time.sleep(REST_TIME)
+        now = link.get_state()
+        if np.abs(np.asarray(now.counts) - state.counts).max() <= REST_COUNTS:
+            return now
+        state = now
+    raise DeviceNotReady(f"the device is still moving after {timeout:.0f} s; nothing was sent")
+
+
+def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, settle_limit: float = 2.0,
+           override: bool = False, telemetry_hz: int = 500, on_frame=None) -> MirrorResult:
+    """Gate, send and watch one move (targets in rad). GateRefused if the twin finds it unsafe.
+
+    on_frame(elapsed_s, device_deg, predicted_deg) is called for every telemetry frame.
+    """
+    targets = np.asarray(targets, float)
+    state = link.get_state()
+    if state.state == P.State.FAULT and state.faults == P.Fault.WATCHDOG:
+        # the previous session ended and the watchdog stopped the motors, as it should: not a fault of the device
+        link.log("clear_watchdog", reason="previous session's watchdog stop")
+        link.clear_fault()
+        state = link.get_state()
+    if state.state in (P.State.ESTOP, P.State.FAULT):
+        raise DeviceNotReady(f"device is in {P.State(state.state).name} (faults: {faults_text(state.faults)}); "
+                             "clear it first (vrscroll status --clear-fault)")
+    gains = device_gains(link, spec.n_hinges)
+    state = wait_for_rest(link, spec)
+    twin = Twin(spec, gains)
+    for _ in range(3):  # gate from the present state; again if the device moved while the twin simulated
+        start = angle_from_counts(spec, state.counts)
+        report = check_move(spec, start, targets, gains, settle_limit=settle_limit, twin=twin)
+        link.log("gate", **report.to_dict())
+        now = link.get_state()
+        if np.abs(np.asarray(now.counts) - state.counts).max() <= REST_COUNTS:
+            break
+        state = now
+    else:
+        raise DeviceNotReady("the device kept moving while the twin simulated the move; nothing was sent")
+    try:
+        enforce(report, override)
+    except GateRefused:
+        link.log("gate_refused", reason=report.refusal())
+        raise
+    if report.overridden:
+        link.log("gate_override", reason=report.refusal())
+
+    trace = report.prediction  # None only when an override sent a target the twin could not simulate
+    predicted = None if trace is None else angle_from_counts(spec, trace.counts)  # as the encoders would read
+    dt = spec.firmware_dt
+    link.set_telemetry_rate(telemetry_hz)
+    link.drain_telemetry()
+    ack = link.set_targets(target_counts(spec, targets))
+    t0 = ack.time_us
+    tgt = target_counts(spec, targets)
+    max_dev = np.zeros(spec.n_hinges)
+    hold_needed = spec.settle_hold
+    in_band_since = None
+    frames = 0
+    elapsed = 0.0
+    device = start
+    deadline = settle_limit + 1.0
+
+    def result(outcome, hinge, message):
+        r = MirrorResult(report, outcome, hinge, np.degrees(max_dev), elapsed, frames, np.degrees(device), message)
+        link.log("mirror_result", outcome=outcome, hinge=hinge, message=message, elapsed_s=elapsed,
+                 max_deviation_deg=np.degrees(max_dev).round(3).tolist(), frames=frames)
+        return r
+
+    while elapsed < deadline:
+        item = link.telemetry(timeout=0.5)
+        if item is None:
+            link.estop()
+            return result("timeout", None, "no telemetry from the device for 0.5 s; e-stopped")
+        _, fr = item
+        since = ((fr.time_us - t0) & 0xFFFFFFFF) / 1e6
+        if since > 3600:  # a frame from before the targets took effect (wrapped negative)
+            continue
+        elapsed = since
+        frames += 1
+        device = angle_from_counts(spec, fr.counts)
+        expected = device if predicted is None else predicted[min(int(round(elapsed / dt)), len(predicted) - 1)]
+        dev = np.abs(device - expected)
+        max_dev = np.maximum(max_dev, dev)
+        if on_frame:
+            on_frame(elapsed, np.degrees(device), np.degrees(expected))
+        if fr.state in (P.State.FAULT, P.State.ESTOP):
+            hinge = None if fr.fault_hinge == 0xFF else fr.fault_hinge
+            return result("device_fault", hinge, f"device stopped itself: {faults_text(fr.faults)}"
+                          + (f" on hinge {hinge}" if hinge is not None else "") + f" at t={elapsed:.3f} s")
+        worst = int(np.argmax(dev))
+        if math.degrees(dev[worst]) > tolerance_deg:
+            link.estop()
+            return result("diverged", worst,
+                          f"hinge {worst} parted from the twin by {math.degrees(dev[worst]):.1f} deg "
+                          f"(tolerance {tolerance_deg:.1f} deg) at t={elapsed:.3f} s: device e-stopped")
+        if np.all(np.abs(np.asarray(fr.counts) - tgt) <= spec.settle_band):
+            in_band_since = elapsed if in_band_since is None else in_band_since
+            if elapsed - in_band_since >= hold_needed:
+                twin_t = f"{trace.duration:.3f} s" if trace is not None else "not simulated"
+                return result("settled", None, f"settled at t={in_band_since:.3f} s (twin: {twin_t}), "
+                              f"largest deviation {np.degrees(max_dev).max():.2f} deg")
+        else:
+            in_band_since = None
+    worst = int(np.argmax(np.abs(np.asarray(device) - targets)))
+    return result("timeout", worst, f"not settled after {deadline:.1f} s (hinge {worst} at "
+                  f"{math.degrees(device[worst]):.1f} deg, target {math.degrees(targets[worst]):.1f} deg)")
