@@ -32,3 +32,14 @@ def test_model_check_and_help():
     for cmd in ("simulate", "model"):
         out = vrscroll(cmd, "--help")
         assert out.returncode == 0 and "usage" in out.stdout
+
+
+def test_demo_approximates_validates_simulates_and_draws(tmp_path):
+    png, js = tmp_path / "demo.png", tmp_path / "demo.json"
+    out = vrscroll("demo", "--png", str(png), "--json", str(js))
+    assert out.returncode == 0, out.stdout + out.stderr
+    report = json.loads(js.read_text())
+    assert report["gate"]["passed"]
+    assert report["approximation"]["msd_mm"] < 2.0  # the cylinder is followed closely
+    assert report["morph"]["msd_after_morph_mm"] < report["approximation"]["msd_mm"] + 1.0
+    assert png.stat().st_size > 10_000

@@ -65,9 +65,16 @@ def test_neighbours_never_collide_but_others_can(spec):
     pairs = {tuple(sorted((m.geom(c.geom1).name, m.geom(c.geom2).name))) for c in d.contact[: d.ncon]}
     flaps = [tuple(int(name[4]) for name in pair) for pair in pairs]
     assert flaps and all(abs(a - b) > 1 for a, b in flaps)
-    flat = mujoco.MjData(m)
-    mujoco.mj_forward(m, flat)
-    assert flat.ncon == 0
+    for angle in (0.0, -spec.hinge_limit, spec.hinge_limit):  # flat, and every hinge at either limit
+        bent = mujoco.MjData(m)
+        bent.qpos[:] = angle
+        mujoco.mj_forward(m, bent)
+        names = [(m.geom(c.geom1).name, m.geom(c.geom2).name) for c in bent.contact[: bent.ncon]]
+        assert all(abs(int(a[4]) - int(b[4])) > 1 for a, b in names), names
+    one = mujoco.MjData(m)
+    one.qpos[m.joint("hinge2").qposadr[0]] = -math.radians(40)  # root's neighbour bent convex
+    mujoco.mj_forward(m, one)
+    assert one.ncon == 0
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -1,0 +1,48 @@
+"""Off-screen pyvista pictures of the device on a target.
+
+Rendering is off-screen (pyvista.OFF_SCREEN); it works headless here without xvfb
+(VTK falls back from X to an off-screen context and prints one "bad X server
+connection" warning on stderr).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pyvista as pv
+import trimesh
+
+from twin.proxy import METRIC_SPACING, grid_layout, world_points
+from twin.spec import DeviceSpec
+from twin.surface_metrics import point_distances
+
+pv.OFF_SCREEN = True
+
+
+def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.ndarray, widths,
+                         path: str | Path, title: str = "", window_size=(1200, 900)) -> Path:
+    """Write a PNG of the target (grey) and the device's flaps coloured by distance to it (mm).
+
+    frames: world flap frames (n_flaps, 4, 4), e.g. `Approximation.frames(spec)`; widths: m.
+    """
+    plotter = pv.Plotter(off_screen=True, window_size=window_size)
+    plotter.add_mesh(pv.wrap(mesh), color="lightgrey", opacity=0.35, smooth_shading=True)
+    for i, width in enumerate(widths):
+        layout = grid_layout(spec, METRIC_SPACING, width)
+        nu = len(np.unique(layout.u))
+        points = world_points(frames, widths, layout, [i])[0]
+        grid = pv.StructuredGrid(*(points[:, d].reshape(nu, -1, 1) for d in range(3)))
+        # the grid's points run in Fortran order (u fastest); the layout's in C order (y fastest)
+        grid["distance_mm"] = (point_distances(mesh, points) * 1e3).reshape(nu, -1).ravel(order="F")
+        plotter.add_mesh(grid, scalars="distance_mm", cmap="viridis", clim=(0.0, 20.0), show_edges=False,
+                         scalar_bar_args={"title": "distance to target, mm"} if i == 0 else None,
+                         show_scalar_bar=i == 0)
+    if title:
+        plotter.add_text(title, font_size=10)
+    plotter.camera_position = "iso"
+    plotter.reset_camera()
+    path = Path(path)
+    plotter.screenshot(str(path))
+    plotter.close()
+    return path
