@@ -13,8 +13,13 @@ import sys
 
 # command name -> (module, one-line help)
 COMMANDS = {
+    "demo": ("twin.commands.demo", "approximate a shape, validate and simulate the morph on the twin, write a picture"),
     "simulate": ("twin.commands.simulate", "move the twin's hinges to targets and report the step response"),
     "model": ("twin.commands.model", "write or check the device MJCF generated from the spec"),
+    "approximate": ("twin.commands.approximate", "approximate a target shape or mesh from a start pose; prints JSON"),
+    "emulate": ("twin.commands.emulate", "run a device emulator on a pseudo-terminal (prints its port)"),
+    "mirror": ("twin.commands.mirror", "gate a target on the twin, send it to the device, watch it follow"),
+    "status": ("twin.commands.status", "the device's firmware version, state, faults and hinge angles"),
 }
 
 
@@ -25,10 +30,13 @@ class UserError(Exception):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="vrscroll", description="VRScroll physics twin and MorphPatch tools.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    argv = sys.argv[1:] if argv is None else list(argv)
+    chosen = next((a for a in argv if not a.startswith("-")), None)
     for name, (module, help_text) in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         p.set_defaults(_module=module)
-        importlib.import_module(module).add_arguments(p)
+        if name == chosen:  # only the command being run is imported: fast start, and one broken command breaks only itself
+            importlib.import_module(module).add_arguments(p)
     args = parser.parse_args(argv)
     try:
         return importlib.import_module(args._module).run(args) or 0
