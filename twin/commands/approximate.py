@@ -24,12 +24,17 @@ MESH_START_HEIGHT = 0.04  # m above the top of a mesh file's bounding box
 
 
 def add_arguments(p) -> None:
+    add_target_arguments(p)
+    p.add_argument("--variant", choices=VARIANTS, default="full", help="pipeline variant (default full)")
+
+
+def add_target_arguments(p) -> None:
+    """--shape/--mesh, --start, --png, --json: shared with `vrscroll cbs`."""
     target = p.add_mutually_exclusive_group(required=True)
     target.add_argument("--shape", choices=shape_names(), help="one of the evaluation shapes")
     target.add_argument("--mesh", metavar="FILE", help="a watertight mesh file in metres (STL, OBJ, PLY, GLB, ...)")
     p.add_argument("--start", metavar="X,Y,Z,ROLL,PITCH,YAW",
                    help="anchor start, mm and deg (default: the shape's start, or 40 mm above a mesh file)")
-    p.add_argument("--variant", choices=VARIANTS, default="full", help="pipeline variant (default full)")
     p.add_argument("--png", metavar="FILE", help="also write an off-screen picture of the device on the target")
     p.add_argument("--json", metavar="FILE", help="also write the JSON to this file")
 
@@ -44,8 +49,8 @@ def _parse_start(text: str) -> list[float]:
     return values
 
 
-def run(args) -> int:
-    spec = default_spec()
+def target_and_start(args):
+    """(name, mesh, start as [x,y,z mm, roll,pitch,yaw deg], start pose 4x4) from --shape/--mesh and --start."""
     if args.shape:
         mesh, name = load_shape(args.shape), args.shape
         default_start = shape_table()[args.shape]["start"]
@@ -54,11 +59,12 @@ def run(args) -> int:
         (x0, y0, _), (x1, y1, z1) = mesh.bounds
         default_start = [(x0 + x1) / 2 * 1e3, (y0 + y1) / 2 * 1e3, (z1 + MESH_START_HEIGHT) * 1e3, 0, 0, 0]
     start = _parse_start(args.start) if args.start else default_start
-    fields = build_fields(mesh)
-    pose = pose_from_mm_deg(start)
-    approximate(fields, pose, spec, args.variant)  # warm-up: the first call in a process loads compiled code
-    result = approximate(fields, pose, spec, args.variant).measured(spec, mesh)
-    out = {"target": name, "start_mm_deg": start, **result.to_json()}
+    return name, mesh, start, pose_from_mm_deg(start)
+
+
+def write_result(args, name, start, result, mesh, spec, extra: dict | None = None) -> None:
+    """Print the result's JSON (and write --json, --png) with the target, start and any extra fields."""
+    out = {"target": name, "start_mm_deg": start, **result.to_json(), **(extra or {})}
     text = json.dumps(out, indent=2)
     print(text)
     if args.json:
@@ -68,5 +74,14 @@ def run(args) -> int:
         from viz.scene import render_approximation
 
         render_approximation(spec, mesh, result.frames(spec), result.widths, args.png,
-                             title=f"{name} ({args.variant}): MSD {out['msd_mm']:.1f} mm, HD {out['hd_mm']:.1f} mm")
+                             title=f"{name} ({result.variant}): MSD {out['msd_mm']:.1f} mm, HD {out['hd_mm']:.1f} mm")
+
+
+def run(args) -> int:
+    spec = default_spec()
+    name, mesh, start, pose = target_and_start(args)
+    fields = build_fields(mesh)
+    approximate(fields, pose, spec, args.variant)  # warm-up: the first call in a process loads compiled code
+    result = approximate(fields, pose, spec, args.variant).measured(spec, mesh)
+    write_result(args, name, start, result, mesh, spec)
     return 0

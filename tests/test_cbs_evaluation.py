@@ -1,0 +1,91 @@
+"""CBS with real MuJoCo contact, the start generator and the evaluation runner."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from twin.approximation import pose_from_mm_deg
+from twin.cbs import CbsSimulator
+from twin.collision import collision_error, convex_parts
+from twin.evaluation import read_records, run_evaluation, summarize, write_tables
+from twin.fields import exact_signed_distance
+from twin.proxy import touch_surface_points
+from twin.shapes import load_shape
+from twin.starts import MAX_TILT, STANDOFF, approach_starts
+from twin.surface_metrics import msd_hd
+
+PENETRATION = 0.002  # m: the deepest a CBS touch-surface sample may sit inside the target
+
+
+def test_cbs_on_a_flat_face_rests_on_it(spec):
+    cube = load_shape("cube")
+    top = cube.bounds[1][2] * 1e3
+    sim = CbsSimulator(spec, cube)
+    result = sim.run(pose_from_mm_deg([0, 0, top + 30, 0, 0, 0]))
+    msd, hd = msd_hd(spec, cube, result.root_pose, result.angles)
+    assert msd < 0.5e-3 and hd < 1e-3
+    assert np.abs(np.degrees(result.angles)).max() < 1.0
+
+
+def test_cbs_on_a_cylinder_wraps_without_going_through(spec):
+    cyl = load_shape("cylinder")
+    top = cyl.bounds[1][2] * 1e3
+    # the cylinder's axis is along y: the device's row (x) runs around it
+    sim = CbsSimulator(spec, cyl)
+    result = sim.run(pose_from_mm_deg([0, 0, top + 20, 0, 0, 0]))
+    assert np.all(result.angles < 0)  # convex touch surface, the way a cylinder bends it
+    frames = result.frames(spec)
+    pts = touch_surface_points(spec, frames, result.widths)
+    depth, _ = exact_signed_distance(cyl, pts)
+    assert depth.min() > -PENETRATION
+    # the root and both tips end in contact (within 1 mm); flaps between may be held off by the tips,
+    # as bending until contact leaves them on a convex target
+    for i in (0, spec.root_flap, spec.n_flaps - 1):
+        flap_depth, _ = exact_signed_distance(cyl, touch_surface_points(spec, frames[i:i + 1], result.widths[i:i + 1]))
+        assert np.abs(flap_depth).min() < 1e-3, i
+
+
+def test_collision_shape_keeps_the_true_shape():
+    torus = load_shape("torus")
+    parts = convex_parts(torus)
+    assert len(parts) > 1  # a single hull would fill the hole
+    err = collision_error(torus, parts)
+    assert err.mean < 0.5e-3 and max(err.mesh_to_parts_max, err.parts_outside_max) < 5e-3
+    hull_err = collision_error(torus, [torus.convex_hull])
+    assert hull_err.mesh_to_parts_max > 0.03  # the hull misses the inner ring by centimetres
+
+
+def test_starts_are_seeded_and_documented():
+    mesh = load_shape("arch")
+    a, b, c = approach_starts(mesh, 20, seed=3), approach_starts(mesh, 20, seed=3), approach_starts(mesh, 20, seed=4)
+    assert np.array_equal(a, b) and not np.allclose(a, c)
+    anchors = a[:, :3, 3]
+    d, closest = exact_signed_distance(mesh, anchors)
+    assert np.all(d > STANDOFF[0] - 1e-6) and np.all(d < STANDOFF[1] + 1e-6)
+    normals = (anchors - closest) / d[:, None]
+    tilt = np.arccos(np.clip(np.einsum("ij,ij->i", normals, a[:, :3, 2]), -1, 1))
+    assert tilt.max() <= MAX_TILT + math.radians(1.0)
+
+
+def test_small_evaluation_keeps_the_papers_order_and_resumes(tmp_path):
+    shapes = ["cube", "torus", "arch", "cone", "cylinder", "ellipsoid", "stairs", "curved_stairs"]
+    out = tmp_path / "ev"
+    run_evaluation(out, shapes[:1], n_starts=3, seed=0, workers=2, progress=False)
+    log = out / "results.jsonl"
+    lines = log.read_text().splitlines()
+    log.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][:20])  # interrupted mid-record
+    assert len({r["start"] for r in read_records(log)}) == 2
+    records = run_evaluation(out, shapes, n_starts=3, seed=0, workers=2, progress=False)
+    assert len(records) == len(shapes) * 3 * 3
+    assert len({(r["shape"], r["start"], r["method"]) for r in read_records(log)}) == len(records)
+    rows = summarize(records)
+    mean = {(r["shape"], r["method"]): r["msd_mean_mm"] for r in rows}
+    for shape in shapes:
+        assert mean[(shape, "full")] < mean[(shape, "cbs")], shape
+        assert mean[(shape, "no_hcevf")] < mean[(shape, "cbs")], shape
+    md, csv_path = write_tables(rows, out)
+    assert "paper MSD" in md.read_text() and csv_path.exists()
+    with pytest.raises(ValueError, match="holds a run"):
+        run_evaluation(out, shapes, n_starts=4, seed=0, workers=1, progress=False)

@@ -1,0 +1,59 @@
+"""Seeded approach poses for the evaluation: where a user would bring the device to a target.
+
+A start is drawn as the paper's users approached (their trajectories are not
+published, so this is our documented stand-in):
+
+1. a point on the target's surface, uniform by area, with its outward normal n;
+2. a stand-off distance d, uniform in STANDOFF (m), along n: the anchor sits at p + d n;
+3. the device's z axis (touch-surface normal) is n tilted by an angle uniform in
+   [0, MAX_TILT] about a random axis perpendicular to n;
+4. a yaw about that axis, uniform in [0, 2 pi); hinges flat.
+
+The same seed gives the same starts on any machine (numpy's PCG64).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import trimesh
+from scipy.spatial.transform import Rotation
+
+STANDOFF = (0.02, 0.06)  # m
+MAX_TILT = math.radians(30.0)
+
+
+def approach_starts(mesh: trimesh.Trimesh, n: int = 50, seed: int = 0) -> np.ndarray:
+    """n start poses of the anchor (n, 4, 4), device frame in the world, from a seeded generator."""
+    rng = np.random.default_rng(seed)
+    areas = mesh.area_faces
+    faces = rng.choice(len(areas), size=n, p=areas / areas.sum())
+    tri = mesh.triangles[faces]
+    u, v = rng.random(n), rng.random(n)
+    flip = u + v > 1
+    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    points = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    normals = mesh.face_normals[faces]
+    standoff = rng.uniform(*STANDOFF, n)
+    tilt = rng.uniform(0.0, MAX_TILT, n)
+    tilt_dir = rng.uniform(0.0, 2 * math.pi, n)
+    yaw = rng.uniform(0.0, 2 * math.pi, n)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    for i in range(n):
+        align = _z_to(normals[i])  # z -> n
+        r = align * Rotation.from_rotvec(tilt[i] * np.array([math.cos(tilt_dir[i]), math.sin(tilt_dir[i]), 0.0]))
+        r = r * Rotation.from_rotvec([0.0, 0.0, yaw[i]])
+        poses[i, :3, :3] = r.as_matrix()
+        poses[i, :3, 3] = points[i] + standoff[i] * normals[i]
+    return poses
+
+
+def _z_to(n: np.ndarray) -> Rotation:
+    """A rotation taking +z to the unit vector n."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, n)
+    s, c = np.linalg.norm(axis), float(np.dot(z, n))
+    if s < 1e-12:
+        return Rotation.identity() if c > 0 else Rotation.from_rotvec([math.pi, 0.0, 0.0])
+    return Rotation.from_rotvec(axis / s * math.atan2(s, c))
