@@ -22,6 +22,9 @@ COMMANDS = {
     "emulate": ("twin.commands.emulate", "run a device emulator on a pseudo-terminal (prints its port)"),
     "mirror": ("twin.commands.mirror", "gate a target on the twin, send it to the device, watch it follow"),
     "status": ("twin.commands.status", "the device's firmware version, state, faults and hinge angles"),
+    "tune": ("twin.commands.tune", "tune PID gains per hinge on the twin (robust to tolerances); --port confirms"),
+    "hil": ("twin.commands.hil", "play a scenario on the device and the twin; traces, metrics, plots, report"),
+    "calibrate": ("twin.commands.calibrate", "fit the twin's motor and gearbox parameters to recorded HIL runs"),
 }
 
 

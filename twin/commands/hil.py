@@ -1,0 +1,65 @@
+"""`vrscroll hil SCENARIO --port PORT`: one scenario on the device and on the twin, compared (docs/tuning-hil-calibration.md)."""
+
+from __future__ import annotations
+
+import datetime
+import math
+from pathlib import Path
+
+from twin.cli import UserError
+
+
+def add_arguments(p) -> None:
+    p.add_argument("scenario", help="scenario file, TOML or JSON (docs/tuning-hil-calibration.md)")
+    p.add_argument("--port", required=True, help="serial port or pyserial URL of the device")
+    p.add_argument("--out", help="run folder (default hil-<scenario>-<time>)")
+    p.add_argument("--telemetry-hz", type=int, default=500, help="telemetry rate (default %(default)s)")
+    p.add_argument("--gains", help="gains file (vrscroll tune --out) to push to the device before the run")
+    p.add_argument("--log", help="session log, JSON lines (default <out>/session.jsonl)")
+
+
+def run(args) -> int:
+    from twin.gate import GateRefused
+    from twin.hil import compare, load_run, load_scenario, run_hil, write_report
+    from twin.link import Link, LinkError
+    from twin.mirror import DeviceNotReady
+    from twin.spec import load_spec
+
+    spec = load_spec()
+    scenario = load_scenario(args.scenario, spec)
+    gains = None
+    if args.gains:
+        from controllers.tuning import read_gains
+        gains = read_gains(args.gains, spec.n_hinges)
+    out = Path(args.out or f"hil-{scenario.name}-{datetime.datetime.now():%Y%m%d-%H%M%S}")
+    out.mkdir(parents=True, exist_ok=True)
+    log = args.log or str(out / "session.jsonl")
+    last = [0.0]
+
+    def progress(t):
+        if t - last[0] >= 0.5:
+            last[0] = t
+            print(f"t={t:6.2f} s of {scenario.duration:.2f} s", flush=True)
+
+    try:
+        with Link(args.port, log_path=log) as link:
+            meta = run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz,
+                           scenario_path=args.scenario, on_progress=progress, gains=gains)
+    except GateRefused as exc:
+        print(exc.report.text())
+        raise UserError(f"scenario refused by the gate: {exc} (nothing was sent)") from None
+    except DeviceNotReady as exc:
+        raise UserError(str(exc)) from None
+    except LinkError as exc:
+        raise UserError(f"link: {exc} (session log: {log}; traces so far in {out})") from None
+    except RuntimeError as exc:
+        raise UserError(f"{exc} (traces so far in {out})") from None
+    run_ = load_run(out)
+    rows = compare(spec, run_["device"], run_["twin"], [c["t_s"] for c in meta["changes"]])
+    report = write_report(spec, out, rows)
+    print(f"{'hinge':>5} {'RMSE deg':>9} {'max err deg':>11} {'lag ms':>7} {'settle dev s':>12} {'settle twin s':>13}")
+    for r in rows:
+        print(f"{r['hinge']:>5} {r['rmse_deg']:>9.3f} {r['max_error_deg']:>11.3f} {r['lag_s'] * 1000:>7.1f} "
+              f"{r['settle_device_s']:>12.3f} {r['settle_twin_s']:>13.3f}")
+    print(f"report: {report}")
+    return 0

@@ -1,0 +1,123 @@
+"""`vrscroll tune`: robust PID gains per hinge on the twin; with --port, confirm them on the device."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+
+from twin.cli import UserError
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--max-overshoot-deg", type=float, default=1.0,
+                   help="largest overshoot allowed on any plant, deg (default %(default)s)")
+    p.add_argument("--tolerance", type=float, default=20.0,
+                   help="motor constant and gear friction +- this percent: the plants tuned for are the nominal "
+                        "and the 4 corners, the cost is the worst (default %(default)s)")
+    p.add_argument("--step-deg", type=float, default=30.0,
+                   help="step every hinge takes from flat, deg (default %(default)s)")
+    p.add_argument("--duration", type=float, default=0.6, help="s simulated per candidate (default %(default)s)")
+    p.add_argument("--population", type=int, default=32, help="candidates per generation (default %(default)s)")
+    p.add_argument("--generations", type=int, default=8, help="cross-entropy generations (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores)")
+    p.add_argument("--out", default="gains.json", help="gains file to write, JSON (default %(default)s)")
+    p.add_argument("--port", help="also push the gains to the device and run the same step on it")
+    p.add_argument("--log", default="vrscroll-tune.jsonl", help="session log with --port (default %(default)s)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def _line(label, rows):
+    return f"{label:<16}" + "  ".join(f"{r['settle_time_s'] * 1000:6.0f} ms {r['overshoot_deg']:5.2f} deg"
+                                      if not math.isnan(r['settle_time_s']) else f"{'unsettled':>9} "
+                                      f"{r['overshoot_deg']:5.2f} deg" for r in rows)
+
+
+def run(args) -> int:
+    from controllers.pid import PidGains
+    from controllers.tuning import TuneGoal, step_report, tune, write_gains
+    from twin.spec import load_spec
+
+    if not 0 <= args.tolerance < 100:
+        raise UserError(f"--tolerance {args.tolerance}: expected a percentage in [0, 100)")
+    if args.max_overshoot_deg <= 0:
+        raise UserError("--max-overshoot-deg must be positive")
+    spec = load_spec()
+    step = math.radians(args.step_deg)
+    if not 0 < abs(step) <= spec.hinge_limit:
+        raise UserError(f"--step-deg {args.step_deg}: outside the hinge range")
+    goal = TuneGoal(max_overshoot=math.radians(args.max_overshoot_deg), tolerance=args.tolerance / 100,
+                    step=step, duration=args.duration)
+    before = PidGains.from_spec(spec)
+    result = tune(spec, goal, population=args.population, generations=args.generations, seed=args.seed,
+                  nthread=args.threads,
+                  progress=None if args.json else lambda g, c, t: print(
+                      f"generation {g + 1}/{args.generations}: worst-plant cost per hinge "
+                      + " ".join(f"{x * 1000:5.0f}" for x in c) + f" ms  ({t:.1f} s)", flush=True))
+    rows_before, _ = step_report(spec, before, step)
+    rows_after, _ = step_report(spec, result.gains, step)
+    meta = {"goal": {"max_overshoot_deg": args.max_overshoot_deg, "tolerance_pct": args.tolerance,
+                     "step_deg": args.step_deg, "duration_s": args.duration},
+            "worst_plant_settle_s": [round(float(x), 4) for x in result.settle],
+            "worst_plant_overshoot_deg": [round(math.degrees(x), 4) for x in result.overshoot],
+            "simulations": result.simulations, "wall_time_s": round(result.wall_time, 2)}
+    write_gains(args.out, result.gains, meta)
+    summary = {"gains_file": args.out, "before": rows_before, "after": rows_after, **meta}
+    if not args.json:
+        print(f"tuned in {result.wall_time:.1f} s ({result.simulations} simulations of {args.duration} s); "
+              f"nominal twin, step to {args.step_deg} deg, per hinge settle / overshoot:")
+        print(_line("spec defaults", rows_before))
+        print(_line("tuned", rows_after))
+        print("worst plant     " + "  ".join(f"{s * 1000:6.0f} ms {math.degrees(o):5.2f} deg"
+                                          for s, o in zip(result.settle, result.overshoot)))
+        print(f"gains written to {args.out}")
+    if args.port:
+        summary["device"] = confirm_on_device(args, spec, result.gains, step, rows_after, quiet=args.json)
+    if args.json:
+        print(json.dumps(summary, indent=2, default=float))
+    return 0
+
+
+def confirm_on_device(args, spec, gains, step, twin_rows, quiet=False) -> list[dict]:
+    """Push the gains, run the step on the device, print its metrics next to the twin's prediction."""
+    from twin.hil import device_step
+    from twin.link import Link, LinkError
+    from twin.mirror import DeviceNotReady
+    from twin.gate import GateRefused
+    from twin.response import step_metrics
+    from controllers.encoder import target_counts
+    from twin.simulation import Twin, move_report
+
+    n = spec.n_hinges
+    targets = np.full(n, step)
+    try:
+        with Link(args.port, log_path=args.log) as link:
+            for k, g in enumerate(gains):
+                link.set_gains(g, hinge=k)
+            t, deg, start, res = device_step(link, spec, targets)
+    except (GateRefused, DeviceNotReady) as exc:
+        raise UserError(str(exc)) from None
+    except LinkError as exc:
+        raise UserError(f"link: {exc} (session log: {args.log})") from None
+    twin = Twin(spec, gains)
+    twin.reset(start)
+    trace = twin.move_to(targets, max_time=1.5, stop_when_settled=False)
+    pred = move_report(spec, trace)
+    band = math.degrees(spec.settle_band * spec.rad_per_count)
+    tgt = np.degrees(target_counts(spec, targets) * spec.rad_per_count)
+    rows = []
+    for k in range(n):
+        m = step_metrics(t, deg[:, k], float(tgt[k]), band, tail=spec.settle_hold) if len(t) > 1 else None
+        rows.append({"hinge": k, "device_settle_s": round(m.settle_time, 4) if m else float("nan"),
+                     "device_overshoot_deg": round(m.overshoot, 3) if m else float("nan"),
+                     "twin_settle_s": pred[k]["settle_time_s"], "twin_overshoot_deg": pred[k]["overshoot_deg"]})
+    if not quiet:
+        print(f"device at {args.port}: {res.message}")
+        print(f"{'hinge':>5} {'device settle s':>15} {'twin settle s':>13} {'device over deg':>15} "
+              f"{'twin over deg':>13}")
+        for r in rows:
+            print(f"{r['hinge']:>5} {r['device_settle_s']:>15.3f} {r['twin_settle_s']:>13.3f} "
+                  f"{r['device_overshoot_deg']:>15.3f} {r['twin_overshoot_deg']:>13.3f}")
+    return rows
