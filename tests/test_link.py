@@ -16,26 +16,11 @@ from hypothesis import strategies as st
 from controllers.encoder import target_counts
 from twin import protocol as P
 from twin.cli import main as vrscroll
-from twin.emulator import EmulatorProcess
 from twin.gate import GateRefused
 from twin.link import Link, LinkError, LinkTimeout, NackError
 from twin.mirror import mirror
 
 SAFE_DEG = [25.0, 10.0, 0.0, 0.0, -10.0, -25.0]
-
-
-@pytest.fixture
-def emulator(tmp_path):
-    started = []
-
-    def start(*args):
-        e = EmulatorProcess(tmp_path / f"emulator{len(started)}.jsonl", *args)
-        started.append(e)
-        return e
-
-    yield start
-    for e in started:
-        e.stop()
 
 
 def session_log(path):

@@ -13,7 +13,6 @@ import pytest
 
 from controllers.pid import PidGains
 from controllers.tuning import TuneGoal, read_gains, step_report, tune, write_gains
-from twin.emulator import EmulatorProcess
 from twin.hil import compare, load_run, load_scenario, read_trace, run_hil
 from twin.link import Link
 
@@ -44,20 +43,6 @@ angles_deg = [10, 30, 5, 15, 50, 40]
 t_s = 1.2
 angles_deg = [25, 15, 35, 5, 20, 0]
 """
-
-
-@pytest.fixture
-def emulator(tmp_path):
-    started = []
-
-    def start(*args):
-        e = EmulatorProcess(tmp_path / f"emulator{len(started)}.jsonl", *args)
-        started.append(e)
-        return e
-
-    yield start
-    for e in started:
-        e.stop()
 
 
 @pytest.fixture(scope="module")
