@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 import trimesh
 
-from twin.fields import cache_dir, exact_signed_distance, mesh_key
+from twin.fields import cache_dir, exact_signed_distance, mesh_key, save_npz
 from twin.model import mjcf
 from twin.spec import DeviceSpec
 
@@ -25,7 +25,7 @@ def convex_parts(mesh: trimesh.Trimesh, threshold: float = COACD_THRESHOLD) -> l
     """Convex pieces whose union is the mesh (the mesh itself if it is convex); cached on disk."""
     if mesh.is_convex:
         return [mesh]
-    path = cache_dir().parent / "coacd" / f"{mesh_key(mesh, threshold=threshold)}.npz"
+    path = cache_dir("coacd") / f"{mesh_key(mesh, threshold=threshold)}.npz"
     if path.is_file():
         with np.load(path) as data:
             return [trimesh.Trimesh(data[f"v{i}"], data[f"f{i}"]) for i in range(int(data["n"]))]
@@ -34,13 +34,10 @@ def convex_parts(mesh: trimesh.Trimesh, threshold: float = COACD_THRESHOLD) -> l
     coacd.set_log_level("error")
     raw = coacd.run_coacd(coacd.Mesh(mesh.vertices, mesh.faces), threshold=threshold, seed=0)
     parts = [trimesh.Trimesh(v, f).convex_hull for v, f in raw]
-    path.parent.mkdir(parents=True, exist_ok=True)
     arrays = {"n": len(parts)}
     for i, p in enumerate(parts):
         arrays[f"v{i}"], arrays[f"f{i}"] = p.vertices, p.faces
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(path)
+    save_npz(path, arrays)
     return parts
 
 

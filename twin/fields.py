@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import tempfile
 from pathlib import Path
 
 import igl
@@ -188,8 +189,18 @@ def mesh_key(mesh: trimesh.Trimesh, **params) -> str:
     return h.hexdigest()
 
 
-def cache_dir() -> Path:
-    return Path(os.environ.get("VRSCROLL_CACHE", Path.home() / ".cache" / "vrscroll")) / "fields"
+def cache_dir(kind: str = "fields") -> Path:
+    """Where cached arrays of one kind live: $VRSCROLL_CACHE/<kind> (default ~/.cache/vrscroll/<kind>)."""
+    return Path(os.environ.get("VRSCROLL_CACHE", Path.home() / ".cache" / "vrscroll")) / kind
+
+
+def save_npz(path: Path, arrays: dict) -> None:
+    """Write arrays to path atomically; concurrent writers (worker processes) each use their own temp file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".npz.part")
+    with os.fdopen(fd, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, path)
 
 
 def build_fields(mesh: trimesh.Trimesh, spacing: float = SPACING, margin: float = MARGIN,
@@ -213,10 +224,7 @@ def build_fields(mesh: trimesh.Trimesh, spacing: float = SPACING, margin: float 
     else:
         fields = _compute(mesh, spacing, margin, min_curvature, edge_radius)
         if disk_cache:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(".tmp.npz")
-            np.savez(tmp, **fields._arrays())
-            tmp.replace(path)
+            save_npz(path, fields._arrays())
     _MEMORY[key] = fields
     return fields
 
