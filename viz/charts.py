@@ -1,4 +1,4 @@
-"""Matplotlib charts (files, no screen): the evaluation's bar chart."""
+"""Matplotlib charts (files, no screen): the evaluation's bar chart, psychometric curves."""
 
 from __future__ import annotations
 
@@ -34,6 +34,46 @@ def method_bars(rows: list[dict], methods: list[str], shapes: list[str], path, p
     axes[0].legend(ncol=len(methods) + 1, fontsize=8)
     axes[1].set_xticks(x, shapes, rotation=20)
     axes[0].set_title("Surface approximation: mean ± SD over starts (paper's means as black ticks)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def psychometric_curves(reports: list[dict], unit: str, path, paper: dict | None = None) -> None:
+    """Detection ratio per condition (Wilson CI bars, dot area ~ trials) and the fit f, one panel per surface.
+
+    reports: twin.psychometric.analyse's, x in `unit`. Dotted lines at the CDT and DT levels; vertical
+    lines at the thresholds inside the tested range. paper: {'label', 'a', 'b'}, drawn dashed.
+    """
+    fig, axes = plt.subplots(1, len(reports), figsize=(5.5 * len(reports), 4), squeeze=False)
+    for ax, r in zip(axes[0], reports):
+        x = np.array([c[f"condition_{unit}"] for c in r["conditions"]])
+        ratio = np.array([c["ratio"] for c in r["conditions"]])
+        lo, hi = np.array([c["ratio_ci"] for c in r["conditions"]]).T
+        n = np.array([c["n"] for c in r["conditions"]])
+        ax.errorbar(x, ratio, yerr=[ratio - lo, hi - ratio], fmt="none", ecolor="gray", capsize=3)
+        ax.scatter(x, ratio, s=20 + 80 * n / n.max(), color="C0", zorder=3, label="detection ratio (CI)")
+        xs = np.linspace(x.min(), x.max(), 200)
+        fit = r["fit"]
+        if not fit["degenerate"]:
+            ax.plot(xs, 1 / (1 + np.exp(fit[f"a_per_{unit}"] * xs + fit["b"])), color="C0",
+                    label=f"fit: a = {fit[f'a_per_{unit}']:.3f}, b = {fit['b']:.2f}")
+        if paper:
+            ax.plot(xs, 1 / (1 + np.exp(paper["a"] * xs + paper["b"])), "k--", lw=1,
+                    label=f"{paper['label']}: a = {paper['a']}, b = {paper['b']}")
+        for name, t in r["thresholds"].items():
+            ax.axhline(t["level"], color="gray", ls=":", lw=0.8)
+            value = t[f"value_{unit}"]
+            if value is not None:
+                ax.axvline(value, color="C3", ls="-.", lw=0.8)
+                ax.annotate(f"{name.upper()} {value:.1f}", (value, t["level"]), xytext=(4, -12),
+                            textcoords="offset points", fontsize=8, color="C3")
+        ax.set_ylim(-0.03, 1.03)
+        ax.set_xlabel(f"redirection ({unit})")
+        ax.set_ylabel("detection ratio")
+        ax.set_title(r["surface"] or "all trials")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
