@@ -95,6 +95,27 @@ class Approximation:
         }
 
 
+    @classmethod
+    def from_json(cls, d: dict) -> "Approximation":
+        """The inverse of `to_json` (e.g. a file written by `vrscroll approximate --json`)."""
+        try:
+            position = np.asarray(d["root_position_mm"], float) / 1e3
+            quat = np.asarray(d["root_quat_wxyz"], float)
+            angles = np.radians(np.asarray(d["angles_deg"], float))
+            widths = np.asarray(d["widths_mm"], float) / 1e3
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"not an approximation result (needs root_position_mm, root_quat_wxyz, angles_deg, "
+                             f"widths_mm): {exc}") from None
+        if position.shape != (3,) or quat.shape != (4,) or not np.all(np.isfinite(np.r_[position, quat, angles, widths])):
+            raise ValueError("approximation result: root_position_mm needs 3 and root_quat_wxyz 4 finite numbers")
+        if np.linalg.norm(quat) < 1e-6 or np.any(widths <= 0):
+            raise ValueError("approximation result: zero quaternion or non-positive flap width")
+        rotation = Rotation.from_quat(quat, scalar_first=True).as_matrix()
+        mm = (lambda v: None if v is None else v / 1e3)
+        return cls(pose_matrix(position, rotation), angles, widths, d.get("time_ms", 0.0) / 1e3,
+                   d.get("variant", "full"), mm(d.get("msd_mm")), mm(d.get("hd_mm")))
+
+
 def pose_from_mm_deg(values) -> np.ndarray:
     """4x4 pose from [x_mm, y_mm, z_mm, roll_deg, pitch_deg, yaw_deg] (R = Rz(yaw) Ry(pitch) Rx(roll))."""
     values = np.asarray(values, float)

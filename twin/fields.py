@@ -231,11 +231,19 @@ def build_fields(mesh: trimesh.Trimesh, spacing: float = SPACING, margin: float 
 
 def exact_signed_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Exact signed distance (N,) m, negative inside, and closest surface points (N, 3) m."""
-    s, _, closest, _ = igl.signed_distance(np.ascontiguousarray(points, dtype=np.float64),
-                                           np.ascontiguousarray(mesh.vertices, dtype=np.float64),
-                                           np.ascontiguousarray(mesh.faces, dtype=np.int64),
-                                           sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+    s, closest, _ = exact_surface_query(mesh, points)
     return s, closest
+
+
+def exact_surface_query(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Exact signed distance (N,) m, closest surface points (N, 3) m and the surface's outward
+    pseudonormal there (N, 3): the face normal inside a face, the mean of the faces' normals on an
+    edge, their angle-weighted mean at a vertex."""
+    s, _, closest, normals = igl.signed_distance(np.ascontiguousarray(points, dtype=np.float64),
+                                                 np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+                                                 np.ascontiguousarray(mesh.faces, dtype=np.int64),
+                                                 sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+    return s, closest, normals
 
 
 def _compute(mesh, spacing, margin, min_curvature, edge_radius) -> Fields:

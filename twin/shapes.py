@@ -126,7 +126,7 @@ def _arch(e):
     outer = e["outer_radius"] * np.c_[np.cos(t), np.sin(t)]
     inner = e["inner_radius"] * np.c_[np.cos(t[::-1]), np.sin(t[::-1])]
     half = e["depth"] / 2
-    return _sweep(np.vstack([outer, inner]), [_xz_plane_at(y) for y in (-half, half)])
+    return sweep_solid(np.vstack([outer, inner]), [_xz_plane_at(y) for y in (-half, half)])
 
 
 def _stairs_profile(steps, run, rise, start=0.0, descending=False):
@@ -142,7 +142,7 @@ def _stairs_profile(steps, run, rise, start=0.0, descending=False):
 def _stairs(e):
     n, run = e["steps"], e["run"]
     profile = _stairs_profile(n, run, e["rise"], start=-n * run / 2)
-    return _sweep(profile, [_xz_plane_at(y) for y in (-e["width"] / 2, e["width"] / 2)])
+    return sweep_solid(profile, [_xz_plane_at(y) for y in (-e["width"] / 2, e["width"] / 2)])
 
 
 def _curved_stairs(e):
@@ -150,7 +150,7 @@ def _curved_stairs(e):
     profile = _stairs_profile(e["steps"], e["run"], e["rise"], start=e["inner_radius"], descending=True)
     sweep = math.radians(e["sweep_deg"])
     angles = np.linspace(-sweep / 2, sweep / 2, 49)
-    return _sweep(profile, [trimesh.transformations.rotation_matrix(a, [0, 0, 1]) @ _xz_plane_at(0.0)
+    return sweep_solid(profile, [trimesh.transformations.rotation_matrix(a, [0, 0, 1]) @ _xz_plane_at(0.0)
                             for a in angles])
 
 
@@ -166,7 +166,7 @@ def _xz_plane_at(y):
     return t
 
 
-def _sweep(profile: np.ndarray, sections: list[np.ndarray]) -> trimesh.Trimesh:
+def sweep_solid(profile: np.ndarray, sections: list[np.ndarray]) -> trimesh.Trimesh:
     """Closed solid swept by a simple polygon (n, 2) through the 4x4 `sections`, capped at both ends."""
     if _area(profile) < 0:
         profile = profile[::-1]  # counter-clockwise, so sides and caps wind alike

@@ -46,3 +46,44 @@ def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.nda
     plotter.screenshot(str(path))
     plotter.close()
     return path
+
+
+def render_redirection(mesh: trimesh.Trimesh, field, path: str | Path, thresholds=None, title: str = "",
+                       window_size=(1600, 800)) -> Path:
+    """Write a PNG of the redirection over the device: |offset| (mm) left, rotation (deg) right.
+
+    field: a `twin.redirection.RedirectionField`. Colours run from 0 to the perception
+    threshold; nodes beyond it (or where no target was found) are red. The target is grey.
+    """
+    from twin.redirection import within_flags
+    from twin.perception import load_thresholds
+
+    thresholds = thresholds or load_thresholds()
+    points, _ = field.surface()
+    dev = field.on_device
+    rows, cols = np.flatnonzero(dev.any(axis=1)), np.flatnonzero(dev.any(axis=0))
+    sub = np.ix_(rows, cols)
+    grid = pv.StructuredGrid(*(points[sub][..., d][..., None] for d in range(3)))
+    found = field.hit[sub]
+    panels = (("offset_mm", field.offset_size()[sub] * 1e3, thresholds.position * 1e3, "positional offset, mm"),
+              ("rotation_deg", np.degrees(field.rotation_angle()[sub]), np.degrees(thresholds.rotation),
+               "rotational offset, deg"))
+    plotter = pv.Plotter(off_screen=True, shape=(1, 2), window_size=window_size)
+    for k, (name, values, limit, label) in enumerate(panels):
+        plotter.subplot(0, k)
+        plotter.add_mesh(pv.wrap(mesh), color="lightgrey", opacity=0.3, smooth_shading=True)
+        grid[name] = np.where(found, values, np.inf).ravel(order="F")  # the grid's points run u fastest
+        plotter.add_mesh(grid.copy(), scalars=name, cmap="viridis", clim=(0.0, limit), above_color="red",
+                         scalar_bar_args={"title": f"{label} (red: over {limit:.4g})"})
+        share = within_flags(field, thresholds)[sub].mean()
+        plotter.add_text(f"{label}: {share:.1%} of the surface within both thresholds" if k == 0 else label,
+                         font_size=9)
+        plotter.camera_position = "iso"
+        plotter.reset_camera()
+    if title:
+        plotter.subplot(0, 0)
+        plotter.add_text(title, position="lower_left", font_size=9)
+    path = Path(path)
+    plotter.screenshot(str(path))
+    plotter.close()
+    return path

@@ -1,0 +1,99 @@
+"""`vrscroll redirect`: the pen redirection field of an approximation, and redirected pen samples.
+
+Input: an approximation result (`vrscroll approximate --json FILE`); its target is the
+shape or mesh named in it unless --shape/--mesh say otherwise. Prints how much of the
+device's touch surface the redirection keeps within the perception thresholds
+(models/perception/perception.toml). With a pen file (CSV, one sample per row:
+x_mm,y_mm,z_mm,qw,qx,qy,qz, optional device_x_mm..device_qz and any other columns),
+writes the redirected samples beside it (or to --out). --strict exits 1 when any part of
+the surface is over a threshold (the samples are still written).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from twin.approximation import Approximation, default_spec
+from twin.cli import UserError
+from twin.fields import build_fields
+from twin.redirection import (PADDING, SIGMA, build_field, read_pen_samples, redirect, threshold_summary,
+                              within_samples, write_redirected)
+from twin.shapes import load_mesh, load_shape, shape_names
+
+
+def add_arguments(p) -> None:
+    p.add_argument("approximation", metavar="APPROX.json", help="an approximation result (vrscroll approximate --json)")
+    p.add_argument("pens", metavar="PENS.csv", nargs="?", help="pen samples to redirect (see docs/redirection-perception.md)")
+    target = p.add_mutually_exclusive_group()
+    target.add_argument("--shape", choices=shape_names(), help="the target shape (default: the one in APPROX.json)")
+    target.add_argument("--mesh", metavar="FILE", help="the target mesh, metres (default: the one in APPROX.json)")
+    p.add_argument("--out", metavar="FILE", help="redirected samples (default PENS_redirected.csv)")
+    p.add_argument("--sigma-mm", type=float, default=SIGMA * 1e3, help=f"Gaussian blur, mm (default {SIGMA * 1e3:g})")
+    p.add_argument("--padding-mm", type=float, default=PADDING * 1e3,
+                   help=f"field beyond the device's edges, mm (default {PADDING * 1e3:g})")
+    p.add_argument("--png", metavar="FILE", help="picture of the offsets over the device")
+    p.add_argument("--json", metavar="FILE", help="also write the summary as JSON")
+    p.add_argument("--strict", action="store_true", help="exit 1 if any of the surface is over a threshold")
+
+
+def _load(args):
+    path = Path(args.approximation)
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{path}: not JSON ({exc})") from None
+    approx = Approximation.from_json(data)
+    if args.shape or args.mesh:
+        name = args.shape or args.mesh
+    elif data.get("target"):
+        name = data["target"]
+    else:
+        raise UserError(f"{path} names no target: give --shape or --mesh")
+    mesh = load_shape(name) if name in shape_names() else load_mesh(name)
+    return approx, name, mesh
+
+
+def run(args) -> int:
+    spec = default_spec()
+    approx, name, mesh = _load(args)
+    if len(approx.angles) != spec.n_hinges or len(approx.widths) != spec.n_flaps:
+        raise UserError(f"{args.approximation}: {len(approx.angles)} hinges and {len(approx.widths)} flaps, "
+                        f"the device has {spec.n_hinges} and {spec.n_flaps}")
+    if args.sigma_mm < 0 or args.padding_mm < 0:
+        raise UserError("--sigma-mm and --padding-mm must be >= 0")
+    pens = read_pen_samples(args.pens) if args.pens else None  # bad files fail before the long part
+    print(f"fields of {name} (cached after the first run) ...", flush=True)
+    fields = build_fields(mesh)
+    field = build_field(spec, approx.root_pose, approx.angles, approx.widths, mesh, fields,
+                        sigma=args.sigma_mm / 1e3, padding=args.padding_mm / 1e3)
+    summary = {"target": name, "sigma_mm": args.sigma_mm, "padding_mm": args.padding_mm,
+               "build_time_ms": round(field.build_time * 1e3, 1), **threshold_summary(field)}
+    print(f"redirection field built in {summary['build_time_ms']:.0f} ms: {summary['share_within']:.1%} of the "
+          f"touch surface within {summary['position_threshold_mm']:g} mm / {summary['rotation_threshold_deg']:g} deg "
+          f"(largest {summary['largest_offset_mm']:.1f} mm, {summary['largest_rotation_deg']:.1f} deg; "
+          f"no target along the normal on {summary['no_target_share']:.1%})")
+    if pens:
+        columns, positions, orientations, device_poses = pens
+        result = redirect(field, positions, orientations, device_poses)
+        within = within_samples(result)
+        out = Path(args.out) if args.out else Path(args.pens).with_name(Path(args.pens).stem + "_redirected.csv")
+        write_redirected(out, columns, result, within)
+        summary.update({"samples": len(positions), "samples_within": int(within.sum()), "out": str(out)})
+        print(f"{len(positions)} pen samples redirected, {within.mean():.1%} within the thresholds "
+              f"(largest {result.offset.max() * 1e3:.1f} mm, {np.degrees(result.angle.max()):.1f} deg): {out}")
+    if args.png:
+        from viz.scene import render_redirection
+
+        render_redirection(mesh, field, args.png, title=f"{name}: pen redirection, blur {args.sigma_mm:g} mm")
+        summary["png"] = args.png
+        print(f"picture: {args.png}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+    over = summary["share_within"] < 1.0
+    if over:
+        print(f"warning: {1 - summary['share_within']:.1%} of the touch surface is redirected beyond the perception "
+              "thresholds" + ("" if args.strict else " (--strict makes this an error)"))
+    return 1 if over and args.strict else 0
