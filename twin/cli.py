@@ -25,6 +25,8 @@ COMMANDS = {
     "tune": ("twin.commands.tune", "tune PID gains per hinge on the twin (robust to tolerances); --port confirms"),
     "hil": ("twin.commands.hil", "play a scenario on the device and the twin; traces, metrics, plots, report"),
     "calibrate": ("twin.commands.calibrate", "fit the twin's motor and gearbox parameters to recorded HIL runs"),
+    "redirect": ("twin.commands.redirect", "pen redirection field of an approximation; redirect pen samples (CSV)"),
+    "psychometric": ("twin.commands.psychometric", "psychometric fit of redirection trials: CDT and DT with CIs, plot"),
 }
 
 
