@@ -24,7 +24,7 @@ def test_safe_move_passes_every_check_with_numbers(spec, twin):
     assert r.passed, r.text()
     c = by_name(r)
     assert set(c) == {"range", "collision", "settle", "peak_current", "hold_current"}
-    assert c["settle"].value < 2.0 and c["peak_current"].limit == spec.stall_current
+    assert c["settle"].value < 2.0 and c["peak_current"].limit == spec.driver_peak_current
     assert c["hold_current"].limit == spec.continuous_current
     assert r.prediction is not None and len(r.prediction.time) > 10
     assert enforce(r) is r

@@ -1,5 +1,6 @@
 """Tuning on the twin, HIL comparison runs and calibration, against the device emulator on a pty."""
 
+import dataclasses
 import json
 import math
 import signal
@@ -50,25 +51,45 @@ def tuned():
     from twin.spec import load_spec
 
     spec = load_spec()
-    goal = TuneGoal(duration=1.0)  # as long as step_report's look at the tail of the response
+    goal = TuneGoal()
     return spec, goal, tune(spec, goal, population=24, generations=5, nthread=2)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 6 open: one hinge overshoots 1.004 deg against the 1.0 deg limit")
 def test_tuned_gains_beat_the_spec_defaults_on_the_twin(tuned, tmp_path):
+    from twin.gate import check_move
+
     spec, goal, result = tuned
-    before, _ = step_report(spec, PidGains.from_spec(spec), goal.step)
-    after, _ = step_report(spec, result.gains, goal.step)
+    before, _ = step_report(spec, PidGains.from_spec(spec), goal)
+    after, _ = step_report(spec, result.gains, goal)
     limit = math.degrees(goal.max_overshoot)
     for b, a in zip(before, after):
         assert a["settle_time_s"] < b["settle_time_s"]
         assert a["overshoot_deg"] <= max(b["overshoot_deg"], limit) + 1e-9
     # robust: the worst of the five plants also keeps the overshoot limit
     assert np.all(np.degrees(result.overshoot) <= limit) and np.all(np.isfinite(result.settle))
+    assert np.all(result.peak_current <= spec.driver_peak_current) and np.all(result.cost < goal.duration)
+    # and the gate lets the tuned step through, unmodified
+    gate = check_move(spec, np.zeros(spec.n_hinges), np.full(spec.n_hinges, goal.step), result.gains)
+    assert gate.passed, gate.text()
     path = tmp_path / "gains.json"
     write_gains(path, result.gains, {"test": True})
     assert read_gains(path, spec.n_hinges) == result.gains
     assert json.loads(path.read_text())["units"]["kp"] == "duty/count"
+
+
+def test_the_two_chains_of_hinges_do_not_move_each_other(spec):
+    """What lets the tuner search each chain on its own: the root flap is held."""
+    from controllers.tuning import chains
+    from twin.simulation import TwinBatch
+
+    left, right = chains(spec)
+    table = np.tile(PidGains.from_spec(spec).row(spec.firmware_dt), (2, spec.n_hinges, 1))
+    table[1, right, 0] *= 3.0  # the second simulation: another kp on the right chain only
+    batch = TwinBatch(2, spec, nthread=1)
+    batch.set_gains(table)
+    angle = batch.run(np.full(spec.n_hinges, math.radians(30.0)), 0.4)["angle"]
+    assert np.abs(angle[:, 0, left] - angle[:, 1, left]).max() < 1e-9
+    assert np.abs(angle[:, 0, right] - angle[:, 1, right]).max() > 1e-3
 
 
 def test_tune_command_writes_a_gains_file(tmp_path, capsys):
@@ -81,8 +102,35 @@ def test_tune_command_writes_a_gains_file(tmp_path, capsys):
     assert vrscroll(["tune", "--tolerance", "150"]) == 2
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="issue 6 open: the gate refuses the tuned step (peak current 1.94 A > 1.6 A)")
+def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device(emulator, tmp_path, capsys):
+    from controllers.encoder import target_counts
+    from twin import protocol as P
+    from twin.cli import main as vrscroll
+    from twin.spec import load_spec
+
+    spec = load_spec()
+    emu = emulator()
+    out, log = tmp_path / "g.json", tmp_path / "tune.jsonl"
+    assert vrscroll(["tune", "--population", "8", "--generations", "2", "--threads", "2", "--out", str(out),
+                     "--port", emu.port, "--log", str(log)]) == 0
+    text = capsys.readouterr().out
+    gains = read_gains(out, spec.n_hinges)
+    # the device got every hinge's tuned gains, and holds them
+    pushed = {e["hinge"]: e["gains"] for e in emu.events("rx") if e["msg"] == "SET_GAINS"}
+    assert pushed == {k: dataclasses.asdict(P.Gains.from_pid(g)) for k, g in enumerate(gains)}
+    with Link(emu.port) as link:
+        assert [link.get_gains(k) for k in range(spec.n_hinges)] == [P.Gains.from_pid(g) for g in gains]
+    # then ran the same step (flat, then 30 deg on every hinge) and printed its metrics beside the twin's
+    steps = [e["counts"] for e in emu.events("rx") if e["msg"] == "SET_TARGETS"]
+    assert steps[-1] == target_counts(spec, np.full(spec.n_hinges, math.radians(30.0))).tolist()
+    assert f"device at {emu.port}: settled at t=" in text
+    lines = text.splitlines()
+    head = next(i for i, ln in enumerate(lines) if "device settle s" in ln and "twin settle s" in ln)
+    rows = [ln.split() for ln in lines[head + 1:head + 1 + spec.n_hinges]]
+    assert [int(r[0]) for r in rows] == list(range(spec.n_hinges))
+    assert all(0 < float(r[1]) < 0.5 and 0 < float(r[2]) < 0.5 for r in rows)  # device and twin settle, s
+
+
 def test_tuned_gains_on_the_emulator_settle_as_the_twin_predicts(tuned, emulator, tmp_path):
     from twin.hil import device_step
     from twin.response import step_metrics
@@ -149,32 +197,48 @@ def test_hil_command_writes_report(emulator, tmp_path, capsys):
     assert all(m["rmse_deg"] < 1.5 and abs(m["lag_s"]) <= 0.01 for m in metrics)
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(reason="issue 6 open: friction recovery varies run to run (1.17-1.42 x for a true 1.6 x): stick-slip at low "
-                   "duty", strict=False)
-def test_calibration_recovers_the_emulators_plant(emulator, tmp_path):
-    from twin.calibration import calibrate, trace_rmse, write_spec
+def test_gear_damping_does_not_show_in_the_motion(spec):
+    """Why calibration cannot fit gear damping: the spec pins the motor by stall torque and no-load speed,
+    so more gear damping means a smaller motor constant and the same total viscous loss."""
+    from twin.simulation import Twin
+
+    soft = PidGains.from_spec(spec).replace(kp=0.015, ki=0.05, kd=0.0003)
+    traces = []
+    for plant in (spec, spec.replace(gear_damping=spec.gear_damping * 1.6)):
+        twin = Twin(plant, soft)
+        traces.append(twin.move_to(np.radians([30, 20, 10, 10, 20, 30]), max_time=0.8, stop_when_settled=False))
+    assert np.array_equal(traces[0].counts, traces[1].counts)
+    assert np.degrees(np.abs(traces[0].angle - traces[1].angle).max()) < 1e-6
+
+
+def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
+    from twin.cli import main as vrscroll
+    from twin.mirror import mirror
     from twin.spec import load_spec
 
     spec = load_spec()
-    truth = {"speed": 0.75, "friction": 1.6, "damping": 1.15}  # known to the test, not to the calibration
-    emu = emulator("--speed-scale", str(truth["speed"]), "--friction-scale", str(truth["friction"]),
-                   "--damping-scale", str(truth["damping"]), "--backlash-deg", "0")
-    soft = PidGains.from_spec(spec).replace(kp=0.015, ki=0.05, kd=0.0003)  # slow moves: friction shows
-    train, hold = tmp_path / "train", tmp_path / "hold"
+    # known to the test, not to the calibration: the parameters the device's motion shows (gear damping does
+    # not, see the test above; backlash is not in the twin's model; encoder noise and latency stay on)
+    truth = {"no_load_speed": 0.75, "gear_friction": 1.6, "rotor_inertia": 1.3}
+    emu = emulator("--speed-scale", "0.75", "--friction-scale", "1.6", "--armature-scale", "1.3",
+                   "--damping-scale", "1", "--backlash-deg", "0")
+    soft = PidGains.from_spec(spec).replace(kp=0.015, ki=0.05, kd=0.0003)  # slow creeps: friction shows in the duty
+    train, hold, cal = tmp_path / "train", tmp_path / "hold", tmp_path / "cal.toml"
     (tmp_path / "a.toml").write_text(SCENARIO.format(duration=2.0, t1=0.7, t2=1.4))
     (tmp_path / "b.toml").write_text(HOLDOUT)
     with Link(emu.port) as link:
+        # wake the device: from its limp boot pose (hanging under gravity) to flat, allowing for its difference
+        assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
         run_hil(link, spec, load_scenario(tmp_path / "a.toml", spec), train, gains=[soft] * 6)
         run_hil(link, spec, load_scenario(tmp_path / "b.toml", spec), hold, gains=[soft] * 6)
-    res = calibrate([load_run(train)], spec)
-    assert res.scales["no_load_speed"] == pytest.approx(truth["speed"], rel=0.2)
-    assert res.scales["gear_friction"] == pytest.approx(truth["friction"], rel=0.2)
-    assert res.scales["gear_damping"] == pytest.approx(truth["damping"], rel=0.2)
-    before = trace_rmse(load_run(hold), spec, spec, transients_only=True)
-    after = trace_rmse(load_run(hold), res.spec, spec, transients_only=True)
-    assert np.sqrt(np.mean(after ** 2)) < 0.75 * np.sqrt(np.mean(before ** 2))
-    write_spec(tmp_path / "cal.toml", res.spec, res.values, "calibrated from train")
-    cal = load_spec(tmp_path / "cal.toml")
-    assert cal.no_load_speed == pytest.approx(res.spec.no_load_speed, rel=1e-4)
-    assert "calibrated from train" in (tmp_path / "cal.toml").read_text()
+    capsys.readouterr()
+    assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--out", str(cal), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    for name, scale in truth.items():
+        assert res["scales"][name] == pytest.approx(scale, rel=0.2), res["scales"]
+    # held-out trace error (RMS over every frame of every hinge) at least halved
+    h = res["holdout"]
+    assert h["overall_after_deg"] <= 0.5 * h["overall_before_deg"], h
+    calibrated = load_spec(cal)
+    assert calibrated.gear_friction == pytest.approx(res["values"]["gear_friction"], rel=1e-4)
+    assert "calibrated from" in cal.read_text()

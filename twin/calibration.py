@@ -1,31 +1,49 @@
 """Twin calibration: fit the plant's uncertain parameters to recorded HIL runs.
 
-Residual: replay each recorded run on the twin (the device's gains, its measured
-start, each target taking effect at the device time the device acknowledged it)
-with candidate plant parameters, and compare the twin's hinge angles with the
-device's encoder angles at every telemetry frame (deg). The firmware PID is in
-the loop, exactly as on the device, so what is fitted is the closed loop.
+Residual: replay each recorded run on the twin (the device's gains; its start,
+held by the twin's firmware until the integral carries the flaps' weight as the
+device's does; each target taking effect at the device time the device
+acknowledged it) with candidate plant parameters, and compare with the device's
+telemetry at every frame:
 
-Parameters (all fitted as log(value / base), with bounds x1/3 .. x3):
-    no_load_speed   (sets the motor constant K, spec.motor_constant)
-    gear_friction   (Coulomb, output side)
-    gear_damping    (viscous, output side)
-    rotor_inertia   (armature; optional, --armature: weakly observable at 500 Hz)
-Command latency is not a parameter: the HIL run aligns each target with the
-device's own ACK time, which already includes it. Backlash is not modelled by
-the twin's MJCF (spec.backlash feeds the emulator only), so it is not fitted.
+- the hinge angles (deg; the device's encoder angle, mid-count), and
+- the duty the firmware commanded, averaged over DUTY_WINDOW s and weighted by
+  DUTY_WEIGHT deg per unit duty. The duty is what makes friction observable:
+  where the hinge is moving fast the duty is saturated and friction hides in 2 %
+  of the stall torque; where it creeps or holds, the integral has to push the
+  gravity load plus the friction, and the device reports exactly how much. The
+  window averages out the stick-slip cycles, whose phase no model reproduces.
+
+The firmware PID is in the loop, exactly as on the device, so what is fitted is
+the closed loop.
+
+Parameters (all fitted as log(value / spec value), bounded x1/3 .. x3):
+    no_load_speed   sets the motor constant K (spec.motor_constant) and the
+                    viscous loss (tau_stall - friction) / no_load_speed
+    gear_friction   Coulomb friction at the output
+    rotor_inertia   the armature, reflected by gear_ratio^2 (most of a hinge's inertia)
+Not fitted, and why (docs/tuning-hil-calibration.md):
+    gear_damping    no effect on motion: the spec fixes the motor by its stall torque
+                    and no-load speed, so the total viscous coefficient is
+                    (tau_stall - friction) / no_load_speed whatever the gear damping is
+                    (it only moves the split with the back-EMF: K changes to keep the
+                    datasheet's no-load speed). Only the winding current would show it,
+                    by < 1 %, less than the no-load speed's own fit error.
+    latency         the HIL run aligns each target with the device's own ACK time,
+                    which already includes it.
+    backlash        not in the twin's MJCF (spec.backlash feeds the emulator only).
 
 Optimiser: mujoco.minimize.least_squares (Levenberg-Marquardt with box
 bounds). Its residual is vectorised over columns, and each column is one twin
-replay (the compiled firmware loop runs a 2 s replay in ~10 ms), so the
-finite-difference Jacobian costs n_params replays. The finite-difference step
-is large (3 % in log space) on purpose: the encoder quantises the closed loop,
-so the residual is piecewise constant at tiny scales. mujoco.sysid was read and
-not used: its rollouts replay open-loop controls through MuJoCo's own
-actuators (sysid_rollout over ctrl time series), whereas this device's traces
-are closed-loop through the firmware's PID on quantised counts; replaying the
-recorded duty open-loop drifts (friction and the integral state make it
-unstable), so the residual needs our own closed-loop replay.
+replay, so the finite-difference Jacobian costs n_params replays. The
+finite-difference step is large (10 % in log space) on purpose: the encoder
+quantises the closed loop and the hinges stick and slip, so the residual is
+rough at small scales (with 3 % steps the fit stopped 10 % short of the truth). mujoco.sysid (MuJoCo 4.0; needs the mujoco[sysid] extra, absl) was read
+and not used: its rollouts replay recorded controls open loop through MuJoCo's
+own actuators, whereas these traces are closed loop through the firmware's PID
+on quantised counts; replaying the recorded duty open loop drifts (friction and
+gravity make the open-loop plant an integrator), so the residual needs our own
+closed-loop replay.
 """
 
 from __future__ import annotations
@@ -37,40 +55,37 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.encoder import angle_from_counts
 from twin.spec import SPEC_PATH, DeviceSpec
 
-PARAMS = ("no_load_speed", "gear_friction", "gear_damping")
-ARMATURE = "rotor_inertia"
+PARAMS = ("no_load_speed", "gear_friction", "rotor_inertia")
 LOG_BOUND = math.log(3.0)
-TRANSIENT_BAND_DEG = 2.0
+DUTY_WINDOW = 0.2  # s: the duty is compared as means over windows this long
+DUTY_WEIGHT = 20.0  # deg per unit duty: a 0.01 duty error weighs as 0.2 deg (each about its noise floor)
 
 
-def replay(run: dict, plant: DeviceSpec, spec: DeviceSpec | None = None) -> np.ndarray:
-    """The twin's hinge angles (deg) at the run's device frame times, with `plant` as the physics."""
-    from twin.simulation import Twin
+def replay(run: dict, plant: DeviceSpec, spec: DeviceSpec | None = None):
+    """The twin's hinge angles (deg) and duty at the run's device frame times, with `plant` as the physics."""
+    from twin.hil import twin_at_start
 
     spec = spec or plant
-    dev = run["device"]
     meta = run["meta"]
-    t = dev["time_s"]
+    t = run["device"]["time_s"]
     dt = spec.firmware_dt
     end_tick = int(round(t[-1] / dt)) + 1 if len(t) else 1
-    twin = Twin(plant, run["gains"])
-    start = angle_from_counts(spec, np.asarray(meta["start_counts"]))
-    twin.reset(np.clip(start, -spec.hinge_limit, spec.hinge_limit))
+    twin = twin_at_start(plant, run["gains"], meta, spec)
     changes = [(c["t_s"], np.radians(c["angles_deg"])) for c in meta["changes"]]
-    angles = []
+    angles, duty = [np.zeros((0, spec.n_hinges))], [np.zeros((0, spec.n_hinges))]
     tick = 0
     for i, (tc, tgt) in enumerate(changes):
         stop = min(end_tick, int(round(changes[i + 1][0] / dt)) if i + 1 < len(changes) else end_tick)
         if stop > tick:
             tr = twin.move_to(tgt, max_time=(stop - tick) * dt, stop_when_settled=False)
             angles.append(tr.angle)
+            duty.append(tr.duty)
             tick += len(tr.time)
-    a = np.concatenate(angles) if angles else np.zeros((1, spec.n_hinges))
-    idx = np.clip(np.rint(t / dt).astype(int), 0, len(a) - 1)
-    return np.degrees(a[idx])
+    a, d = np.concatenate(angles), np.concatenate(duty)
+    idx = np.clip(np.rint(t / dt).astype(int), 0, max(len(a) - 1, 0))
+    return np.degrees(a[idx]), d[idx]
 
 
 def device_angles(run: dict, spec: DeviceSpec) -> np.ndarray:
@@ -78,14 +93,29 @@ def device_angles(run: dict, spec: DeviceSpec) -> np.ndarray:
     return run["device"]["angle_deg"] + 0.5 * math.degrees(spec.rad_per_count)
 
 
-def trace_rmse(run: dict, plant: DeviceSpec, spec: DeviceSpec, transients_only: bool = False) -> np.ndarray:
-    """Per-hinge RMSE, deg, between the device and the twin replayed with `plant` (all frames, or the transients)."""
-    err = replay(run, plant, spec) - device_angles(run, spec)
-    if transients_only:
-        m = transient_mask(run)
-        return np.array([np.sqrt(np.mean(err[m[:, k], k] ** 2)) if m[:, k].any() else np.nan
-                         for k in range(err.shape[1])])
-    return np.sqrt(np.mean(err ** 2, axis=0))
+def window_means(t, x, width: float = DUTY_WINDOW) -> np.ndarray:
+    """x (frames, hinges) replaced at each frame by its mean over the frame's window of `width` s of t (s)."""
+    bins = np.floor(np.asarray(t) / width).astype(int)
+    bins -= bins.min()
+    n = np.maximum(np.bincount(bins), 1)
+    return np.stack([(np.bincount(bins, weights=x[:, k]) / n)[bins] for k in range(x.shape[1])], axis=1)
+
+
+def residuals(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
+    """The fit's residual for one run, per frame and hinge: the angle error (deg), then the error of the
+    duty's window mean x DUTY_WEIGHT."""
+    angle, duty = replay(run, plant, spec)
+    dev = run["device"]
+    t = dev["time_s"]
+    return np.concatenate([(angle - device_angles(run, spec)).ravel(),
+                           DUTY_WEIGHT * (window_means(t, duty) - window_means(t, dev["duty"])).ravel()])
+
+
+def trace_rmse(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
+    """Per-hinge RMSE, deg, between the device's hinge angles and the twin's replayed with `plant`.
+
+    The overall figure quoted for a run is the RMS of these (every frame of every hinge alike)."""
+    return np.sqrt(np.mean((replay(run, plant, spec)[0] - device_angles(run, spec)) ** 2, axis=0))
 
 
 @dataclasses.dataclass
@@ -93,68 +123,46 @@ class CalibrationResult:
     spec: DeviceSpec  # calibrated
     values: dict  # parameter -> fitted value (SI)
     scales: dict  # parameter -> fitted / base
-    rmse_before: float  # deg, all training runs and hinges
+    rmse_before: float  # deg, hinge angles, all training runs, frames and hinges
     rmse_after: float
     iterations: int
     evaluations: int
 
 
-def transient_mask(run: dict, band_deg: float = TRANSIENT_BAND_DEG) -> np.ndarray:
-    """(frames, hinges) True where the device is still on its way: farther than band_deg from its target."""
-    dev = run["device"]
-    return np.abs(dev["target_deg"] - dev["angle_deg"]) > band_deg
-
-
-def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, max_iter: int = 25, eps: float = 0.03,
-              verbose: bool = False, band_deg: float = TRANSIENT_BAND_DEG, prior: float = 0.1) -> CalibrationResult:
-    """Least-squares fit of `params` (log-scaled, bounded x1/3..x3) to the runs' device traces.
-
-    Only the transients are fitted (device farther than band_deg from its target):
-    at rest inside the firmware's hold band the hinge sticks wherever friction
-    and the integral leave it, a stick-slip that no smooth parameter change
-    reproduces and that would drown the motion in noise. `prior` (deg per unit
-    of log-scale, times sqrt(samples)) pulls each parameter gently toward the
-    spec, so an unobservable one (gear damping: ~4 % of the motor's back-EMF
-    damping) stays put instead of wandering to a bound.
-    """
+def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, max_iter: int = 25, eps: float = 0.1,
+              verbose: bool = False) -> CalibrationResult:
+    """Least-squares fit of `params` (log-scaled, bounded x1/3..x3) to the runs' device traces (angles and duty)."""
     from mujoco import minimize
 
     params = tuple(params)
     base_vals = np.array([getattr(base, p) for p in params])
-    masks = [transient_mask(r, band_deg) for r in runs]
-    targets = [device_angles(r, base)[m] for r, m in zip(runs, masks)]
     count = [0]
 
     def plant(x):
         return base.replace(**{p: float(v * math.exp(xi)) for p, v, xi in zip(params, base_vals, x)})
 
     def residual(X):
-        X = np.atleast_2d(X.T).T if X.ndim == 1 else X
         cols = []
         for j in range(X.shape[1]):
-            p = plant(X[:, j])
-            cols.append(np.concatenate([(replay(r, p, base)[m] - y) for r, y, m in zip(runs, targets, masks)]))
+            cols.append(np.concatenate([residuals(r, plant(X[:, j]), base) for r in runs]))
             count[0] += 1
-        R = np.stack(cols, axis=1)
-        return np.concatenate([R, prior_w * X], axis=0)  # weak prior: stay at the spec where the data say nothing
+        return np.stack(cols, axis=1)
 
-    # prior weight: a 10 % change in a parameter the data cannot see costs as much as 0.1 deg on 1 % of samples
-    prior_w = prior * math.sqrt(sum(len(y) for y in targets))
-    x0 = np.zeros(len(params))
-    r0 = residual(x0[:, None])[:-len(params), 0]
+    def angle_rmse(p):
+        return float(np.sqrt(np.mean(np.concatenate([trace_rmse(r, p, base) ** 2 for r in runs]))))
+
     lo, hi = np.full(len(params), -LOG_BOUND), np.full(len(params), LOG_BOUND)
-    x, trace = minimize.least_squares(x0, residual, bounds=(lo, hi), eps=eps, max_iter=max_iter,
+    x, trace = minimize.least_squares(np.zeros(len(params)), residual, bounds=(lo, hi), eps=eps, max_iter=max_iter,
                                       verbose=minimize.Verbosity.ITER if verbose else minimize.Verbosity.SILENT,
                                       xtol=1e-4, gtol=1e-8)
     x = np.asarray(x).ravel()
-    r1 = residual(x[:, None])[:-len(params), 0]
     fitted = plant(x)
     return CalibrationResult(
         spec=fitted,
         values={p: float(getattr(fitted, p)) for p in params},
         scales={p: float(math.exp(xi)) for p, xi in zip(params, x)},
-        rmse_before=float(np.sqrt(np.mean(r0 ** 2))),
-        rmse_after=float(np.sqrt(np.mean(r1 ** 2))),
+        rmse_before=angle_rmse(base),
+        rmse_after=angle_rmse(fitted),
         iterations=len(trace),
         evaluations=count[0],
     )

@@ -48,6 +48,7 @@ class EmulatorOptions:
     friction_scale: float = 1.25  # gear_friction x
     damping_scale: float = 1.2  # gear_damping x
     speed_scale: float = 0.95  # no_load_speed x (so motor constant / 0.95)
+    armature_scale: float = 1.0  # rotor_inertia x
     backlash_deg: float = 0.5  # dead zone between hinge and encoder, deg (full width)
     encoder_noise: float = 0.01  # probability per read that a count is off by one
     latency_ms: float = 1.0  # from a command's arrival to its effect (and its ACK)
@@ -67,6 +68,7 @@ def plant_spec(spec: DeviceSpec, opt: EmulatorOptions) -> DeviceSpec:
     return spec.replace(gear_friction=spec.gear_friction * opt.friction_scale,
                         gear_damping=spec.gear_damping * opt.damping_scale,
                         no_load_speed=spec.no_load_speed * opt.speed_scale,
+                        rotor_inertia=spec.rotor_inertia * opt.armature_scale,
                         backlash=math.radians(opt.backlash_deg))
 
 
@@ -126,7 +128,7 @@ class Emulator:
         self.overruns = 0
         self.log = open(log_path, "a", buffering=1) if log_path else None
         self._log("start", plant={k: getattr(self.plant, k) for k in ("gear_friction", "gear_damping",
-                                                                       "no_load_speed", "backlash")},
+                                                                       "no_load_speed", "rotor_inertia", "backlash")},
                   options=dataclasses.asdict(self.opt))
 
     # ---- helpers --------------------------------------------------------------------
@@ -444,6 +446,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--damping-scale", type=float, default=o.damping_scale, help="gear damping x (default %(default)s)")
     p.add_argument("--speed-scale", type=float, default=o.speed_scale,
                    help="no-load speed x, i.e. motor constant / x (default %(default)s)")
+    p.add_argument("--armature-scale", type=float, default=o.armature_scale,
+                   help="rotor inertia (armature) x (default %(default)s)")
     p.add_argument("--backlash-deg", type=float, default=o.backlash_deg, help="backlash, deg (default %(default)s)")
     p.add_argument("--encoder-noise", type=float, default=o.encoder_noise,
                    help="probability per read of a count off by one (default %(default)s)")
@@ -461,11 +465,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def options_from_args(args) -> EmulatorOptions:
     if args.ideal:
-        base = dict(friction_scale=1.0, damping_scale=1.0, speed_scale=1.0, backlash_deg=0.0, encoder_noise=0.0,
-                    latency_ms=0.0)
+        base = dict(friction_scale=1.0, damping_scale=1.0, speed_scale=1.0, armature_scale=1.0, backlash_deg=0.0,
+                    encoder_noise=0.0, latency_ms=0.0)
     else:
         base = dict(friction_scale=args.friction_scale, damping_scale=args.damping_scale,
-                    speed_scale=args.speed_scale, backlash_deg=args.backlash_deg,
+                    speed_scale=args.speed_scale, armature_scale=args.armature_scale, backlash_deg=args.backlash_deg,
                     encoder_noise=args.encoder_noise, latency_ms=args.latency_ms)
     if args.jam_hinge is not None and not 0 <= args.jam_hinge < load_spec().n_hinges:
         raise ValueError(f"--jam-hinge {args.jam_hinge}: no such hinge")

@@ -8,7 +8,9 @@ device's present hinge angles with the device's gains and checks:
              (trace angles replayed through mj_forward, every `collision_step` s);
 - settle:    every hinge settles (|error| <= settle_band counts for settle_hold s)
              within `settle_limit` s;
-- peak current: the largest winding current, A, within the motor's stall current;
+- peak current: the largest winding current, A, within the motor driver's peak rating
+             (spec [power] driver_peak_current; not the stall current: braking or
+             reversing at speed draws more, back-EMF adding to the supply);
 - hold current: the mean current over the last `settle_hold` s (what the device
              draws holding the pose indefinitely) within its continuous rating.
 
@@ -27,8 +29,6 @@ import numpy as np
 from controllers.pid import PidGains
 from twin.simulation import Trace, Twin
 from twin.spec import DeviceSpec
-
-CURRENT_TOLERANCE = 1.01  # a full-duty start draws exactly the stall current; allow rounding
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,11 +150,11 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
     checks.append(Check("settle", settled, t_settle, settle_limit, "s",
                         "all hinges" if settled else f"hinge {worst} still {int(err[worst])} counts off"))
 
-    peak_lim = (peak_current_limit or spec.stall_current)
+    peak_lim = peak_current_limit or spec.driver_peak_current
     cur = np.abs(trace.current)
     k = int(np.unravel_index(np.argmax(cur), cur.shape)[1]) if cur.size else 0
     peak_i = float(cur.max()) if cur.size else 0.0
-    checks.append(Check("peak_current", peak_i <= peak_lim * CURRENT_TOLERANCE, peak_i, peak_lim, "A", f"hinge {k}"))
+    checks.append(Check("peak_current", peak_i <= peak_lim, peak_i, peak_lim, "A", f"hinge {k}"))
 
     hold_lim = hold_current_limit or spec.continuous_current
     held = np.abs(hold.current).mean(axis=0)

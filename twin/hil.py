@@ -3,7 +3,8 @@
 A scenario (docs/tuning-hil-calibration.md) is a list of timed hinge targets. `run_hil` moves the
 device to the scenario's start (gated, through twin.mirror), then plays the
 targets on the device over the link while a twin with the device's gains,
-started from the device's measured start angles, follows in device time: each
+started at the device's measured start angles with the device's recent history
+(`twin_at_start`: so its firmware's integral matches), follows in device time: each
 target takes effect in the twin at the device time the device's ACK reports.
 Both traces are written as they come (CSV, one flushed line per row), so an
 interrupted run keeps both up to that moment. `compare` computes per-hinge
@@ -25,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
-from controllers.pid import PidGains
 from twin.spec import DeviceSpec
 
 TRACE_COLUMNS = ("target_deg", "angle_deg", "counts", "duty", "current_A")
@@ -157,17 +157,52 @@ def gate_scenario(spec: DeviceSpec, scenario: Scenario, gains, settle_limit: flo
         prev = tgt
 
 
+REST = 1.0  # s the twin spends on each leg of the device's history before a run
+
+
+def twin_at_start(plant: DeviceSpec, gains, meta: dict, spec: DeviceSpec | None = None):
+    """A twin at the device's start with the device's recent history, so its firmware state matches.
+
+    The device's PID integral carries the flaps' weight, and where in its
+    friction band it sits depends on how the hinge came to rest (a twin started
+    with an empty integral sags, then overshoots the first step). So the twin
+    lives the run's prelude as the device did (meta "before"): resting at the
+    device's pose before the run (holding its targets if it was ACTIVE; limp and
+    with a fresh PID, as after IDLE, if not), then brought to the start targets
+    (REST s each); finally its hinges are put exactly where the device's
+    encoders say (mid-count: the encoder floors), its firmware state kept.
+    """
+    from twin.simulation import Twin
+
+    spec = spec or plant
+    twin = Twin(plant, gains)
+
+    def put(counts):
+        return np.clip(angle_from_counts(spec, np.asarray(counts) + 0.5), -spec.hinge_limit, spec.hinge_limit)
+
+    before = meta["before"]
+    twin.reset(put(before["counts"]))
+    if before["state"] == "ACTIVE":
+        twin.move_to(angle_from_counts(spec, before["target_counts"]), max_time=REST, stop_when_settled=False)
+    twin.move_to(angle_from_counts(spec, meta["start_target_counts"]), max_time=REST, stop_when_settled=False)
+    integral = twin.pid.integral.copy()
+    twin.reset(put(meta["start_counts"]))
+    twin.pid.integral[:] = integral
+    return twin
+
+
 def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: int = 500,
-            scenario_path=None, on_progress=None, settle_limit: float = 2.0, gains=None) -> dict:
+            scenario_path=None, on_progress=None, settle_limit: float = 2.0, gains=None,
+            tolerance_deg: float = 5.0) -> dict:
     """Play a scenario on the device and the twin; write out_dir/{device,twin}.csv, gains.json, run.json.
 
-    gains: optional per-hinge PidGains pushed to the device first. Returns run.json's content. On KeyboardInterrupt the device is e-stopped and
-    both traces stay readable up to that moment.
+    gains: optional per-hinge PidGains pushed to the device first. tolerance_deg: the device is e-stopped
+    if it parts from the twin by more on its way to the scenario's start (twin.mirror). Returns run.json's
+    content. On KeyboardInterrupt the device is e-stopped and both traces stay readable up to that moment.
     """
     from controllers.tuning import write_gains
     from twin.mirror import device_gains, mirror, wait_for_rest
     from twin import protocol as P
-    from twin.simulation import Twin
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -180,16 +215,18 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     if scenario_path:
         shutil.copy(scenario_path, out / ("scenario" + Path(scenario_path).suffix))
     write_gains(out / "gains.json", gains, {"source": f"read from the device at {link.url}"})
-    # the same start on both sides: move the device there (gated), then start the twin where the device is
-    res = mirror(link, spec, scenario.start, settle_limit=settle_limit)
+    # the same start on both sides: move the device there (gated), then start the twin where the device is,
+    # with the device's history (twin_at_start)
+    prior = wait_for_rest(link, spec)
+    res = mirror(link, spec, scenario.start, settle_limit=settle_limit, tolerance_deg=tolerance_deg)
     if not res.ok:
         raise RuntimeError(f"could not bring the device to the scenario's start: {res.message}")
     state = wait_for_rest(link, spec)
-    start_counts = np.asarray(state.counts)
-    twin = Twin(spec, gains)
-    twin.reset(np.clip(angle_from_counts(spec, start_counts), -spec.hinge_limit, spec.hinge_limit))
-    meta = {"scenario": scenario.name, "start_counts": start_counts.tolist(), "telemetry_hz": telemetry_hz,
-            "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url}
+    meta = {"scenario": scenario.name, "start_counts": list(state.counts), "start_target_counts": list(state.targets),
+            "before": {"state": P.State(prior.state).name, "counts": list(prior.counts),
+                       "target_counts": list(prior.targets)},
+            "telemetry_hz": telemetry_hz, "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url}
+    twin = twin_at_start(spec, gains, meta)
     run_json = out / "run.json"
 
     def save_meta():

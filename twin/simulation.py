@@ -325,20 +325,28 @@ class TwinBatch:
         return out
 
 
+def hinge_metrics(spec: DeviceSpec, time_s, target_counts: float, counts, target: float, angle):
+    """One hinge's step from time_s[0]: (metrics in counts, settle band in counts; metrics in rad).
+
+    The one definition of settle time (from the counts, the firmware's settle
+    band) and overshoot (from the true angle) that reports and the tuner share.
+    """
+    from twin.response import step_metrics
+
+    return (step_metrics(time_s, counts, target_counts, spec.settle_band, tail=spec.settle_hold),
+            step_metrics(time_s, angle, target, spec.settle_band * spec.rad_per_count, tail=spec.settle_hold))
+
+
 def move_report(spec: DeviceSpec, trace: Trace) -> list[dict]:
     """Per hinge: settle time (s), overshoot (deg), steady-state error (deg and counts), peak current (A).
 
     Settling uses the firmware's settle band in encoder counts; the step starts
     at the trace's first tick.
     """
-    from twin.response import step_metrics
-
     rows = []
     for k in range(trace.angle.shape[1]):
-        in_counts = step_metrics(trace.time, trace.counts[:, k], float(trace.target_counts[0, k]), spec.settle_band,
-                                 tail=spec.settle_hold)
-        in_angle = step_metrics(trace.time, trace.angle[:, k], float(trace.target[0, k]),
-                                spec.settle_band * spec.rad_per_count, tail=spec.settle_hold)
+        in_counts, in_angle = hinge_metrics(spec, trace.time, float(trace.target_counts[0, k]), trace.counts[:, k],
+                                            float(trace.target[0, k]), trace.angle[:, k])
         rows.append({
             "hinge": k,
             "target_deg": round(math.degrees(trace.target[0, k]), 3),

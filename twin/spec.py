@@ -52,6 +52,7 @@ class DeviceSpec:
     # power
     supply_voltage: float  # V
     drive_cap: float  # V at duty 1.0
+    driver_peak_current: float  # A, per motor channel
     # firmware
     loop_rate: float  # Hz
     kp: float  # duty per count

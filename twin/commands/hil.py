@@ -16,6 +16,9 @@ def add_arguments(p) -> None:
     p.add_argument("--telemetry-hz", type=int, default=500, help="telemetry rate (default %(default)s)")
     p.add_argument("--gains", help="gains file (vrscroll tune --out) to push to the device before the run")
     p.add_argument("--log", help="session log, JSON lines (default <out>/session.jsonl)")
+    p.add_argument("--tolerance-deg", type=float, default=5.0,
+                   help="e-stop when, on its way to the scenario's start, the device parts from the twin by more "
+                        "(an uncalibrated device may need more; default %(default)s)")
 
 
 def run(args) -> int:
@@ -44,7 +47,8 @@ def run(args) -> int:
     try:
         with Link(args.port, log_path=log) as link:
             meta = run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz,
-                           scenario_path=args.scenario, on_progress=progress, gains=gains)
+                           scenario_path=args.scenario, on_progress=progress, gains=gains,
+                           tolerance_deg=args.tolerance_deg)
     except GateRefused as exc:
         print(exc.report.text())
         raise UserError(f"scenario refused by the gate: {exc} (nothing was sent)") from None

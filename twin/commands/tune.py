@@ -18,7 +18,8 @@ def add_arguments(p) -> None:
                         "and the 4 corners, the cost is the worst (default %(default)s)")
     p.add_argument("--step-deg", type=float, default=30.0,
                    help="step every hinge takes from flat, deg (default %(default)s)")
-    p.add_argument("--duration", type=float, default=0.6, help="s simulated per candidate (default %(default)s)")
+    p.add_argument("--duration", type=float, default=1.0,
+                   help="s simulated per candidate, and the window of the reported metrics (default %(default)s)")
     p.add_argument("--population", type=int, default=32, help="candidates per generation (default %(default)s)")
     p.add_argument("--generations", type=int, default=8, help="cross-entropy generations (default %(default)s)")
     p.add_argument("--seed", type=int, default=0)
@@ -56,12 +57,13 @@ def run(args) -> int:
                   progress=None if args.json else lambda g, c, t: print(
                       f"generation {g + 1}/{args.generations}: worst-plant cost per hinge "
                       + " ".join(f"{x * 1000:5.0f}" for x in c) + f" ms  ({t:.1f} s)", flush=True))
-    rows_before, _ = step_report(spec, before, step)
-    rows_after, _ = step_report(spec, result.gains, step)
+    rows_before, _ = step_report(spec, before, goal)
+    rows_after, _ = step_report(spec, result.gains, goal)
     meta = {"goal": {"max_overshoot_deg": args.max_overshoot_deg, "tolerance_pct": args.tolerance,
                      "step_deg": args.step_deg, "duration_s": args.duration},
             "worst_plant_settle_s": [round(float(x), 4) for x in result.settle],
             "worst_plant_overshoot_deg": [round(math.degrees(x), 4) for x in result.overshoot],
+            "worst_plant_peak_current_A": [round(float(x), 3) for x in result.peak_current],
             "simulations": result.simulations, "wall_time_s": round(result.wall_time, 2)}
     write_gains(args.out, result.gains, meta)
     summary = {"gains_file": args.out, "before": rows_before, "after": rows_after, **meta}
@@ -103,7 +105,7 @@ def confirm_on_device(args, spec, gains, step, twin_rows, quiet=False) -> list[d
         raise UserError(f"link: {exc} (session log: {args.log})") from None
     twin = Twin(spec, gains)
     twin.reset(start)
-    trace = twin.move_to(targets, max_time=1.5, stop_when_settled=False)
+    trace = twin.move_to(targets, max_time=args.duration, stop_when_settled=False)
     pred = move_report(spec, trace)
     band = math.degrees(spec.settle_band * spec.rad_per_count)
     tgt = np.degrees(target_counts(spec, targets) * spec.rad_per_count)
