@@ -129,6 +129,17 @@ def test_threshold_share_matches_the_geometry():
     assert summary["raw_share_within"] == pytest.approx(expected, abs=2 * field.dy / SPEC.usable_depth)
     assert summary["raw_largest_rotation_deg"] > 64.87
 
+    # the gate reports it: a warning by default, a refusal when strict
+    from twin.gate import GateRefused, GateReport, enforce, redirection_check
+
+    warn, strict = redirection_check(summary), redirection_check(summary, strict=True)
+    assert warn.passed and warn.warning and warn.line().startswith("WARN")
+    assert not strict.passed and strict.line().startswith("FAIL")
+    enforce(GateReport(FLAT, FLAT, [warn], None))
+    with pytest.raises(GateRefused, match="redirection"):
+        enforce(GateReport(FLAT, FLAT, [strict], None))
+    assert not redirection_check({**summary, "share_within": 1.0}, strict=True).warning
+
 
 @pytest.fixture(scope="module")
 def stairs():

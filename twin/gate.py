@@ -39,9 +39,10 @@ class Check:
     limit: float
     unit: str
     detail: str = ""
+    warning: bool = False  # over its limit, but reported rather than refused
 
     def line(self) -> str:
-        mark = "ok  " if self.passed else "FAIL"
+        mark = "FAIL" if not self.passed else "WARN" if self.warning else "ok  "
         return f"{mark} {self.name:<13} {self.value:10.3f} {self.unit:<4} limit {self.limit:.3f} {self.unit}" + (
             f"  ({self.detail})" if self.detail else "")
 
@@ -161,6 +162,19 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
     k = int(np.argmax(held))
     checks.append(Check("hold_current", float(held[k]) <= hold_lim, float(held[k]), hold_lim, "A", f"hinge {k}"))
     return GateReport(start, targets, checks, trace)
+
+
+def redirection_check(summary: dict, strict: bool = False) -> Check:
+    """The perception thresholds as a gate check, from `twin.redirection.threshold_summary`'s dict.
+
+    The share of the touch surface whose pen redirection is within the thresholds must be 1;
+    below that it is a warning, or with `strict` a failure.
+    """
+    share = summary["share_within"]
+    over = share < 1.0
+    detail = (f"largest {summary['largest_offset_mm']:.1f} mm, {summary['largest_rotation_deg']:.1f} deg; "
+              f"thresholds {summary['position_threshold_mm']:g} mm, {summary['rotation_threshold_deg']:g} deg")
+    return Check("redirection", not (over and strict), share * 100, 100.0, "%", detail, warning=over and not strict)
 
 
 def enforce(report: GateReport, override: bool = False) -> GateReport:

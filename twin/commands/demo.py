@@ -1,6 +1,8 @@
 """`vrscroll demo`: the whole path once. Approximate a shape from its default start,
 validate the move on the twin (the gate: range, collisions, settling, current),
-simulate the morph with the firmware in the loop, report both, write a picture.
+simulate the morph with the firmware in the loop, check the pen redirection the
+reached shape needs against the perception thresholds (a warning, or with --strict
+a refusal), report all, write a picture.
 """
 
 from __future__ import annotations
@@ -12,8 +14,9 @@ import numpy as np
 
 from twin.approximation import approximate, default_spec, pose_from_mm_deg
 from twin.fields import build_fields
-from twin.gate import check_move
+from twin.gate import check_move, redirection_check
 from twin.kinematics import flap_frames
+from twin.redirection import build_field, threshold_summary
 from twin.shapes import load_shape, shape_names, shape_table
 from twin.simulation import move_report
 from twin.surface_metrics import msd_hd
@@ -23,43 +26,54 @@ def add_arguments(p) -> None:
     p.add_argument("--shape", choices=shape_names(), default="cylinder", help="target shape (default cylinder)")
     p.add_argument("--png", default="demo.png", help="picture to write (default demo.png)")
     p.add_argument("--json", metavar="FILE", help="also write the report as JSON")
+    p.add_argument("--strict", action="store_true",
+                   help="refuse (exit 1) when the pen redirection goes beyond the perception thresholds")
 
 
 def run(args) -> int:
     spec = default_spec()
     mesh = load_shape(args.shape)
-    print(f"[1/4] fields of {args.shape} (cached after the first run) ...", flush=True)
+    print(f"[1/5] fields of {args.shape} (cached after the first run) ...", flush=True)
     fields = build_fields(mesh)
     start = shape_table()[args.shape]["start"]
     pose = pose_from_mm_deg(start)
     approximate(fields, pose, spec)  # warm-up: loads compiled code
     approx = approximate(fields, pose, spec).measured(spec, mesh)
-    print(f"[2/4] approximated in {approx.time * 1e3:.2f} ms: MSD {approx.msd * 1e3:.2f} mm, "
+    print(f"[2/5] approximated in {approx.time * 1e3:.2f} ms: MSD {approx.msd * 1e3:.2f} mm, "
           f"HD {approx.hd * 1e3:.2f} mm; hinges {np.degrees(approx.angles).round(1).tolist()} deg", flush=True)
 
-    print("[3/4] validating and simulating the morph on the twin (firmware PID at 1 kHz) ...", flush=True)
+    print("[3/5] validating and simulating the morph on the twin (firmware PID at 1 kHz) ...", flush=True)
     gate = check_move(spec, np.zeros(spec.n_hinges), approx.angles)
-    print(gate.text())
     trace = gate.prediction
     hinges = move_report(spec, trace) if trace is not None else []
     end_angles = trace.angle[-1] if trace is not None else np.zeros(spec.n_hinges)
     end_msd, end_hd = msd_hd(spec, mesh, approx.root_pose, end_angles, approx.widths)
     settle = max((h["settle_time_s"] for h in hinges), default=float("nan"))
     final_err = max((abs(h["steady_state_error_deg"]) for h in hinges), default=float("nan"))
+
+    # the residual mismatch where the twin ended, as the pen redirection must cover it
+    field = build_field(spec, approx.root_pose, end_angles, approx.widths, mesh, fields)
+    redirection = threshold_summary(field)
+    gate.checks.append(redirection_check(redirection, strict=args.strict))
+    print(gate.text())
     print(f"      morph settled in {settle:.3f} s (slowest hinge), largest final error {final_err:.2f} deg; "
           f"MSD where the twin ended {end_msd * 1e3:.2f} mm (HD {end_hd * 1e3:.2f} mm)")
+    print(f"[4/5] pen redirection over the reached shape: {redirection['share_within']:.1%} of the touch surface "
+          f"within {redirection['position_threshold_mm']:g} mm / {redirection['rotation_threshold_deg']:g} deg "
+          f"(largest {redirection['largest_offset_mm']:.1f} mm, {redirection['largest_rotation_deg']:.1f} deg)")
 
     from viz.scene import render_approximation
 
     frames = flap_frames(spec, end_angles, approx.root_pose, approx.widths)
     render_approximation(spec, mesh, frames, approx.widths, args.png,
                          title=f"{args.shape}: twin after the morph, MSD {end_msd * 1e3:.1f} mm")
-    print(f"[4/4] picture: {args.png}")
+    print(f"[5/5] picture: {args.png}")
     report = {
         "shape": args.shape,
         "start_mm_deg": start,
         "approximation": approx.to_json(),
         "gate": gate.to_dict(),
+        "redirection": redirection,
         "morph": {"settle_time_s": settle, "largest_final_error_deg": final_err, "hinges": hinges,
                   "msd_after_morph_mm": round(end_msd * 1e3, 3), "hd_after_morph_mm": round(end_hd * 1e3, 3)},
         "png": args.png,
