@@ -160,7 +160,8 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
         if np.all(np.abs(np.asarray(fr.counts) - tgt) <= spec.settle_band):
             in_band_since = elapsed if in_band_since is None else in_band_since
             if elapsed - in_band_since >= hold_needed:
-                twin_t = f"{trace.duration:.3f} s" if trace is not None else "not simulated"
+                # the twin stops once settled for settle_hold: it entered the band that much earlier
+                twin_t = f"{trace.duration - hold_needed:.3f} s" if trace is not None else "not simulated"
                 return result("settled", None, f"settled at t={in_band_since:.3f} s (twin: {twin_t}), "
                               f"largest deviation {np.degrees(max_dev).max():.2f} deg")
         else:
