@@ -154,3 +154,12 @@ def test_command_line_end_to_end(tmp_path, capsys):
     assert main(["psychometric", str(tmp_path / "bad.csv")]) == 2
     err = capsys.readouterr().err
     assert "bad.csv:2: natural 'perhaps'" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("surface", ["curved convex", "curved concave", "angled convex"])
+def test_the_plot_is_drawn_for_every_paper_curve(tmp_path, surface):
+    """Each paper curve's sample (seed 0) fits and plots; curved convex once broke the error bars (-1e-17)."""
+    data, out = tmp_path / "trials.csv", tmp_path / "out"
+    assert main(["psychometric", str(data), "--example", surface]) == 0
+    assert main(["psychometric", str(data), "--out", str(out), "--bootstrap", "200"]) == 0
+    assert (out / "psychometric.png").stat().st_size > 10_000

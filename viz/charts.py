@@ -51,7 +51,7 @@ def psychometric_curves(reports: list[dict], unit: str, path, paper: dict | None
         ratio = np.array([c["ratio"] for c in r["conditions"]])
         lo, hi = np.array([c["ratio_ci"] for c in r["conditions"]]).T
         n = np.array([c["n"] for c in r["conditions"]])
-        ax.errorbar(x, ratio, yerr=[ratio - lo, hi - ratio], fmt="none", ecolor="gray", capsize=3)
+        ax.errorbar(x, ratio, yerr=np.clip([ratio - lo, hi - ratio], 0, None), fmt="none", ecolor="gray", capsize=3)
         ax.scatter(x, ratio, s=20 + 80 * n / n.max(), color="C0", zorder=3, label="detection ratio (CI)")
         xs = np.linspace(x.min(), x.max(), 200)
         fit = r["fit"]
