@@ -431,9 +431,8 @@ def _redirect_kernel(rot, origin, s_edges, s0, ds, y0, dy, offset, rotation, pos
 def threshold_summary(field: RedirectionField, thresholds: Thresholds | None = None) -> dict:
     """How much of the device's touch surface the redirection keeps within the thresholds.
 
-    Per on-device node: within = target found, |d| <= position and angle(R) <= rotation
-    (the blurred field: what the user sees). Shares are of the usable touch surface (the
-    grid is uniform, so node shares are area shares). Also the raw (unblurred) figures.
+    Shares are of the usable touch surface's nodes (a uniform grid: node shares are area
+    shares), with the blurred field (what the user sees) and the raw one (`raw_` keys).
     """
     thresholds = thresholds or load_thresholds()
     dev = field.on_device
@@ -442,8 +441,7 @@ def threshold_summary(field: RedirectionField, thresholds: Thresholds | None = N
            "no_target_share": round(float(1 - field.hit[dev].mean()), 4)}
     for name, raw in (("", False), ("raw_", True)):
         size, angle = field.offset_size(raw)[dev], field.rotation_angle(raw)[dev]
-        within = field.hit[dev] & (size <= thresholds.position) & (angle <= thresholds.rotation)
-        out.update({f"{name}share_within": round(float(within.mean()), 4),
+        out.update({f"{name}share_within": round(float(within_flags(field, thresholds, raw)[dev].mean()), 4),
                     f"{name}largest_offset_mm": round(float(size.max()) * 1e3, 3),
                     f"{name}largest_rotation_deg": round(math.degrees(float(angle.max())), 3),
                     f"{name}mean_offset_mm": round(float(size.mean()) * 1e3, 3),
@@ -451,10 +449,12 @@ def threshold_summary(field: RedirectionField, thresholds: Thresholds | None = N
     return out
 
 
-def within_flags(field: RedirectionField, thresholds: Thresholds | None = None) -> np.ndarray:
-    """Per node (ns, ny): the blurred redirection within both thresholds and the target found."""
+def within_flags(field: RedirectionField, thresholds: Thresholds | None = None, raw: bool = False) -> np.ndarray:
+    """Per node (ns, ny): the redirection (blurred, or raw) is within both thresholds, and on the
+    device the target was found along the normal."""
     thresholds = thresholds or load_thresholds()
-    return (field.hit | ~field.on_device) & (field.offset_size() <= thresholds.position) & (field.rotation_angle() <= thresholds.rotation)
+    return ((field.hit | ~field.on_device) & (field.offset_size(raw) <= thresholds.position)
+            & (field.rotation_angle(raw) <= thresholds.rotation))
 
 
 def within_samples(redirected: Redirected, thresholds: Thresholds | None = None) -> np.ndarray:
