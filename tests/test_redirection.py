@@ -13,8 +13,8 @@ from twin.approximation import approximate, default_spec, pose_from_mm_deg
 from twin.cli import main
 from twin.fields import build_fields
 from twin.perception import load_thresholds
-from twin.redirection import (build_field, read_pen_samples, redirect, surface_points, threshold_summary,
-                              within_samples)
+from twin.redirection import (build_field, largest_virtual_step, read_pen_samples, redirect, surface_points,
+                              threshold_summary, within_samples)
 from twin.shapes import load_shape, shape_table, sweep_solid
 
 SPEC = default_spec()
@@ -149,31 +149,15 @@ def stairs():
     return mesh, fields, approx
 
 
-STEP = 0.0005  # m, a small pen step
-BOUND = 0.002  # m: the virtual point moves at most this much for one STEP with the default blur
-
-
-def _largest_virtual_step(field):
-    """Largest virtual move (m) for STEP pen steps on the surface, along s across every hinge and beyond both
-    ends of the device, and along y beyond both of its sides."""
-    largest = 0.0
-    walks = [(np.arange(field.s_edges[0] - 0.03, field.s_edges[-1] + 0.03, STEP), y) for y in (-0.09, 0.0, 0.06)]
-    y = np.arange(-SPEC.usable_depth / 2 - 0.03, SPEC.usable_depth / 2 + 0.03, STEP)
-    walks += [(np.full_like(y, s), y) for s in (field.s_edges[1] + 0.001, 0.0, field.s_edges[-1] + 0.01)]
-    for s, y in walks:
-        s, y = np.broadcast_arrays(s, y)
-        pens, _ = surface_points(field.frames, field.s_edges, s, y)
-        out = redirect(field, pens, np.tile([1.0, 0, 0, 0], (len(pens), 1)))
-        largest = max(largest, np.linalg.norm(np.diff(out.position, axis=0), axis=1).max())
-    return largest
+BOUND = 0.002  # m: the virtual point moves at most this much for a 0.5 mm pen step with the default blur
 
 
 def test_the_smoothed_field_has_no_jumps_across_hinges_or_off_the_device(stairs):
     mesh, fields, approx = stairs
     raw = build_field(SPEC, approx.root_pose, approx.angles, approx.widths, mesh, fields, sigma=0.0)
     smooth = build_field(SPEC, approx.root_pose, approx.angles, approx.widths, mesh, fields)
-    assert _largest_virtual_step(raw) > 2 * BOUND  # without the blur the pen jumps at the hinges
-    assert _largest_virtual_step(smooth) < BOUND
+    assert largest_virtual_step(raw, step=0.0005) > 2 * BOUND  # without the blur the pen jumps at the hinges
+    assert largest_virtual_step(smooth, step=0.0005) < BOUND
 
 
 def test_a_pen_carried_with_the_device_is_redirected_the_same(stairs):

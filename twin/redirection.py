@@ -426,6 +426,25 @@ def _redirect_kernel(rot, origin, s_edges, s0, ds, y0, dy, offset, rotation, pos
         info[k, 5] = y
 
 
+def largest_virtual_step(field: RedirectionField, step: float = 0.0005, margin: float = 0.03) -> float:
+    """Largest move (m) of the virtual pen for one `step` m of a pen on the touch surface, walking
+    along s across every hinge and `margin` m beyond both ends (at three y), and along y `margin` m
+    beyond both sides (at three s): how continuous the redirection is where the pen crosses flap
+    edges and leaves the device."""
+    lo, hi = field.s_edges[0], field.s_edges[-1]
+    half = field.axes()[1][field.on_device.any(axis=0)].max()  # half the usable depth
+    s = np.arange(lo - margin, hi + margin, step)
+    y = np.arange(-half - margin, half + margin, step)
+    walks = [(s, np.full_like(s, v)) for v in (-half - margin / 3, 0.0, 0.8 * half)]
+    walks += [(np.full_like(y, v), y) for v in (field.s_edges[1] + 0.001, 0.0, hi + margin / 3)]
+    largest = 0.0
+    for ss, yy in walks:
+        pens, _ = surface_points(field.frames, field.s_edges, ss, yy)
+        out = redirect(field, pens, np.tile([1.0, 0.0, 0.0, 0.0], (len(pens), 1)))
+        largest = max(largest, float(np.linalg.norm(np.diff(out.position, axis=0), axis=1).max()))
+    return largest
+
+
 # ---- perception thresholds ----------------------------------------------------------------
 
 def threshold_summary(field: RedirectionField, thresholds: Thresholds | None = None) -> dict:
