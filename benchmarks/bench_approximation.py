@@ -20,11 +20,11 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from twin.approximation import VARIANTS, approximate, default_spec  # noqa: E402
-from twin.fields import SPACING, build_fields, exact_signed_distance  # noqa: E402
-from twin.shapes import load_shape, shape_names  # noqa: E402
-from twin.starts import approach_starts  # noqa: E402
-from twin.surface_metrics import msd_hd  # noqa: E402
+from twin.morphpatch.approximation import VARIANTS, approximate, default_spec  # noqa: E402
+from twin.morphpatch.fields import SPACING, build_fields, exact_signed_distance  # noqa: E402
+from twin.morphpatch.shapes import load_shape, shape_names  # noqa: E402
+from twin.evaluation.starts import approach_starts  # noqa: E402
+from twin.morphpatch.surface_metrics import msd_hd  # noqa: E402
 
 
 def main() -> None:

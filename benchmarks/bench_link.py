@@ -23,8 +23,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from twin.emulator import EmulatorProcess  # noqa: E402
-from twin.link import Link  # noqa: E402
+from twin.link.emulator import EmulatorProcess  # noqa: E402
+from twin.link.serial_link import Link  # noqa: E402
 
 
 def round_trips(link: Link, n: int) -> dict:

@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_redirection.py [--starts 5] [--calls 20000]
 
 Runs on one core (numba's and BLAS's threads pinned to 1 before import). Per shape,
-from `--starts` seeded starts (twin.starts), approximated with the full pipeline:
+from `--starts` seeded starts (twin.evaluation.starts), approximated with the full pipeline:
 the time to build the redirection field (the target's SDF grid already built, as it
 is when the approximation ran), the share of the touch surface within the perception
 thresholds, and the time per pen sample two ways: one sample per call, as a 360 Hz
@@ -24,11 +24,11 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from twin.approximation import approximate, default_spec  # noqa: E402
-from twin.fields import build_fields  # noqa: E402
-from twin.redirection import build_field, largest_virtual_step, redirect, threshold_summary  # noqa: E402
-from twin.shapes import load_shape, shape_names  # noqa: E402
-from twin.starts import approach_starts  # noqa: E402
+from twin.morphpatch.approximation import approximate, default_spec  # noqa: E402
+from twin.morphpatch.fields import build_fields  # noqa: E402
+from twin.morphpatch.redirection import build_field, largest_virtual_step, redirect, threshold_summary  # noqa: E402
+from twin.morphpatch.shapes import load_shape, shape_names  # noqa: E402
+from twin.evaluation.starts import approach_starts  # noqa: E402
 
 
 def main() -> None:

@@ -20,7 +20,7 @@ import mujoco  # noqa: E402
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
-from twin.simulation import Twin, TwinBatch, _mj_step  # noqa: E402
+from twin.sim.simulation import Twin, TwinBatch, _mj_step  # noqa: E402
 
 @numba.njit
 def _open_loop(m, d, ctrl_buf, ctrl):

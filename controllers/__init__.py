@@ -1,1 +1,4 @@
-"""Firmware-equivalent motor control: the PID that runs on the device, encoder maths, tuning."""
+"""What runs on the device: the firmware's motor control (PID) and encoder maths.
+
+Imports `twin.device` (the spec) only; the simulation, the emulator and the tuner import it.
+"""

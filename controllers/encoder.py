@@ -12,7 +12,7 @@ import math
 import numba
 import numpy as np
 
-from twin.spec import DeviceSpec
+from twin.device.spec import DeviceSpec
 
 
 @numba.njit(cache=True)

@@ -22,7 +22,7 @@ import math
 import numba
 import numpy as np
 
-from twin.spec import DeviceSpec
+from twin.device.spec import DeviceSpec
 
 # columns of a gains row, as pid_update reads them
 KP, KI, KD, ALPHA, ILIM, DEADBAND, HOLD = range(7)

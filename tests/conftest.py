@@ -1,8 +1,8 @@
 import pytest
 
-from twin.emulator import EmulatorProcess
+from twin.link.emulator import EmulatorProcess
 
-from twin.spec import load_spec
+from twin.device.spec import load_spec
 
 
 @pytest.fixture(scope="session")

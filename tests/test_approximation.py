@@ -1,4 +1,4 @@
-"""The MorphPatch pipeline (twin/approximation.py), the proxy's metrics and the CLI command."""
+"""The MorphPatch pipeline (twin/morphpatch/approximation.py), the proxy's metrics and the CLI command."""
 
 import json
 import math
@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from twin import cli
-from twin.approximation import Approximation, approximate, pose_from_mm_deg
-from twin.fields import build_fields
-from twin.kinematics import bend, flap_frames, pose_matrix, widen
-from twin.shapes import load_shape, shape_names
-from twin.starts import approach_starts
-from twin.surface_metrics import msd_hd
+from twin.morphpatch.approximation import Approximation, approximate, pose_from_mm_deg
+from twin.morphpatch.fields import build_fields
+from twin.device.kinematics import bend, flap_frames, pose_matrix, widen
+from twin.morphpatch.shapes import load_shape, shape_names
+from twin.evaluation.starts import approach_starts
+from twin.morphpatch.surface_metrics import msd_hd
 
 EVAL_SPACING = 0.005  # m: coarser fields for the all-shapes test keep this file fast (about 5 s to build)
 HCEVF_MARGIN = 0.5e-3  # m: "full" may be at most this much worse than "no_hcevf" in mean MSD
@@ -174,6 +174,6 @@ def test_the_approximation_never_imports_mujoco():
     import subprocess
     import sys
 
-    code = ("import sys, twin.approximation, twin.fields, twin.shapes, twin.surface_metrics; "
+    code = ("import sys, twin.morphpatch.approximation, twin.morphpatch.fields, twin.morphpatch.shapes, twin.morphpatch.surface_metrics; "
             "assert not any(m.startswith('mujoco') for m in sys.modules)")
     subprocess.run([sys.executable, "-c", code], check=True)

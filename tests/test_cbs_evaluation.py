@@ -6,15 +6,15 @@ import math
 import numpy as np
 import pytest
 
-from twin.approximation import pose_from_mm_deg
-from twin.cbs import CbsSimulator
-from twin.collision import collision_error, convex_parts
-from twin.evaluation import read_records, run_evaluation, summarize, write_tables
-from twin.fields import exact_signed_distance
-from twin.proxy import touch_surface_points
-from twin.shapes import load_shape
-from twin.starts import MAX_TILT, STANDOFF, approach_starts
-from twin.surface_metrics import msd_hd
+from twin.morphpatch.approximation import pose_from_mm_deg
+from twin.evaluation.cbs import CbsSimulator
+from twin.evaluation.target_collision import collision_error, convex_parts
+from twin.evaluation.table1 import read_records, run_evaluation, summarize, write_tables
+from twin.morphpatch.fields import exact_signed_distance
+from twin.morphpatch.sampling import touch_surface_points
+from twin.morphpatch.shapes import load_shape
+from twin.evaluation.starts import MAX_TILT, STANDOFF, approach_starts
+from twin.morphpatch.surface_metrics import msd_hd
 
 PENETRATION = 0.002  # m: the deepest a CBS touch-surface sample may sit inside the target
 

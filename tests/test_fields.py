@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from twin.fields import SPACING, build_fields, exact_signed_distance
-from twin.shapes import load_shape
+from twin.morphpatch.fields import SPACING, build_fields, exact_signed_distance
+from twin.morphpatch.shapes import load_shape
 
 # Interpolation error of the 3 mm grid against libigl's exact distance, near the
 # surface (-10..+30 mm): benchmarks/bench_approximation.py measures mean about
@@ -112,7 +112,7 @@ def test_fields_are_cached_in_memory_and_on_disk(tmp_path, monkeypatch):
     assert build_fields(mesh, spacing=0.005, margin=0.02) is first
     files = list((tmp_path / "fields").glob("*.npz"))
     assert len(files) == 1
-    import twin.fields as module
+    import twin.morphpatch.fields as module
 
     module._MEMORY.clear()
     again = build_fields(mesh, spacing=0.005, margin=0.02)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from controllers.pid import PidGains
-from twin.gate import GateRefused, check_move, enforce
-from twin.simulation import Twin
+from twin.sim.gate import GateRefused, check_move, enforce
+from twin.sim.simulation import Twin
 
 
 @pytest.fixture(scope="module")

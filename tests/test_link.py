@@ -14,11 +14,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from controllers.encoder import target_counts
-from twin import protocol as P
+from twin.link import protocol as P
 from twin.cli import main as vrscroll
-from twin.gate import GateRefused
-from twin.link import Link, LinkError, LinkTimeout, NackError
-from twin.mirror import mirror
+from twin.sim.gate import GateRefused
+from twin.link.serial_link import Link, LinkError, LinkTimeout, NackError
+from twin.hil.mirror import mirror
 
 SAFE_DEG = [25.0, 10.0, 0.0, 0.0, -10.0, -25.0]
 

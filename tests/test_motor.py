@@ -6,7 +6,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from twin.model import load_model
+from twin.device.mjcf import load_model
 
 
 def _one_free_hinge(spec):

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from controllers.pid import PidGains
-from twin import protocol as P
+from twin.link import protocol as P
 
 MESSAGES = [
     P.Hello(), P.Heartbeat(), P.GetState(), P.EStop(), P.ClearFault(),

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from twin.cli import main
-from twin.perception import detection_rule, paper_fits
-from twin.psychometric import (analyse, counts, curve, detected, fit, read_trials, simulate_trials, threshold,
+from twin.perception.thresholds import detection_rule, paper_fits
+from twin.perception.psychometric import (analyse, counts, curve, detected, fit, read_trials, simulate_trials, threshold,
                                write_trials)
 
 RULE = detection_rule()

@@ -9,13 +9,13 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from twin.approximation import approximate, default_spec, pose_from_mm_deg
+from twin.morphpatch.approximation import approximate, default_spec, pose_from_mm_deg
 from twin.cli import main
-from twin.fields import build_fields
-from twin.perception import load_thresholds
-from twin.redirection import (build_field, largest_virtual_step, read_pen_samples, redirect, surface_points,
+from twin.morphpatch.fields import build_fields
+from twin.perception.thresholds import load_thresholds
+from twin.morphpatch.redirection import (build_field, largest_virtual_step, read_pen_samples, redirect, surface_points,
                               threshold_summary, within_samples)
-from twin.shapes import load_shape, shape_table, sweep_solid
+from twin.morphpatch.shapes import load_shape, shape_table, sweep_solid
 
 SPEC = default_spec()
 FLAT = np.zeros(SPEC.n_hinges)
@@ -47,7 +47,7 @@ def _solid_under(angles, thickness=0.01, half_depth=0.1):
 
 
 def default_spec_frames(angles):
-    from twin.kinematics import flap_frames
+    from twin.device.kinematics import flap_frames
 
     return flap_frames(SPEC, angles, None, PITCH)
 
@@ -130,7 +130,7 @@ def test_threshold_share_matches_the_geometry():
     assert summary["raw_largest_rotation_deg"] > 64.87
 
     # the gate reports it: a warning by default, a refusal when strict
-    from twin.gate import GateRefused, GateReport, enforce, redirection_check
+    from twin.sim.gate import GateRefused, GateReport, enforce, redirection_check
 
     warn, strict = redirection_check(summary), redirection_check(summary, strict=True)
     assert warn.passed and warn.warning and warn.line().startswith("WARN")

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from twin.response import step_metrics
+from twin.sim.response import step_metrics
 
 
 def test_first_order_step():

@@ -1,10 +1,10 @@
-"""The evaluation shapes and mesh-file loading (twin/shapes.py)."""
+"""The evaluation shapes and mesh-file loading (twin/morphpatch/shapes.py)."""
 
 import numpy as np
 import pytest
 import trimesh
 
-from twin.shapes import MeshError, load_mesh, load_shape, shape_names, shape_table
+from twin.morphpatch.shapes import MeshError, load_mesh, load_shape, shape_names, shape_table
 
 PAPER_SHAPES = ["cube", "torus", "arch", "cone", "cylinder", "ellipsoid", "stairs", "curved_stairs"]
 

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from twin.simulation import TargetError, Twin, TwinBatch, move_report
+from twin.sim.simulation import TargetError, Twin, TwinBatch, move_report
 
 TARGETS_DEG = [60.0, -45.0, 0.0, 30.0, 90.0, -100.0]
 

@@ -6,9 +6,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from twin.kinematics import flap_frames
-from twin.model import MJCF_PATH, load_model, mjcf
-from twin.spec import SPEC_PATH, load_spec, spec_sources
+from twin.device.kinematics import flap_frames
+from twin.device.mjcf import MJCF_PATH, load_model, mjcf
+from twin.device.spec import SPEC_PATH, load_spec, spec_sources
 
 
 def test_every_constant_has_a_source():

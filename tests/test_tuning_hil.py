@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from controllers.pid import PidGains
-from controllers.tuning import TuneGoal, read_gains, step_report, tune, write_gains
-from twin.hil import compare, load_run, load_scenario, read_trace, run_hil
-from twin.link import Link
+from twin.tuning.tuner import TuneGoal, read_gains, step_report, tune, write_gains
+from twin.hil.runs import compare, load_run, load_scenario, read_trace, run_hil
+from twin.link.serial_link import Link
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -48,7 +48,7 @@ angles_deg = [25, 15, 35, 5, 20, 0]
 
 @pytest.fixture(scope="module")
 def tuned():
-    from twin.spec import load_spec
+    from twin.device.spec import load_spec
 
     spec = load_spec()
     goal = TuneGoal()
@@ -56,7 +56,7 @@ def tuned():
 
 
 def test_tuned_gains_beat_the_spec_defaults_on_the_twin(tuned, tmp_path):
-    from twin.gate import check_move
+    from twin.sim.gate import check_move
 
     spec, goal, result = tuned
     before, _ = step_report(spec, PidGains.from_spec(spec), goal)
@@ -79,8 +79,8 @@ def test_tuned_gains_beat_the_spec_defaults_on_the_twin(tuned, tmp_path):
 
 def test_the_two_chains_of_hinges_do_not_move_each_other(spec):
     """What lets the tuner search each chain on its own: the root flap is held."""
-    from controllers.tuning import chains
-    from twin.simulation import TwinBatch
+    from twin.tuning.tuner import chains
+    from twin.sim.simulation import TwinBatch
 
     left, right = chains(spec)
     table = np.tile(PidGains.from_spec(spec).row(spec.firmware_dt), (2, spec.n_hinges, 1))
@@ -104,9 +104,9 @@ def test_tune_command_writes_a_gains_file(tmp_path, capsys):
 
 def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device(emulator, tmp_path, capsys):
     from controllers.encoder import target_counts
-    from twin import protocol as P
+    from twin.link import protocol as P
     from twin.cli import main as vrscroll
-    from twin.spec import load_spec
+    from twin.device.spec import load_spec
 
     spec = load_spec()
     emu = emulator()
@@ -132,9 +132,9 @@ def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device
 
 
 def test_tuned_gains_on_the_emulator_settle_as_the_twin_predicts(tuned, emulator, tmp_path):
-    from twin.hil import device_step
-    from twin.response import step_metrics
-    from twin.simulation import Twin, move_report
+    from twin.hil.runs import device_step
+    from twin.sim.response import step_metrics
+    from twin.sim.simulation import Twin, move_report
 
     spec, goal, result = tuned
     emu = emulator()
@@ -176,7 +176,7 @@ def test_hil_interrupted_half_way_keeps_both_traces(emulator, tmp_path):
     assert len(dev["time_s"]) > 400 and dev["angle_deg"].shape[1] == 6
     meta = json.loads((out / "run.json").read_text())
     assert meta["status"] == "running" and len(meta["changes"]) >= 2
-    from twin.spec import load_spec
+    from twin.device.spec import load_spec
     rows = compare(load_spec(), dev, tw,
                    [c["t_s"] for c in meta["changes"]])
     assert all(r["rmse_deg"] < 2.0 for r in rows)
@@ -200,7 +200,7 @@ def test_hil_command_writes_report(emulator, tmp_path, capsys):
 def test_gear_damping_does_not_show_in_the_motion(spec):
     """Why calibration cannot fit gear damping: the spec pins the motor by stall torque and no-load speed,
     so more gear damping means a smaller motor constant and the same total viscous loss."""
-    from twin.simulation import Twin
+    from twin.sim.simulation import Twin
 
     soft = PidGains.from_spec(spec).replace(kp=0.015, ki=0.05, kd=0.0003)
     traces = []
@@ -213,8 +213,8 @@ def test_gear_damping_does_not_show_in_the_motion(spec):
 
 def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     from twin.cli import main as vrscroll
-    from twin.mirror import mirror
-    from twin.spec import load_spec
+    from twin.hil.mirror import mirror
+    from twin.device.spec import load_spec
 
     spec = load_spec()
     # known to the test, not to the calibration: the parameters the device's motion shows (gear damping does

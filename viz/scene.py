@@ -13,9 +13,9 @@ import numpy as np
 import pyvista as pv
 import trimesh
 
-from twin.proxy import METRIC_SPACING, grid_layout, world_points
-from twin.spec import DeviceSpec
-from twin.surface_metrics import point_distances
+from twin.morphpatch.sampling import METRIC_SPACING, grid_layout, world_points
+from twin.device.spec import DeviceSpec
+from twin.morphpatch.surface_metrics import point_distances
 
 pv.OFF_SCREEN = True
 
@@ -52,11 +52,11 @@ def render_redirection(mesh: trimesh.Trimesh, field, path: str | Path, threshold
                        window_size=(1600, 800)) -> Path:
     """Write a PNG of the redirection over the device: |offset| (mm) left, rotation (deg) right.
 
-    field: a `twin.redirection.RedirectionField`. Colours run from 0 to the perception
+    field: a `twin.morphpatch.redirection.RedirectionField`. Colours run from 0 to the perception
     threshold; nodes beyond it (or where no target was found) are red. The target is grey.
     """
-    from twin.redirection import within_flags
-    from twin.perception import load_thresholds
+    from twin.morphpatch.redirection import within_flags
+    from twin.perception.thresholds import load_thresholds
 
     thresholds = thresholds or load_thresholds()
     points, _ = field.surface()

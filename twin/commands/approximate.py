@@ -15,10 +15,10 @@ import json
 
 import numpy as np
 
-from twin.approximation import VARIANTS, approximate, default_spec, pose_from_mm_deg
+from twin.morphpatch.approximation import VARIANTS, approximate, default_spec, pose_from_mm_deg
 from twin.cli import UserError
-from twin.fields import build_fields
-from twin.shapes import load_mesh, load_shape, shape_names, shape_table
+from twin.morphpatch.fields import build_fields
+from twin.morphpatch.shapes import load_mesh, load_shape, shape_names, shape_table
 
 MESH_START_HEIGHT = 0.04  # m above the top of a mesh file's bounding box
 

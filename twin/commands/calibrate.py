@@ -19,9 +19,9 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from twin.calibration import calibrate, trace_rmse, write_spec
-    from twin.hil import load_run
-    from twin.spec import load_spec
+    from twin.hil.calibration import calibrate, trace_rmse, write_spec
+    from twin.hil.runs import load_run
+    from twin.device.spec import load_spec
 
     spec = load_spec()
     try:

@@ -8,8 +8,8 @@ shape is from the mesh.
 
 from __future__ import annotations
 
-from twin.approximation import default_spec
-from twin.cbs import CbsSimulator
+from twin.morphpatch.approximation import default_spec
+from twin.evaluation.cbs import CbsSimulator
 from twin.commands.approximate import add_target_arguments, target_and_start, write_result
 
 

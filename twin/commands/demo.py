@@ -12,14 +12,14 @@ import math
 
 import numpy as np
 
-from twin.approximation import approximate, default_spec, pose_from_mm_deg
-from twin.fields import build_fields
-from twin.gate import check_move, redirection_check
-from twin.kinematics import flap_frames
-from twin.redirection import build_field, threshold_summary
-from twin.shapes import load_shape, shape_names, shape_table
-from twin.simulation import move_report
-from twin.surface_metrics import msd_hd
+from twin.morphpatch.approximation import approximate, default_spec, pose_from_mm_deg
+from twin.morphpatch.fields import build_fields
+from twin.sim.gate import check_move, redirection_check
+from twin.device.kinematics import flap_frames
+from twin.morphpatch.redirection import build_field, threshold_summary
+from twin.morphpatch.shapes import load_shape, shape_names, shape_table
+from twin.sim.simulation import move_report
+from twin.morphpatch.surface_metrics import msd_hd
 
 
 def add_arguments(p) -> None:

@@ -1,3 +1,3 @@
-"""`vrscroll emulate`: a device emulator on a pseudo-terminal (see twin/emulator.py)."""
+"""`vrscroll emulate`: a device emulator on a pseudo-terminal (see twin/link/emulator.py)."""
 
-from twin.emulator import add_arguments, run  # noqa: F401
+from twin.link.emulator import add_arguments, run  # noqa: F401

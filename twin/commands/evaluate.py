@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import time
 
-from twin.evaluation import METHODS, paper_table, run_evaluation, summarize, write_tables
-from twin.shapes import shape_names
+from twin.evaluation.table1 import METHODS, paper_table, run_evaluation, summarize, write_tables
+from twin.morphpatch.shapes import shape_names
 
 
 def add_arguments(p) -> None:

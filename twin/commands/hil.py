@@ -22,17 +22,17 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from twin.gate import GateRefused
-    from twin.hil import compare, load_run, load_scenario, run_hil, write_report
-    from twin.link import Link, LinkError
-    from twin.mirror import DeviceNotReady
-    from twin.spec import load_spec
+    from twin.sim.gate import GateRefused
+    from twin.hil.runs import compare, load_run, load_scenario, run_hil, write_report
+    from twin.link.serial_link import Link, LinkError
+    from twin.hil.mirror import DeviceNotReady
+    from twin.device.spec import load_spec
 
     spec = load_spec()
     scenario = load_scenario(args.scenario, spec)
     gains = None
     if args.gains:
-        from controllers.tuning import read_gains
+        from twin.tuning.tuner import read_gains
         gains = read_gains(args.gains, spec.n_hinges)
     out = Path(args.out or f"hil-{scenario.name}-{datetime.datetime.now():%Y%m%d-%H%M%S}")
     out.mkdir(parents=True, exist_ok=True)

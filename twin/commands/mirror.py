@@ -7,10 +7,10 @@ import json
 import numpy as np
 
 from twin.cli import UserError
-from twin.gate import GateRefused
-from twin.link import Link, LinkError
-from twin.mirror import DeviceNotReady, mirror
-from twin.spec import load_spec
+from twin.sim.gate import GateRefused
+from twin.link.serial_link import Link, LinkError
+from twin.hil.mirror import DeviceNotReady, mirror
+from twin.device.spec import load_spec
 
 
 def add_arguments(p) -> None:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from twin.cli import UserError
-from twin.model import MJCF_PATH, mjcf, write_mjcf
+from twin.device.mjcf import MJCF_PATH, mjcf, write_mjcf
 
 
 def add_arguments(p) -> None:

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from twin.cli import UserError
-from twin.perception import detection_rule, paper_fits
-from twin.psychometric import FIT_METHOD, analyse, read_trials, simulate_trials, threshold, write_trials
+from twin.perception.thresholds import detection_rule, paper_fits
+from twin.perception.psychometric import FIT_METHOD, analyse, read_trials, simulate_trials, threshold, write_trials
 
 
 def add_arguments(p) -> None:

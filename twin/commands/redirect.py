@@ -16,12 +16,12 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.approximation import Approximation, default_spec
+from twin.morphpatch.approximation import Approximation, default_spec
 from twin.cli import UserError
-from twin.fields import build_fields
-from twin.redirection import (PADDING, SIGMA, build_field, read_pen_samples, redirect, threshold_summary,
+from twin.morphpatch.fields import build_fields
+from twin.morphpatch.redirection import (PADDING, SIGMA, build_field, read_pen_samples, redirect, threshold_summary,
                               within_samples, write_redirected)
-from twin.shapes import load_mesh, load_shape, shape_names
+from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
 
 
 def add_arguments(p) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import math
 
-from twin.simulation import Twin, move_report
+from twin.sim.simulation import Twin, move_report
 
 
 def add_arguments(p) -> None:

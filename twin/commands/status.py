@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.encoder import angle_from_counts
-from twin import protocol as P
+from twin.link import protocol as P
 from twin.cli import UserError
-from twin.link import Link, LinkError
-from twin.mirror import faults_text
-from twin.spec import load_spec
+from twin.link.serial_link import Link, LinkError
+from twin.hil.mirror import faults_text
+from twin.device.spec import load_spec
 
 
 def add_arguments(p) -> None:

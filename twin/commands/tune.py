@@ -38,8 +38,8 @@ def _line(label, rows):
 
 def run(args) -> int:
     from controllers.pid import PidGains
-    from controllers.tuning import TuneGoal, step_report, tune, write_gains
-    from twin.spec import load_spec
+    from twin.tuning.tuner import TuneGoal, step_report, tune, write_gains
+    from twin.device.spec import load_spec
 
     if not 0 <= args.tolerance < 100:
         raise UserError(f"--tolerance {args.tolerance}: expected a percentage in [0, 100)")
@@ -84,13 +84,13 @@ def run(args) -> int:
 
 def confirm_on_device(args, spec, gains, step, twin_rows, quiet=False) -> list[dict]:
     """Push the gains, run the step on the device, print its metrics next to the twin's prediction."""
-    from twin.hil import device_step
-    from twin.link import Link, LinkError
-    from twin.mirror import DeviceNotReady
-    from twin.gate import GateRefused
-    from twin.response import step_metrics
+    from twin.hil.runs import device_step
+    from twin.link.serial_link import Link, LinkError
+    from twin.hil.mirror import DeviceNotReady
+    from twin.sim.gate import GateRefused
+    from twin.sim.response import step_metrics
     from controllers.encoder import target_counts
-    from twin.simulation import Twin, move_report
+    from twin.sim.simulation import Twin, move_report
 
     n = spec.n_hinges
     targets = np.full(n, step)

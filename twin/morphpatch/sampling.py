@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from twin.spec import DeviceSpec
+from twin.device.spec import DeviceSpec
 
 SAMPLE_SPACING = 0.005  # m, the paper's flap and edge sample grid
 METRIC_SPACING = 0.002  # m, touch-surface samples for MSD and HD

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
-from twin.spec import DeviceSpec
+from twin.device.spec import DeviceSpec
 
 TRACE_COLUMNS = ("target_deg", "angle_deg", "counts", "duty", "current_A")
 
@@ -147,8 +147,8 @@ class HilInterrupted(RuntimeError):
 
 def gate_scenario(spec: DeviceSpec, scenario: Scenario, gains, settle_limit: float = 2.0):
     """Check every step of the scenario on the twin (range, collision, settle, current) before anything moves."""
-    from twin.gate import check_move, enforce
-    from twin.simulation import Twin
+    from twin.sim.gate import check_move, enforce
+    from twin.sim.simulation import Twin
 
     twin = Twin(spec, gains)
     prev = scenario.start
@@ -172,7 +172,7 @@ def twin_at_start(plant: DeviceSpec, gains, meta: dict, spec: DeviceSpec | None 
     (REST s each); finally its hinges are put exactly where the device's
     encoders say (mid-count: the encoder floors), its firmware state kept.
     """
-    from twin.simulation import Twin
+    from twin.sim.simulation import Twin
 
     spec = spec or plant
     twin = Twin(plant, gains)
@@ -197,12 +197,12 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     """Play a scenario on the device and the twin; write out_dir/{device,twin}.csv, gains.json, run.json.
 
     gains: optional per-hinge PidGains pushed to the device first. tolerance_deg: the device is e-stopped
-    if it parts from the twin by more on its way to the scenario's start (twin.mirror). Returns run.json's
+    if it parts from the twin by more on its way to the scenario's start (twin.hil.mirror). Returns run.json's
     content. On KeyboardInterrupt the device is e-stopped and both traces stay readable up to that moment.
     """
-    from controllers.tuning import write_gains
-    from twin.mirror import device_gains, mirror, wait_for_rest
-    from twin import protocol as P
+    from twin.tuning.tuner import write_gains
+    from twin.hil.mirror import device_gains, mirror, wait_for_rest
+    from twin.link import protocol as P
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -341,7 +341,7 @@ def _lag(t, a, b, max_lag: float = 0.2) -> float:
 
 def segment_settle(spec: DeviceSpec, t, angle_deg, target_deg, changes_t, end_t):
     """Per step segment and hinge: settle time (s) after each target change, NaN if not settled or no step."""
-    from twin.response import step_metrics
+    from twin.sim.response import step_metrics
 
     band = math.degrees(spec.settle_band * spec.rad_per_count)
     out = []
@@ -399,7 +399,7 @@ def _nanmean(a):
 
 def load_run(run_dir) -> dict:
     """A recorded HIL run: device and twin traces, run.json, gains."""
-    from controllers.tuning import read_gains
+    from twin.tuning.tuner import read_gains
 
     d = Path(run_dir)
     meta = json.loads((d / "run.json").read_text())
@@ -457,7 +457,7 @@ def device_step(link, spec: DeviceSpec, targets, settle_limit: float = 2.0):
     Returns (t s, angle deg (frames, n), start angle rad): the device's encoder angles
     from the moment the step took effect until it settled (or mirror gave up).
     """
-    from twin.mirror import mirror, wait_for_rest
+    from twin.hil.mirror import mirror, wait_for_rest
 
     n = spec.n_hinges
     res = mirror(link, spec, np.zeros(n), settle_limit=settle_limit)

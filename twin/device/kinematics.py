@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from twin.spec import DeviceSpec
+from twin.device.spec import DeviceSpec
 
 
 def hinge_axis_sign(spec: DeviceSpec) -> np.ndarray:

@@ -19,11 +19,11 @@ import mujoco
 import numpy as np
 import trimesh
 
-from twin.approximation import Approximation
-from twin.collision import CollisionError, collision_error, convex_parts, scene_model
-from twin.kinematics import outer_flap
-from twin.simulation import Twin
-from twin.spec import DeviceSpec
+from twin.morphpatch.approximation import Approximation
+from twin.evaluation.target_collision import CollisionError, collision_error, convex_parts, scene_model
+from twin.device.kinematics import outer_flap
+from twin.sim.simulation import Twin
+from twin.device.spec import DeviceSpec
 
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])  # a half turn about the device's x axis
 RAMP_STEP = math.radians(1.0)  # rad of hinge target per chunk

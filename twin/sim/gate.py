@@ -27,8 +27,8 @@ import mujoco
 import numpy as np
 
 from controllers.pid import PidGains
-from twin.simulation import Trace, Twin
-from twin.spec import DeviceSpec
+from twin.sim.simulation import Trace, Twin
+from twin.device.spec import DeviceSpec
 
 
 @dataclasses.dataclass(frozen=True)
@@ -165,7 +165,7 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
 
 
 def redirection_check(summary: dict, strict: bool = False) -> Check:
-    """The perception thresholds as a gate check, from `twin.redirection.threshold_summary`'s dict.
+    """The perception thresholds as a gate check, from `twin.morphpatch.redirection.threshold_summary`'s dict.
 
     The share of the touch surface whose pen redirection is within the thresholds must be 1;
     below that it is a warning, or with `strict` a failure.

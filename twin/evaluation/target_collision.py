@@ -14,9 +14,9 @@ import mujoco
 import numpy as np
 import trimesh
 
-from twin.fields import cache_dir, exact_signed_distance, mesh_key, save_npz
-from twin.model import mjcf
-from twin.spec import DeviceSpec
+from twin.morphpatch.fields import cache_dir, exact_signed_distance, mesh_key, save_npz
+from twin.device.mjcf import mjcf
+from twin.device.spec import DeviceSpec
 
 COACD_THRESHOLD = 0.03  # CoACD concavity threshold (fraction of the mesh's size): smaller = more, tighter parts
 

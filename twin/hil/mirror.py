@@ -17,11 +17,11 @@ import time
 import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
-from twin import protocol as P
-from twin.gate import GateRefused, GateReport, check_move, enforce
-from twin.link import Link
-from twin.simulation import Twin
-from twin.spec import DeviceSpec
+from twin.link import protocol as P
+from twin.sim.gate import GateRefused, GateReport, check_move, enforce
+from twin.link.serial_link import Link
+from twin.sim.simulation import Twin
+from twin.device.spec import DeviceSpec
 
 
 class DeviceNotReady(RuntimeError):

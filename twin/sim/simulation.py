@@ -24,8 +24,8 @@ import numpy as np
 
 from controllers.encoder import counts_from_angle, target_counts
 from controllers.pid import FirmwarePid, PidGains, gains_table, pid_update
-from twin.model import load_model
-from twin.spec import DeviceSpec, load_spec
+from twin.device.mjcf import load_model
+from twin.device.spec import DeviceSpec, load_spec
 
 
 class TargetError(ValueError):
@@ -331,7 +331,7 @@ def hinge_metrics(spec: DeviceSpec, time_s, target_counts: float, counts, target
     The one definition of settle time (from the counts, the firmware's settle
     band) and overshoot (from the true angle) that reports and the tuner share.
     """
-    from twin.response import step_metrics
+    from twin.sim.response import step_metrics
 
     return (step_metrics(time_s, counts, target_counts, spec.settle_band, tail=spec.settle_hold),
             step_metrics(time_s, angle, target, spec.settle_band * spec.rad_per_count, tail=spec.settle_hold))

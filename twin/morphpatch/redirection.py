@@ -48,10 +48,10 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
-from twin.fields import Fields, exact_surface_query
-from twin.kinematics import flap_frames
-from twin.perception import Thresholds, load_thresholds
-from twin.spec import DeviceSpec
+from twin.morphpatch.fields import Fields, exact_surface_query
+from twin.device.kinematics import flap_frames
+from twin.perception.thresholds import Thresholds, load_thresholds
+from twin.device.spec import DeviceSpec
 
 SPACING = 0.002  # m, grid over the touch surface (the metrics' 2 mm)
 SIGMA = 0.005  # m, Gaussian blur of the offsets (assumption: the paper gives none; about a fifth of a flap)

@@ -42,11 +42,11 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from twin.fields import Fields
-from twin.kinematics import bend, flap_frames, hinge_axis_sign, outer_flap, pose_matrix, widen
-from twin.proxy import SAMPLE_SPACING, edge_layout, grid_layout, world_points
-from twin.spec import DeviceSpec, load_spec
-from twin.surface_metrics import msd_hd
+from twin.morphpatch.fields import Fields
+from twin.device.kinematics import bend, flap_frames, hinge_axis_sign, outer_flap, pose_matrix, widen
+from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
+from twin.device.spec import DeviceSpec, load_spec
+from twin.morphpatch.surface_metrics import msd_hd
 
 VARIANTS = ("full", "no_hcevf")
 SNAP_REACH = 0.25  # m, how far along +-z the snap looks for the surface

@@ -47,7 +47,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from twin.spec import load_spec
+from twin.device.spec import load_spec
 
 SPACING = 0.003  # m, default grid spacing
 MARGIN = 0.1  # m, grid padding around the mesh's bounding box (the device's half length)

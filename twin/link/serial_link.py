@@ -1,6 +1,6 @@
 """The host end of the serial link: requests with acknowledgements, heartbeat, telemetry, a session log.
 
-`Link(url)` talks the protocol of twin/protocol.py over any pyserial URL: a real
+`Link(url)` talks the protocol of twin/link/protocol.py over any pyserial URL: a real
 port (/dev/ttyACM0), a pty path (the emulator's), or socket://host:port. A reader
 thread decodes every byte (resyncing after garbage); replies go to the request
 waiting for them, telemetry into a queue that is never dropped from (or to a
@@ -24,7 +24,7 @@ import time
 
 import serial
 
-from twin import protocol as P
+from twin.link import protocol as P
 
 
 class LinkError(RuntimeError):

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.spec import MODELS_DIR
+from twin.device.spec import MODELS_DIR
 
 METHODS = ("cbs", "no_hcevf", "full")
 PAPER_TABLE = MODELS_DIR / "shapes" / "paper_table1.csv"
@@ -28,11 +28,11 @@ _CONTEXT: dict = {}  # per worker process: shape -> (mesh, fields, CBS simulator
 def _context(shape: str, n_starts: int, seed: int):
     key = (shape, n_starts, seed)
     if key not in _CONTEXT:
-        from twin.approximation import default_spec
-        from twin.cbs import CbsSimulator
-        from twin.fields import build_fields
-        from twin.shapes import load_shape
-        from twin.starts import approach_starts
+        from twin.morphpatch.approximation import default_spec
+        from twin.evaluation.cbs import CbsSimulator
+        from twin.morphpatch.fields import build_fields
+        from twin.morphpatch.shapes import load_shape
+        from twin.evaluation.starts import approach_starts
 
         spec = default_spec()
         mesh = load_shape(shape)
@@ -48,7 +48,7 @@ def _shape_seed(seed: int, shape: str) -> int:
 
 def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
     """All methods from one start: a record each with msd_mm, hd_mm, angles_deg, time_ms."""
-    from twin.approximation import approximate
+    from twin.morphpatch.approximation import approximate
 
     shape, index, n_starts, seed = task
     spec, mesh, fields, cbs, starts = _context(shape, n_starts, seed)
@@ -67,7 +67,7 @@ def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
 
 def _warm(_):
     """Worker start: compile the numba code once."""
-    from twin.simulation import Twin  # noqa: F401
+    from twin.sim.simulation import Twin  # noqa: F401
 
 
 def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: int = 2, progress=True) -> list[dict]:

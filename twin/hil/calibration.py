@@ -55,7 +55,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.spec import SPEC_PATH, DeviceSpec
+from twin.device.spec import SPEC_PATH, DeviceSpec
 
 PARAMS = ("no_load_speed", "gear_friction", "rotor_inertia")
 LOG_BOUND = math.log(3.0)
@@ -65,7 +65,7 @@ DUTY_WEIGHT = 20.0  # deg per unit duty: a 0.01 duty error weighs as 0.2 deg (ea
 
 def replay(run: dict, plant: DeviceSpec, spec: DeviceSpec | None = None):
     """The twin's hinge angles (deg) and duty at the run's device frame times, with `plant` as the physics."""
-    from twin.hil import twin_at_start
+    from twin.hil.runs import twin_at_start
 
     spec = spec or plant
     meta = run["meta"]

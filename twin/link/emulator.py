@@ -35,8 +35,8 @@ import mujoco
 import numpy as np
 
 from controllers.pid import gains_table, pid_update
-from twin import protocol as P
-from twin.spec import DeviceSpec, load_spec
+from twin.link import protocol as P
+from twin.device.spec import DeviceSpec, load_spec
 
 FIRMWARE_VERSION = (0, 1, 0)
 
@@ -78,7 +78,7 @@ class Emulator:
     def __init__(self, fd: int, spec: DeviceSpec | None = None, opt: EmulatorOptions | None = None,
                  log_path: str | None = None):
         from controllers.pid import PidGains
-        from twin.model import load_model
+        from twin.device.mjcf import load_model
 
         self.fd = fd
         self.spec = spec or load_spec()
@@ -389,7 +389,7 @@ def _fields(msg) -> dict:
 
 # ---- as a separate process ----------------------------------------------------------------
 
-_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 class EmulatorProcess:
@@ -398,7 +398,7 @@ class EmulatorProcess:
     def __init__(self, log, *args: str):
         self.log = Path(log)
         self._stderr = open(self.log.with_suffix(".stderr"), "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "twin.emulator", "--log", str(self.log), *args],
+        self.proc = subprocess.Popen([sys.executable, "-m", "twin.link.emulator", "--log", str(self.log), *args],
                                      stdout=subprocess.PIPE, stderr=self._stderr, text=True, cwd=_ROOT)
         line = self.proc.stdout.readline().strip()  # the pty path, printed once the device is running
         if not line.startswith("/dev/"):

@@ -12,7 +12,7 @@ import math
 import tomllib
 from pathlib import Path
 
-MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 SPEC_PATH = MODELS_DIR / "vrscroll" / "spec.toml"
 
 _RPM = 2.0 * math.pi / 60.0

@@ -16,9 +16,9 @@ import igl
 import numpy as np
 import trimesh
 
-from twin.kinematics import flap_frames
-from twin.proxy import METRIC_SPACING, touch_surface_points
-from twin.spec import DeviceSpec
+from twin.device.kinematics import flap_frames
+from twin.morphpatch.sampling import METRIC_SPACING, touch_surface_points
+from twin.device.spec import DeviceSpec
 
 
 def point_distances(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:

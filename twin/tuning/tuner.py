@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers.pid import PidGains
-from twin.spec import DeviceSpec
+from twin.device.spec import DeviceSpec
 
 # log-space bounds of the search, per gain (duty per count, per count-s, per count/s)
 BOUNDS = {"kp": (0.003, 0.5), "ki": (0.0, 2.0), "kd": (1e-5, 0.01)}
@@ -80,7 +80,7 @@ def step_scores(spec: DeviceSpec, out: dict, target: np.ndarray) -> dict:
     each (nsim, n). Settle and overshoot are the report's (hinge_metrics).
     """
     from controllers.encoder import target_counts
-    from twin.simulation import hinge_metrics
+    from twin.sim.simulation import hinge_metrics
 
     t, angle, counts, current = out["time"], out["angle"], out["counts"], out["current"]
     _, nsim, n = angle.shape
@@ -125,7 +125,7 @@ class RobustEvaluator:
     """Evaluates candidate gain sets (one PidGains per hinge each) on every plant, with TwinBatch."""
 
     def __init__(self, spec: DeviceSpec, goal: TuneGoal, population: int, nthread: int = 0):
-        from twin.simulation import TwinBatch
+        from twin.sim.simulation import TwinBatch
 
         self.spec, self.goal, self.population = spec, goal, population
         self.plants = plant_corners(spec, goal.tolerance)
@@ -254,7 +254,7 @@ def read_gains(path, n: int | None = None) -> list[PidGains]:
 def step_report(spec: DeviceSpec, gains, goal: TuneGoal, plant: DeviceSpec | None = None):
     """move_report rows (settle s, overshoot deg, ...) of one twin step from flat to goal.step on every
     hinge, over the tuner's window (goal.duration); and the trace."""
-    from twin.simulation import Twin, move_report
+    from twin.sim.simulation import Twin, move_report
 
     twin = Twin(plant or spec, gains)
     trace = twin.move_to(np.full(spec.n_hinges, goal.step), max_time=goal.duration, stop_when_settled=False)

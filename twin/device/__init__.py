@@ -1,0 +1,6 @@
+"""The device itself: its spec (read from models/vrscroll/spec.toml, in SI), the kinematics of its
+touch surface, and the MJCF generated from the spec.
+
+The bottom layer: imports nothing from the project but this package. Everything else that
+needs a number about the device asks `twin.device.spec`.
+"""
