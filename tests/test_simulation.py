@@ -65,11 +65,11 @@ def test_gravity_sags_without_motors(spec):
     assert np.abs(np.degrees(trace.angle[-1])).max() > 5.0
 
 
-def test_trace_csv(tmp_path, twin):
+def test_trace_csv(tmp_path, twin, spec):
     twin.reset()
     trace = twin.move_to(np.radians(TARGETS_DEG), max_time=0.2, stop_when_settled=False)
     path = tmp_path / "trace.csv"
-    trace.write_csv(path)
+    trace.write_csv(path, spec)
     rows = list(csv.DictReader(open(path)))
     assert len(rows) == 200
     assert {"time_s", "h0_target_deg", "h0_angle_deg", "h0_counts", "h0_duty", "h0_current_A", "h5_torque_Nm"} <= set(rows[0])

@@ -32,7 +32,7 @@ def run(args) -> int:
         "hinges": rows,
     }
     if args.trace:
-        trace.write_csv(args.trace)
+        trace.write_csv(args.trace, twin.spec)
         summary["trace_csv"] = args.trace
     if args.json:
         print(json.dumps(summary, indent=2))

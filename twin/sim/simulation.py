@@ -9,7 +9,6 @@ thread pool, with the same PID kernel vectorised over all of them.
 
 from __future__ import annotations
 
-import csv
 import ctypes
 import dataclasses
 import math
@@ -22,10 +21,11 @@ from mujoco.batch import Batch
 import numba
 import numpy as np
 
-from controllers.encoder import counts_from_angle, target_counts
+from controllers.encoder import angle_from_counts, counts_from_angle, target_counts
 from controllers.pid import FirmwarePid, PidGains, gains_table, pid_update
 from twin.device.mjcf import load_model
 from twin.device.spec import DeviceSpec, load_spec
+from twin.formats.trace import TWIN_COLUMNS, TraceWriter
 
 
 class TargetError(ValueError):
@@ -71,24 +71,18 @@ class Trace:
     def real_time_factor(self) -> float:
         return self.duration / self.wall_time
 
-    def write_csv(self, path) -> None:
-        """One row per tick: time_s, then per hinge k target/angle in deg, counts, duty, current_A, torque_Nm."""
-        n = self.angle.shape[1]
-        cols = ["target_deg", "angle_deg", "target_counts", "counts", "duty", "current_A", "torque_Nm"]
-        data = [np.degrees(self.target), np.degrees(self.angle), self.target_counts, self.counts,
-                self.duty, self.current, self.torque]
-        header = ["time_s"] + [f"h{k}_{c}" for k in range(n) for c in cols]
+    def write_csv(self, path, spec: DeviceSpec) -> None:
+        """The trace as a trace CSV (twin.formats.trace, docs/formats.md): the device's columns (angle_deg the
+        encoder's angle, as a device reports it) and the twin's own (true angle, target counts, torque)."""
         path = Path(path)
         tmp = path.with_suffix(path.suffix + ".part")
-        with open(tmp, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(header)
+        encoder = np.degrees(angle_from_counts(spec, self.counts))
+        with TraceWriter(tmp, self.angle.shape[1], extra=TWIN_COLUMNS) as w:
             for i in range(len(self.time)):
-                row = [f"{self.time[i]:.4f}"]
-                for k in range(n):
-                    row += [f"{data[0][i, k]:.4f}", f"{data[1][i, k]:.4f}", int(data[2][i, k]), int(data[3][i, k]),
-                            f"{data[4][i, k]:.4f}", f"{data[5][i, k]:.4f}", f"{data[6][i, k]:.5f}"]
-                w.writerow(row)
+                w.write(self.time[i], target_deg=np.degrees(self.target[i]), angle_deg=encoder[i],
+                        counts=self.counts[i], duty=self.duty[i], current_A=self.current[i],
+                        true_angle_deg=np.degrees(self.angle[i]), target_counts=self.target_counts[i],
+                        torque_Nm=self.torque[i])
         os.replace(tmp, path)
 
 

@@ -1,0 +1,55 @@
+"""Checks shared by the readers: numbers, hinge angles, keys. Each raises ValueError naming where."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def number(value, where: str) -> float:
+    """value as a finite float; ValueError naming `where` for a word, a bool, NaN or inf."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise ValueError(f"{where}: expected a number, got {value!r}")
+    try:
+        x = float(value)
+    except ValueError:
+        raise ValueError(f"{where}: expected a number, got {value!r}") from None
+    if not math.isfinite(x):
+        raise ValueError(f"{where}: {value!r} is not a finite number")
+    return x
+
+
+def numbers(values, where: str, count: int | None = None) -> np.ndarray:
+    """A list of finite numbers (of `count` items when given) as a float array."""
+    if not isinstance(values, (list, tuple)):
+        raise ValueError(f"{where}: expected a list of numbers, got {values!r}")
+    if count is not None and len(values) != count:
+        raise ValueError(f"{where}: expected {count} numbers, got {len(values)}")
+    return np.array([number(v, f"{where}[{i}]") for i, v in enumerate(values)], float)
+
+
+def hinge_angles(values_deg, n: int, limit: float, where: str) -> np.ndarray:
+    """n hinge angles given in degrees, each finite and within +-limit (rad); returned in rad."""
+    if not isinstance(values_deg, (list, tuple)) or len(values_deg) != n:
+        got = len(values_deg) if isinstance(values_deg, (list, tuple)) else repr(values_deg)
+        raise ValueError(f"{where}: expected {n} hinge angles in degrees, got {got}")
+    deg = numbers(values_deg, where)
+    limit_deg = math.degrees(limit)
+    for k, a in enumerate(deg):
+        if abs(a) > limit_deg + 1e-9:
+            raise ValueError(f"{where}: hinge {k} at {a:g} deg is outside the hinge range +-{limit_deg:g} deg")
+    return np.radians(deg)
+
+
+def known_keys(doc: dict, allowed, where: str) -> None:
+    """ValueError naming the first key of doc that is not in `allowed`."""
+    unknown = [k for k in doc if k not in allowed]
+    if unknown:
+        raise ValueError(f"{where}: unknown key {unknown[0]!r} (expected {', '.join(sorted(allowed))})")
+
+
+def required_keys(doc: dict, needed, where: str) -> None:
+    missing = [k for k in needed if k not in doc]
+    if missing:
+        raise ValueError(f"{where}: missing key {missing[0]!r}")
