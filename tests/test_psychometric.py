@@ -7,8 +7,8 @@ import pytest
 
 from twin.cli import main
 from twin.perception.thresholds import detection_rule, paper_fits
-from twin.perception.psychometric import (analyse, counts, curve, detected, fit, read_trials, simulate_trials, threshold,
-                               write_trials)
+from twin.formats.trials import read_trials, write_trials
+from twin.perception.psychometric import analyse, counts, curve, detected, fit, simulate_trials, threshold
 
 RULE = detection_rule()
 FITS = {f.surface: f for f in paper_fits()}

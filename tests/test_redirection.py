@@ -13,7 +13,8 @@ from twin.morphpatch.approximation import approximate, default_spec, pose_from_m
 from twin.cli import main
 from twin.morphpatch.fields import build_fields
 from twin.perception.thresholds import load_thresholds
-from twin.morphpatch.redirection import (build_field, largest_virtual_step, read_pen_samples, redirect, surface_points,
+from twin.formats.pen import read_pen_samples
+from twin.morphpatch.redirection import (build_field, largest_virtual_step, redirect, surface_points,
                               threshold_summary, within_samples)
 from twin.morphpatch.shapes import load_shape, shape_table, sweep_solid
 

@@ -13,8 +13,12 @@ import numpy as np
 import pytest
 
 from controllers.pid import PidGains
-from twin.tuning.tuner import TuneGoal, read_gains, step_report, tune, write_gains
-from twin.hil.runs import compare, load_run, load_scenario, read_trace, run_hil
+from twin.formats.gains import read_gains, write_gains
+from twin.formats.scenario import read_scenario
+from twin.formats.trace import read_trace
+from twin.hil.compare import compare
+from twin.hil.record import run_hil
+from twin.tuning.tuner import TuneGoal, step_report, tune
 from twin.link.serial_link import Link
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -132,7 +136,7 @@ def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device
 
 
 def test_tuned_gains_on_the_emulator_settle_as_the_twin_predicts(tuned, emulator, tmp_path):
-    from twin.hil.runs import device_step
+    from twin.hil.mirror import device_step
     from twin.sim.response import step_metrics
     from twin.sim.simulation import Twin, move_report
 
@@ -229,8 +233,8 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     with Link(emu.port) as link:
         # wake the device: from its limp boot pose (hanging under gravity) to flat, allowing for its difference
         assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
-        run_hil(link, spec, load_scenario(tmp_path / "a.toml", spec), train, gains=[soft] * 6)
-        run_hil(link, spec, load_scenario(tmp_path / "b.toml", spec), hold, gains=[soft] * 6)
+        run_hil(link, spec, read_scenario(tmp_path / "a.toml", spec), train, gains=[soft] * 6)
+        run_hil(link, spec, read_scenario(tmp_path / "b.toml", spec), hold, gains=[soft] * 6)
     capsys.readouterr()
     assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--out", str(cal), "--json"]) == 0
     res = json.loads(capsys.readouterr().out)

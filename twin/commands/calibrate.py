@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from twin.cli import UserError
+from twin.device.spec import SPEC_PATH, load_spec
+from twin.formats.run import read_run
+from twin.formats.spec_toml import write_spec_toml
+from twin.hil.calibration import calibrate, trace_rmse
 
 
 def add_arguments(p) -> None:
@@ -16,27 +21,31 @@ def add_arguments(p) -> None:
     p.add_argument("--out", default="spec.calibrated.toml", help="calibrated spec TOML (default %(default)s)")
     p.add_argument("--max-iter", type=int, default=25, help="Levenberg-Marquardt iterations (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--incomplete", action="store_true",
+                   help="also fit runs that did not complete (killed or interrupted while recorded): what they "
+                        "recorded is used, and each is named (default: such a run is refused)")
 
 
 def run(args) -> int:
-    from twin.hil.calibration import calibrate, trace_rmse, write_spec
-    from twin.hil.runs import load_run
-    from twin.device.spec import load_spec
-
     spec = load_spec()
     try:
-        runs = [load_run(r) for r in args.runs]
-        holdout = load_run(args.holdout) if args.holdout else None
-    except (OSError, KeyError, ValueError) as exc:
-        raise UserError(f"cannot read a HIL run: {exc}") from None
+        runs = [read_run(r, spec, incomplete=args.incomplete) for r in args.runs]
+        holdout = read_run(args.holdout, spec, incomplete=args.incomplete) if args.holdout else None
+    except (OSError, ValueError) as exc:
+        raise UserError(f"cannot read a HIL run: {exc}" + ("" if args.incomplete or "did not complete" not in str(exc)
+                                                            else " (--incomplete uses what it recorded)")) from None
     for r in runs + ([holdout] if holdout else []):
+        if r["meta"]["status"] != "complete":
+            print(f"note: {r['dir']} did not complete (status {r['meta']['status']!r}); using the "
+                  f"{len(r['device']['time_s'])} device frames it recorded", file=sys.stderr)
         if len(r["device"]["time_s"]) < 10:
             raise UserError(f"{r['dir']}: fewer than 10 device frames; nothing to fit")
         if "before" not in r["meta"]:
             raise UserError(f"{r['dir']}: recorded without the device's state before the run; record it again")
     res = calibrate(runs, spec, max_iter=args.max_iter)
-    write_spec(args.out, res.spec, res.values,
-               "calibrated from " + ", ".join(str(Path(r)) for r in args.runs) + " (vrscroll calibrate)")
+    write_spec_toml(args.out, SPEC_PATH, res.values,
+                    "calibrated from " + ", ".join(str(Path(r)) for r in args.runs) + " (vrscroll calibrate)",
+                    header="Calibrated device spec, written by `vrscroll calibrate` (see docs/tuning-hil-calibration.md).")
     out = {"spec": args.out, "scales": {k: round(v, 4) for k, v in res.scales.items()},
            "values": res.values, "fit_rmse_deg": {"before": round(res.rmse_before, 4),
                                                   "after": round(res.rmse_after, 4)},

@@ -3,10 +3,19 @@
 from __future__ import annotations
 
 import datetime
-import math
 from pathlib import Path
 
 from twin.cli import UserError
+from twin.device.spec import load_spec
+from twin.formats.gains import read_gains
+from twin.formats.run import read_run
+from twin.formats.scenario import read_scenario
+from twin.hil.compare import compare
+from twin.hil.mirror import DeviceNotReady
+from twin.hil.record import GainsRestored, run_hil
+from twin.link.serial_link import Link, LinkError, NackError
+from twin.sim.gate import GateRefused
+from viz.hil_report import write_report
 
 
 def add_arguments(p) -> None:
@@ -22,18 +31,9 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from twin.sim.gate import GateRefused
-    from twin.hil.runs import compare, load_run, load_scenario, run_hil, write_report
-    from twin.link.serial_link import Link, LinkError
-    from twin.hil.mirror import DeviceNotReady
-    from twin.device.spec import load_spec
-
     spec = load_spec()
-    scenario = load_scenario(args.scenario, spec)
-    gains = None
-    if args.gains:
-        from twin.tuning.tuner import read_gains
-        gains = read_gains(args.gains, spec.n_hinges)
+    scenario = read_scenario(args.scenario, spec)
+    gains = read_gains(args.gains, spec.n_hinges) if args.gains else None
     out = Path(args.out or f"hil-{scenario.name}-{datetime.datetime.now():%Y%m%d-%H%M%S}")
     out.mkdir(parents=True, exist_ok=True)
     log = args.log or str(out / "session.jsonl")
@@ -49,16 +49,23 @@ def run(args) -> int:
             meta = run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz,
                            scenario_path=args.scenario, on_progress=progress, gains=gains,
                            tolerance_deg=args.tolerance_deg)
+    except GainsRestored as exc:
+        print(exc.report.text())
+        raise UserError(f"scenario refused by the gate: {exc} (the gains of {args.gains} were sent, then the "
+                        "device's previous gains sent back; no target was sent)") from None
     except GateRefused as exc:
         print(exc.report.text())
         raise UserError(f"scenario refused by the gate: {exc} (nothing was sent)") from None
+    except NackError as exc:
+        raise UserError(f"{exc}; the hinges already changed got their previous gains back, no target was sent") \
+            from None
     except DeviceNotReady as exc:
         raise UserError(str(exc)) from None
     except LinkError as exc:
         raise UserError(f"link: {exc} (session log: {log}; traces so far in {out})") from None
     except RuntimeError as exc:
         raise UserError(f"{exc} (traces so far in {out})") from None
-    run_ = load_run(out)
+    run_ = read_run(out, spec)
     rows = compare(spec, run_["device"], run_["twin"], [c["t_s"] for c in meta["changes"]])
     report = write_report(spec, out, rows)
     print(f"{'hinge':>5} {'RMSE deg':>9} {'max err deg':>11} {'lag ms':>7} {'settle dev s':>12} {'settle twin s':>13}")

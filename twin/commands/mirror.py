@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import json
+import math
 
 import numpy as np
 
@@ -11,6 +11,8 @@ from twin.sim.gate import GateRefused
 from twin.link.serial_link import Link, LinkError
 from twin.hil.mirror import DeviceNotReady, mirror
 from twin.device.spec import load_spec
+from twin.formats.common import hinge_angles
+from twin.formats.target import read_target
 
 
 def add_arguments(p) -> None:
@@ -27,29 +29,29 @@ def add_arguments(p) -> None:
                    help="send even when the gate fails a check (logged); the device's own limits still apply")
 
 
-def read_targets(args, n: int) -> np.ndarray:
-    """Targets in rad from --angles or the JSON file; UserError for anything malformed."""
+HALF_TURN = math.pi  # rad: no hinge target given with --angles may be further from flat than this
+
+
+def read_targets(args, spec) -> np.ndarray:
+    """Targets in rad from --angles or the target JSON; UserError for anything malformed.
+
+    A target file is read by twin.formats.target (angles within the hinge range). --angles must
+    be finite numbers within half a turn: whether they are within the hinge range is the gate's
+    check, which --override may override (the device's own limit still holds)."""
     if (args.target is None) == (args.angles is None):
         raise UserError("give either TARGET.json or --angles")
-    if args.angles is not None:
-        try:
-            deg = [float(a) for a in args.angles.split(",")]
-        except ValueError:
-            raise UserError(f"--angles {args.angles!r}: expected {n} numbers in degrees, comma-separated") from None
-    else:
-        try:
-            with open(args.target) as f:
-                deg = json.load(f)["angles_deg"]
-        except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
-            raise UserError(f"{args.target}: expected JSON with an 'angles_deg' list ({exc})") from None
-    if not isinstance(deg, list) or len(deg) != n or not all(isinstance(a, (int, float)) for a in deg):
-        raise UserError(f"expected {n} hinge angles in degrees, got {deg!r}")
-    return np.radians(np.asarray(deg, float))
+    n = spec.n_hinges
+    if args.angles is None:
+        return read_target(args.target, spec)
+    try:
+        return hinge_angles(args.angles.split(","), n, HALF_TURN, "--angles", "half a turn")
+    except ValueError as exc:
+        raise UserError(f"{exc} (expected {n} numbers in degrees, comma-separated)") from None
 
 
 def run(args) -> int:
     spec = load_spec()
-    targets = read_targets(args, spec.n_hinges)
+    targets = read_targets(args, spec)
     last = [0.0]
 
     def show(t, device, predicted):

@@ -17,7 +17,8 @@ import numpy as np
 
 from twin.cli import UserError
 from twin.perception.thresholds import detection_rule, paper_fits
-from twin.perception.psychometric import FIT_METHOD, analyse, read_trials, simulate_trials, threshold, write_trials
+from twin.formats.trials import read_trials, write_trials
+from twin.perception.psychometric import FIT_METHOD, analyse, simulate_trials, threshold
 
 
 def add_arguments(p) -> None:

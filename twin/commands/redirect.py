@@ -18,9 +18,10 @@ import numpy as np
 
 from twin.morphpatch.approximation import Approximation, default_spec
 from twin.cli import UserError
+from twin.formats.pen import read_pen_samples, write_redirected
+from twin.formats.target import read_approximation
 from twin.morphpatch.fields import build_fields
-from twin.morphpatch.redirection import (PADDING, SIGMA, build_field, read_pen_samples, redirect, threshold_summary,
-                              within_samples, write_redirected)
+from twin.morphpatch.redirection import PADDING, SIGMA, build_field, redirect, threshold_summary, within_samples
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
 
 
@@ -39,29 +40,21 @@ def add_arguments(p) -> None:
     p.add_argument("--strict", action="store_true", help="exit 1 if any of the surface is over a threshold")
 
 
-def _load(args):
-    path = Path(args.approximation)
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path}: not JSON ({exc})") from None
-    approx = Approximation.from_json(data)
-    if args.shape or args.mesh:
-        name = args.shape or args.mesh
-    elif data.get("target"):
-        name = data["target"]
-    else:
-        raise UserError(f"{path} names no target: give --shape or --mesh")
+def _load(args, spec):
+    """(approximation, target name, mesh) from APPROX.json and --shape/--mesh."""
+    doc = read_approximation(args.approximation, spec)
+    approx = Approximation(doc["root_pose"], doc["angles"], doc["widths"], doc["time"], doc["variant"],
+                           doc["msd"], doc["hd"])
+    name = args.shape or args.mesh or doc["target"]
+    if not name:
+        raise UserError(f"{args.approximation} names no target: give --shape or --mesh")
     mesh = load_shape(name) if name in shape_names() else load_mesh(name)
     return approx, name, mesh
 
 
 def run(args) -> int:
     spec = default_spec()
-    approx, name, mesh = _load(args)
-    if len(approx.angles) != spec.n_hinges or len(approx.widths) != spec.n_flaps:
-        raise UserError(f"{args.approximation}: {len(approx.angles)} hinges and {len(approx.widths)} flaps, "
-                        f"the device has {spec.n_hinges} and {spec.n_flaps}")
+    approx, name, mesh = _load(args, spec)
     if args.sigma_mm < 0 or args.padding_mm < 0:
         raise UserError("--sigma-mm and --padding-mm must be >= 0")
     pens = read_pen_samples(args.pens) if args.pens else None  # bad files fail before the long part

@@ -7,7 +7,18 @@ import math
 
 import numpy as np
 
+from controllers.encoder import target_counts
+from controllers.pid import PidGains
 from twin.cli import UserError
+from twin.device.spec import load_spec
+from twin.formats.gains import write_gains
+from twin.hil.device_gains import push_gains
+from twin.hil.mirror import DeviceNotReady, device_step
+from twin.link.serial_link import Link, LinkError
+from twin.sim.gate import GateRefused
+from twin.sim.response import step_metrics
+from twin.sim.simulation import Twin, move_report
+from twin.tuning.tuner import TuneGoal, step_report, tune
 
 
 def add_arguments(p) -> None:
@@ -37,10 +48,6 @@ def _line(label, rows):
 
 
 def run(args) -> int:
-    from controllers.pid import PidGains
-    from twin.tuning.tuner import TuneGoal, step_report, tune, write_gains
-    from twin.device.spec import load_spec
-
     if not 0 <= args.tolerance < 100:
         raise UserError(f"--tolerance {args.tolerance}: expected a percentage in [0, 100)")
     if args.max_overshoot_deg <= 0:
@@ -84,23 +91,14 @@ def run(args) -> int:
 
 def confirm_on_device(args, spec, gains, step, twin_rows, quiet=False) -> list[dict]:
     """Push the gains, run the step on the device, print its metrics next to the twin's prediction."""
-    from twin.hil.runs import device_step
-    from twin.link.serial_link import Link, LinkError
-    from twin.hil.mirror import DeviceNotReady
-    from twin.sim.gate import GateRefused
-    from twin.sim.response import step_metrics
-    from controllers.encoder import target_counts
-    from twin.sim.simulation import Twin, move_report
-
     n = spec.n_hinges
     targets = np.full(n, step)
     try:
         with Link(args.port, log_path=args.log) as link:
-            for k, g in enumerate(gains):
-                link.set_gains(g, hinge=k)
+            push_gains(link, gains, n)
             t, deg, start, res = device_step(link, spec, targets)
     except (GateRefused, DeviceNotReady) as exc:
-        raise UserError(str(exc)) from None
+        raise UserError(f"{exc} (the tuned gains are on the device; {args.out} holds them)") from None
     except LinkError as exc:
         raise UserError(f"link: {exc} (session log: {args.log})") from None
     twin = Twin(spec, gains)

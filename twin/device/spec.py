@@ -1,7 +1,7 @@
 """The device spec: every physical and firmware constant, read from models/vrscroll/spec.toml.
 
-All fields are SI (m, kg, rad, s, V, A, N*m); the TOML's rpm and degrees are
-converted here, once. Derived quantities (motor constant, counts per output
+All fields are SI (m, kg, rad, s, V, A, N*m); the file is read (its rpm and degrees converted)
+by twin.formats.spec_toml, the one home of the spec TOML format. Derived quantities (motor constant, counts per output
 revolution, flap mass) are properties so they can never disagree with their inputs.
 """
 
@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from pathlib import Path
+
+from twin.formats.spec_toml import read_spec_toml
 
 MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 SPEC_PATH = MODELS_DIR / "vrscroll" / "spec.toml"
-
-_RPM = 2.0 * math.pi / 60.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,35 +130,14 @@ class DeviceSpec:
         return dataclasses.replace(self, **changes)
 
 
-_CONVERT = {"deg": math.radians, "rpm": lambda v: v * _RPM}
-
-# TOML [section] key -> DeviceSpec field, where the names differ
-_FIELD = {
-    ("mass", "total"): "mass_total",
-    ("mass", "motor"): "mass_motor",
-    ("mass", "electronics"): "mass_electronics",
-}
-
-
 def load_spec(path: str | Path = SPEC_PATH) -> DeviceSpec:
-    """Read a spec TOML; every DeviceSpec field must be there exactly once."""
-    with open(path, "rb") as f:
-        raw = tomllib.load(f)
-    values = {}
-    for section, entries in raw.items():
-        for key, entry in entries.items():
-            field = _FIELD.get((section, key), key)
-            value = entry["value"]
-            values[field] = _CONVERT.get(entry.get("unit"), lambda v: v)(value)
-    names = {f.name for f in dataclasses.fields(DeviceSpec)}
-    missing, unknown = names - values.keys(), values.keys() - names
-    if missing or unknown:
-        raise ValueError(f"{path}: missing {sorted(missing)}, unknown {sorted(unknown)}")
-    return DeviceSpec(**values)
+    """Read a spec TOML (twin.formats.spec_toml); every DeviceSpec field must be there exactly once."""
+    return DeviceSpec(**read_spec_toml(path, _NAMES)[0])
 
 
 def spec_sources(path: str | Path = SPEC_PATH) -> dict[str, str]:
     """Field name -> where its value came from (paper, datasheet, assumption)."""
-    with open(path, "rb") as f:
-        raw = tomllib.load(f)
-    return {_FIELD.get((s, k), k): e["source"] for s, es in raw.items() for k, e in es.items()}
+    return read_spec_toml(path, _NAMES)[1]
+
+
+_NAMES = tuple(f.name for f in dataclasses.fields(DeviceSpec))

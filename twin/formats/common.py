@@ -29,8 +29,9 @@ def numbers(values, where: str, count: int | None = None) -> np.ndarray:
     return np.array([number(v, f"{where}[{i}]") for i, v in enumerate(values)], float)
 
 
-def hinge_angles(values_deg, n: int, limit: float, where: str) -> np.ndarray:
-    """n hinge angles given in degrees, each finite and within +-limit (rad); returned in rad."""
+def hinge_angles(values_deg, n: int, limit: float, where: str, limit_name: str = "the hinge range") -> np.ndarray:
+    """n hinge angles given in degrees, each finite and within +-limit (rad, called `limit_name` in
+    messages); returned in rad."""
     if not isinstance(values_deg, (list, tuple)) or len(values_deg) != n:
         got = len(values_deg) if isinstance(values_deg, (list, tuple)) else repr(values_deg)
         raise ValueError(f"{where}: expected {n} hinge angles in degrees, got {got}")
@@ -38,7 +39,7 @@ def hinge_angles(values_deg, n: int, limit: float, where: str) -> np.ndarray:
     limit_deg = math.degrees(limit)
     for k, a in enumerate(deg):
         if abs(a) > limit_deg + 1e-9:
-            raise ValueError(f"{where}: hinge {k} at {a:g} deg is outside the hinge range +-{limit_deg:g} deg")
+            raise ValueError(f"{where}: hinge {k} at {a:g} deg is outside {limit_name} +-{limit_deg:g} deg")
     return np.radians(deg)
 
 

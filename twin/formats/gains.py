@@ -26,8 +26,10 @@ UNITS = {"kp": "duty/count", "ki": "duty/(count*s)", "kd": "duty/(count/s)", "de
 
 
 def check_gains(gains, where: str = "gains") -> None:
-    """ValueError naming the hinge and the gain for the first value outside GAIN_BOUNDS (or not finite)."""
-    for k, g in enumerate(gains):
+    """ValueError naming the hinge and the gain for the first value outside GAIN_BOUNDS (or not finite).
+
+    gains: one PidGains per hinge, or {hinge: PidGains}."""
+    for k, g in (gains.items() if isinstance(gains, dict) else enumerate(gains)):
         for key, field in KEYS.items():
             v = number(getattr(g, field), f"{where}: hinge {k}: {key}")
             lo, hi = GAIN_BOUNDS[field]

@@ -50,12 +50,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
-from pathlib import Path
 
 import numpy as np
+from mujoco import minimize
 
-from twin.device.spec import SPEC_PATH, DeviceSpec
+from twin.device.spec import DeviceSpec
+from twin.sim.replay import replay_targets, twin_at_start
 
 PARAMS = ("no_load_speed", "gear_friction", "rotor_inertia")
 LOG_BOUND = math.log(3.0)
@@ -65,25 +65,15 @@ DUTY_WEIGHT = 20.0  # deg per unit duty: a 0.01 duty error weighs as 0.2 deg (ea
 
 def replay(run: dict, plant: DeviceSpec, spec: DeviceSpec | None = None):
     """The twin's hinge angles (deg) and duty at the run's device frame times, with `plant` as the physics."""
-    from twin.hil.runs import twin_at_start
-
     spec = spec or plant
-    meta = run["meta"]
     t = run["device"]["time_s"]
     dt = spec.firmware_dt
     end_tick = int(round(t[-1] / dt)) + 1 if len(t) else 1
-    twin = twin_at_start(plant, run["gains"], meta, spec)
-    changes = [(c["t_s"], np.radians(c["angles_deg"])) for c in meta["changes"]]
-    angles, duty = [np.zeros((0, spec.n_hinges))], [np.zeros((0, spec.n_hinges))]
-    tick = 0
-    for i, (tc, tgt) in enumerate(changes):
-        stop = min(end_tick, int(round(changes[i + 1][0] / dt)) if i + 1 < len(changes) else end_tick)
-        if stop > tick:
-            tr = twin.move_to(tgt, max_time=(stop - tick) * dt, stop_when_settled=False)
-            angles.append(tr.angle)
-            duty.append(tr.duty)
-            tick += len(tr.time)
-    a, d = np.concatenate(angles), np.concatenate(duty)
+    twin = twin_at_start(plant, run["gains"], run["meta"], spec)
+    changes = [(c["t_s"], np.radians(c["angles_deg"])) for c in run["meta"]["changes"]]
+    traces = [tr for _, tr in replay_targets(twin, changes, 0, end_tick)]
+    a = np.concatenate([tr.angle for tr in traces])
+    d = np.concatenate([tr.duty for tr in traces])
     idx = np.clip(np.rint(t / dt).astype(int), 0, max(len(a) - 1, 0))
     return np.degrees(a[idx]), d[idx]
 
@@ -132,8 +122,6 @@ class CalibrationResult:
 def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, max_iter: int = 25, eps: float = 0.1,
               verbose: bool = False) -> CalibrationResult:
     """Least-squares fit of `params` (log-scaled, bounded x1/3..x3) to the runs' device traces (angles and duty)."""
-    from mujoco import minimize
-
     params = tuple(params)
     base_vals = np.array([getattr(base, p) for p in params])
     count = [0]
@@ -166,24 +154,3 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, max_iter: int =
         iterations=len(trace),
         evaluations=count[0],
     )
-
-
-# ---- writing a calibrated spec ------------------------------------------------------------------
-
-_TO_FILE = {"rpm": lambda v: v * 60.0 / (2.0 * math.pi), "deg": math.degrees}
-
-
-def write_spec(path, spec: DeviceSpec, values: dict, source: str, template=SPEC_PATH) -> None:
-    """A spec TOML like the template, the fitted fields' values and sources replaced (same units)."""
-    text = Path(template).read_text()
-    for name, value in values.items():
-        pat = re.compile(rf'^(\s*{name}\s*=\s*\{{\s*value\s*=\s*)([^,]+)(,\s*unit\s*=\s*"([^"]*)",\s*source\s*=\s*)'
-                         rf'"[^"]*"', re.M)
-        m = pat.search(text)
-        if not m:
-            raise ValueError(f"{template}: no entry for {name}")
-        unit = m.group(4)
-        v = _TO_FILE.get(unit, lambda x: x)(value)
-        text = pat.sub(lambda mm: f'{mm.group(1)}{v:.6g}{mm.group(3)}"{source}"', text, count=1)
-    text = ("# Calibrated device spec, written by `vrscroll calibrate` (see docs/tuning-hil-calibration.md).\n" + text)
-    Path(path).write_text(text)

@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
+from twin.hil.device_gains import device_gains
 from twin.link import protocol as P
 from twin.sim.gate import GateRefused, GateReport, check_move, enforce
 from twin.link.serial_link import Link
@@ -47,11 +48,6 @@ class MirrorResult:
 def faults_text(faults: int) -> str:
     names = [f.name for f in P.Fault if f and faults & f]
     return "|".join(names) if names else "none"
-
-
-def device_gains(link: Link, n: int) -> list:
-    """The device's PID gains, one PidGains per hinge, as the device holds them."""
-    return [link.get_gains(k).to_pid() for k in range(n)]
 
 
 REST_COUNTS = 2  # the device is at rest when no hinge moves more than this ...
@@ -169,3 +165,21 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
     worst = int(np.argmax(np.abs(np.asarray(device) - targets)))
     return result("timeout", worst, f"not settled after {deadline:.1f} s (hinge {worst} at "
                   f"{math.degrees(device[worst]):.1f} deg, target {math.degrees(targets[worst]):.1f} deg)")
+
+
+def device_step(link: Link, spec: DeviceSpec, targets, settle_limit: float = 2.0):
+    """Bring the device to flat, then step to targets (rad), both gated through `mirror`.
+
+    Returns (t s, angle deg (frames, n), start angle rad, the step's MirrorResult): the device's
+    encoder angles from the moment the step took effect until it settled (or mirror gave up).
+    """
+    n = spec.n_hinges
+    res = mirror(link, spec, np.zeros(n), settle_limit=settle_limit)
+    if not res.ok:
+        raise RuntimeError(f"device did not reach flat: {res.message}")
+    state = wait_for_rest(link, spec)
+    start = angle_from_counts(spec, state.counts)
+    ts, ys = [], []
+    res = mirror(link, spec, targets, settle_limit=settle_limit, tolerance_deg=30.0,
+                 on_frame=lambda t, dev, pred: (ts.append(t), ys.append(np.array(dev))))
+    return np.array(ts), np.array(ys).reshape(-1, n), start, res

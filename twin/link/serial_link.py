@@ -24,6 +24,7 @@ import time
 
 import serial
 
+from twin.formats.gains import check_gains
 from twin.link import protocol as P
 
 
@@ -232,7 +233,9 @@ class Link:
         return self.request(P.GetGains(hinge)).gains
 
     def set_gains(self, gains, hinge: int = P.BROADCAST) -> P.Ack:
-        """gains: a controllers.pid.PidGains (SI) or protocol.Gains (wire units)."""
+        """gains: a controllers.pid.PidGains (SI) or protocol.Gains (wire units); ValueError, and nothing
+        sent, for a value outside the bounds the firmware takes (docs/protocol.md, Gain bounds)."""
+        check_gains({hinge: gains.to_pid() if isinstance(gains, P.Gains) else gains}, "set_gains")
         wire = gains if isinstance(gains, P.Gains) else P.Gains.from_pid(gains)
         return self.request(P.SetGains(hinge, wire))
 

@@ -33,15 +33,15 @@ not loop shaping).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 
+from controllers.encoder import target_counts
 from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec
+from twin.sim.simulation import Twin, TwinBatch, hinge_metrics, move_report
 
 # log-space bounds of the search, per gain (duty per count, per count-s, per count/s)
 BOUNDS = {"kp": (0.003, 0.5), "ki": (0.0, 2.0), "kd": (1e-5, 0.01)}
@@ -79,9 +79,6 @@ def step_scores(spec: DeviceSpec, out: dict, target: np.ndarray) -> dict:
     current (A) and hold current (A, mean |current| over the last settle_hold s),
     each (nsim, n). Settle and overshoot are the report's (hinge_metrics).
     """
-    from controllers.encoder import target_counts
-    from twin.sim.simulation import hinge_metrics
-
     t, angle, counts, current = out["time"], out["angle"], out["counts"], out["current"]
     _, nsim, n = angle.shape
     tc = target_counts(spec, target)
@@ -125,8 +122,6 @@ class RobustEvaluator:
     """Evaluates candidate gain sets (one PidGains per hinge each) on every plant, with TwinBatch."""
 
     def __init__(self, spec: DeviceSpec, goal: TuneGoal, population: int, nthread: int = 0):
-        from twin.sim.simulation import TwinBatch
-
         self.spec, self.goal, self.population = spec, goal, population
         self.plants = plant_corners(spec, goal.tolerance)
         self.nplant = len(self.plants)
@@ -215,47 +210,9 @@ def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, g
                       generations, ev.simulations + len(cost) * ev.nplant, time.perf_counter() - t0, history)
 
 
-# ---- gains files --------------------------------------------------------------------------
-
-GAINS_FORMAT = "vrscroll-gains/1"
-_UNITS = {"kp": "duty/count", "ki": "duty/(count*s)", "kd": "duty/(count/s)", "derivative_cutoff_hz": "Hz",
-          "integral_limit": "duty", "deadband_duty": "duty", "hold_band_counts": "count"}
-
-
-def write_gains(path, gains: list[PidGains], meta: dict | None = None) -> None:
-    """A gains file (JSON, documented in docs/tuning-hil-calibration.md): one entry per hinge, units in the field names/`units`."""
-    doc = {
-        "format": GAINS_FORMAT,
-        "units": _UNITS,
-        "hinges": [{"hinge": k, "kp": g.kp, "ki": g.ki, "kd": g.kd, "derivative_cutoff_hz": g.derivative_cutoff,
-                    "integral_limit": g.integral_limit, "deadband_duty": g.deadband_duty,
-                    "hold_band_counts": int(g.hold_band)} for k, g in enumerate(gains)],
-        **({"meta": meta} if meta else {}),
-    }
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".part")
-    tmp.write_text(json.dumps(doc, indent=2) + "\n")
-    tmp.replace(path)
-
-
-def read_gains(path, n: int | None = None) -> list[PidGains]:
-    """Per-hinge gains from a gains file; ValueError when malformed or for the wrong hinge count."""
-    doc = json.loads(Path(path).read_text())
-    if doc.get("format") != GAINS_FORMAT:
-        raise ValueError(f"{path}: not a {GAINS_FORMAT} gains file")
-    out = [PidGains(float(h["kp"]), float(h["ki"]), float(h["kd"]), float(h["derivative_cutoff_hz"]),
-                    float(h["integral_limit"]), float(h["deadband_duty"]), int(h["hold_band_counts"]))
-           for h in sorted(doc["hinges"], key=lambda h: h["hinge"])]
-    if n is not None and len(out) != n:
-        raise ValueError(f"{path}: gains for {len(out)} hinges, the device has {n}")
-    return out
-
-
 def step_report(spec: DeviceSpec, gains, goal: TuneGoal, plant: DeviceSpec | None = None):
     """move_report rows (settle s, overshoot deg, ...) of one twin step from flat to goal.step on every
     hinge, over the tuner's window (goal.duration); and the trace."""
-    from twin.sim.simulation import Twin, move_report
-
     twin = Twin(plant or spec, gains)
     trace = twin.move_to(np.full(spec.n_hinges, goal.step), max_time=goal.duration, stop_when_settled=False)
     return move_report(spec, trace), trace

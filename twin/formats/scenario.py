@@ -1,0 +1,102 @@
+"""Scenario TOML or JSON (docs/formats.md "Scenario"): timed hinge targets for a HIL run.
+
+    name = "steps"                    # optional (default: the file's name)
+    start_deg = [0, 0, 0, 0, 0, 0]    # optional: where both sides begin (default flat)
+    duration_s = 3.0                  # optional: total length (default last step + 1 s)
+    [[step]]
+    t_s = 0.0                         # the first step is at 0; each later one after the one before
+    angles_deg = [20, 20, 20, 20, 20, 20]
+    [[step]]
+    t_s = 1.0
+    file = "approx.json"              # or a target / approximation JSON (twin.formats.target)
+
+JSON: the same keys, "step" a list of objects.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from twin.device.spec import DeviceSpec
+from twin.formats.common import hinge_angles, known_keys, number
+from twin.formats.target import read_target
+
+SCENARIO_KEYS = ("name", "start_deg", "duration_s", "step")
+STEP_KEYS = ("t_s", "angles_deg", "file")
+
+
+@dataclasses.dataclass
+class Scenario:
+    """Timed hinge targets (rad) from a start (rad); after the last step the run lasts until duration (s)."""
+
+    name: str
+    start: np.ndarray  # rad
+    times: list[float]  # s, from the first target's taking effect; times[0] == 0
+    targets: list[np.ndarray]  # rad
+    duration: float  # s
+
+    def target_at(self, t: float) -> np.ndarray:
+        i = max(k for k, tk in enumerate(self.times) if tk <= t + 1e-12)
+        return self.targets[i]
+
+
+def read_scenario(path, spec: DeviceSpec) -> Scenario:
+    """Read a scenario; ValueError naming the file, the step and the key for anything wrong."""
+    path = Path(path)
+    text = path.read_text()
+    try:
+        doc = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"{path}: not {'JSON' if path.suffix == '.json' else 'TOML'} ({exc})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected an object with \"step\" entries")
+    known_keys(doc, SCENARIO_KEYS, str(path))
+    n, limit = spec.n_hinges, spec.hinge_limit
+    steps = doc.get("step")
+    if not steps:
+        raise ValueError(f"{path}: no [[step]] entries")
+    if not isinstance(steps, list) or not all(isinstance(s, dict) for s in steps):
+        raise ValueError(f"{path}: step: expected a list of [[step]] tables, got {steps!r}")
+
+    times, targets = [], []
+    for i, entry in enumerate(steps):
+        where = f"{path}: step {i}"
+        known_keys(entry, STEP_KEYS, where)
+        if ("angles_deg" in entry) == ("file" in entry):
+            raise ValueError(f"{where}: give angles_deg or file (one of them)")
+        if "file" in entry:
+            if not isinstance(entry["file"], str):
+                raise ValueError(f"{where}: file: expected a file name, got {entry['file']!r}")
+            targets.append(read_target(path.parent / entry["file"], spec))
+        else:
+            targets.append(hinge_angles(entry["angles_deg"], n, limit, f"{where}: angles_deg"))
+        t = number(entry.get("t_s", 0.0), f"{where}: t_s")
+        if times and t <= times[-1]:
+            raise ValueError(f"{where}: t_s {t} is not after the previous step's {times[-1]}")
+        times.append(t)
+    if times[0] != 0.0:
+        raise ValueError(f"{path}: the first step must be at t_s = 0")
+    start = hinge_angles(doc["start_deg"], n, limit, f"{path}: start_deg") if "start_deg" in doc else np.zeros(n)
+    duration = number(doc.get("duration_s", times[-1] + 1.0), f"{path}: duration_s")
+    if duration <= times[-1]:
+        raise ValueError(f"{path}: duration_s {duration} ends before the last step at {times[-1]} s")
+    name = doc.get("name", path.stem)
+    if not isinstance(name, str):
+        raise ValueError(f"{path}: name: expected a string, got {name!r}")
+    return Scenario(name, start, times, targets, duration)
+
+
+def write_scenario(path, scenario: Scenario) -> None:
+    """Write a scenario as TOML (angles in degrees)."""
+    deg = (lambda a: "[" + ", ".join(f"{math.degrees(x):.6g}" for x in a) + "]")
+    lines = [f"name = {json.dumps(scenario.name)}", f"start_deg = {deg(scenario.start)}",
+             f"duration_s = {scenario.duration:.6g}"]
+    for t, tgt in zip(scenario.times, scenario.targets):
+        lines += ["", "[[step]]", f"t_s = {t:.6g}", f"angles_deg = {deg(tgt)}"]
+    Path(path).write_text("\n".join(lines) + "\n")

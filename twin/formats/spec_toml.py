@@ -1,0 +1,84 @@
+"""Spec TOML (docs/formats.md "Spec TOML"): the device's constants, each with its unit and source.
+
+    [section]
+    name = { value = 310.0, unit = "rpm", source = "datasheet: ..." }
+
+Values are converted to SI on reading (deg -> rad, rpm -> rad/s; every other unit is SI already)
+and back on writing. The writer edits a template with tomlkit, so the file keeps its comments,
+layout and every other value's source. Imports nothing from the project: twin.device.spec reads
+the spec through this module.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import tomlkit
+
+from twin.formats.common import known_keys, number
+
+_RPM = 2.0 * math.pi / 60.0
+TO_SI = {"deg": math.radians, "rpm": lambda v: v * _RPM}
+FROM_SI = {"deg": math.degrees, "rpm": lambda v: v / _RPM}
+ENTRY_KEYS = ("value", "unit", "source")
+
+# TOML [section] key -> DeviceSpec field, where the names differ
+FIELD = {
+    ("mass", "total"): "mass_total",
+    ("mass", "motor"): "mass_motor",
+    ("mass", "electronics"): "mass_electronics",
+}
+
+
+def read_spec_toml(path, fields) -> tuple[dict, dict]:
+    """(field -> value in SI, field -> source) from a spec TOML whose entries are exactly `fields`.
+
+    ValueError naming the file and the key for a missing, unknown or repeated entry, a word where a
+    number goes, NaN or inf, or an entry without its unit or source.
+    """
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{path}: not TOML ({exc})") from None
+    values, sources = {}, {}
+    for section, entries in raw.items():
+        if not isinstance(entries, dict):
+            raise ValueError(f"{path}: {section}: expected a [{section}] table of entries")
+        for key, entry in entries.items():
+            where = f"{path}: [{section}] {key}"
+            if not isinstance(entry, dict):
+                raise ValueError(f"{where}: expected {{ value = ..., unit = \"...\", source = \"...\" }}")
+            known_keys(entry, ENTRY_KEYS, where)
+            for k in ENTRY_KEYS:
+                if k not in entry:
+                    raise ValueError(f"{where}: missing {k}")
+            field = FIELD.get((section, key), key)
+            if field in values:
+                raise ValueError(f"{where}: {field} is given twice")
+            value = entry["value"]
+            number(value, f"{where}: value")
+            values[field] = TO_SI.get(entry["unit"], lambda v: v)(value)
+            sources[field] = str(entry["source"])
+    missing, unknown = set(fields) - values.keys(), values.keys() - set(fields)
+    if missing or unknown:
+        raise ValueError(f"{path}: missing {sorted(missing)}, unknown {sorted(unknown)}")
+    return values, sources
+
+
+def write_spec_toml(path, template, values: dict, source: str, header: str = "") -> None:
+    """Write the template spec TOML with `values` (field -> SI) and their source replaced, in the file's
+    units; comments and every other entry stay as they are. `header`: comment lines put on top."""
+    doc = tomlkit.parse(Path(template).read_text())
+    entries = {FIELD.get((s, k), k): doc[s][k] for s in doc for k in doc[s]}
+    for field, value in values.items():
+        if field not in entries:
+            raise ValueError(f"{template}: no entry for {field}")
+        entry = entries[field]
+        v = FROM_SI.get(entry["unit"], lambda x: x)(value)
+        entry["value"] = int(round(v)) if isinstance(entry["value"].unwrap(), int) else float(f"{v:.6g}")
+        entry["source"] = source
+    text = tomlkit.dumps(doc)
+    Path(path).write_text("".join(f"# {line}\n" for line in header.splitlines()) + text)

@@ -1,0 +1,77 @@
+"""Target and approximation JSON (docs/formats.md "Target JSON"): hinge angles, and the pose a
+MorphPatch approximation found.
+
+A target is `{"angles_deg": [one per hinge]}`. An approximation result (`vrscroll approximate
+--json`, `vrscroll cbs --json`) is a target with the root pose, the flap widths and its measures
+beside the angles, so it serves as a target too.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from twin.device.kinematics import pose_matrix
+from twin.device.spec import DeviceSpec
+from twin.formats.common import hinge_angles, known_keys, number, numbers
+
+APPROXIMATION_KEYS = ("variant", "root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm")
+OPTIONAL_KEYS = ("target", "start_mm_deg", "msd_mm", "hd_mm", "time_ms",
+                 # vrscroll cbs adds these
+                 "collision_parts", "collision_error_mean_mm", "collision_error_max_mm", "touching_flaps")
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a JSON object with \"angles_deg\"")
+    return doc
+
+
+def read_target(path, spec: DeviceSpec) -> np.ndarray:
+    """Hinge targets (rad) from a target or approximation JSON; ValueError naming the file and the key."""
+    path = Path(path)
+    doc = _read_json(path)
+    known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, str(path))
+    if "angles_deg" not in doc:
+        raise ValueError(f"{path}: missing key 'angles_deg' (one angle per hinge, degrees)")
+    return hinge_angles(doc["angles_deg"], spec.n_hinges, spec.hinge_limit, f"{path}: angles_deg")
+
+
+def read_approximation(path, spec: DeviceSpec) -> dict:
+    """An approximation result, checked and in SI: root_pose (4x4, m), angles (rad), widths (m),
+    time (s), variant, msd/hd (m or None), target (its name, or None)."""
+    path = Path(path)
+    doc = _read_json(path)
+    known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, str(path))
+    for key in APPROXIMATION_KEYS:
+        if key not in doc:
+            raise ValueError(f"{path}: missing key {key!r}: not an approximation result (vrscroll approximate --json)")
+    angles = hinge_angles(doc["angles_deg"], spec.n_hinges, spec.hinge_limit, f"{path}: angles_deg")
+    position = numbers(doc["root_position_mm"], f"{path}: root_position_mm", 3) / 1e3
+    quat = numbers(doc["root_quat_wxyz"], f"{path}: root_quat_wxyz", 4)
+    if np.linalg.norm(quat) < 1e-6:
+        raise ValueError(f"{path}: root_quat_wxyz is zero")
+    widths = numbers(doc["widths_mm"], f"{path}: widths_mm", spec.n_flaps) / 1e3
+    if np.any(widths <= 0):
+        raise ValueError(f"{path}: widths_mm: flap {int(np.argmax(widths <= 0))} has a width <= 0")
+    measure = {k: (None if doc.get(f"{k}_mm") is None else number(doc[f"{k}_mm"], f"{path}: {k}_mm") / 1e3)
+               for k in ("msd", "hd")}
+    target = doc.get("target")
+    if target is not None and not isinstance(target, str):
+        raise ValueError(f"{path}: target: expected a shape name or mesh path, got {target!r}")
+    return {"root_pose": pose_matrix(position, Rotation.from_quat(quat, scalar_first=True).as_matrix()),
+            "angles": angles, "widths": widths, "variant": str(doc["variant"]),
+            "time": number(doc.get("time_ms", 0.0), f"{path}: time_ms") / 1e3, **measure, "target": target}
+
+
+def write_approximation(path, doc: dict) -> None:
+    """Write an approximation result (Approximation.to_json() plus target, start and any OPTIONAL_KEYS)."""
+    known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, str(path))
+    Path(path).write_text(json.dumps(doc, indent=2) + "\n")

@@ -1,0 +1,162 @@
+"""Recording a HIL run: one scenario on the device and on the twin, traces side by side.
+
+`run_hil` moves the device to the scenario's start (gated, through twin.hil.mirror), then plays
+the targets on the device over the link while a twin with the device's gains, started at the
+device's measured start angles with the device's recent history (twin.sim.replay.twin_at_start:
+so its firmware's integral matches), follows in device time: each target takes effect in the twin
+at the device time the device's ACK reports. Both traces are written as they come (trace CSV,
+one line per row), so an interrupted run keeps both up to that moment. The run folder's format:
+twin.formats.run.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from controllers.encoder import angle_from_counts, target_counts
+from twin.device.spec import DeviceSpec
+from twin.formats.gains import write_gains
+from twin.formats.run import write_run_meta
+from twin.formats.scenario import Scenario
+from twin.formats.trace import TraceWriter
+from twin.hil.device_gains import device_gains, push_gains, restore_gains
+from twin.hil.mirror import mirror, wait_for_rest
+from twin.link import protocol as P
+from twin.sim.gate import GateRefused, check_move, enforce
+from twin.sim.replay import replay_targets, twin_at_start
+from twin.sim.simulation import Twin
+
+
+def gate_scenario(spec: DeviceSpec, scenario: Scenario, gains, settle_limit: float = 2.0) -> None:
+    """Check every step of the scenario on the twin (range, collision, settle, current) before anything moves."""
+    twin = Twin(spec, gains)
+    prev = scenario.start
+    for tgt in scenario.targets:
+        enforce(check_move(spec, prev, tgt, gains, settle_limit=settle_limit, twin=twin))
+        prev = tgt
+
+
+class GainsRestored(GateRefused):
+    """The gate refused the scenario after the run's gains were sent: the device's previous gains
+    were sent back, and no target was sent."""
+
+
+def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: int = 500,
+            scenario_path=None, on_progress=None, settle_limit: float = 2.0, gains=None,
+            tolerance_deg: float = 5.0) -> dict:
+    """Play a scenario on the device and the twin; write out_dir/{device,twin}.csv, gains.json, run.json.
+
+    gains: optional per-hinge PidGains pushed to the device first (every hinge's checked before any
+    is sent); if the gate then refuses the scenario, the device's previous gains are restored and
+    GainsRestored is raised. tolerance_deg: the device is e-stopped if it parts from the twin by
+    more on its way to the scenario's start (twin.hil.mirror). Returns run.json's content. On
+    KeyboardInterrupt the device is e-stopped and both traces stay readable up to that moment.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    n, dt = spec.n_hinges, spec.firmware_dt
+    previous = push_gains(link, gains, n) if gains is not None else None
+    gains = device_gains(link, n)
+    try:
+        gate_scenario(spec, scenario, gains, settle_limit)
+    except GateRefused as exc:
+        if previous is None:
+            raise
+        restore_gains(link, previous)
+        raise GainsRestored(exc.report) from None
+    if scenario_path:
+        shutil.copy(scenario_path, out / ("scenario" + Path(scenario_path).suffix))
+    write_gains(out / "gains.json", gains, {"source": f"read from the device at {link.url}"})
+    # the same start on both sides: move the device there (gated), then start the twin where the device is,
+    # with the device's history (twin_at_start)
+    prior = wait_for_rest(link, spec)
+    res = mirror(link, spec, scenario.start, settle_limit=settle_limit, tolerance_deg=tolerance_deg)
+    if not res.ok:
+        raise RuntimeError(f"could not bring the device to the scenario's start: {res.message}")
+    state = wait_for_rest(link, spec)
+    meta = {"scenario": scenario.name, "start_counts": list(state.counts), "start_target_counts": list(state.targets),
+            "before": {"state": P.State(prior.state).name, "counts": list(prior.counts),
+                       "target_counts": list(prior.targets)},
+            "telemetry_hz": telemetry_hz, "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url}
+    twin = twin_at_start(spec, gains, meta)
+
+    dev_w = TraceWriter(out / "device.csv", n)
+    twin_w = TraceWriter(out / "twin.csv", n, extra=("true_angle_deg",))
+    stride = max(1, int(round(spec.loop_rate / telemetry_hz)))
+    changes: list[tuple[float, np.ndarray]] = []
+    twin_ticks = 0
+    mask = 0xFFFFFFFF
+
+    def advance(to_time: float):
+        """Play the twin up to device time to_time (s), writing every stride-th tick."""
+        nonlocal twin_ticks
+        for first, tr in replay_targets(twin, changes, twin_ticks, int(math.floor(to_time / dt + 1e-9))):
+            enc = angle_from_counts(spec, tr.counts)
+            for i in range(len(tr.time)):
+                tick = first + i
+                if tick % stride == 0:
+                    twin_w.write(tick * dt, target_deg=np.degrees(tr.target[i]), angle_deg=np.degrees(enc[i]),
+                                 counts=tr.counts[i], duty=tr.duty[i], current_A=tr.current[i],
+                                 true_angle_deg=np.degrees(tr.angle[i]))
+            twin_ticks = first + len(tr.time)
+
+    try:
+        link.set_telemetry_rate(telemetry_hz)
+        link.drain_telemetry()
+        ack = link.set_targets(target_counts(spec, scenario.targets[0]))
+        t0 = ack.time_us
+        host0 = time.monotonic()
+        changes.append((0.0, scenario.targets[0]))
+        meta["changes"].append({"t_s": 0.0, "angles_deg": np.degrees(scenario.targets[0]).round(4).tolist()})
+        meta["device_t0_us"] = t0
+        write_run_meta(out, meta)
+        nxt = 1
+        latest = 0.0
+        while latest < scenario.duration:
+            if nxt < len(scenario.times) and time.monotonic() - host0 >= scenario.times[nxt]:
+                ack = link.set_targets(target_counts(spec, scenario.targets[nxt]))
+                tc = ((ack.time_us - t0) & mask) / 1e6
+                changes.append((tc, scenario.targets[nxt]))
+                meta["changes"].append({"t_s": round(tc, 6),
+                                        "angles_deg": np.degrees(scenario.targets[nxt]).round(4).tolist()})
+                write_run_meta(out, meta)
+                nxt += 1
+            item = link.telemetry(timeout=0.5)
+            if item is None:
+                link.estop()
+                raise RuntimeError("no telemetry from the device for 0.5 s; e-stopped")
+            for _, fr in [item] + link.drain_telemetry():
+                since = ((fr.time_us - t0) & mask) / 1e6
+                if since > 3600:
+                    continue  # from before the first target took effect
+                if fr.state in (P.State.FAULT, P.State.ESTOP):
+                    raise RuntimeError(f"device stopped itself at t={since:.3f} s (faults {fr.faults})")
+                dev_w.write(since, target_deg=np.degrees(angle_from_counts(spec, fr.targets)),
+                            angle_deg=np.degrees(angle_from_counts(spec, fr.counts)), counts=fr.counts,
+                            duty=np.asarray(fr.duty) / P.DUTY_SCALE, current_A=np.asarray(fr.current_ma) / 1000.0)
+                latest = max(latest, since)
+            advance(min(latest, scenario.duration))
+            if on_progress:
+                on_progress(latest)
+        meta["status"] = "complete"
+    except KeyboardInterrupt:
+        meta["status"] = "interrupted"
+        try:
+            link.estop()
+        except Exception:
+            pass
+        raise
+    except Exception as exc:
+        meta["status"] = f"failed: {exc}"
+        raise
+    finally:
+        dev_w.close()
+        twin_w.close()
+        meta["device_rows"], meta["twin_rows"] = dev_w.rows, twin_w.rows
+        write_run_meta(out, meta)
+    return meta
