@@ -7,18 +7,9 @@ VRScroll): not a whole number, which is why the firmware works in counts.
 
 from __future__ import annotations
 
-import math
-
-import numba
 import numpy as np
 
 from twin.device.spec import DeviceSpec
-
-
-@numba.njit(cache=True)
-def counts_from_motor_angle(motor_angle: float, counts_per_motor_rev: float) -> int:
-    """Counts the encoder reports for a motor-shaft angle (rad): floor, as a counter does."""
-    return int(math.floor(motor_angle * counts_per_motor_rev / (2.0 * math.pi)))
 
 
 def counts_from_angle(spec: DeviceSpec, angle) -> np.ndarray:

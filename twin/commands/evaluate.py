@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import time
 
+from twin.evaluation.lock import folder_lock
 from twin.evaluation.table1 import METHODS, paper_table, run_evaluation, summarize, write_tables
 from twin.morphpatch.shapes import shape_names
+from viz.charts import method_bars
 
 
 def add_arguments(p) -> None:
@@ -25,14 +27,13 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     if args.starts < 2:
         raise ValueError("--starts must be at least 2 (an SD needs two)")
-    t0 = time.perf_counter()
-    records = run_evaluation(args.out, args.shapes, args.starts, args.seed, args.workers)
-    wall = time.perf_counter() - t0
-    rows = summarize([r for r in records if r["shape"] in args.shapes])
-    md, csv_path = write_tables(rows, args.out, wall)
-    from viz.charts import method_bars
-
-    method_bars(rows, list(METHODS), args.shapes, f"{args.out}/chart.png", paper_table())
+    with folder_lock(args.out, "vrscroll evaluate"):  # two runs into one folder would compute every record twice
+        t0 = time.perf_counter()
+        records = run_evaluation(args.out, args.shapes, args.starts, args.seed, args.workers)
+        wall = time.perf_counter() - t0
+        rows = summarize([r for r in records if r["shape"] in args.shapes])
+        md, csv_path = write_tables(rows, args.out, wall)
+        method_bars(rows, list(METHODS), args.shapes, f"{args.out}/chart.png", paper_table())
     print(md.read_text())
     print(f"wrote {md}, {csv_path}, {args.out}/chart.png ({wall:.1f} s)")
     return 0

@@ -65,11 +65,6 @@ def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
     return records
 
 
-def _warm(_):
-    """Worker start: compile the numba code once."""
-    from twin.sim.simulation import Twin  # noqa: F401
-
-
 def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: int = 2, progress=True) -> list[dict]:
     """Evaluate every (shape, start) not yet in out_dir/results.jsonl; returns all records."""
     out = Path(out_dir)

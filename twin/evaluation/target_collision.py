@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import dataclasses
 
+import coacd
 import mujoco
 import numpy as np
 import trimesh
 
-from twin.morphpatch.fields import cache_dir, exact_signed_distance, mesh_key, save_npz
+from twin.morphpatch.fields import cache_dir, exact_signed_distance, load_npz, mesh_key, save_npz
 from twin.device.mjcf import mjcf
 from twin.device.spec import DeviceSpec
 
@@ -26,11 +27,9 @@ def convex_parts(mesh: trimesh.Trimesh, threshold: float = COACD_THRESHOLD) -> l
     if mesh.is_convex:
         return [mesh]
     path = cache_dir("coacd") / f"{mesh_key(mesh, threshold=threshold)}.npz"
-    if path.is_file():
-        with np.load(path) as data:
-            return [trimesh.Trimesh(data[f"v{i}"], data[f"f{i}"]) for i in range(int(data["n"]))]
-    import coacd  # imported here: only needed on a cache miss
-
+    data = load_npz(path, ("n",))
+    if data is not None:
+        return [trimesh.Trimesh(data[f"v{i}"], data[f"f{i}"]) for i in range(int(data["n"]))]
     coacd.set_log_level("error")
     raw = coacd.run_coacd(coacd.Mesh(mesh.vertices, mesh.faces), threshold=threshold, seed=0)
     parts = [trimesh.Trimesh(v, f).convex_hull for v, f in raw]

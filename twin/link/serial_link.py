@@ -90,9 +90,13 @@ class Link:
     def open(self, hello: bool = True) -> "Link":
         """Open the port, start the reader and heartbeat threads, and (by default) shake hands."""
         try:
-            self._serial = serial.serial_for_url(self.url, baudrate=self._baudrate, timeout=0.01)
+            # exclusive: a second host on the same port is refused here, not mixed into this session's bytes
+            self._serial = serial.serial_for_url(self.url, baudrate=self._baudrate, timeout=0.01, exclusive=True)
             self._serial.reset_input_buffer()
         except (serial.SerialException, OSError, ValueError) as exc:
+            if "exclusively lock" in str(exc):
+                raise LinkError(f"cannot open {self.url}: the port is in use by another program (another vrscroll "
+                                "session, a serial monitor); close it first") from None
             raise LinkError(f"cannot open {self.url}: {exc}") from exc
         self.log("open", url=self.url)
         self._start(self._reader, "link-reader")

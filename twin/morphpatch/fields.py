@@ -38,7 +38,10 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 import tempfile
+import time
+import zipfile
 from pathlib import Path
 
 import igl
@@ -55,6 +58,9 @@ MIN_CURVATURE = 1.0 / 0.015  # 1/m: |tr H| of a ridge sharper than a 15 mm radiu
 _VERSION = 1  # bump when the stored arrays change meaning
 
 _MEMORY: dict[str, "Fields"] = {}
+FIELD_ARRAYS = ("origin", "spacing", "sdf", "edges", "edge_index", "curvature", "min_curvature", "edge_radius")
+CHUNK = 1 << 18  # grid points per chunk of a field build
+PROGRESS_AFTER = 1.0  # s: a field build that takes longer reports its progress on stderr, about once a second
 
 
 
@@ -118,6 +124,7 @@ class Fields:
 
     # ---- storage ---------------------------------------------------------------------
     def _arrays(self) -> dict[str, np.ndarray]:
+        """The arrays stored in the disk cache (FIELD_ARRAYS)."""
         return {"origin": self.origin, "spacing": np.array(self.spacing), "sdf": self.sdf,
                 "edges": self.edges, "edge_index": self.edge_index, "curvature": self.curvature,
                 "min_curvature": np.array(self.min_curvature), "edge_radius": np.array(self.edge_radius)}
@@ -203,6 +210,24 @@ def save_npz(path: Path, arrays: dict) -> None:
     os.replace(tmp, path)
 
 
+def load_npz(path: Path, required=()) -> dict | None:
+    """A cache file's arrays, or None when there is none or it is damaged (cut short, empty, keys
+    missing): then a one-line notice goes to stderr, and the caller builds and saves it again."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as data:
+            arrays = {k: data[k] for k in data.files}
+        missing = [k for k in required if k not in arrays]
+        if missing:
+            raise KeyError(f"no {missing[0]!r}")
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as exc:
+        print(f"vrscroll: cache file {path} is damaged ({type(exc).__name__}: {exc}); building it again",
+              file=sys.stderr, flush=True)
+        return None
+    return arrays
+
+
 def build_fields(mesh: trimesh.Trimesh, spacing: float = SPACING, margin: float = MARGIN,
                  min_curvature: float = MIN_CURVATURE, edge_radius: float | None = None,
                  disk_cache: bool = True) -> Fields:
@@ -218,9 +243,9 @@ def build_fields(mesh: trimesh.Trimesh, spacing: float = SPACING, margin: float 
     if key in _MEMORY:
         return _MEMORY[key]
     path = cache_dir() / f"{key}.npz"
-    if disk_cache and path.is_file():
-        with np.load(path) as data:
-            fields = Fields._from_arrays(data)
+    arrays = load_npz(path, FIELD_ARRAYS) if disk_cache else None
+    if arrays is not None:
+        fields = Fields._from_arrays(arrays)
     else:
         fields = _compute(mesh, spacing, margin, min_curvature, edge_radius)
         if disk_cache:
@@ -246,13 +271,34 @@ def exact_surface_query(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.n
     return s, closest, normals
 
 
+class _Progress:
+    """Prints "<what>: NN % of N grid points (T s)" on stderr about once a second, once the build has
+    taken PROGRESS_AFTER s."""
+
+    def __init__(self, total: int, what: str):
+        self.total, self.what = total, what
+        self.start = self.last = time.perf_counter()
+
+    def __call__(self, done: int) -> None:
+        now = time.perf_counter()
+        if now - self.start >= PROGRESS_AFTER and now - self.last >= min(PROGRESS_AFTER, 1.0):
+            self.last = now
+            print(f"{self.what}: {done / self.total:4.0%} of {self.total:,} grid points ({now - self.start:.0f} s)",
+                  file=sys.stderr, flush=True)
+
+
 def _compute(mesh, spacing, margin, min_curvature, edge_radius) -> Fields:
     lo = mesh.bounds[0] - margin
     shape = np.ceil((mesh.bounds[1] + margin - lo) / spacing).astype(int) + 1
     empty = Fields(lo, spacing, np.zeros(shape), np.zeros((0, 3)), np.full(shape, -1), np.zeros(shape),
                    min_curvature, edge_radius)
     points = empty.grid_points()
-    sdf, closest = exact_signed_distance(mesh, points)
+    progress = _Progress(2 * len(points), f"fields of a {len(mesh.faces):,}-face mesh")
+    # in chunks: a large mesh's build shows its progress, and the distance query's scratch stays small
+    sdf, closest = np.empty(len(points)), np.empty((len(points), 3))
+    for i in range(0, len(points), CHUNK):
+        sdf[i:i + CHUNK], closest[i:i + CHUNK] = exact_signed_distance(mesh, points[i:i + CHUNK])
+        progress(i + CHUNK)
     sdf = sdf.reshape(shape)
     padded = np.pad(sdf, 1, mode="edge")
     curvature = (padded[2:, 1:-1, 1:-1] + padded[:-2, 1:-1, 1:-1] + padded[1:-1, 2:, 1:-1]
@@ -262,7 +308,10 @@ def _compute(mesh, spacing, margin, min_curvature, edge_radius) -> Fields:
     edges = np.unique(np.round(closest[high.ravel()] / 1e-6) * 1e-6, axis=0)  # on the surface, deduplicated
     edge_index = np.full(sdf.size, -1, dtype=np.int32)
     if len(edges):
-        dist, idx = cKDTree(edges).query(points, distance_upper_bound=edge_radius, workers=-1)
-        found = np.isfinite(dist)
-        edge_index[found] = idx[found]
+        tree = cKDTree(edges)
+        for i in range(0, len(points), CHUNK):
+            dist, idx = tree.query(points[i:i + CHUNK], distance_upper_bound=edge_radius, workers=-1)
+            found = np.isfinite(dist)
+            edge_index[i:i + CHUNK][found] = idx[found]
+            progress(len(points) + i + CHUNK)
     return Fields(lo, spacing, sdf, edges, edge_index.reshape(shape), curvature, min_curvature, edge_radius)

@@ -54,6 +54,8 @@ def load_shape(name: str) -> trimesh.Trimesh:
 def load_mesh(path: str | Path) -> trimesh.Trimesh:
     """Read a mesh file (metres) and check it: MeshError if it cannot serve as a target."""
     path = Path(path)
+    if path.is_dir():
+        raise MeshError(f"{path}: is a directory, not a mesh file")
     if not path.is_file():
         raise MeshError(f"{path}: no such file")
     if path.stat().st_size == 0:
