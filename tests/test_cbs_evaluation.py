@@ -89,3 +89,51 @@ def test_small_evaluation_keeps_the_papers_order_and_resumes(tmp_path):
     assert "paper MSD" in md.read_text() and csv_path.exists()
     with pytest.raises(ValueError, match="holds a run"):
         run_evaluation(out, shapes, n_starts=4, seed=0, workers=1, progress=False)
+
+
+def test_a_damaged_coacd_cache_file_is_built_again_with_a_notice(tmp_path, monkeypatch, capsys):
+    import trimesh
+
+    monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
+    ring = trimesh.creation.annulus(0.02, 0.04, 0.02, sections=8)  # not convex: CoACD splits it
+    first = convex_parts(ring)
+    [path] = (tmp_path / "coacd").glob("*.npz")
+    path.write_bytes(path.read_bytes()[:200])
+    capsys.readouterr()
+    again = convex_parts(ring)
+    assert len(again) == len(first) > 1
+    assert f"cache file {path} is damaged" in capsys.readouterr().err
+    assert len(convex_parts(ring)) == len(first) and capsys.readouterr().err == ""
+
+
+def test_a_second_evaluate_into_one_folder_is_refused(tmp_path, capsys):
+    """Two runs into one folder once computed and stored every record twice."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from twin.cli import main
+    from twin.evaluation.lock import folder_lock
+
+    out = tmp_path / "eval"
+    with folder_lock(out, "test"):
+        assert main(["evaluate", "--out", str(out), "--shapes", "cube", "--starts", "2"]) == 2
+    err = capsys.readouterr().err
+    assert "another vrscroll evaluate is writing to this folder" in err and str(out) in err
+    assert not (out / "results.jsonl").exists()
+    # a holder that dies (here killed) leaves no lock behind: the kernel drops it with the process
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom twin.evaluation.lock import folder_lock\n"
+         "with folder_lock(sys.argv[1], 'holder'):\n    print('locked', flush=True)\n    time.sleep(60)\n", str(out)],
+        cwd=Path(__file__).resolve().parent.parent, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(ValueError, match=f"pid {holder.pid}"):
+            with folder_lock(out, "test"):
+                pass
+    finally:
+        holder.kill()
+        holder.wait()
+        holder.stdout.close()
+    with folder_lock(out, "test"):
+        pass

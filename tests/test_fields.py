@@ -118,3 +118,43 @@ def test_fields_are_cached_in_memory_and_on_disk(tmp_path, monkeypatch):
     again = build_fields(mesh, spacing=0.005, margin=0.02)
     assert again is not first and np.array_equal(again.sdf, first.sdf)
     assert np.array_equal(again.edge_index, first.edge_index)
+
+
+@pytest.mark.parametrize("damage", ["empty", "cut short"])
+def test_a_damaged_cache_file_is_built_again_with_a_notice(tmp_path, monkeypatch, capsys, damage):
+    """Once a BadZipFile/EOFError on every later run, until the file was deleted by hand."""
+    import twin.morphpatch.fields as module
+
+    monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
+    module._MEMORY.clear()
+    mesh = trimesh.creation.icosphere(2, 0.03)
+    first = build_fields(mesh, spacing=0.005, margin=0.02)
+    [path] = (tmp_path / "fields").glob("*.npz")
+    path.write_bytes(b"" if damage == "empty" else path.read_bytes()[: path.stat().st_size // 2])
+    module._MEMORY.clear()
+    capsys.readouterr()
+    again = build_fields(mesh, spacing=0.005, margin=0.02)
+    assert np.array_equal(again.sdf, first.sdf) and np.array_equal(again.edge_index, first.edge_index)
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and f"cache file {path} is damaged" in err
+    module._MEMORY.clear()
+    build_fields(mesh, spacing=0.005, margin=0.02)  # rebuilt on disk: read without a word
+    assert capsys.readouterr().err == ""
+
+
+def test_a_long_field_build_shows_its_progress(monkeypatch, capsys):
+    """A 2 M-face mesh took minutes with no sign of life; a build longer than PROGRESS_AFTER reports on stderr
+    (here made 0 s, and the chunks small, so that a small build reports)."""
+    import twin.morphpatch.fields as module
+
+    monkeypatch.setattr(module, "PROGRESS_AFTER", 0.0)
+    monkeypatch.setattr(module, "CHUNK", 5000)
+    mesh = trimesh.creation.box((0.04, 0.04, 0.04))
+    chunked = build_fields(mesh, spacing=0.004, margin=0.02, disk_cache=False)
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) >= 4 and all("grid points" in ln for ln in lines)
+    assert lines[-1].split(":")[1].split("%")[0].strip() == "100"
+    monkeypatch.setattr(module, "CHUNK", 1 << 30)
+    module._MEMORY.clear()
+    whole = build_fields(mesh, spacing=0.004, margin=0.02, disk_cache=False)
+    assert np.array_equal(chunked.sdf, whole.sdf) and np.array_equal(chunked.edge_index, whole.edge_index)

@@ -211,3 +211,25 @@ def test_override_is_logged_and_the_device_limit_still_holds(emulator, tmp_path,
     events = session_log(log)
     assert any(e["event"] == "gate_override" and "range" in e["reason"] for e in events)
     assert [e["reason"] for e in emu.events("nack")] == ["OUT_OF_RANGE"]
+
+
+@pytest.mark.parametrize("angles", ["nan,0,0,0,0,0", "1e308,0,0,0,0,0", "0,0,0,0,0,-inf"])
+def test_mirror_override_refuses_angles_that_are_no_angles(emulator, tmp_path, capsys, angles):
+    """Once a struct.error traceback: --override skipped the gate's range check and the count overflowed."""
+    emu = emulator()
+    rc = vrscroll(["mirror", f"--angles={angles}", "--port", emu.port, "--log", str(tmp_path / "l.jsonl"),
+                   "--override"])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert err.startswith("vrscroll mirror: error: --angles") and len(err.splitlines()) == 1
+    assert emu.events("nack") == [] and not any(e.get("msg") == "SET_TARGETS" for e in emu.events())
+
+
+def test_a_second_host_on_the_same_port_is_refused_at_open(emulator):
+    emu = emulator()
+    with Link(emu.port) as first:
+        with pytest.raises(LinkError, match="the port is in use"):
+            Link(emu.port).open()
+        assert first.get_state().state in (P.State.IDLE, P.State.ACTIVE)  # the first session goes on undisturbed
+    with Link(emu.port) as again:  # and once it closed, the port is free
+        assert again.get_state()

@@ -233,3 +233,14 @@ def test_redirect_command_refuses_a_bad_approximation(tmp_path, capsys):
     bad.write_text(json.dumps({"target": "stairs", "angles_deg": [0] * 6}))
     assert main(["redirect", str(bad)]) == 2
     assert "not an approximation result" in capsys.readouterr().err
+
+
+def test_redirect_refuses_hinge_angles_outside_the_hinge_range(tmp_path, capsys):
+    """An approximation with a 500 deg hinge was once redirected as if the device could take it."""
+    path = tmp_path / "a.json"
+    path.write_text(json.dumps({"target": "stairs", "variant": "full", "root_position_mm": [0, 0, 50],
+                                "root_quat_wxyz": [1, 0, 0, 0], "angles_deg": [0, 0, 500, 0, 0, 0],
+                                "widths_mm": [26.857] * 7}))
+    assert main(["redirect", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}: angles_deg: hinge 2 at 500 deg is outside the hinge range +-112.5 deg" in err

@@ -79,3 +79,8 @@ def test_missing_file(tmp_path):
 
 def test_mesh_error_is_a_value_error():
     assert issubclass(MeshError, ValueError)
+
+
+def test_a_directory_is_not_reported_as_a_missing_file(tmp_path):
+    with pytest.raises(MeshError, match="is a directory, not a mesh file"):
+        load_mesh(tmp_path)

@@ -98,3 +98,33 @@ def test_free_root_model_loads(spec):
     assert m.nq == 7 + spec.n_hinges and m.key("flat").qpos[3] == 1.0
     with pytest.raises(ValueError, match="root must be"):
         mjcf(spec, root="floating")
+
+
+def test_scene_includes_the_device_and_adds_floor_and_light(capsys):
+    from twin.cli import main
+    from twin.device.mjcf import SCENE_PATH, scene_mjcf
+
+    assert SCENE_PATH.read_text() == scene_mjcf(), "run `vrscroll model --write`"
+    device = mujoco.MjModel.from_xml_path(str(MJCF_PATH))
+    scene = mujoco.MjModel.from_xml_path(str(SCENE_PATH))
+    assert device.nlight == 0 and scene.nlight >= 1
+    assert mujoco.mj_name2id(device, mujoco.mjtObj.mjOBJ_GEOM, "floor") == -1
+    assert mujoco.mj_name2id(scene, mujoco.mjtObj.mjOBJ_GEOM, "floor") >= 0
+    assert scene.nbody == device.nbody and scene.njnt == device.njnt and scene.nu == device.nu
+    assert main(["model", "--check"]) == 0
+    assert capsys.readouterr().out.count("matches the spec") == 2
+
+
+def test_a_morph_on_the_twin_raises_no_mujoco_warning(spec):
+    """Random morphs across the whole hinge range (targets nobody tuned), flaps folding onto each other
+    included: MuJoCo counts any warning (contact buffer, bad qacc, ...) in data.warning."""
+    from twin.sim.simulation import Twin
+
+    rng = np.random.default_rng(11)
+    twin = Twin(spec)
+    targets = [rng.uniform(-1, 1, spec.n_hinges) * spec.hinge_limit for _ in range(4)]
+    targets.append(np.full(spec.n_hinges, spec.hinge_limit))  # every hinge at its stop: the row curls up
+    for t in targets:
+        twin.move_to(t, max_time=0.8, stop_when_settled=False)
+        counts = {mujoco.mjtWarning(i).name: int(w.number) for i, w in enumerate(twin.data.warning) if w.number}
+        assert counts == {}, counts

@@ -3,6 +3,7 @@
 import dataclasses
 import json
 import math
+import re
 import signal
 import subprocess
 import sys
@@ -246,3 +247,100 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     calibrated = load_spec(cal)
     assert calibrated.gear_friction == pytest.approx(res["values"]["gear_friction"], rel=1e-4)
     assert "calibrated from" in cal.read_text()
+
+
+ONE_STEP = """name = "one"
+duration_s = 1.0
+[[step]]
+t_s = 0.0
+angles_deg = [30, 30, 30, 30, 30, 30]
+"""
+
+
+def _device_gains(port):
+    from twin.hil.device_gains import device_gains
+
+    with Link(port) as link:
+        return device_gains(link, 6)
+
+
+def _gains_file(path, spec, **hinge_changes):
+    """A gains file of the spec's gains, hinge k's changed by hinge_changes {k: {key: value or None to drop}}."""
+    write_gains(path, [PidGains.from_spec(spec)] * spec.n_hinges)
+    doc = json.loads(path.read_text())
+    for k, change in hinge_changes.items():
+        for key, value in change.items():
+            if value is None:
+                del doc["hinges"][int(k[1:])][key]
+            else:
+                doc["hinges"][int(k[1:])][key] = value
+    path.write_text(json.dumps(doc))
+    return path
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"h0": {"kp": 1000}}, "hinge 0: kp = 1000 is outside the bounds the firmware takes"),
+    ({"h2": {"ki": None}}, r"hinges\[2\]: missing key 'ki'"),
+    # once: hinges 0-2 got the new gains before the device refused hinge 3's
+    ({"h0": {"kp": 0.05}, "h1": {"kp": 0.05}, "h2": {"kp": 0.05}, "h3": {"kd": -0.001}},
+     "hinge 3: kd = -0.001 is outside the bounds"),
+])
+def test_hil_refuses_a_bad_gains_file_before_anything_is_sent(emulator, spec, tmp_path, capsys, change, message):
+    from twin.cli import main as vrscroll
+
+    emu = emulator()
+    before = _device_gains(emu.port)
+    (tmp_path / "s.toml").write_text(ONE_STEP)
+    gains = _gains_file(tmp_path / "g.json", spec, **change)
+    rc = vrscroll(["hil", str(tmp_path / "s.toml"), "--port", emu.port, "--gains", str(gains),
+                   "--out", str(tmp_path / "run")])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and str(gains) in err
+    assert re.search(message, err), err
+    assert _device_gains(emu.port) == before
+    assert not [e for e in emu.events("rx") if e["msg"] == "SET_GAINS"]
+
+
+def test_hil_restores_the_devices_gains_when_the_gate_refuses(emulator, spec, tmp_path, capsys):
+    """Gains within the firmware's bounds too weak to reach the scenario's targets in time: the gate refuses."""
+    from twin.cli import main as vrscroll
+
+    emu = emulator()
+    before = _device_gains(emu.port)
+    (tmp_path / "s.toml").write_text(ONE_STEP)
+    weak = {f"h{k}": {"kp": 0.001, "ki": 0.0, "kd": 0.0, "deadband_duty": 0.0} for k in range(6)}
+    gains = _gains_file(tmp_path / "g.json", spec, **weak)
+    rc = vrscroll(["hil", str(tmp_path / "s.toml"), "--port", emu.port, "--gains", str(gains),
+                   "--out", str(tmp_path / "run")])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "refused by the gate" in err and "were sent, then the device's previous gains sent back" in err
+    assert "nothing was sent" not in err
+    assert _device_gains(emu.port) == before
+    sent = [e for e in emu.events("rx") if e["msg"] == "SET_GAINS"]
+    assert len(sent) == 12  # six hinges' new gains, then six hinges' old ones
+    assert not [e for e in emu.events("rx") if e["msg"] == "SET_TARGETS"]
+
+
+def test_calibrate_refuses_a_run_that_did_not_complete(spec, tmp_path, capsys):
+    """A run killed while recording keeps "running" in its run.json; calibrate once fitted it without a word."""
+    from twin.cli import main as vrscroll
+    from twin.formats.run import write_run_meta
+    from twin.formats.trace import TraceWriter
+
+    run = tmp_path / "killed"
+    run.mkdir()
+    n = spec.n_hinges
+    write_run_meta(run, {"scenario": "s", "start_counts": [0] * n, "start_target_counts": [0] * n,
+                         "before": {"state": "IDLE", "counts": [0] * n, "target_counts": [0] * n},
+                         "changes": [{"t_s": 0.0, "angles_deg": [10.0] * n}], "status": "running"})
+    with TraceWriter(run / "device.csv", n) as w:
+        for i in range(50):
+            w.write(i * 0.002, target_deg=[10.0] * n, angle_deg=[0.0] * n, counts=[0] * n, duty=[0.1] * n,
+                    current_A=[0.1] * n)
+    write_gains(run / "gains.json", [PidGains.from_spec(spec)] * n)
+    assert vrscroll(["calibrate", str(run), "--out", str(tmp_path / "cal.toml")]) == 2
+    err = capsys.readouterr().err
+    assert f"{run}: the run did not complete (status 'running'" in err and "--incomplete" in err
+    assert not (tmp_path / "cal.toml").exists()

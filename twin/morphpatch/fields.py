@@ -272,8 +272,8 @@ def exact_surface_query(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.n
 
 
 class _Progress:
-    """Prints "<what>: NN % of N grid points (T s)" on stderr about once a second, once the build has
-    taken PROGRESS_AFTER s."""
+    """Prints "<what>: NN % (T s)" on stderr about once a second, once the build has taken
+    PROGRESS_AFTER s; done and total count the build's steps (here grid points, twice: distance, edges)."""
 
     def __init__(self, total: int, what: str):
         self.total, self.what = total, what
@@ -283,7 +283,7 @@ class _Progress:
         now = time.perf_counter()
         if now - self.start >= PROGRESS_AFTER and now - self.last >= min(PROGRESS_AFTER, 1.0):
             self.last = now
-            print(f"{self.what}: {done / self.total:4.0%} of {self.total:,} grid points ({now - self.start:.0f} s)",
+            print(f"{self.what}: {min(done, self.total) / self.total:4.0%} ({now - self.start:.0f} s)",
                   file=sys.stderr, flush=True)
 
 
@@ -293,7 +293,7 @@ def _compute(mesh, spacing, margin, min_curvature, edge_radius) -> Fields:
     empty = Fields(lo, spacing, np.zeros(shape), np.zeros((0, 3)), np.full(shape, -1), np.zeros(shape),
                    min_curvature, edge_radius)
     points = empty.grid_points()
-    progress = _Progress(2 * len(points), f"fields of a {len(mesh.faces):,}-face mesh")
+    progress = _Progress(2 * len(points), f"fields of a {len(mesh.faces):,}-face mesh on {len(points):,} grid points")
     # in chunks: a large mesh's build shows its progress, and the distance query's scratch stays small
     sdf, closest = np.empty(len(points)), np.empty((len(points), 3))
     for i in range(0, len(points), CHUNK):
