@@ -15,7 +15,9 @@ import trimesh
 
 from twin.morphpatch.sampling import METRIC_SPACING, grid_layout, world_points
 from twin.device.spec import DeviceSpec
+from twin.morphpatch.redirection import within_flags
 from twin.morphpatch.surface_metrics import point_distances
+from twin.perception.thresholds import load_thresholds
 
 pv.OFF_SCREEN = True
 
@@ -55,9 +57,6 @@ def render_redirection(mesh: trimesh.Trimesh, field, path: str | Path, threshold
     field: a `twin.morphpatch.redirection.RedirectionField`. Colours run from 0 to the perception
     threshold; nodes beyond it (or where no target was found) are red. The target is grey.
     """
-    from twin.morphpatch.redirection import within_flags
-    from twin.perception.thresholds import load_thresholds
-
     thresholds = thresholds or load_thresholds()
     points, _ = field.surface()
     dev = field.on_device

@@ -17,8 +17,10 @@ import numpy as np
 
 from twin.morphpatch.approximation import VARIANTS, approximate, default_spec, pose_from_mm_deg
 from twin.cli import UserError
+from twin.formats.target import write_approximation
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names, shape_table
+from viz.scene import render_approximation
 
 MESH_START_HEIGHT = 0.04  # m above the top of a mesh file's bounding box
 
@@ -68,11 +70,8 @@ def write_result(args, name, start, result, mesh, spec, extra: dict | None = Non
     text = json.dumps(out, indent=2)
     print(text)
     if args.json:
-        with open(args.json, "w") as f:
-            f.write(text + "\n")
+        write_approximation(args.json, out)
     if args.png:
-        from viz.scene import render_approximation
-
         render_approximation(spec, mesh, result.frames(spec), result.widths, args.png,
                              title=f"{name} ({result.variant}): MSD {out['msd_mm']:.1f} mm, HD {out['hd_mm']:.1f} mm")
 

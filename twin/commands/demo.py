@@ -20,6 +20,7 @@ from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import load_shape, shape_names, shape_table
 from twin.sim.simulation import move_report
 from twin.morphpatch.surface_metrics import msd_hd
+from viz.scene import render_approximation
 
 
 def add_arguments(p) -> None:
@@ -61,8 +62,6 @@ def run(args) -> int:
     print(f"[4/5] pen redirection over the reached shape: {redirection['share_within']:.1%} of the touch surface "
           f"within {redirection['position_threshold_mm']:g} mm / {redirection['rotation_threshold_deg']:g} deg "
           f"(largest {redirection['largest_offset_mm']:.1f} mm, {redirection['largest_rotation_deg']:.1f} deg)")
-
-    from viz.scene import render_approximation
 
     frames = flap_frames(spec, end_angles, approx.root_pose, approx.widths)
     render_approximation(spec, mesh, frames, approx.widths, args.png,

@@ -19,6 +19,7 @@ from twin.cli import UserError
 from twin.perception.thresholds import detection_rule, paper_fits
 from twin.formats.trials import read_trials, write_trials
 from twin.perception.psychometric import FIT_METHOD, analyse, simulate_trials, threshold
+from viz.charts import psychometric_curves
 
 
 def add_arguments(p) -> None:
@@ -114,8 +115,6 @@ def run(args) -> int:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
         (out / "fit.json").write_text(text + "\n")
-        from viz.charts import psychometric_curves
-
         psychometric_curves(result["surfaces"], trials.unit, out / "psychometric.png",
                             paper and {"label": f"paper ({paper['surface']})",
                                        "a": paper[f"a_per_{trials.unit}"], "b": paper["b"]})

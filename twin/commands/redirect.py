@@ -23,6 +23,7 @@ from twin.formats.target import read_approximation
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.redirection import PADDING, SIGMA, build_field, redirect, threshold_summary, within_samples
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
+from viz.scene import render_redirection
 
 
 def add_arguments(p) -> None:
@@ -78,8 +79,6 @@ def run(args) -> int:
         print(f"{len(positions)} pen samples redirected, {within.mean():.1%} within the thresholds "
               f"(largest {result.offset.max() * 1e3:.1f} mm, {np.degrees(result.angle.max()):.1f} deg): {out}")
     if args.png:
-        from viz.scene import render_redirection
-
         render_redirection(mesh, field, args.png, title=f"{name}: pen redirection, blur {args.sigma_mm:g} mm")
         summary["png"] = args.png
         print(f"picture: {args.png}")
