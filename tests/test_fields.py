@@ -148,7 +148,7 @@ def test_a_long_field_build_shows_its_progress(monkeypatch, capsys):
     import twin.morphpatch.fields as module
 
     monkeypatch.setattr(module, "PROGRESS_AFTER", 0.0)
-    monkeypatch.setattr(module, "CHUNK", 5000)
+    monkeypatch.setattr(module, "CHUNK", 2000)
     mesh = trimesh.creation.box((0.04, 0.04, 0.04))
     chunked = build_fields(mesh, spacing=0.004, margin=0.02, disk_cache=False)
     lines = capsys.readouterr().err.splitlines()

@@ -273,7 +273,7 @@ def exact_surface_query(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.n
 
 class _Progress:
     """Prints "<what>: NN % (T s)" on stderr about once a second, once the build has taken
-    PROGRESS_AFTER s; done and total count the build's steps (here grid points, twice: distance, edges)."""
+    PROGRESS_AFTER s; done and total count grid points whose distance is known (most of a build's time)."""
 
     def __init__(self, total: int, what: str):
         self.total, self.what = total, what
@@ -293,7 +293,7 @@ def _compute(mesh, spacing, margin, min_curvature, edge_radius) -> Fields:
     empty = Fields(lo, spacing, np.zeros(shape), np.zeros((0, 3)), np.full(shape, -1), np.zeros(shape),
                    min_curvature, edge_radius)
     points = empty.grid_points()
-    progress = _Progress(2 * len(points), f"fields of a {len(mesh.faces):,}-face mesh on {len(points):,} grid points")
+    progress = _Progress(len(points), f"fields of a {len(mesh.faces):,}-face mesh on {len(points):,} grid points")
     # in chunks: a large mesh's build shows its progress, and the distance query's scratch stays small
     sdf, closest = np.empty(len(points)), np.empty((len(points), 3))
     for i in range(0, len(points), CHUNK):
@@ -313,5 +313,4 @@ def _compute(mesh, spacing, margin, min_curvature, edge_radius) -> Fields:
             dist, idx = tree.query(points[i:i + CHUNK], distance_upper_bound=edge_radius, workers=-1)
             found = np.isfinite(dist)
             edge_index[i:i + CHUNK][found] = idx[found]
-            progress(len(points) + i + CHUNK)
     return Fields(lo, spacing, sdf, edges, edge_index.reshape(shape), curvature, min_curvature, edge_radius)
