@@ -161,7 +161,7 @@ def test_spec_writer_keeps_comments_and_other_sources(tmp_path):
     ("value = 3.75,", 'value = "low",', r"\[motor\] resistance: value: expected a number, got 'low'"),
     ("value = 3.75,", "value = nan,", r"\[motor\] resistance: value: nan is not a finite number"),
     ('unit = "ohm",', 'unit = "ohm", note = "x",', r"\[motor\] resistance: unknown key 'note'"),
-    ('unit = "ohm",', "", r"\[motor\] resistance: missing unit"),
+    ('unit = "ohm",', "", r"\[motor\] resistance: missing key 'unit'"),
 ])
 def test_bad_spec_files_are_refused_with_the_key(tmp_path, old, new, message):
     text = SPEC_PATH.read_text()

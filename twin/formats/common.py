@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -51,6 +53,18 @@ def known_keys(doc: dict, allowed, where: str) -> None:
 
 
 def required_keys(doc: dict, needed, where: str) -> None:
+    """ValueError naming the first key of `needed` that doc lacks."""
     missing = [k for k in needed if k not in doc]
     if missing:
         raise ValueError(f"{where}: missing key {missing[0]!r}")
+
+
+def json_object(path: Path) -> dict:
+    """A JSON file holding one object; ValueError naming the file if it is not JSON or not an object."""
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not JSON ({exc})") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"{path}: expected a JSON object {{...}}, got {type(doc).__name__}")
+    return doc

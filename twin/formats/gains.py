@@ -14,7 +14,7 @@ import json
 from pathlib import Path
 
 from controllers.pid import PidGains
-from twin.formats.common import known_keys, number
+from twin.formats.common import json_object, known_keys, number, required_keys
 from twin.link.protocol import GAIN_BOUNDS
 
 GAINS_FORMAT = "vrscroll-gains/1"
@@ -57,11 +57,8 @@ def write_gains(path, gains: list[PidGains], meta: dict | None = None) -> None:
 def read_gains(path, n: int | None = None) -> list[PidGains]:
     """Per-hinge gains from a gains file; ValueError naming the file, hinge and key for anything wrong."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not JSON ({exc})") from None
-    if not isinstance(doc, dict) or doc.get("format") != GAINS_FORMAT:
+    doc = json_object(path)
+    if doc.get("format") != GAINS_FORMAT:
         raise ValueError(f"{path}: not a {GAINS_FORMAT} gains file (no \"format\": \"{GAINS_FORMAT}\")")
     known_keys(doc, ("format", "units", "hinges", "meta"), str(path))
     hinges = doc.get("hinges")
@@ -73,9 +70,7 @@ def read_gains(path, n: int | None = None) -> list[PidGains]:
         if not isinstance(h, dict):
             raise ValueError(f"{where}: expected an object with hinge, {', '.join(KEYS)}")
         known_keys(h, ("hinge", *KEYS), where)
-        for key in ("hinge", *KEYS):
-            if key not in h:
-                raise ValueError(f"{where}: missing key {key!r}")
+        required_keys(h, ("hinge", *KEYS), where)
         k = h["hinge"]
         if isinstance(k, bool) or not isinstance(k, int) or k < 0 or k in entries:
             raise ValueError(f"{where}: hinge {k!r} is not a new hinge index")

@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 
 from twin.device.spec import DeviceSpec
-from twin.formats.common import hinge_angles, known_keys, number
+from twin.formats.common import hinge_angles, json_object, known_keys, number, required_keys
 from twin.formats.gains import read_gains
 from twin.formats.trace import read_trace
 
@@ -46,16 +46,9 @@ def _counts(value, n: int, where: str) -> list[int]:
 def read_run_meta(run_dir, spec: DeviceSpec) -> dict:
     """run.json, checked: its keys, the hinge count of every list, the angles within the hinge range."""
     path = Path(run_dir) / "run.json"
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not JSON ({exc})") from None
-    if not isinstance(meta, dict):
-        raise ValueError(f"{path}: expected a JSON object")
+    meta = json_object(path)
     known_keys(meta, RUN_KEYS, str(path))
-    for key in ("scenario", "status", "changes", "start_counts", "start_target_counts"):
-        if key not in meta:
-            raise ValueError(f"{path}: missing key {key!r}")
+    required_keys(meta, ("scenario", "status", "changes", "start_counts", "start_target_counts"), str(path))
     n = spec.n_hinges
     _counts(meta["start_counts"], n, f"{path}: start_counts")
     _counts(meta["start_target_counts"], n, f"{path}: start_target_counts")
@@ -64,9 +57,7 @@ def read_run_meta(run_dir, spec: DeviceSpec) -> dict:
         if not isinstance(before, dict):
             raise ValueError(f"{path}: before: expected an object with {', '.join(BEFORE_KEYS)}")
         known_keys(before, BEFORE_KEYS, f"{path}: before")
-        for key in BEFORE_KEYS:
-            if key not in before:
-                raise ValueError(f"{path}: before: missing key {key!r}")
+        required_keys(before, BEFORE_KEYS, f"{path}: before")
         _counts(before["counts"], n, f"{path}: before.counts")
         _counts(before["target_counts"], n, f"{path}: before.target_counts")
     if not isinstance(meta["changes"], list):

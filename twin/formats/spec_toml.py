@@ -17,7 +17,7 @@ from pathlib import Path
 
 import tomlkit
 
-from twin.formats.common import known_keys, number
+from twin.formats.common import known_keys, number, required_keys
 
 _RPM = 2.0 * math.pi / 60.0
 TO_SI = {"deg": math.radians, "rpm": lambda v: v * _RPM}
@@ -52,9 +52,7 @@ def read_spec_toml(path, fields) -> tuple[dict, dict]:
             if not isinstance(entry, dict):
                 raise ValueError(f"{where}: expected {{ value = ..., unit = \"...\", source = \"...\" }}")
             known_keys(entry, ENTRY_KEYS, where)
-            for k in ENTRY_KEYS:
-                if k not in entry:
-                    raise ValueError(f"{where}: missing {k}")
+            required_keys(entry, ENTRY_KEYS, where)
             field = FIELD.get((section, key), key)
             if field in values:
                 raise ValueError(f"{where}: {field} is given twice")

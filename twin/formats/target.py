@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from twin.device.kinematics import pose_matrix
 from twin.device.spec import DeviceSpec
-from twin.formats.common import hinge_angles, known_keys, number, numbers
+from twin.formats.common import hinge_angles, json_object, known_keys, number, numbers, required_keys
 
 APPROXIMATION_KEYS = ("variant", "root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm")
 OPTIONAL_KEYS = ("target", "start_mm_deg", "msd_mm", "hd_mm", "time_ms",
@@ -24,23 +24,12 @@ OPTIONAL_KEYS = ("target", "start_mm_deg", "msd_mm", "hd_mm", "time_ms",
                  "collision_parts", "collision_error_mean_mm", "collision_error_max_mm", "touching_flaps")
 
 
-def _read_json(path: Path) -> dict:
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not JSON ({exc})") from None
-    if not isinstance(doc, dict):
-        raise ValueError(f"{path}: expected a JSON object with \"angles_deg\"")
-    return doc
-
-
 def read_target(path, spec: DeviceSpec) -> np.ndarray:
     """Hinge targets (rad) from a target or approximation JSON; ValueError naming the file and the key."""
     path = Path(path)
-    doc = _read_json(path)
+    doc = json_object(path)
     known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, str(path))
-    if "angles_deg" not in doc:
-        raise ValueError(f"{path}: missing key 'angles_deg' (one angle per hinge, degrees)")
+    required_keys(doc, ("angles_deg",), str(path))
     return hinge_angles(doc["angles_deg"], spec.n_hinges, spec.hinge_limit, f"{path}: angles_deg")
 
 
@@ -48,11 +37,9 @@ def read_approximation(path, spec: DeviceSpec) -> dict:
     """An approximation result, checked and in SI: root_pose (4x4, m), angles (rad), widths (m),
     time (s), variant, msd/hd (m or None), target (its name, or None)."""
     path = Path(path)
-    doc = _read_json(path)
+    doc = json_object(path)
     known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, str(path))
-    for key in APPROXIMATION_KEYS:
-        if key not in doc:
-            raise ValueError(f"{path}: missing key {key!r}: not an approximation result (vrscroll approximate --json)")
+    required_keys(doc, APPROXIMATION_KEYS, f"{path} (an approximation result, vrscroll approximate --json)")
     angles = hinge_angles(doc["angles_deg"], spec.n_hinges, spec.hinge_limit, f"{path}: angles_deg")
     position = numbers(doc["root_position_mm"], f"{path}: root_position_mm", 3) / 1e3
     quat = numbers(doc["root_quat_wxyz"], f"{path}: root_quat_wxyz", 4)

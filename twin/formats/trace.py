@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from twin.formats.common import number
+
 TRACE_COLUMNS = ("target_deg", "angle_deg", "counts", "duty", "current_A")
 TWIN_COLUMNS = ("true_angle_deg", "target_counts", "torque_Nm")
 _INTEGER = ("counts", "target_counts")
@@ -100,15 +102,7 @@ def read_trace(path, n: int | None = None, hinge_limit: float | None = None) -> 
         try:
             if len(cells) != ncol:
                 raise ValueError(f"{len(cells)} fields, the header has {ncol}")
-            values = []
-            for i, cell in enumerate(cells):
-                try:
-                    x = float(cell)
-                except ValueError:
-                    raise ValueError(f"{header[i]}: expected a number, got {cell!r}") from None
-                if not math.isfinite(x):
-                    raise ValueError(f"{header[i]}: {cell!r} is not a finite number")
-                values.append(x)
+            values = [number(cell, header[i]) for i, cell in enumerate(cells)]
         except ValueError as exc:
             if lineno == last:
                 break  # the line being written when the recording stopped
