@@ -1,6 +1,7 @@
 """The device itself: its spec (read from models/vrscroll/spec.toml, in SI), the kinematics of its
 touch surface, and the MJCF generated from the spec.
 
-The bottom layer: imports nothing from the project but this package. Everything else that
+The bottom layer: imports nothing from the project but this package and the spec TOML's
+reader and writer (`twin.formats.spec_toml`, which imports nothing of the project). Everything else that
 needs a number about the device asks `twin.device.spec`.
 """
