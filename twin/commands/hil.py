@@ -51,8 +51,8 @@ def run(args) -> int:
                            tolerance_deg=args.tolerance_deg)
     except GainsRestored as exc:
         print(exc.report.text())
-        raise UserError(f"scenario refused by the gate: {exc} (the gains of {args.gains} were sent, then the "
-                        "device's previous gains sent back; no target was sent)") from None
+        raise UserError(f"refused by the gate: {exc} (the gains of {args.gains} were sent, then the device's "
+                        "previous gains sent back; no target was sent)") from None
     except GateRefused as exc:
         print(exc.report.text())
         raise UserError(f"scenario refused by the gate: {exc} (nothing was sent)") from None

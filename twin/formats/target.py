@@ -18,8 +18,8 @@ from twin.device.kinematics import pose_matrix
 from twin.device.spec import DeviceSpec
 from twin.formats.common import hinge_angles, json_object, known_keys, number, numbers, required_keys
 
-APPROXIMATION_KEYS = ("variant", "root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm")
-OPTIONAL_KEYS = ("target", "start_mm_deg", "msd_mm", "hd_mm", "time_ms",
+APPROXIMATION_KEYS = ("root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm")
+OPTIONAL_KEYS = ("variant", "target", "start_mm_deg", "msd_mm", "hd_mm", "time_ms",
                  # vrscroll cbs adds these
                  "collision_parts", "collision_error_mean_mm", "collision_error_max_mm", "touching_flaps")
 
@@ -35,11 +35,11 @@ def read_target(path, spec: DeviceSpec) -> np.ndarray:
 
 def read_approximation(path, spec: DeviceSpec) -> dict:
     """An approximation result, checked and in SI: root_pose (4x4, m), angles (rad), widths (m),
-    time (s), variant, msd/hd (m or None), target (its name, or None)."""
+    time (s), variant (default "full"), msd/hd (m or None), target (its name, or None)."""
     path = Path(path)
     doc = json_object(path)
     known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, str(path))
-    required_keys(doc, APPROXIMATION_KEYS, f"{path} (an approximation result, vrscroll approximate --json)")
+    required_keys(doc, APPROXIMATION_KEYS, f"{path}: not an approximation result (vrscroll approximate --json)")
     angles = hinge_angles(doc["angles_deg"], spec.n_hinges, spec.hinge_limit, f"{path}: angles_deg")
     position = numbers(doc["root_position_mm"], f"{path}: root_position_mm", 3) / 1e3
     quat = numbers(doc["root_quat_wxyz"], f"{path}: root_quat_wxyz", 4)
@@ -54,7 +54,7 @@ def read_approximation(path, spec: DeviceSpec) -> dict:
     if target is not None and not isinstance(target, str):
         raise ValueError(f"{path}: target: expected a shape name or mesh path, got {target!r}")
     return {"root_pose": pose_matrix(position, Rotation.from_quat(quat, scalar_first=True).as_matrix()),
-            "angles": angles, "widths": widths, "variant": str(doc["variant"]),
+            "angles": angles, "widths": widths, "variant": str(doc.get("variant", "full")),
             "time": number(doc.get("time_ms", 0.0), f"{path}: time_ms") / 1e3, **measure, "target": target}
 
 

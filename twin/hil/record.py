@@ -42,8 +42,8 @@ def gate_scenario(spec: DeviceSpec, scenario: Scenario, gains, settle_limit: flo
 
 
 class GainsRestored(GateRefused):
-    """The gate refused the scenario after the run's gains were sent: the device's previous gains
-    were sent back, and no target was sent."""
+    """The gate refused the scenario, or the move to its start, after the run's gains were sent: the
+    device's previous gains were sent back, and no target was sent."""
 
 
 def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: int = 500,
@@ -52,8 +52,8 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     """Play a scenario on the device and the twin; write out_dir/{device,twin}.csv, gains.json, run.json.
 
     gains: optional per-hinge PidGains pushed to the device first (every hinge's checked before any
-    is sent); if the gate then refuses the scenario, the device's previous gains are restored and
-    GainsRestored is raised. tolerance_deg: the device is e-stopped if it parts from the twin by
+    is sent); if the gate then refuses the scenario or the move to its start, the device's previous
+    gains are restored and GainsRestored is raised. tolerance_deg: the device is e-stopped if it parts from the twin by
     more on its way to the scenario's start (twin.hil.mirror). Returns run.json's content. On
     KeyboardInterrupt the device is e-stopped and both traces stay readable up to that moment.
     """
@@ -61,23 +61,23 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     out.mkdir(parents=True, exist_ok=True)
     n, dt = spec.n_hinges, spec.firmware_dt
     previous = push_gains(link, gains, n) if gains is not None else None
-    gains = device_gains(link, n)
     try:
+        gains = device_gains(link, n)
         gate_scenario(spec, scenario, gains, settle_limit)
+        # the same start on both sides: move the device there (gated), then start the twin where the device
+        # is, with the device's history (twin_at_start)
+        prior = wait_for_rest(link, spec)
+        res = mirror(link, spec, scenario.start, settle_limit=settle_limit, tolerance_deg=tolerance_deg)
     except GateRefused as exc:
         if previous is None:
             raise
         restore_gains(link, previous)
         raise GainsRestored(exc.report) from None
+    if not res.ok:
+        raise RuntimeError(f"could not bring the device to the scenario's start: {res.message}")
     if scenario_path:
         shutil.copy(scenario_path, out / ("scenario" + Path(scenario_path).suffix))
     write_gains(out / "gains.json", gains, {"source": f"read from the device at {link.url}"})
-    # the same start on both sides: move the device there (gated), then start the twin where the device is,
-    # with the device's history (twin_at_start)
-    prior = wait_for_rest(link, spec)
-    res = mirror(link, spec, scenario.start, settle_limit=settle_limit, tolerance_deg=tolerance_deg)
-    if not res.ok:
-        raise RuntimeError(f"could not bring the device to the scenario's start: {res.message}")
     state = wait_for_rest(link, spec)
     meta = {"scenario": scenario.name, "start_counts": list(state.counts), "start_target_counts": list(state.targets),
             "before": {"state": P.State(prior.state).name, "counts": list(prior.counts),
