@@ -2,12 +2,18 @@
 
 import json
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
+import trimesh
 
 from twin.morphpatch.approximation import pose_from_mm_deg
+from twin.cli import main
 from twin.evaluation.cbs import CbsSimulator
+from twin.evaluation.lock import folder_lock
 from twin.evaluation.target_collision import collision_error, convex_parts
 from twin.evaluation.table1 import read_records, run_evaluation, summarize, write_tables
 from twin.morphpatch.fields import exact_signed_distance
@@ -92,8 +98,6 @@ def test_small_evaluation_keeps_the_papers_order_and_resumes(tmp_path):
 
 
 def test_a_damaged_coacd_cache_file_is_built_again_with_a_notice(tmp_path, monkeypatch, capsys):
-    import trimesh
-
     monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
     ring = trimesh.creation.annulus(0.02, 0.04, 0.02, sections=8)  # not convex: CoACD splits it
     first = convex_parts(ring)
@@ -108,13 +112,6 @@ def test_a_damaged_coacd_cache_file_is_built_again_with_a_notice(tmp_path, monke
 
 def test_a_second_evaluate_into_one_folder_is_refused(tmp_path, capsys):
     """Two runs into one folder once computed and stored every record twice."""
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    from twin.cli import main
-    from twin.evaluation.lock import folder_lock
-
     out = tmp_path / "eval"
     with folder_lock(out, "test"):
         assert main(["evaluate", "--out", str(out), "--shapes", "cube", "--starts", "2"]) == 2

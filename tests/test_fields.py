@@ -6,6 +6,7 @@ import trimesh
 
 from twin.morphpatch.fields import SPACING, build_fields, exact_signed_distance
 from twin.morphpatch.shapes import load_shape
+import twin.morphpatch.fields as module
 
 # Interpolation error of the 3 mm grid against libigl's exact distance, near the
 # surface (-10..+30 mm): benchmarks/bench_approximation.py measures mean about
@@ -112,8 +113,6 @@ def test_fields_are_cached_in_memory_and_on_disk(tmp_path, monkeypatch):
     assert build_fields(mesh, spacing=0.005, margin=0.02) is first
     files = list((tmp_path / "fields").glob("*.npz"))
     assert len(files) == 1
-    import twin.morphpatch.fields as module
-
     module._MEMORY.clear()
     again = build_fields(mesh, spacing=0.005, margin=0.02)
     assert again is not first and np.array_equal(again.sdf, first.sdf)
@@ -123,8 +122,6 @@ def test_fields_are_cached_in_memory_and_on_disk(tmp_path, monkeypatch):
 @pytest.mark.parametrize("damage", ["empty", "cut short"])
 def test_a_damaged_cache_file_is_built_again_with_a_notice(tmp_path, monkeypatch, capsys, damage):
     """Once a BadZipFile/EOFError on every later run, until the file was deleted by hand."""
-    import twin.morphpatch.fields as module
-
     monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
     module._MEMORY.clear()
     mesh = trimesh.creation.icosphere(2, 0.03)
@@ -145,8 +142,6 @@ def test_a_damaged_cache_file_is_built_again_with_a_notice(tmp_path, monkeypatch
 def test_a_long_field_build_shows_its_progress(monkeypatch, capsys):
     """A 2 M-face mesh took minutes with no sign of life; a build longer than PROGRESS_AFTER reports on stderr
     (here made 0 s, and the chunks small, so that a small build reports)."""
-    import twin.morphpatch.fields as module
-
     monkeypatch.setattr(module, "PROGRESS_AFTER", 0.0)
     monkeypatch.setattr(module, "CHUNK", 2000)
     mesh = trimesh.creation.box((0.04, 0.04, 0.04))

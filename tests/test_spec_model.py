@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 from twin.device.kinematics import flap_frames
-from twin.device.mjcf import MJCF_PATH, load_model, mjcf
+from twin.cli import main
+from twin.device.mjcf import MJCF_PATH, SCENE_PATH, load_model, mjcf, scene_mjcf
 from twin.device.spec import SPEC_PATH, load_spec, spec_sources
+from twin.sim.simulation import Twin
 
 
 def test_every_constant_has_a_source():
@@ -101,9 +103,6 @@ def test_free_root_model_loads(spec):
 
 
 def test_scene_includes_the_device_and_adds_floor_and_light(capsys):
-    from twin.cli import main
-    from twin.device.mjcf import SCENE_PATH, scene_mjcf
-
     assert SCENE_PATH.read_text() == scene_mjcf(), "run `vrscroll model --write`"
     device = mujoco.MjModel.from_xml_path(str(MJCF_PATH))
     scene = mujoco.MjModel.from_xml_path(str(SCENE_PATH))
@@ -118,8 +117,6 @@ def test_scene_includes_the_device_and_adds_floor_and_light(capsys):
 def test_a_morph_on_the_twin_raises_no_mujoco_warning(spec):
     """Random morphs across the whole hinge range (targets nobody tuned), flaps folding onto each other
     included: MuJoCo counts any warning (contact buffer, bad qacc, ...) in data.warning."""
-    from twin.sim.simulation import Twin
-
     rng = np.random.default_rng(11)
     twin = Twin(spec)
     targets = [rng.uniform(-1, 1, spec.n_hinges) * spec.hinge_limit for _ in range(4)]

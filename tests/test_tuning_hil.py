@@ -13,14 +13,24 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from controllers.encoder import target_counts
 from controllers.pid import PidGains
+from twin.cli import main as vrscroll
+from twin.device.spec import load_spec
 from twin.formats.gains import read_gains, write_gains
+from twin.formats.run import write_run_meta
 from twin.formats.scenario import read_scenario
-from twin.formats.trace import read_trace
+from twin.formats.trace import TraceWriter, read_trace
 from twin.hil.compare import compare
+from twin.hil.device_gains import device_gains
+from twin.hil.mirror import device_step, mirror
 from twin.hil.record import run_hil
-from twin.tuning.tuner import TuneGoal, step_report, tune
+from twin.link import protocol as P
 from twin.link.serial_link import Link
+from twin.sim.gate import check_move
+from twin.sim.response import step_metrics
+from twin.sim.simulation import Twin, TwinBatch, move_report
+from twin.tuning.tuner import TuneGoal, chains, step_report, tune
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -53,16 +63,12 @@ angles_deg = [25, 15, 35, 5, 20, 0]
 
 @pytest.fixture(scope="module")
 def tuned():
-    from twin.device.spec import load_spec
-
     spec = load_spec()
     goal = TuneGoal()
     return spec, goal, tune(spec, goal, population=24, generations=5, nthread=2)
 
 
 def test_tuned_gains_beat_the_spec_defaults_on_the_twin(tuned, tmp_path):
-    from twin.sim.gate import check_move
-
     spec, goal, result = tuned
     before, _ = step_report(spec, PidGains.from_spec(spec), goal)
     after, _ = step_report(spec, result.gains, goal)
@@ -84,9 +90,6 @@ def test_tuned_gains_beat_the_spec_defaults_on_the_twin(tuned, tmp_path):
 
 def test_the_two_chains_of_hinges_do_not_move_each_other(spec):
     """What lets the tuner search each chain on its own: the root flap is held."""
-    from twin.tuning.tuner import chains
-    from twin.sim.simulation import TwinBatch
-
     left, right = chains(spec)
     table = np.tile(PidGains.from_spec(spec).row(spec.firmware_dt), (2, spec.n_hinges, 1))
     table[1, right, 0] *= 3.0  # the second simulation: another kp on the right chain only
@@ -98,8 +101,6 @@ def test_the_two_chains_of_hinges_do_not_move_each_other(spec):
 
 
 def test_tune_command_writes_a_gains_file(tmp_path, capsys):
-    from twin.cli import main as vrscroll
-
     out = tmp_path / "g.json"
     assert vrscroll(["tune", "--population", "8", "--generations", "2", "--threads", "2", "--out", str(out)]) == 0
     text = capsys.readouterr().out
@@ -108,11 +109,6 @@ def test_tune_command_writes_a_gains_file(tmp_path, capsys):
 
 
 def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device(emulator, tmp_path, capsys):
-    from controllers.encoder import target_counts
-    from twin.link import protocol as P
-    from twin.cli import main as vrscroll
-    from twin.device.spec import load_spec
-
     spec = load_spec()
     emu = emulator()
     out, log = tmp_path / "g.json", tmp_path / "tune.jsonl"
@@ -137,10 +133,6 @@ def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device
 
 
 def test_tuned_gains_on_the_emulator_settle_as_the_twin_predicts(tuned, emulator, tmp_path):
-    from twin.hil.mirror import device_step
-    from twin.sim.response import step_metrics
-    from twin.sim.simulation import Twin, move_report
-
     spec, goal, result = tuned
     emu = emulator()
     targets = np.full(spec.n_hinges, goal.step)
@@ -181,15 +173,12 @@ def test_hil_interrupted_half_way_keeps_both_traces(emulator, tmp_path):
     assert len(dev["time_s"]) > 400 and dev["angle_deg"].shape[1] == 6
     meta = json.loads((out / "run.json").read_text())
     assert meta["status"] == "running" and len(meta["changes"]) >= 2
-    from twin.device.spec import load_spec
     rows = compare(load_spec(), dev, tw,
                    [c["t_s"] for c in meta["changes"]])
     assert all(r["rmse_deg"] < 2.0 for r in rows)
 
 
 def test_hil_command_writes_report(emulator, tmp_path, capsys):
-    from twin.cli import main as vrscroll
-
     emu = emulator()
     scen = tmp_path / "s.toml"
     scen.write_text(SCENARIO.format(duration=1.2, t1=0.4, t2=0.8))
@@ -205,8 +194,6 @@ def test_hil_command_writes_report(emulator, tmp_path, capsys):
 def test_gear_damping_does_not_show_in_the_motion(spec):
     """Why calibration cannot fit gear damping: the spec pins the motor by stall torque and no-load speed,
     so more gear damping means a smaller motor constant and the same total viscous loss."""
-    from twin.sim.simulation import Twin
-
     soft = PidGains.from_spec(spec).replace(kp=0.015, ki=0.05, kd=0.0003)
     traces = []
     for plant in (spec, spec.replace(gear_damping=spec.gear_damping * 1.6)):
@@ -217,10 +204,6 @@ def test_gear_damping_does_not_show_in_the_motion(spec):
 
 
 def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
-    from twin.cli import main as vrscroll
-    from twin.hil.mirror import mirror
-    from twin.device.spec import load_spec
-
     spec = load_spec()
     # known to the test, not to the calibration: the parameters the device's motion shows (gear damping does
     # not, see the test above; backlash is not in the twin's model; encoder noise and latency stay on)
@@ -258,8 +241,6 @@ angles_deg = [30, 30, 30, 30, 30, 30]
 
 
 def _device_gains(port):
-    from twin.hil.device_gains import device_gains
-
     with Link(port) as link:
         return device_gains(link, 6)
 
@@ -286,8 +267,6 @@ def _gains_file(path, spec, **hinge_changes):
      "hinge 3: kd = -0.001 is outside the bounds"),
 ])
 def test_hil_refuses_a_bad_gains_file_before_anything_is_sent(emulator, spec, tmp_path, capsys, change, message):
-    from twin.cli import main as vrscroll
-
     emu = emulator()
     before = _device_gains(emu.port)
     (tmp_path / "s.toml").write_text(ONE_STEP)
@@ -304,8 +283,6 @@ def test_hil_refuses_a_bad_gains_file_before_anything_is_sent(emulator, spec, tm
 
 def test_hil_restores_the_devices_gains_when_the_gate_refuses(emulator, spec, tmp_path, capsys):
     """Gains within the firmware's bounds too weak to reach the scenario's targets in time: the gate refuses."""
-    from twin.cli import main as vrscroll
-
     emu = emulator()
     before = _device_gains(emu.port)
     (tmp_path / "s.toml").write_text(ONE_STEP)
@@ -325,10 +302,6 @@ def test_hil_restores_the_devices_gains_when_the_gate_refuses(emulator, spec, tm
 
 def test_calibrate_refuses_a_run_that_did_not_complete(spec, tmp_path, capsys):
     """A run killed while recording keeps "running" in its run.json; calibrate once fitted it without a word."""
-    from twin.cli import main as vrscroll
-    from twin.formats.run import write_run_meta
-    from twin.formats.trace import TraceWriter
-
     run = tmp_path / "killed"
     run.mkdir()
     n = spec.n_hinges
