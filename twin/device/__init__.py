@@ -2,6 +2,6 @@
 touch surface, and the MJCF generated from the spec.
 
 The bottom layer: imports nothing from the project but this package and the spec TOML's
-reader and writer (`twin.formats.spec_toml`, which imports nothing of the project). Everything else that
-needs a number about the device asks `twin.device.spec`.
+reader and writer (`twin.formats.spec_toml`, which imports only `twin.formats.common`).
+Everything else that needs a number about the device asks `twin.device.spec`.
 """

@@ -5,8 +5,8 @@
 
 Values are converted to SI on reading (deg -> rad, rpm -> rad/s; every other unit is SI already)
 and back on writing. The writer edits a template with tomlkit, so the file keeps its comments,
-layout and every other value's source. Imports nothing from the project: twin.device.spec reads
-the spec through this module.
+layout and every other value's source. Imports only twin.formats.common from the project:
+twin.device.spec reads the spec through this module.
 """
 
 from __future__ import annotations
