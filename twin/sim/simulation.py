@@ -136,6 +136,11 @@ def _firmware_loop(m, d, substeps, sensordata, qpos, qvel, ctrl, qfrc, enc_adr, 
     return max_ticks
 
 
+def physics_substeps(spec: DeviceSpec, model: mujoco.MjModel) -> int:
+    """Physics steps per firmware tick (the duty is held between them): the one rule every runner uses."""
+    return max(1, round(spec.firmware_dt / model.opt.timestep))
+
+
 class _Hinges:
     """Addresses of each hinge's joint, dof, actuator and encoder in a compiled model."""
 
@@ -164,7 +169,7 @@ class Twin:
         self.root = root
         n = self.spec.n_hinges
         self.hinges = _Hinges(self.model, n)
-        self.substeps = max(1, round(self.spec.firmware_dt / self.model.opt.timestep))
+        self.substeps = physics_substeps(self.spec, self.model)
         self.pid = FirmwarePid(gains or PidGains.from_spec(self.spec), n, self.spec.firmware_dt)
         self._root_body = self.model.body(f"flap{self.spec.root_flap}").id
         self._target = np.zeros(n, np.int64)
@@ -261,6 +266,7 @@ class TwinBatch:
             self._models = [load_model(p) for p in specs]
             self.batch.set_models(self._models)
         self.hinges = _Hinges(model, n)
+        self.substeps = physics_substeps(self.spec, model)
         self.sensordata = self.batch.bind("sensordata")
         self.qpos = self.batch.bind("qpos")
         self.qvel = self.batch.bind("qvel")
@@ -319,7 +325,7 @@ class TwinBatch:
             out["counts"][i] = counts
             out["duty"][i] = volts / s.drive_cap
             out["current"][i] = (volts - back_emf * self.qvel[:, self.hinges.dadr]) / s.resistance
-            self.batch.step(stage=vel_stage)
+            self.batch.step(nstep=self.substeps, stage=vel_stage)
         out["wall_time"] = time.perf_counter() - start
         out["time"] = np.arange(ticks) * s.firmware_dt
         return out
