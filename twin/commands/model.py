@@ -1,24 +1,29 @@
-"""`vrscroll model`: write the device MJCF from the spec, or check the committed one is current."""
+"""`vrscroll model`: write the device MJCF and the firmware's protocol header from the spec, or check
+the committed ones are current."""
 
 from __future__ import annotations
 
 from twin.cli import UserError
 from twin.device.mjcf import MJCF_PATH, mjcf, write_mjcf
+from twin.link.firmware_header import HEADER_PATH, header, write_header
 
 
 def add_arguments(p) -> None:
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--write", action="store_true", help=f"regenerate {MJCF_PATH.name} from the spec")
-    g.add_argument("--check", action="store_true", help="fail if the committed MJCF differs from the spec")
+    g.add_argument("--write", action="store_true",
+                   help=f"regenerate {MJCF_PATH.name} and {HEADER_PATH.name} from the spec")
+    g.add_argument("--check", action="store_true", help="fail if the committed MJCF or header differs from the spec")
 
 
 def run(args) -> int:
     if args.write:
         print(f"wrote {write_mjcf()}")
+        print(f"wrote {write_header()}")
     elif args.check:
-        if MJCF_PATH.read_text() != mjcf():
-            raise UserError(f"{MJCF_PATH} is out of date with the spec; run `vrscroll model --write`")
-        print(f"{MJCF_PATH} matches the spec")
+        for path, text in ((MJCF_PATH, mjcf()), (HEADER_PATH, header())):
+            if path.read_text() != text:
+                raise UserError(f"{path} is out of date with the spec; run `vrscroll model --write`")
+            print(f"{path} matches the spec")
     else:
         print(MJCF_PATH)
         print(f"open it with: python -m mujoco.viewer --mjcf {MJCF_PATH}")

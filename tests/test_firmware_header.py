@@ -1,0 +1,30 @@
+"""The firmware's generated header agrees with the protocol table and the spec, and the core compiles
+with the sketch's warning flags."""
+
+import subprocess
+
+import pytest
+
+from controllers import core
+from twin.link.firmware_header import HEADER_PATH, header
+
+# what the ESP32-S3 build would complain about: any double, any float narrowed without a cast
+SKETCH_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion", "-Wfloat-conversion",
+                "-Wconversion", "-pedantic")
+
+
+def test_committed_header_is_generated_from_protocol_and_spec():
+    assert HEADER_PATH.read_text() == header(), "run `vrscroll model --write`"
+
+
+def test_header_changes_with_the_spec(spec):
+    text = header(spec.replace(watchdog=0.35, kp=0.07))
+    assert "#define VRS_DEVICE_WATCHDOG_MS 350" in text and "#define VRS_DEVICE_KP 0.07f" in text
+
+
+@pytest.mark.parametrize("source", core.core_sources(), ids=lambda p: p.name)
+def test_core_compiles_with_the_sketch_flags(source, tmp_path):
+    cc = core.compiler()
+    r = subprocess.run([cc, *SKETCH_FLAGS, "-fsingle-precision-constant", f"-I{core.FIRMWARE_DIR}", "-c", str(source),
+                        "-o", str(tmp_path / "x.o")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
