@@ -30,20 +30,23 @@ static int gains_valid(const vrs_gains *g)
 
 static int queue(vrs_core *c, const uint8_t *bytes, uint32_t n)
 {
-    uint32_t i;
+    uint32_t at, first;
     if (n == 0 || c->tx_len + n > VRS_TX_CAP)
         return 0;
-    for (i = 0; i < n; i++)
-        c->tx_buf[(c->tx_head + c->tx_len + i) % VRS_TX_CAP] = bytes[i];
+    at = (c->tx_head + c->tx_len) % VRS_TX_CAP;
+    first = VRS_TX_CAP - at < n ? VRS_TX_CAP - at : n;
+    memcpy(c->tx_buf + at, bytes, first);
+    memcpy(c->tx_buf, bytes + first, n - first);
     c->tx_len += n;
     return 1;
 }
 
 uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max)
 {
-    uint32_t n = c->tx_len < max ? c->tx_len : max, i;
-    for (i = 0; i < n; i++)
-        out[i] = c->tx_buf[(c->tx_head + i) % VRS_TX_CAP];
+    uint32_t n = c->tx_len < max ? c->tx_len : max;
+    uint32_t first = VRS_TX_CAP - c->tx_head < n ? VRS_TX_CAP - c->tx_head : n;
+    memcpy(out, c->tx_buf + c->tx_head, first);
+    memcpy(out + first, c->tx_buf, n - first);
     c->tx_head = (c->tx_head + n) % VRS_TX_CAP;
     c->tx_len -= n;
     return n;
