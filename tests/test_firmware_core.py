@@ -152,7 +152,7 @@ def test_watchdog_stops_the_motors_200_ms_after_the_last_valid_frame(spec):
             assert c.state == P.State.ACTIVE and np.all(duty > 0.5), t
         else:
             assert c.state == P.State.FAULT and c.faults == P.Fault.WATCHDOG, t
-            assert np.all(duty == 0) and np.all(decay == 0), t  # off, and coasting
+            assert np.all(duty == 0) and np.all(decay == 1), t  # off, braking
             break
     assert t == last_frame + 201_000
 
