@@ -1,6 +1,7 @@
 """The firmware's generated header agrees with the protocol table and the spec, and the core compiles
 with the sketch's warning flags."""
 
+import re
 import subprocess
 
 import pytest
@@ -28,3 +29,10 @@ def test_core_compiles_with_the_sketch_flags(source, tmp_path):
     r = subprocess.run([cc, *SKETCH_FLAGS, "-fsingle-precision-constant", f"-I{core.FIRMWARE_DIR}", "-c", str(source),
                         "-o", str(tmp_path / "x.o")], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
+
+
+def test_no_double_anywhere_in_the_firmware():
+    """The ESP32-S3 FPU is single precision: no double in the core or the sketch, comments aside."""
+    for path in [*core.FIRMWARE_DIR.glob("*.[ch]"), *core.FIRMWARE_DIR.glob("esp32s3/*")]:
+        code = re.sub(r"/\*.*?\*/|//[^\n]*", "", path.read_text(), flags=re.S)
+        assert not re.search(r"\bdouble\b", code), path

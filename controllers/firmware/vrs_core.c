@@ -30,20 +30,23 @@ static int gains_valid(const vrs_gains *g)
 
 static int queue(vrs_core *c, const uint8_t *bytes, uint32_t n)
 {
-    uint32_t i;
+    uint32_t at, first;
     if (n == 0 || c->tx_len + n > VRS_TX_CAP)
         return 0;
-    for (i = 0; i < n; i++)
-        c->tx_buf[(c->tx_head + c->tx_len + i) % VRS_TX_CAP] = bytes[i];
+    at = (c->tx_head + c->tx_len) % VRS_TX_CAP;
+    first = VRS_TX_CAP - at < n ? VRS_TX_CAP - at : n;
+    memcpy(c->tx_buf + at, bytes, first);
+    memcpy(c->tx_buf, bytes + first, n - first);
     c->tx_len += n;
     return 1;
 }
 
 uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max)
 {
-    uint32_t n = c->tx_len < max ? c->tx_len : max, i;
-    for (i = 0; i < n; i++)
-        out[i] = c->tx_buf[(c->tx_head + i) % VRS_TX_CAP];
+    uint32_t n = c->tx_len < max ? c->tx_len : max;
+    uint32_t first = VRS_TX_CAP - c->tx_head < n ? VRS_TX_CAP - c->tx_head : n;
+    memcpy(out, c->tx_buf + c->tx_head, first);
+    memcpy(out + first, c->tx_buf, n - first);
     c->tx_head = (c->tx_head + n) % VRS_TX_CAP;
     c->tx_len -= n;
     return n;
@@ -413,10 +416,9 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
             c->pid[k].prev = counts[k];
         }
         duty_out[k] = c->duty[k];
-        /* brake (slow decay) while driving and after ESTOP (stop where it is); coast when idle
-         * (turnable by hand) and after a fault (no current into a jammed or shorted motor) */
-        decay_out[k] = (c->state == VRS_STATE_ACTIVE || c->state == VRS_STATE_ESTOP) ? VRS_DECAY_BRAKE
-                                                                                       : VRS_DECAY_COAST;
+        /* brake (slow decay): duty proportional to voltage while driving, and after an e-stop or a
+         * fault the flaps stop and hold where they are; coast when idle, so they turn by hand */
+        decay_out[k] = c->state == VRS_STATE_IDLE ? VRS_DECAY_COAST : VRS_DECAY_BRAKE;
     }
     if (c->telemetry_every && c->ticks % c->telemetry_every == 0)
         telemetry(c);

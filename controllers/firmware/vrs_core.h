@@ -15,6 +15,10 @@
 
 #include "vrs_protocol.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 #define VRS_MAX_HINGES 8
 #define VRS_RX_CAP (VRS_MAX_PAYLOAD + VRS_MAX_PAYLOAD / 254 + 2) /* longest COBS frame kept */
 #define VRS_TX_CAP 4096u        /* queued bytes for the host; telemetry is dropped beyond this */
@@ -164,5 +168,9 @@ typedef struct {
 
 void vrs_service(vrs_core *c, const vrs_hw *hw);   /* serial in -> vrs_rx, vrs_tx -> serial out */
 void vrs_control(vrs_core *c, const vrs_hw *hw);   /* one tick through hw: read, vrs_tick, write */
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif

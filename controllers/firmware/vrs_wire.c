@@ -40,15 +40,17 @@ static uint32_t codes_size(const char *codes)
     return s;
 }
 
+/* CRC-16/CCITT-FALSE four bits at a time: CRC_NIBBLE[i] is the CRC register's update for nibble i */
+static const uint16_t CRC_NIBBLE[16] = {0x0000, 0x1021, 0x2042, 0x3063, 0x4084, 0x50A5, 0x60C6, 0x70E7,
+                                        0x8108, 0x9129, 0xA14A, 0xB16B, 0xC18C, 0xD1AD, 0xE1CE, 0xF1EF};
+
 uint16_t vrs_crc16(const uint8_t *data, uint32_t n)
 {
     uint16_t c = 0xFFFFu;
     uint32_t i;
-    int b;
     for (i = 0; i < n; i++) {
-        c ^= (uint16_t)(data[i] << 8);
-        for (b = 0; b < 8; b++)
-            c = (c & 0x8000u) ? (uint16_t)((c << 1) ^ 0x1021u) : (uint16_t)(c << 1);
+        c = (uint16_t)((c << 4) ^ CRC_NIBBLE[(c >> 12) ^ (data[i] >> 4)]);
+        c = (uint16_t)((c << 4) ^ CRC_NIBBLE[(c >> 12) ^ (data[i] & 0x0Fu)]);
     }
     return c;
 }

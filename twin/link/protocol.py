@@ -380,22 +380,27 @@ LAYOUTS = {
 }
 
 
-def _encode_body(msg) -> bytes:
+def wire_values(msg) -> tuple[list[int], int]:
+    """A message's body as integers in table order (fixed fields, then each per-hinge field's n
+    values) and its hinge count n (0 for messages without per-hinge fields)."""
     lay = LAYOUTS[msg.MSG]
     values = []
     for name, fmt in lay.fields:
         v = getattr(msg, name)
         values += dataclasses.astuple(v) if fmt == "gains" else (v if fmt[0].isdigit() else (v,))
-    body = struct.pack("<" + lay.codes, *values)
-    if lay.per_hinge:
-        arrays = [tuple(getattr(msg, name)) for name, _ in lay.per_hinge]
-        n = len(arrays[0])
-        if any(len(a) != n for a in arrays):
-            raise ValueError(f"{msg.MSG.name}: per-hinge fields of different lengths")
-        body += struct.pack(f"<B{n}{lay.hinge_codes[0]}", n, *arrays[0])
-        for (_, fmt), a in zip(lay.per_hinge[1:], arrays[1:]):
-            body += struct.pack(f"<{n}{fmt}", *a)
-    return body
+    arrays = [tuple(getattr(msg, name)) for name, _ in lay.per_hinge]
+    n = len(arrays[0]) if arrays else 0
+    if any(len(a) != n for a in arrays):
+        raise ValueError(f"{msg.MSG.name}: per-hinge fields of different lengths")
+    return [int(v) for v in values] + [int(v) for a in arrays for v in a], n
+
+
+def _encode_body(msg) -> bytes:
+    lay = LAYOUTS[msg.MSG]
+    values, n = wire_values(msg)
+    codes = "<" + lay.codes + (f"B{''.join(str(n) + c for c in lay.hinge_codes)}" if lay.per_hinge else "")
+    k = len(lay.codes)
+    return struct.pack(codes, *values[:k], *([n] if lay.per_hinge else []), *values[k:])
 
 
 def _decode_body(mid: int, body: bytes):
