@@ -15,7 +15,7 @@ from twin.link.pty_device import open_pty, serve
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    o, pl, f = EmulatorOptions(), PlantOptions(), FaultOptions()
+    pl, f = PlantOptions(), FaultOptions()
     p.add_argument("--log", help="JSON-lines log of every command received (appended)")
     p.add_argument("--port-file", help="also write the pty path to this file")
     p.add_argument("--friction-scale", type=float, default=pl.friction_scale,
@@ -29,7 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--encoder-noise", type=float, default=pl.encoder_noise,
                    help="probability per read of a count off by one (default %(default)s)")
     p.add_argument("--latency-ms", type=float, default=f.latency_ms, help="command latency, ms (default %(default)s)")
-    p.add_argument("--watchdog-ms", type=int, default=o.watchdog_ms, help="watchdog timeout, ms (default %(default)s)")
+    p.add_argument("--watchdog-ms", type=int, help="watchdog timeout, ms (default: the spec's, 0: off)")
     p.add_argument("--jam-hinge", type=int, help="this hinge jams ...")
     p.add_argument("--jam-after", type=float, default=0.0, help="... this many s after the first target (default 0)")
     p.add_argument("--drop-after", type=float, help="the link goes dead after this many s of device time")

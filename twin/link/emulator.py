@@ -1,12 +1,16 @@
-"""An emulated VRScroll device: the firmware's logic on its own plant, with injected faults.
+"""An emulated VRScroll device, software in the loop: the device's C firmware core on a MuJoCo plant.
 
 `Emulator` is one device, driven tick by tick: `receive(bytes)` as they arrive
 from the host, `step()` once per firmware tick, `take_output()` for the bytes it
-answers with. Each tick it reads the encoders, runs the firmware (watchdog, hinge
-range, stall, PID), drives its plant (twin.link.plant) and streams telemetry; the
-faults (twin.link.faults) act on its bytes and its plant. `twin.link.pty_device`
-serves it on a pseudo-terminal in real time (`vrscroll emulate`). Every command
-received is written to a JSON-lines log as it arrives.
+answers with. The firmware is the device's own C core (controllers.core): the
+host's bytes go into its parser (`vrs_rx`), every reply and telemetry frame
+comes from it (`vrs_tx`), every duty the plant gets comes from its control tick
+(`vrs_tick`: supervisor, watchdog, PID). Python keeps only the plant
+(twin.link.plant), the injected faults (twin.link.faults) and the command log;
+`twin.link.pty_device` serves it on a pseudo-terminal in real time
+(`vrscroll emulate`). The log is JSON lines, written as things happen: every
+command the firmware receives, its refusals and faults, read back from its
+bytes and state, never decided here.
 """
 
 from __future__ import annotations
@@ -18,30 +22,28 @@ import random
 
 import numpy as np
 
-from controllers.pid import PidGains, gains_table, pid_update
+from controllers import core
+from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec, load_spec
 from twin.link import protocol as P
 from twin.link.faults import FaultOptions, Faults
 from twin.link.plant import Plant, PlantOptions
 
-FIRMWARE_VERSION = (0, 1, 0)
+BACKLOG = 4096  # bytes out of the firmware but not yet taken by the host: it is not asked for more beyond this
 
 
 @dataclasses.dataclass(frozen=True)
 class EmulatorOptions:
-    """The emulated device: its plant, its faults, its firmware's settings, the random seed."""
+    """The emulated device: its plant, its faults, its watchdog (None: the spec's), the random seed."""
 
     plant: PlantOptions = PlantOptions()
     faults: FaultOptions = FaultOptions()
-    watchdog_ms: int = 200  # host quiet this long while ACTIVE -> FAULT, motors off
-    max_telemetry_hz: int = 500
-    stall_duty: float = 0.5  # |duty| at or above this with no motion ...
-    stall_ms: int = 300  # ... for this long -> FAULT STALL
+    watchdog_ms: int | None = None
     seed: int = 0
 
 
 class Emulator:
-    """The firmware, plant and injected faults of one device."""
+    """The firmware core, plant and injected faults of one device."""
 
     def __init__(self, spec: DeviceSpec | None = None, opt: EmulatorOptions | None = None,
                  log_path: str | None = None):
@@ -50,35 +52,18 @@ class Emulator:
         self.rng = random.Random(self.opt.seed)
         self.plant = Plant(s, self.opt.plant, self.rng)
         self.faults = Faults(self.opt.faults, self.rng)
-        self.n = n = s.n_hinges
         self.dt = s.firmware_dt
         self.tick = 0
+        config = core.config_from_spec(s)
+        if self.opt.watchdog_ms is not None:
+            config.watchdog_ms = self.opt.watchdog_ms
+        self.firmware = core.Core(config, [PidGains.from_spec(s)] * s.n_hinges, self.plant.counts)
         self.out = bytearray()  # bytes for the host, not yet taken
+        self._heard = P.Decoder()  # reads what the firmware is given and what it answers, for the log
+        self._said = P.Decoder()
+        self._last_rx_tick = 0
+        self._faults = 0
         self.log = open(log_path, "a", buffering=1) if log_path else None
-        # firmware state; gains as the wire would carry them
-        wire = P.Gains.from_pid(PidGains.from_spec(s))
-        self.gains = [wire] * n
-        self.gain_rows = gains_table(PidGains.from_spec(s), n, self.dt)
-        self.limit_counts = int(math.floor(s.hinge_limit / s.rad_per_count))
-        self.counts = self.plant.counts
-        self.targets = self.counts.copy()
-        self.prev = self.counts.copy()
-        self.rate = np.zeros(n)
-        self.integral = np.zeros(n)
-        self.duty = np.zeros(n)
-        # load the compiled PID now, not on the first tick that needs it (a stall of ~0.3 s)
-        pid_update(self.targets, self.counts, self.prev.copy(), self.rate.copy(), self.integral.copy(),
-                   self.gain_rows, self.dt, self.duty.copy())
-        self.state = P.State.IDLE
-        self.fault_flags = P.Fault.NONE
-        self.fault_hinge = 0xFF
-        self.last_rx_tick = 0
-        self.telemetry_every = 0  # ticks; 0 = off
-        self.telemetry_seq = 0
-        self.telemetry_dropped = 0
-        self.stall_ref = self.counts.copy()
-        self.stall_since = np.zeros(n, np.int64)
-        self.decoder = P.Decoder()
         p = self.plant.spec
         self._log("start", plant={k: getattr(p, k) for k in ("gear_friction", "gear_damping", "no_load_speed",
                                                              "rotor_inertia", "backlash")},
@@ -89,160 +74,80 @@ class Emulator:
         """Device time, s."""
         return self.tick * self.dt
 
+    @property
+    def counts(self) -> np.ndarray:
+        """Encoder counts the firmware read at the last tick."""
+        return self.plant.counts
+
     # ---- the device's edges -----------------------------------------------------------
     def receive(self, data: bytes) -> None:
         """Bytes from the host, arriving now."""
         self.faults.arrive(data, self.time)
 
-    def take_output(self, max_bytes: int = 1 << 30) -> bytes:
+    def take_output(self, max_bytes: int = BACKLOG) -> bytes:
         """Up to max_bytes of what the device has sent, oldest first."""
         out = bytes(self.out[:max_bytes])
         del self.out[:max_bytes]
         return out
 
     def step(self) -> None:
-        """One firmware tick: commands due, encoders, safety checks, PID, the plant's physics, telemetry."""
-        self._firmware_rx(self.faults.due(self.time))
-        self.counts = counts = self.plant.sense()
-        if self.state == P.State.ACTIVE:
-            self._checks(counts)
-        if self.state == P.State.ACTIVE:
-            pid_update(self.targets, counts, self.prev, self.rate, self.integral, self.gain_rows, self.dt,
-                       self.duty)
-        else:
-            self.duty[:] = 0.0
-            self.prev[:] = counts
-        self.plant.actuate(self.duty)
-        jammed = self.faults.jam(self.plant, self.state == P.State.ACTIVE, self.time)
+        """One firmware tick: the bytes due into the core, encoders, the core's tick, the plant's physics, its bytes out."""
+        now_us = (self.tick * round(self.dt * 1e6)) & 0xFFFFFFFF
+        data = self.faults.due(self.time)
+        if data:
+            self._log_rx(data)
+            self.firmware.rx(data, now_us)
+        sensed = np.clip(np.rint(self.plant.current * 1000), -32768, 32767)  # mA, the last tick's winding current
+        duty, _ = self.firmware.tick(now_us, self.plant.sense(), sensed)  # decay: see twin.link.plant
+        self._log_faults()
+        self.plant.actuate(duty)
+        jammed = self.faults.jam(self.plant, self.firmware.state == P.State.ACTIVE, self.time)
         if jammed is not None:
             self._log("jam", hinge=self.opt.faults.jam_hinge, angle_deg=math.degrees(jammed))
-        if self.telemetry_every and self.tick % self.telemetry_every == 0:
-            self._send(P.Telemetry((self.tick * 1000) & 0xFFFFFFFF, self.state, self.fault_flags, self.fault_hinge,
-                                   tuple(int(c) for c in counts), tuple(int(c) for c in self.targets),
-                                   tuple(int(round(x * P.DUTY_SCALE)) for x in self.duty),
-                                   tuple(int(max(-32768, min(32767, round(i * 1000)))) for i in self.plant.current)),
-                       self.telemetry_seq, telemetry=True)
-            self.telemetry_seq = (self.telemetry_seq + 1) & 0xFFFF
+        if len(self.out) < BACKLOG:
+            said = self.firmware.tx()
+            self._log_nacks(said)
+            self.out += self.faults.outgoing(said, self.time)
         self.tick += 1
 
     def close(self, **stats) -> None:
         """Log the run's end (with the caller's stats) and close the log."""
-        self._log("stop", ticks=self.tick, rx_bad_frames=self.decoder.bad_frames,
-                  telemetry_dropped=self.telemetry_dropped, **stats)
+        self._log("stop", ticks=self.tick, rx_bad_frames=self.firmware.rx_bad_frames,
+                  telemetry_dropped=self.firmware.telemetry_dropped, **stats)
         if self.log:
             self.log.close()
             self.log = None
 
-    # ---- the firmware ------------------------------------------------------------------
+    # ---- the log: what the firmware heard, refused and did --------------------------------
     def _log(self, event: str, **fields) -> None:
         if self.log:
             self.log.write(json.dumps({"t": round(self.time, 6), "event": event, **fields}) + "\n")
 
-    def _send(self, msg, seq: int, telemetry: bool = False) -> None:
-        if telemetry and len(self.out) > 8192:  # the UART's buffer is full: drop, as firmware would
-            self.telemetry_dropped += 1
-            return
-        self.out += self.faults.outgoing(P.encode(msg, seq), self.time)
-
-    def _fault(self, flag: P.Fault, hinge: int = 0xFF) -> None:
-        self.state = P.State.ESTOP if flag == P.Fault.ESTOP else P.State.FAULT
-        self.fault_flags |= flag
-        if self.fault_hinge == 0xFF:
-            self.fault_hinge = hinge
-        self.duty[:] = 0.0
-        self._log("fault", fault=flag.name, hinge=None if hinge == 0xFF else hinge, state=self.state.name,
-                  last_rx_t=round(self.last_rx_tick * self.dt, 6))
-
-    def _firmware_rx(self, data: bytes) -> None:
-        if not data:
-            return
-        bad = self.decoder.bad_frames
-        for seq, msg in self.decoder.feed(data):
+    def _log_rx(self, data: bytes) -> None:
+        bad = self._heard.bad_frames
+        for seq, msg in self._heard.feed(data):
+            self._last_rx_tick = self.tick
             self._log("rx", msg=msg.MSG.name, seq=seq, **_fields(msg))
-            self._handle(seq, msg)
-        if self.decoder.bad_frames != bad:
-            self._log("bad_frames", count=self.decoder.bad_frames, last_error=self.decoder.last_error)
+        if self._heard.bad_frames != bad:
+            self._log("bad_frames", count=self._heard.bad_frames, last_error=self._heard.last_error)
 
-    def _handle(self, seq: int, msg) -> None:
-        self.last_rx_tick = self.tick
-        m = msg.MSG
-        if m == P.MsgId.HEARTBEAT:
+    def _log_nacks(self, data: bytes) -> None:
+        if not self.log or not data:
             return
-        if m == P.MsgId.HELLO:
-            self._send(P.HelloReply(FIRMWARE_VERSION, P.PROTOCOL_VERSION, self.n, int(self.spec.loop_rate),
-                                    self.opt.watchdog_ms, self.opt.max_telemetry_hz), seq)
-        elif m == P.MsgId.GET_STATE:
-            self._send(P.StateMsg(FIRMWARE_VERSION, self.state, self.fault_flags, self.fault_hinge,
-                                  (self.tick * 1000) & 0xFFFFFFFF, self.decoder.bad_frames & 0xFFFFFFFF,
-                                  tuple(int(c) for c in self.counts), tuple(int(c) for c in self.targets)), seq)
-        elif m == P.MsgId.GET_GAINS:
-            if msg.hinge >= self.n:
-                return self._nack(seq, m, P.Nack.BAD_VALUE, msg.hinge)
-            self._send(P.GainsReply(msg.hinge, self.gains[msg.hinge]), seq)
-        elif m == P.MsgId.SET_TARGETS:
-            if len(msg.counts) != self.n:
-                return self._nack(seq, m, P.Nack.BAD_LENGTH, len(msg.counts))
-            if self.state in (P.State.ESTOP, P.State.FAULT):
-                return self._nack(seq, m, P.Nack.BAD_STATE, self.state)
-            for k, c in enumerate(msg.counts):
-                if abs(c) > self.limit_counts:
-                    return self._nack(seq, m, P.Nack.OUT_OF_RANGE, k)
-            self.targets[:] = msg.counts
-            if self.state == P.State.IDLE:
-                self.prev[:] = self.counts
-                self.rate[:] = 0.0
-                self.integral[:] = 0.0
-                self.stall_ref[:] = self.counts
-                self.stall_since[:] = self.tick
-                self.state = P.State.ACTIVE
-            self._ack(seq, m)
-        elif m == P.MsgId.SET_GAINS:
-            if msg.hinge != P.BROADCAST and msg.hinge >= self.n:
-                return self._nack(seq, m, P.Nack.BAD_VALUE, msg.hinge)
-            g = msg.gains
-            if g.cutoff <= 0 or min(g.kp, g.ki, g.kd, g.integral_limit, g.deadband) < 0:
-                return self._nack(seq, m, P.Nack.BAD_VALUE, msg.hinge)
-            for k in range(self.n) if msg.hinge == P.BROADCAST else (msg.hinge,):
-                self.gains[k] = g
-            self.gain_rows = gains_table([x.to_pid() for x in self.gains], self.n, self.dt)
-            self._ack(seq, m)
-        elif m == P.MsgId.ESTOP:
-            if self.state != P.State.ESTOP:
-                self._fault(P.Fault.ESTOP)
-            self._ack(seq, m)
-        elif m == P.MsgId.CLEAR_FAULT:
-            self.state, self.fault_flags, self.fault_hinge = P.State.IDLE, P.Fault.NONE, 0xFF
-            self.targets[:] = self.counts
-            self._ack(seq, m)
-        elif m == P.MsgId.SET_TELEMETRY_RATE:
-            if msg.rate_hz > self.opt.max_telemetry_hz:
-                return self._nack(seq, m, P.Nack.BAD_VALUE, 0)
-            self.telemetry_every = 0 if msg.rate_hz == 0 else max(1, round(self.spec.loop_rate / msg.rate_hz))
-            self._ack(seq, m)
-        else:  # a device -> host message sent to the device
-            self._nack(seq, m, P.Nack.UNKNOWN_MESSAGE, 0)
+        for seq, msg in self._said.feed(data):
+            if isinstance(msg, P.NackMsg):
+                self._log("nack", msg=P.MsgId(msg.acked).name, seq=seq, reason=P.Nack(msg.reason).name,
+                          detail=msg.detail)
 
-    def _ack(self, seq, m) -> None:
-        self._send(P.Ack(m, (self.tick * 1000) & 0xFFFFFFFF), seq)
-
-    def _nack(self, seq, m, reason: P.Nack, detail: int) -> None:
-        self._log("nack", msg=P.MsgId(m).name, seq=seq, reason=reason.name, detail=int(detail))
-        self._send(P.NackMsg(m, reason, int(detail) & 0xFF), seq)
-
-    def _checks(self, counts) -> None:
-        if (self.tick - self.last_rx_tick) * self.dt * 1000 > self.opt.watchdog_ms:
-            return self._fault(P.Fault.WATCHDOG)
-        for k in range(self.n):
-            if abs(counts[k]) > self.limit_counts + 8:
-                return self._fault(P.Fault.LIMIT, k)
-        moved = np.abs(counts - self.stall_ref) > 2
-        weak = np.abs(self.duty) < self.opt.stall_duty
-        reset = moved | weak
-        self.stall_ref[reset] = counts[reset]
-        self.stall_since[reset] = self.tick
-        stalled = np.flatnonzero((self.tick - self.stall_since) * self.dt * 1000 > self.opt.stall_ms)
-        if stalled.size:
-            self._fault(P.Fault.STALL, int(stalled[0]))
+    def _log_faults(self) -> None:
+        faults = self.firmware.faults
+        new = faults & ~self._faults
+        self._faults = faults
+        for flag in P.Fault:
+            if flag and new & flag:
+                hinge = self.firmware.fault_hinge
+                self._log("fault", fault=flag.name, hinge=None if hinge == 0xFF else hinge,
+                          state=P.State(self.firmware.state).name, last_rx_t=round(self._last_rx_tick * self.dt, 6))
 
 
 def _fields(msg) -> dict:

@@ -4,7 +4,9 @@ The plant is the twin's model built from a perturbed spec (`plant_spec`), plus
 backlash (as encoder hysteresis) and encoder noise. Each firmware tick is
 `sense()` (positions and sensors at the start of the tick, encoder counts) then
 `actuate(duty)` (drive voltage held for the tick's physics steps), the same
-sequence and physics steps as the twin's loop.
+sequence and physics steps as the twin's loop. The H-bridge always drives with
+slow decay (windings shorted at zero duty): the firmware's coast decay (IDLE)
+is not modelled.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import random
 import mujoco
 import numpy as np
 
+from controllers.encoder import counts_from_motor_angles
 from twin.device.mjcf import load_model
 from twin.device.spec import DeviceSpec
 from twin.sim.simulation import physics_substeps
@@ -98,7 +101,7 @@ class Plant:
         motor = self.data.sensordata[self.enc]
         half = s.backlash * s.gear_ratio / 2
         self.measured = np.clip(self.measured, motor - half, motor + half)
-        counts = np.floor(self.measured * s.counts_per_motor_rev / (2 * math.pi)).astype(np.int64)
+        counts = counts_from_motor_angles(self.measured, s.counts_per_motor_rev)
         for k in range(len(counts)):
             if self.opt.encoder_noise > 0 and self.rng.random() < self.opt.encoder_noise:
                 counts[k] += self.rng.choice((-1, 1))
