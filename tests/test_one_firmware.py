@@ -5,11 +5,12 @@ import numpy as np
 import pytest
 
 from controllers.encoder import target_counts
+from controllers.pid import PidGains
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions
 from twin.link.faults import FaultOptions
 from twin.link.plant import IDEAL
-from twin.sim.simulation import Twin, TwinBatch
+from twin.sim.simulation import TargetError, Twin, TwinBatch
 
 MOVE_DEG = [60.0, -45.0, 20.0, 30.0, 90.0, -100.0]  # every hinge moves
 AS_TWIN = EmulatorOptions(plant=IDEAL, faults=FaultOptions(latency_ms=0.0))  # the twin's plant, no latency
@@ -40,3 +41,43 @@ def test_twin_batch_and_emulator_agree_to_the_count(spec, timestep):
     for i in range(2):
         np.testing.assert_array_equal(batch["counts"][:, i], single.counts)
     np.testing.assert_array_equal(emulated, single.counts)
+
+
+def test_the_twins_firmware_faults_as_the_devices_does(spec):
+    """The twin runs the core's supervisor: motors too weak to lift the flaps stall, the core stops them
+    (STALL), and refuses the next targets until the twin is reset."""
+    weak = Twin(spec.replace(drive_cap=0.0001))
+    trace = weak.hold(1.5)
+    assert weak.firmware.state == P.State.FAULT and weak.firmware.faults & P.Fault.STALL
+    driven = np.flatnonzero(np.any(trace.duty != 0.0, axis=1))
+    assert 0.3 < driven[-1] * spec.firmware_dt < 1.4  # driven hard until the stall time passed, then stopped
+    with pytest.raises(TargetError, match="refused"):
+        weak.move_to(np.zeros(spec.n_hinges))
+    weak.reset()
+    assert weak.firmware.state == P.State.ACTIVE
+
+
+def test_twin_gains_outside_the_firmwares_bounds_are_refused_and_nothing_changes(spec):
+    twin = Twin(spec)
+    good = PidGains.from_spec(spec)
+    with pytest.raises(ValueError, match="hinge 3: the firmware refuses"):
+        twin.set_gains([good] * 3 + [good.replace(kp=2.0**31 - 1)] + [good] * 2)
+    assert twin.gains == [good] * spec.n_hinges
+    assert [twin.firmware.gains(k).kp for k in range(spec.n_hinges)] == pytest.approx([good.kp] * spec.n_hinges)
+    batch = TwinBatch(2, spec, nthread=1)
+    with pytest.raises(ValueError, match="simulation 1: hinge 0: the firmware refuses"):
+        batch.set_gains([[good] * spec.n_hinges, [good.replace(integral_limit=2.0)] * spec.n_hinges])
+    assert batch.gains == [[good] * spec.n_hinges] * 2
+
+
+def test_the_twins_pid_memory_is_the_cores(spec):
+    """twin.pid views the core's own PID memory (the HIL runs carry the integral across a reset)."""
+    start = np.radians([10.0, 0, 0, 0, 0, -10.0])
+    plain, pushed = Twin(spec), Twin(spec)
+    for twin in (plain, pushed):
+        twin.reset(start)
+        assert list(twin.pid.prev) == list(twin.counts)
+        assert np.all(twin.pid.integral == 0.0) and np.all(twin.pid.rate == 0.0)
+    pushed.pid.integral[:] = 0.2  # written into the core: the next tick's duty carries it
+    extra = pushed.hold(0.001).duty[0] - plain.hold(0.001).duty[0]
+    assert np.all((extra >= 0.2 * (1 - spec.deadband_duty) - 1e-6) & (extra <= 0.2 + 1e-6)), extra

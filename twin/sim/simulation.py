@@ -209,6 +209,7 @@ class _CoreHead(ctypes.Structure):
 def pid_memory(fw: core.Core) -> np.recarray:
     """A live view of the core's PID memory per hinge: fields prev (counts), rate (counts/s), integral (duty)."""
     mem = (core.PidState * fw.n).from_address(fw.address + _CoreHead.pid.offset)
+    mem.owner = fw  # the view keeps the core's memory alive
     return np.ctypeslib.as_array(mem).view(np.recarray)
 
 
