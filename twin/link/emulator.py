@@ -143,8 +143,10 @@ class Emulator:
         faults = self.firmware.faults
         new = faults & ~self._faults
         self._faults = faults
+        if not new:
+            return
         for flag in P.Fault:
-            if flag and new & flag:
+            if flag & new:
                 hinge = self.firmware.fault_hinge
                 self._log("fault", fault=flag.name, hinge=None if hinge == 0xFF else hinge,
                           state=P.State(self.firmware.state).name, last_rx_t=round(self._last_rx_tick * self.dt, 6))
