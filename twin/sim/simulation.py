@@ -179,13 +179,17 @@ def per_hinge(gains, n: int) -> list[PidGains]:
     return gains
 
 
-def start_core(spec: DeviceSpec, gains: list[PidGains], counts) -> core.Core:
-    """The twin's firmware core, ACTIVE and holding `counts`: the device's config with the watchdog off.
+def start_core(spec: DeviceSpec, gains: list[PidGains], counts, stall_detection: bool = False) -> core.Core:
+    """The twin's firmware core, ACTIVE and holding `counts`: the device's config with the watchdog off
+    (no host talks to the twin) and, unless asked for, stall detection off (the twin is also driven into
+    contact on purpose: the CBS baseline, the gate's runs).
 
     ValueError naming the hinge for gains outside the firmware's bounds.
     """
     cfg = core.config_from_spec(spec)
-    cfg.watchdog_ms = 0  # no host talks to the twin
+    cfg.watchdog_ms = 0
+    if not stall_detection:
+        cfg.stall_duty = math.inf  # no |duty| reaches it
     fw = core.Core(cfg, [PidGains.from_spec(spec)] * spec.n_hinges, counts)
     set_core_gains(fw, gains)
     fw.set_targets(counts, 0)
@@ -230,15 +234,17 @@ class Twin:
 
     The root flap is held by a hand: fixed in the world at `root_pose`
     (root='fixed'), or free to move (root='free'). The firmware keeps its state
-    between moves, as the device's does; `reset` restarts it.
+    between moves, as the device's does; `reset` restarts it. Its supervisor
+    checks the hinge limits, and stalls with stall_detection=True.
     """
 
     def __init__(self, spec: DeviceSpec | None = None, gains=None, root: str = "fixed",
-                 model: mujoco.MjModel | None = None):
+                 model: mujoco.MjModel | None = None, stall_detection: bool = False):
         self.spec = spec or load_spec()
         self.model = model or load_model(self.spec, root)
         self.data = mujoco.MjData(self.model)
         self.root = root
+        self.stall_detection = stall_detection
         n = self.spec.n_hinges
         self.hinges = _Hinges(self.model, n)
         self.substeps = physics_substeps(self.spec, self.model)
@@ -259,7 +265,7 @@ class Twin:
             self.data.qpos[self.hinges.qadr] = check_targets(self.spec, angles)
         mujoco.mj_forward(self.model, self.data)
         self._target[:] = self.counts
-        self.firmware = start_core(self.spec, self.gains, self._target)
+        self.firmware = start_core(self.spec, self.gains, self._target, self.stall_detection)
         self._now_us = 0
 
     def set_gains(self, gains) -> None:
