@@ -69,6 +69,8 @@ def test_twin_gains_outside_the_firmwares_bounds_are_refused_and_nothing_changes
     batch = TwinBatch(2, spec, nthread=1)
     with pytest.raises(ValueError, match="simulation 1: hinge 0: the firmware refuses"):
         batch.set_gains([[good] * spec.n_hinges, [good.replace(integral_limit=2.0)] * spec.n_hinges])
+    with pytest.raises(ValueError, match="simulation 0: hinge 0: the firmware refuses"):
+        batch.set_gains([[good.replace(kd=-1e-4)] * spec.n_hinges, [good] * spec.n_hinges])
     assert batch.gains == [[good] * spec.n_hinges] * 2
 
 

@@ -387,7 +387,7 @@ class TwinBatch:
         ValueError naming the simulation and hinge for gains outside the firmware's bounds (nothing changes then).
         """
         gains = self._per_simulation(gains)
-        scratch = start_core(self.spec, gains[0], np.zeros(self.spec.n_hinges, np.int32))
+        scratch = start_core(self.spec, self.gains[0], np.zeros(self.spec.n_hinges, np.int32))
         for i, g in enumerate(gains):
             try:
                 set_core_gains(scratch, g)
