@@ -182,6 +182,24 @@ int vrs_init(vrs_core *c, const vrs_config *cfg, const vrs_gains *gains, const i
 
 /* ---- commands ------------------------------------------------------------------------- */
 
+/* state, faults, fault_hinge: three body values, as STATE and TELEMETRY carry them */
+static void put_status(const vrs_core *c, uint32_t *v)
+{
+    v[0] = c->state;
+    v[1] = c->faults;
+    v[2] = c->fault_hinge;
+}
+
+/* counts then targets: two per-hinge arrays, as STATE and TELEMETRY carry them */
+static void put_positions(const vrs_core *c, uint32_t *v)
+{
+    uint8_t k, n = c->cfg.n_hinges;
+    for (k = 0; k < n; k++) {
+        v[k] = (uint32_t)c->counts[k];
+        v[n + k] = (uint32_t)c->targets[k];
+    }
+}
+
 static void gains_to_wire(const vrs_gains *g, uint32_t *v)
 {
     v[0] = round_to_u32(g->kp * (float)VRS_GAIN_SCALE);
@@ -229,15 +247,10 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         out[0] = c->cfg.fw_version[0];
         out[1] = c->cfg.fw_version[1];
         out[2] = c->cfg.fw_version[2];
-        out[3] = c->state;
-        out[4] = c->faults;
-        out[5] = c->fault_hinge;
+        put_status(c, out + 3);
         out[6] = c->now_us;
         out[7] = c->rx_bad_frames;
-        for (k = 0; k < nh; k++) {
-            out[8 + k] = (uint32_t)c->counts[k];
-            out[8 + nh + k] = (uint32_t)c->targets[k];
-        }
+        put_positions(c, out + 8);
         reply(c, seq, crc, VRS_MSG_STATE, out, nh);
         return;
     case VRS_MSG_SET_TARGETS:
@@ -382,12 +395,9 @@ static void telemetry(vrs_core *c)
     uint8_t k, n = c->cfg.n_hinges;
     uint32_t len;
     v[0] = c->now_us;
-    v[1] = c->state;
-    v[2] = c->faults;
-    v[3] = c->fault_hinge;
+    put_status(c, v + 1);
+    put_positions(c, v + 4);
     for (k = 0; k < n; k++) {
-        v[4 + k] = (uint32_t)c->counts[k];
-        v[4 + n + k] = (uint32_t)c->targets[k];
         v[4 + 2 * n + k] = (uint32_t)(int32_t)duty_to_wire(c->duty[k]);
         v[4 + 3 * n + k] = (uint32_t)(int32_t)c->current_ma[k];
     }
