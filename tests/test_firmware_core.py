@@ -188,6 +188,31 @@ def test_a_new_command_with_a_reused_seq_is_run(spec):
     assert tuple(c.targets) == (30,) * c.n
 
 
+def test_queries_are_answered_afresh_under_a_repeated_seq(spec):
+    """`vrscroll status` twice: each run's GET_STATE has the same seq and bytes, and must see now."""
+    c = make(spec)
+    c.tick(1_000, [3] * c.n)
+    assert ask(c, P.GetState(), 2, 1_500)[1].counts == (3,) * c.n
+    c.tick(2_000, [9] * c.n)
+    assert ask(c, P.GetState(), 2, 2_500)[1].counts == (9,) * c.n
+
+
+def test_a_new_session_runs_the_same_command_again(spec):
+    """The same SET_TARGETS under the same seq in a later session (after HELLO, or a second later)
+    is a new command: it runs and gets its own ACK."""
+    for between, gap_us in ((P.Hello(), 20_000), (P.Heartbeat(), 1_000_000)):
+        c = make(spec)
+        move = P.encode(P.SetTargets((100,) * c.n), 5)
+        c.rx(move, 1_000)
+        c.estop()
+        c.clear_fault()
+        c.rx(P.encode(between, 1), 1_000 + gap_us // 2)
+        replies(c)
+        c.rx(move, 1_000 + gap_us)
+        assert replies(c) == [(5, P.Ack(P.MsgId.SET_TARGETS, 1_000 + gap_us))]
+        assert c.state == P.State.ACTIVE
+
+
 # ---- faults -------------------------------------------------------------------------------------
 
 def test_stall_faults_a_jammed_hinge(spec):

@@ -12,22 +12,14 @@ from hypothesis import strategies as st
 
 from controllers import core
 from controllers.pid import PidGains
+from test_protocol import MESSAGES
 from twin.link import protocol as P
 
 FUZZ_DRIVER = Path(__file__).parent / "firmware" / "fuzz_driver.c"
 
-GOLDEN = [
-    P.Hello(), P.Heartbeat(), P.GetState(), P.EStop(), P.ClearFault(),
-    P.SetTargets((1, -2, 3, 2**31 - 1, -(2**31), 0)),
-    P.SetGains(P.BROADCAST, P.Gains(200000, 200000, 4000, 500, 9830, 983, 2)),
+# every message of tests/test_protocol.py, and a few more at the edges of their ranges
+GOLDEN = MESSAGES + [
     P.SetGains(3, P.Gains(-1, 2**31 - 1, -(2**31), 65535, 0, 1, 65535)),
-    P.SetTelemetryRate(500), P.GetGains(5),
-    P.Ack(P.MsgId.SET_TARGETS, 2**32 - 1), P.NackMsg(P.MsgId.SET_TARGETS, P.Nack.OUT_OF_RANGE, 3),
-    P.HelloReply((1, 2, 3), 1, 6, 1000, 200, 500),
-    P.StateMsg((0, 1, 0), P.State.ACTIVE, P.Fault.STALL | P.Fault.WATCHDOG, 2, 123456, 7, (1,) * 6, (-1,) * 6),
-    P.GainsReply(0, P.Gains(1, 2, 3, 4, 5, 6, 7)),
-    P.Telemetry(999, P.State.FAULT, P.Fault.ESTOP, 255, (1, 2, 3, 4, 5, 6), (6, 5, 4, 3, 2, 1),
-                (32767, -32767, 0, 1, -1, 100), (1600, -1600, 0, 0, 5, -5)),
     P.Telemetry(0, 0, 0, 0, (7,), (8,), (-32768,), (32767,)),
     P.SetTargets((0,) * 8),
 ]

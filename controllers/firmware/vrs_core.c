@@ -52,14 +52,27 @@ uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max)
     return n;
 }
 
-/* a reply to the command with this seq and request CRC: queued, and kept for a repeat */
-static void reply(vrs_core *c, uint16_t seq, uint16_t request_crc, uint8_t id, const uint32_t *values, uint8_t n)
+/* commands that act: their replies are kept for repeats; queries are answered afresh */
+static int acts(uint8_t id)
 {
+    return id == VRS_MSG_SET_TARGETS || id == VRS_MSG_SET_GAINS || id == VRS_MSG_ESTOP || id == VRS_MSG_CLEAR_FAULT
+           || id == VRS_MSG_SET_TELEMETRY_RATE;
+}
+
+/* queue a reply to the command (request id, seq, frame CRC); keep it if the command acts */
+static void reply(vrs_core *c, uint8_t request, uint16_t seq, uint16_t request_crc, uint8_t id,
+                  const uint32_t *values, uint8_t n)
+{
+    uint8_t frame_bytes[VRS_MAX_PAYLOAD + VRS_MAX_PAYLOAD / 254 + 2];
+    uint32_t len = vrs_encode(id, seq, values, n, frame_bytes, sizeof frame_bytes);
     vrs_reply *r = &c->replies[c->reply_next];
-    uint32_t len = vrs_encode(id, seq, values, n, r->payload, VRS_REPLY_CAP);
-    queue(c, r->payload, len);
-    r->used = len > 0;
+    queue(c, frame_bytes, len);
+    if (!acts(request) || len == 0 || len > VRS_REPLY_CAP)
+        return;
+    memcpy(r->payload, frame_bytes, len);
+    r->used = 1;
     r->seq = seq;
+    r->at_us = c->now_us;
     r->request_crc = request_crc;
     r->len = (uint16_t)len;
     c->reply_next = (uint8_t)((c->reply_next + 1) % VRS_REPLY_MEMORY);
@@ -70,7 +83,7 @@ static void ack(vrs_core *c, uint16_t seq, uint16_t crc, uint8_t acked)
     uint32_t v[2];
     v[0] = acked;
     v[1] = c->now_us;
-    reply(c, seq, crc, VRS_MSG_ACK, v, 0);
+    reply(c, acked, seq, crc, VRS_MSG_ACK, v, 0);
 }
 
 static void nack(vrs_core *c, uint16_t seq, uint16_t crc, uint8_t acked, int reason, uint32_t detail)
@@ -79,7 +92,7 @@ static void nack(vrs_core *c, uint16_t seq, uint16_t crc, uint8_t acked, int rea
     v[0] = acked;
     v[1] = (uint32_t)reason;
     v[2] = detail & 0xFFu;
-    reply(c, seq, crc, VRS_MSG_NACK, v, 0);
+    reply(c, acked, seq, crc, VRS_MSG_NACK, v, 0);
 }
 
 /* ---- supervisor ------------------------------------------------------------------------ */
@@ -182,6 +195,24 @@ int vrs_init(vrs_core *c, const vrs_config *cfg, const vrs_gains *gains, const i
 
 /* ---- commands ------------------------------------------------------------------------- */
 
+/* state, faults, fault_hinge: three body values, as STATE and TELEMETRY carry them */
+static void put_status(const vrs_core *c, uint32_t *v)
+{
+    v[0] = c->state;
+    v[1] = c->faults;
+    v[2] = c->fault_hinge;
+}
+
+/* counts then targets: two per-hinge arrays, as STATE and TELEMETRY carry them */
+static void put_positions(const vrs_core *c, uint32_t *v)
+{
+    uint8_t k, n = c->cfg.n_hinges;
+    for (k = 0; k < n; k++) {
+        v[k] = (uint32_t)c->counts[k];
+        v[n + k] = (uint32_t)c->targets[k];
+    }
+}
+
 static void gains_to_wire(const vrs_gains *g, uint32_t *v)
 {
     v[0] = round_to_u32(g->kp * (float)VRS_GAIN_SCALE);
@@ -223,22 +254,18 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         out[5] = c->cfg.loop_rate_hz;
         out[6] = c->cfg.watchdog_ms;
         out[7] = c->cfg.max_telemetry_hz;
-        reply(c, seq, crc, VRS_MSG_HELLO_REPLY, out, 0);
+        memset(c->replies, 0, sizeof c->replies);  /* a new session: its seqs start again */
+        reply(c, id, seq, crc, VRS_MSG_HELLO_REPLY, out, 0);
         return;
     case VRS_MSG_GET_STATE:
         out[0] = c->cfg.fw_version[0];
         out[1] = c->cfg.fw_version[1];
         out[2] = c->cfg.fw_version[2];
-        out[3] = c->state;
-        out[4] = c->faults;
-        out[5] = c->fault_hinge;
+        put_status(c, out + 3);
         out[6] = c->now_us;
         out[7] = c->rx_bad_frames;
-        for (k = 0; k < nh; k++) {
-            out[8 + k] = (uint32_t)c->counts[k];
-            out[8 + nh + k] = (uint32_t)c->targets[k];
-        }
-        reply(c, seq, crc, VRS_MSG_STATE, out, nh);
+        put_positions(c, out + 8);
+        reply(c, id, seq, crc, VRS_MSG_STATE, out, nh);
         return;
     case VRS_MSG_SET_TARGETS:
         if (n != nh) {
@@ -261,7 +288,7 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         }
         out[0] = v[0];
         gains_to_wire(&c->gains[v[0]], out + 1);
-        reply(c, seq, crc, VRS_MSG_GAINS, out, 0);
+        reply(c, id, seq, crc, VRS_MSG_GAINS, out, 0);
         return;
     case VRS_MSG_ESTOP:
         vrs_estop(c);
@@ -303,7 +330,8 @@ static void frame(vrs_core *c, const uint8_t *bytes, uint32_t len)
     c->last_rx_us = c->now_us;
     for (i = 0; i < VRS_REPLY_MEMORY; i++) {
         const vrs_reply *m = &c->replies[i];
-        if (m->used && m->seq == seq && m->request_crc == crc) {  /* a repeat: the original answer */
+        if (m->used && m->seq == seq && m->request_crc == crc && c->now_us - m->at_us < VRS_REPLY_KEEP_US) {
+            /* a repeat: the original answer, and nothing run again */
             queue(c, m->payload, m->len);
             return;
         }
@@ -382,12 +410,9 @@ static void telemetry(vrs_core *c)
     uint8_t k, n = c->cfg.n_hinges;
     uint32_t len;
     v[0] = c->now_us;
-    v[1] = c->state;
-    v[2] = c->faults;
-    v[3] = c->fault_hinge;
+    put_status(c, v + 1);
+    put_positions(c, v + 4);
     for (k = 0; k < n; k++) {
-        v[4 + k] = (uint32_t)c->counts[k];
-        v[4 + n + k] = (uint32_t)c->targets[k];
         v[4 + 2 * n + k] = (uint32_t)(int32_t)duty_to_wire(c->duty[k]);
         v[4 + 3 * n + k] = (uint32_t)(int32_t)c->current_ma[k];
     }

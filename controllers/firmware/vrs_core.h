@@ -23,7 +23,8 @@ extern "C" {
 #define VRS_RX_CAP (VRS_MAX_PAYLOAD + VRS_MAX_PAYLOAD / 254 + 2) /* longest COBS frame kept */
 #define VRS_TX_CAP 4096u        /* queued bytes for the host; telemetry is dropped beyond this */
 #define VRS_REPLY_MEMORY 4      /* commands whose replies are kept for repeats (same seq) */
-#define VRS_REPLY_CAP 96        /* the longest reply payload (STATE for 8 hinges: 85 bytes) */
+#define VRS_REPLY_CAP 16        /* a kept reply's frame: ACK 13 bytes, NACK 11 */
+#define VRS_REPLY_KEEP_US 1000000u /* how long: the host's retries come within 0.4 s */
 #define VRS_MAX_FIELDS 48       /* values in one message's body, per-hinge arrays spelled out */
 
 /* decay mode per hinge at zero duty (and in the PWM off-time) */
@@ -59,10 +60,12 @@ typedef struct {
     float integral;             /* duty */
 } vrs_pid;
 
-/* a reply kept so that a repeated command (same seq, same bytes) gets it again */
+/* a reply kept so that a repeated command (same seq, same bytes, within VRS_REPLY_KEEP_US) gets
+ * it again instead of running twice; kept for commands that act, forgotten at HELLO */
 typedef struct {
     uint8_t used;
     uint16_t seq;
+    uint32_t at_us;
     uint16_t request_crc;
     uint16_t len;
     uint8_t payload[VRS_REPLY_CAP];

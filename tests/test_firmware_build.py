@@ -1,5 +1,5 @@
-"""The firmware's generated header agrees with the protocol table and the spec, and the core compiles
-with the sketch's warning flags."""
+"""The firmware core's build: the generated header agrees with the protocol table and the spec, the
+core compiles with the sketch's warning flags, the host build is cached and fails clearly."""
 
 import re
 import subprocess
@@ -36,3 +36,29 @@ def test_no_double_anywhere_in_the_firmware():
     for path in [*core.FIRMWARE_DIR.glob("*.[ch]"), *core.FIRMWARE_DIR.glob("esp32s3/*")]:
         code = re.sub(r"/\*.*?\*/|//[^\n]*", "", path.read_text(), flags=re.S)
         assert not re.search(r"\bdouble\b", code), path
+
+
+def test_build_is_cached_by_sources_and_flags(tmp_path, monkeypatch):
+    monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
+    first = core.build()
+    assert first.parent == tmp_path / "firmware" and first.exists()
+    mtime = first.stat().st_mtime_ns
+    assert core.build() == first and first.stat().st_mtime_ns == mtime  # not rebuilt
+    other = core.build((*core.WARNINGS, "-O0", "-shared", "-fPIC"))
+    assert other != first and other.exists()
+    assert [p.name for p in (tmp_path / "firmware").iterdir() if not p.name.endswith(".so")] == []  # no leftovers
+
+
+def test_missing_compiler_is_named(tmp_path, monkeypatch):
+    monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", "no-such-cc")
+    with pytest.raises(core.FirmwareBuildError, match="needs a C compiler and `no-such-cc` was not found"):
+        core.build()
+
+
+def test_compiler_errors_are_reported(tmp_path, monkeypatch):
+    monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
+    bad = tmp_path / "bad.c"
+    bad.write_text("int f(void) { return; }\n")
+    with pytest.raises(core.FirmwareBuildError, match="could not build the firmware core"):
+        core.build(extra_sources=[bad])
