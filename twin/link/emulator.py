@@ -28,6 +28,7 @@ from twin.device.spec import DeviceSpec, load_spec
 from twin.link import protocol as P
 from twin.link.faults import FaultOptions, Faults
 from twin.link.plant import Plant, PlantOptions
+from twin.sim.simulation import tick_us
 
 BACKLOG = 4096  # bytes out of the firmware but not yet taken by the host: it is not asked for more beyond this
 
@@ -92,7 +93,7 @@ class Emulator:
 
     def step(self) -> None:
         """One firmware tick: the bytes due into the core, encoders, the core's tick, the plant's physics, its bytes out."""
-        now_us = (self.tick * round(self.dt * 1e6)) & 0xFFFFFFFF
+        now_us = (self.tick * tick_us(self.spec)) & 0xFFFFFFFF
         data = self.faults.due(self.time)
         if data:
             self._log_rx(data)
