@@ -85,3 +85,22 @@ def test_the_twins_pid_memory_is_the_cores(spec):
     pushed.pid.integral[:] = 0.2  # written into the core: the next tick's duty carries it
     extra = pushed.hold(0.001).duty[0] - plain.hold(0.001).duty[0]
     assert np.all((extra >= 0.2 * (1 - spec.deadband_duty) - 1e-6) & (extra <= 0.2 + 1e-6)), extra
+
+
+def test_the_emulator_answers_with_the_cores_bytes(spec):
+    """Software in the loop: a SET_TARGETS repeated with its sequence number 50 ms later gets the core's
+    original ACK (the same device time), and a device -> host message sent to it gets NACK UNKNOWN_MESSAGE."""
+    emu = Emulator(spec, AS_TWIN)
+    frame = P.encode(P.SetTargets((30, 0, 0, 0, 0, -30)), 7)
+    replies = []
+    for wait in (0, 50):
+        for _ in range(wait):
+            emu.receive(P.encode(P.Heartbeat(), 8))
+            emu.step()
+        emu.receive(frame)
+        emu.step()
+        replies.append(P.Decoder().feed(emu.take_output()))
+    assert replies[0] == replies[1] == [(7, P.Ack(P.MsgId.SET_TARGETS, 0))]
+    emu.receive(P.encode(P.Ack(P.MsgId.HELLO, 0), 9))
+    emu.step()
+    assert P.Decoder().feed(emu.take_output()) == [(9, P.NackMsg(P.MsgId.ACK, P.Nack.UNKNOWN_MESSAGE, 0))]
