@@ -165,8 +165,22 @@ def main() -> None:
         out = batch.run(targets, DURATION)
         walls.append(out["wall_time"])
     bw = statistics.median(walls)
+    # the same batch's physics alone: the recorded drive voltages replayed, no cores
+    volts = out["duty"] * batch.spec.drive_cap
+    vel = mujoco.mjtStage.mjSTAGE_VEL.value
+    phys_walls = []
+    for _ in range(max(3, args.repeats // 5)):
+        batch.reset()
+        start = time.perf_counter()
+        for i in range(len(volts)):
+            batch.ctrl[:] = volts[i]
+            batch.batch.step(nstep=batch.substeps, stage=vel)
+        phys_walls.append(time.perf_counter() - start)
+    bp = statistics.median(phys_walls)
     print(f"batch: {args.nsim} simulations x {DURATION} s on {args.threads} threads, one C core each: {bw:.3f} s "
           f"wall -> {args.nsim * DURATION / bw:.0f} simulated s per wall s (goal >= 400)")
+    print(f"  the same batch's physics alone (voltages replayed): {bp:.3f} s wall -> "
+          f"{args.nsim * DURATION / bp:.0f} simulated s per wall s; cores and records add {(bw - bp) / bp:.2f}")
     print(f"load average at end: {os.getloadavg()[0]:.2f}")
 
 
