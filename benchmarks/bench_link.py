@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from twin.link.emulator import EmulatorProcess  # noqa: E402
+from twin.link.emulator_process import EmulatorProcess  # noqa: E402
 from twin.link.serial_link import Link  # noqa: E402
 
 

@@ -1,6 +1,6 @@
 import pytest
 
-from twin.link.emulator import EmulatorProcess
+from twin.link.emulator_process import EmulatorProcess
 
 from twin.device.spec import load_spec
 

@@ -1,6 +1,6 @@
 """The serial link, the gate and the live comparison, against the device emulator on a real pty.
 
-Each test starts its own emulator process (`python -m twin.emulator`) with the
+Each test starts its own emulator process (`vrscroll emulate`) with the
 imperfections or faults it needs, and talks to it through pyserial like to a
 device on /dev/ttyACM0.
 """
@@ -13,6 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from controllers.core import FIRMWARE_VERSION
 from controllers.encoder import target_counts
 from twin.link import protocol as P
 from twin.cli import main as vrscroll
@@ -81,7 +82,7 @@ def test_cli_mirror_and_status(emulator, tmp_path, capsys):
     assert "range 130.000 deg over limit 112.500 deg (hinge 0)" in capsys.readouterr().err
     assert vrscroll(["status", "--port", emu.port]) == 0
     out = capsys.readouterr().out
-    assert "firmware 0.1.0" in out and "angles" in out and "faults" in out
+    assert f"firmware {'.'.join(map(str, FIRMWARE_VERSION))}" in out and "angles" in out and "faults" in out
 
 
 def test_device_refuses_out_of_range_targets_itself(emulator, spec):
@@ -119,7 +120,7 @@ def test_garbage_from_the_device_is_counted_and_the_link_recovers(emulator):
     with Link(emu.port, timeout=0.05, retries=8) as link:
         link.set_telemetry_rate(500)
         for _ in range(100):
-            assert link.get_state().firmware == (0, 1, 0)
+            assert link.get_state().firmware == FIRMWARE_VERSION
         time.sleep(0.3)
         frames = link.drain_telemetry()
         assert link.decoder.bad_frames > 0

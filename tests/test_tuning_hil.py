@@ -91,10 +91,10 @@ def test_tuned_gains_beat_the_spec_defaults_on_the_twin(tuned, tmp_path):
 def test_the_two_chains_of_hinges_do_not_move_each_other(spec):
     """What lets the tuner search each chain on its own: the root flap is held."""
     left, right = chains(spec)
-    table = np.tile(PidGains.from_spec(spec).row(spec.firmware_dt), (2, spec.n_hinges, 1))
-    table[1, right, 0] *= 3.0  # the second simulation: another kp on the right chain only
+    base = PidGains.from_spec(spec)
+    other = [base.replace(kp=base.kp * 3.0) if k in right else base for k in range(spec.n_hinges)]
     batch = TwinBatch(2, spec, nthread=1)
-    batch.set_gains(table)
+    batch.set_gains([[base] * spec.n_hinges, other])  # the second simulation: another kp on the right chain only
     angle = batch.run(np.full(spec.n_hinges, math.radians(30.0)), 0.4)["angle"]
     assert np.abs(angle[:, 0, left] - angle[:, 1, left]).max() < 1e-9
     assert np.abs(angle[:, 0, right] - angle[:, 1, right]).max() > 1e-3

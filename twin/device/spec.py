@@ -63,6 +63,13 @@ class DeviceSpec:
     hold_band: int  # counts
     settle_band: int  # counts
     settle_hold: float  # s
+    watchdog: float  # s, host quiet this long while ACTIVE -> FAULT
+    max_telemetry_rate: float  # Hz
+    stall_duty: float  # duty
+    stall_counts: int  # counts
+    stall_time: float  # s
+    limit_margin: int  # counts past the hinge range
+    overcurrent: float  # A; 0: current not sensed
     # simulation
     timestep: float  # s
 

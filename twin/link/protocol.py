@@ -15,6 +15,7 @@ with their users (`PidGains` <-> `Gains` here, counts <-> angles in controllers.
 
 from __future__ import annotations
 
+import binascii
 import dataclasses
 import enum
 import struct
@@ -96,26 +97,14 @@ class ProtocolError(ValueError):
 
 # ---- checksum and framing -----------------------------------------------------------
 
-def _crc_table() -> list[int]:
-    table = []
-    for b in range(256):
-        c = b << 8
-        for _ in range(8):
-            c = ((c << 1) ^ 0x1021) if c & 0x8000 else (c << 1)
-        table.append(c & 0xFFFF)
-    return table
-
-
-_CRC_TABLE = _crc_table()
-
-
 def crc16(data: bytes) -> int:
     """CRC-16/CCITT-FALSE: poly 0x1021, init 0xFFFF, no reflection, no xor-out ("123456789" -> 0x29B1)."""
-    c = 0xFFFF
-    for b in data:
-        c = ((c << 8) & 0xFFFF) ^ _CRC_TABLE[(c >> 8) ^ b]
-    return c
+    return binascii.crc_hqx(data, 0xFFFF)
 
+
+# COBS stays written out here (about 30 lines, checked against the reference vectors in
+# tests/test_protocol.py): a package would add a dependency without sparing a test, and the
+# firmware core has its own C version (vrs_wire.c), which the golden-frame tests hold to this one.
 
 def cobs_encode(data: bytes) -> bytes:
     """Consistent Overhead Byte Stuffing: the result has no 0x00 bytes."""
@@ -194,8 +183,6 @@ class Gains:
     integral_limit: int
     deadband: int
     hold_band: int
-
-    _FMT = struct.Struct("<iiiHHHH")
 
     @classmethod
     def from_pid(cls, g) -> "Gains":
@@ -329,45 +316,95 @@ class Telemetry:
     current_ma: tuple[int, ...]
 
 
-# ---- body codecs ----------------------------------------------------------------------
+# ---- the message table ----------------------------------------------------------------
+#
+# Each message's body, written once: its fixed fields in order, then (for messages that carry a
+# value per hinge) a count byte n and each per-hinge field as an array of n. A field's format is a
+# struct code (B H I h i: u8 u16 u32 i16 i32), "3B" for a tuple of three u8, or "gains" for the
+# 20-byte gains block. `encode` and `decode_frame` read this table, and
+# twin/link/firmware_header.py writes it into the C firmware's header.
 
-def _counted(fmt: str, values) -> bytes:
-    return struct.pack(f"<B{len(values)}{fmt}", len(values), *values)
+GAINS_BLOCK = (("kp", "i"), ("ki", "i"), ("kd", "i"), ("cutoff", "H"), ("integral_limit", "H"),
+               ("deadband", "H"), ("hold_band", "H"))
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """One message's body: fixed fields (name, format), then per-hinge fields after a count byte."""
+
+    cls: type
+    fields: tuple = ()
+    per_hinge: tuple = ()
+
+    @property
+    def codes(self) -> str:
+        """The struct codes of the fixed part, tuples and the gains block spelled out ("BBBBHBII")."""
+        return "".join(_codes(f) for _, f in self.fields)
+
+    @property
+    def hinge_codes(self) -> str:
+        return "".join(f for _, f in self.per_hinge)
+
+    @property
+    def fixed_size(self) -> int:
+        return struct.calcsize("<" + self.codes) + (1 if self.per_hinge else 0)
+
+    @property
+    def hinge_size(self) -> int:
+        """Body bytes per hinge (0: the message has no per-hinge part)."""
+        return struct.calcsize("<" + self.hinge_codes) if self.per_hinge else 0
+
+
+def _codes(fmt: str) -> str:
+    if fmt == "gains":
+        return "".join(f for _, f in GAINS_BLOCK)
+    return fmt[1] * int(fmt[0]) if fmt[0].isdigit() else fmt
+
+
+LAYOUTS = {
+    MsgId.HELLO: Layout(Hello),
+    MsgId.HEARTBEAT: Layout(Heartbeat),
+    MsgId.SET_TARGETS: Layout(SetTargets, per_hinge=(("counts", "i"),)),
+    MsgId.SET_GAINS: Layout(SetGains, (("hinge", "B"), ("gains", "gains"))),
+    MsgId.GET_STATE: Layout(GetState),
+    MsgId.ESTOP: Layout(EStop),
+    MsgId.CLEAR_FAULT: Layout(ClearFault),
+    MsgId.SET_TELEMETRY_RATE: Layout(SetTelemetryRate, (("rate_hz", "H"),)),
+    MsgId.GET_GAINS: Layout(GetGains, (("hinge", "B"),)),
+    MsgId.ACK: Layout(Ack, (("acked", "B"), ("time_us", "I"))),
+    MsgId.NACK: Layout(NackMsg, (("acked", "B"), ("reason", "B"), ("detail", "B"))),
+    MsgId.HELLO_REPLY: Layout(HelloReply, (("firmware", "3B"), ("protocol", "B"), ("n_hinges", "B"),
+                                           ("loop_rate_hz", "H"), ("watchdog_ms", "H"), ("max_telemetry_hz", "H"))),
+    MsgId.STATE: Layout(StateMsg, (("firmware", "3B"), ("state", "B"), ("faults", "H"), ("fault_hinge", "B"),
+                                   ("time_us", "I"), ("rx_bad_frames", "I")),
+                        (("counts", "i"), ("targets", "i"))),
+    MsgId.GAINS: Layout(GainsReply, (("hinge", "B"), ("gains", "gains"))),
+    MsgId.TELEMETRY: Layout(Telemetry, (("time_us", "I"), ("state", "B"), ("faults", "H"), ("fault_hinge", "B")),
+                            (("counts", "i"), ("targets", "i"), ("duty", "h"), ("current_ma", "h"))),
+}
+
+
+def wire_values(msg) -> tuple[list[int], int]:
+    """A message's body as integers in table order (fixed fields, then each per-hinge field's n
+    values) and its hinge count n (0 for messages without per-hinge fields)."""
+    lay = LAYOUTS[msg.MSG]
+    values = []
+    for name, fmt in lay.fields:
+        v = getattr(msg, name)
+        values += dataclasses.astuple(v) if fmt == "gains" else (v if fmt[0].isdigit() else (v,))
+    arrays = [tuple(getattr(msg, name)) for name, _ in lay.per_hinge]
+    n = len(arrays[0]) if arrays else 0
+    if any(len(a) != n for a in arrays):
+        raise ValueError(f"{msg.MSG.name}: per-hinge fields of different lengths")
+    return [int(v) for v in values] + [int(v) for a in arrays for v in a], n
 
 
 def _encode_body(msg) -> bytes:
-    m = msg.MSG
-    if m in (MsgId.HELLO, MsgId.HEARTBEAT, MsgId.GET_STATE, MsgId.ESTOP, MsgId.CLEAR_FAULT):
-        return b""
-    if m == MsgId.SET_TARGETS:
-        return _counted("i", msg.counts)
-    if m in (MsgId.SET_GAINS, MsgId.GAINS):
-        return struct.pack("<B", msg.hinge) + Gains._FMT.pack(*dataclasses.astuple(msg.gains))
-    if m == MsgId.SET_TELEMETRY_RATE:
-        return struct.pack("<H", msg.rate_hz)
-    if m == MsgId.GET_GAINS:
-        return struct.pack("<B", msg.hinge)
-    if m == MsgId.ACK:
-        return struct.pack("<BI", msg.acked, msg.time_us)
-    if m == MsgId.NACK:
-        return struct.pack("<BBB", msg.acked, msg.reason, msg.detail)
-    if m == MsgId.HELLO_REPLY:
-        return struct.pack("<BBBBBHHH", *msg.firmware, msg.protocol, msg.n_hinges, msg.loop_rate_hz,
-                           msg.watchdog_ms, msg.max_telemetry_hz)
-    if m == MsgId.STATE:
-        return (struct.pack("<BBBBHBII", *msg.firmware, msg.state, msg.faults, msg.fault_hinge, msg.time_us,
-                            msg.rx_bad_frames)
-                + _counted("i", msg.counts) + struct.pack(f"<{len(msg.targets)}i", *msg.targets))
-    if m == MsgId.TELEMETRY:
-        n = len(msg.counts)
-        return (struct.pack("<IBHBB", msg.time_us, msg.state, msg.faults, msg.fault_hinge, n)
-                + struct.pack(f"<{n}i{n}i{n}h{n}h", *msg.counts, *msg.targets, *msg.duty, *msg.current_ma))
-    raise ValueError(f"cannot encode {msg!r}")
-
-
-def _need(body: bytes, size: int, what: str) -> None:
-    if len(body) != size:
-        raise ProtocolError(f"{what}: body of {len(body)} bytes, expected {size}")
+    lay = LAYOUTS[msg.MSG]
+    values, n = wire_values(msg)
+    codes = "<" + lay.codes + (f"B{''.join(str(n) + c for c in lay.hinge_codes)}" if lay.per_hinge else "")
+    k = len(lay.codes)
+    return struct.pack(codes, *values[:k], *([n] if lay.per_hinge else []), *values[k:])
 
 
 def _decode_body(mid: int, body: bytes):
@@ -375,50 +412,27 @@ def _decode_body(mid: int, body: bytes):
         m = MsgId(mid)
     except ValueError:
         raise ProtocolError(f"unknown message id 0x{mid:02x}") from None
-    simple = {MsgId.HELLO: Hello, MsgId.HEARTBEAT: Heartbeat, MsgId.GET_STATE: GetState, MsgId.ESTOP: EStop,
-              MsgId.CLEAR_FAULT: ClearFault}
-    if m in simple:
-        _need(body, 0, m.name)
-        return simple[m]()
-    if m == MsgId.SET_TARGETS:
-        n = body[0] if body else -1
-        _need(body, 1 + 4 * n, m.name)
-        return SetTargets(struct.unpack(f"<{n}i", body[1:]))
-    if m in (MsgId.SET_GAINS, MsgId.GAINS):
-        _need(body, 1 + Gains._FMT.size, m.name)
-        g = Gains(*Gains._FMT.unpack(body[1:]))
-        return (SetGains if m == MsgId.SET_GAINS else GainsReply)(body[0], g)
-    if m == MsgId.SET_TELEMETRY_RATE:
-        _need(body, 2, m.name)
-        return SetTelemetryRate(*struct.unpack("<H", body))
-    if m == MsgId.GET_GAINS:
-        _need(body, 1, m.name)
-        return GetGains(body[0])
-    if m == MsgId.ACK:
-        _need(body, 5, m.name)
-        return Ack(*struct.unpack("<BI", body))
-    if m == MsgId.NACK:
-        _need(body, 3, m.name)
-        return NackMsg(*struct.unpack("<BBB", body))
-    if m == MsgId.HELLO_REPLY:
-        _need(body, 11, m.name)
-        v = struct.unpack("<BBBBBHHH", body)
-        return HelloReply(tuple(v[:3]), *v[3:])
-    if m == MsgId.STATE:
-        head = struct.Struct("<BBBBHBII")
-        n = body[head.size] if len(body) > head.size else -1
-        _need(body, head.size + 1 + 8 * n, m.name)
-        v = head.unpack(body[:head.size])
-        vals = struct.unpack(f"<{2 * n}i", body[head.size + 1:])
-        return StateMsg(tuple(v[:3]), *v[3:], counts=vals[:n], targets=vals[n:])
-    if m == MsgId.TELEMETRY:
-        head = struct.Struct("<IBHBB")
-        n = body[head.size - 1] if len(body) >= head.size else -1
-        _need(body, head.size + 12 * n, m.name)
-        t, state, faults, fh, _ = head.unpack(body[:head.size])
-        v = struct.unpack(f"<{n}i{n}i{n}h{n}h", body[head.size:])
-        return Telemetry(t, state, faults, fh, v[:n], v[n:2 * n], v[2 * n:3 * n], v[3 * n:])
-    raise ProtocolError(f"no decoder for {m.name}")  # pragma: no cover
+    lay = LAYOUTS[m]
+    n = 0
+    if lay.per_hinge:
+        n = body[lay.fixed_size - 1] if len(body) >= lay.fixed_size else -1
+    size = lay.fixed_size + n * lay.hinge_size
+    if n < 0 or len(body) != size:
+        raise ProtocolError(f"{m.name}: body of {len(body)} bytes, expected {size}")
+    flat = iter(struct.unpack("<" + lay.codes, body[:struct.calcsize("<" + lay.codes)]))
+    kwargs = {}
+    for name, fmt in lay.fields:
+        if fmt == "gains":
+            kwargs[name] = Gains(*(next(flat) for _ in GAINS_BLOCK))
+        elif fmt[0].isdigit():
+            kwargs[name] = tuple(next(flat) for _ in range(int(fmt[0])))
+        else:
+            kwargs[name] = next(flat)
+    pos = lay.fixed_size
+    for name, fmt in lay.per_hinge:
+        kwargs[name] = struct.unpack_from(f"<{n}{fmt}", body, pos)
+        pos += n * struct.calcsize(fmt)
+    return lay.cls(**kwargs)
 
 
 # ---- frames -------------------------------------------------------------------------

@@ -121,7 +121,7 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
     if twin is None:
         twin = Twin(spec, gains if isinstance(gains, PidGains) or gains is None else list(gains))
     else:
-        twin.pid.set_gains(PidGains.from_spec(spec) if gains is None else gains)
+        twin.set_gains(PidGains.from_spec(spec) if gains is None else gains)
     twin.reset(np.clip(start, -spec.hinge_limit, spec.hinge_limit))
     trace = twin.move_to(targets, max_time=settle_limit, stop_when_settled=True)
     settle_ticks = int(round(spec.settle_hold / spec.firmware_dt))

@@ -1,10 +1,13 @@
-"""The twin: VRScroll's MuJoCo plant with the firmware's PID in the loop at the firmware rate.
+"""The twin: VRScroll's MuJoCo plant with the device's firmware in the loop at the firmware rate.
 
-`Twin` is one simulation; its inner loop (read encoders, PID, drive voltage,
-physics step) is compiled with numba and calls MuJoCo's C API directly
-(mj_step1 / mj_step2 through ctypes), so the controller costs little beside the
-physics. `TwinBatch` runs many simulations in lockstep on MuJoCo's own `Batch`
-thread pool, with the same PID kernel vectorised over all of them.
+The firmware is the device's own C core (controllers/firmware, bound by
+controllers.core) built for this host: supervisor and PID, with the watchdog
+off (no host talks to the twin). `Twin` is one simulation; its inner loop (read
+encoders, the core's `vrs_tick`, drive voltage, physics steps) is compiled with
+numba and calls MuJoCo's C API (mj_step1 / mj_step2) and the core through
+ctypes. `TwinBatch` runs many simulations in lockstep on MuJoCo's own `Batch`
+thread pool, one core per simulation, ticked by a compiled loop over them.
+Every runner steps the same physics per tick (`physics_substeps`).
 """
 
 from __future__ import annotations
@@ -21,8 +24,9 @@ from mujoco.batch import Batch
 import numba
 import numpy as np
 
-from controllers.encoder import angle_from_counts, counts_from_angle, target_counts
-from controllers.pid import FirmwarePid, PidGains, gains_table, pid_update
+from controllers import core
+from controllers.encoder import angle_from_counts, counts_from_motor_angle, counts_from_motor_angles, target_counts
+from controllers.pid import PidGains
 from twin.device.mjcf import load_model
 from twin.device.spec import DeviceSpec, load_spec
 from twin.formats.trace import TWIN_COLUMNS, TraceWriter
@@ -86,39 +90,41 @@ class Trace:
         os.replace(tmp, path)
 
 
-# MuJoCo's C API, for the compiled loop (the bindings load this same library)
+# MuJoCo's C API and the firmware core's control tick, for the compiled loops
 _LIB = ctypes.CDLL(os.path.join(os.path.dirname(mujoco.__file__), f"libmujoco.so.{mujoco.__version__}"))
 _mj_step1, _mj_step2, _mj_step = _LIB.mj_step1, _LIB.mj_step2, _LIB.mj_step
 for _fn in (_mj_step1, _mj_step2, _mj_step):
     _fn.argtypes, _fn.restype = [ctypes.c_void_p, ctypes.c_void_p], None
+_vrs_tick = core.library().vrs_tick
 
 
-# not cacheable (it calls MuJoCo through ctypes pointers): compiled once per process, in Twin()
+# not cacheable (it calls MuJoCo and the core through ctypes pointers): compiled once per process, in Twin()
 @numba.njit(cache=False)
-def _firmware_loop(m, d, substeps, sensordata, qpos, qvel, ctrl, qfrc, enc_adr, qadr, dadr, cpr_motor, cap,
-                   back_emf, resistance, target, prev, rate, integral, gains, dt, max_ticks, settle_band,
+def _firmware_loop(m, d, substeps, fw, now_us, dt_us, sensordata, qpos, qvel, ctrl, qfrc, enc_adr, qadr, dadr,
+                   cpr_motor, cap, back_emf, resistance, target, counts, duty, decay, max_ticks, settle_band,
                    hold_ticks, stop_when_settled, rec_angle, rec_counts, rec_duty, rec_current, rec_torque):
-    """Run firmware ticks until settled (if asked) or max_ticks; returns the ticks run."""
+    """Run firmware ticks until settled (if asked) or max_ticks; returns the ticks run.
+
+    fw: the core's address; now_us: device time of the first tick (us), dt_us per tick; counts (int32),
+    duty (float32) and decay (uint8) are the core's input and output buffers.
+    """
     n = target.shape[0]
-    counts = np.zeros(n, np.int64)
-    duty = np.zeros(n)
     in_band = 0
     for i in range(max_ticks):
         _mj_step1(m, d)  # positions, velocities and sensors at the start of the tick
         settled = True
         for h in range(n):
-            counts[h] = int(math.floor(sensordata[enc_adr[h]] * cpr_motor / (2.0 * math.pi)))
+            counts[h] = counts_from_motor_angle(sensordata[enc_adr[h]], cpr_motor)
             if abs(target[h] - counts[h]) > settle_band:
                 settled = False
-        pid_update(target, counts, prev, rate, integral, gains, dt, duty)
+        _vrs_tick(fw, (now_us + i * dt_us) & 0xFFFFFFFF, counts.ctypes.data, 0, duty.ctypes.data, decay.ctypes.data)
         for h in range(n):
             v = duty[h] * cap
             ctrl[h] = v
-            w = qvel[dadr[h]]
             rec_angle[i, h] = qpos[qadr[h]]
             rec_counts[i, h] = counts[h]
             rec_duty[i, h] = duty[h]
-            rec_current[i, h] = (v - back_emf * w) / resistance
+            rec_current[i, h] = (v - back_emf * qvel[dadr[h]]) / resistance
         _mj_step2(m, d)
         for h in range(n):
             rec_torque[i, h] = qfrc[dadr[h]]
@@ -128,6 +134,81 @@ def _firmware_loop(m, d, substeps, sensordata, qpos, qvel, ctrl, qfrc, enc_adr, 
         if stop_when_settled and in_band >= hold_ticks:
             return i + 1
     return max_ticks
+
+
+@numba.njit(cache=False)
+def _batch_tick(i, cores, core_size, now_us, sensordata, qpos, qvel, ctrl, enc_adr, qadr, dadr, cpr_motor, cap,
+                back_emf, resistance, counts, duty, decay, rec_angle, rec_counts, rec_duty, rec_current):
+    """Tick i of every simulation: its encoders, its core (at cores + sim * core_size), its drive voltage."""
+    nsim, n = counts.shape
+    for s in range(nsim):
+        for h in range(n):
+            counts[s, h] = counts_from_motor_angle(sensordata[s, enc_adr[h]], cpr_motor)
+        _vrs_tick(cores + s * core_size, now_us & 0xFFFFFFFF, counts.ctypes.data + s * n * 4, 0,
+                  duty.ctypes.data + s * n * 4, decay.ctypes.data + s * n)
+        for h in range(n):
+            v = duty[s, h] * cap
+            ctrl[s, h] = v
+            rec_angle[i, s, h] = qpos[s, qadr[h]]
+            rec_counts[i, s, h] = counts[s, h]
+            rec_duty[i, s, h] = duty[s, h]
+            rec_current[i, s, h] = (v - back_emf * qvel[s, dadr[h]]) / resistance
+
+
+def physics_substeps(spec: DeviceSpec, model: mujoco.MjModel) -> int:
+    """Physics steps per firmware tick (the duty is held between them): the one rule every runner uses."""
+    return max(1, round(spec.firmware_dt / model.opt.timestep))
+
+
+def tick_us(spec: DeviceSpec) -> int:
+    """One firmware tick in device time, us."""
+    return round(spec.firmware_dt * 1e6)
+
+
+def per_hinge(gains, n: int) -> list[PidGains]:
+    """n PidGains from one (for every hinge) or a sequence of n."""
+    gains = [gains] * n if isinstance(gains, PidGains) else list(gains)
+    if len(gains) != n:
+        raise ValueError(f"expected gains for {n} hinges, got {len(gains)}")
+    return gains
+
+
+def start_core(spec: DeviceSpec, gains: list[PidGains], counts, stall_detection: bool = False) -> core.Core:
+    """The twin's firmware core, ACTIVE and holding `counts`: the device's config with the watchdog off
+    (no host talks to the twin) and, unless asked for, stall detection off (the twin is also driven into
+    contact on purpose: the CBS baseline, the gate's runs).
+
+    ValueError naming the hinge for gains outside the firmware's bounds.
+    """
+    cfg = core.config_from_spec(spec)
+    cfg.watchdog_ms = 0
+    if not stall_detection:
+        cfg.stall_duty = math.inf  # no |duty| reaches it
+    fw = core.Core(cfg, [PidGains.from_spec(spec)] * spec.n_hinges, counts)
+    set_core_gains(fw, gains)
+    fw.set_targets(counts, 0)
+    return fw
+
+
+def set_core_gains(fw: core.Core, gains: list[PidGains]) -> None:
+    """Each hinge's gains into the core, as SET_GAINS would; ValueError naming the first hinge it refuses."""
+    for k, g in enumerate(gains):
+        if fw.set_gains(k, g):
+            raise ValueError(f"hinge {k}: the firmware refuses gains outside its bounds (docs/protocol.md): {g}")
+
+
+class _CoreHead(ctypes.Structure):
+    """vrs_core's leading fields (vrs_core.h) up to its PID memory: where that memory lies in the struct."""
+
+    _fields_ = [("cfg", core.Config), ("dt", ctypes.c_float), ("gains", core.Gains * core.MAX_HINGES),
+                ("alpha", ctypes.c_float * core.MAX_HINGES), ("pid", core.PidState * core.MAX_HINGES)]
+
+
+def pid_memory(fw: core.Core) -> np.recarray:
+    """A live view of the core's PID memory per hinge: fields prev (counts), rate (counts/s), integral (duty)."""
+    mem = (core.PidState * fw.n).from_address(fw.address + _CoreHead.pid.offset)
+    mem.owner = fw  # the view keeps the core's memory alive
+    return np.ctypeslib.as_array(mem).view(np.recarray)
 
 
 class _Hinges:
@@ -147,33 +228,54 @@ class Twin:
 
     The root flap is held by a hand: fixed in the world at `root_pose`
     (root='fixed'), or free to move (root='free'). The firmware keeps its state
-    between moves, as the device's does.
+    between moves, as the device's does; `reset` restarts it. Its supervisor
+    checks the hinge limits, and stalls with stall_detection=True.
     """
 
     def __init__(self, spec: DeviceSpec | None = None, gains=None, root: str = "fixed",
-                 model: mujoco.MjModel | None = None):
+                 model: mujoco.MjModel | None = None, stall_detection: bool = False):
         self.spec = spec or load_spec()
         self.model = model or load_model(self.spec, root)
         self.data = mujoco.MjData(self.model)
         self.root = root
+        self.stall_detection = stall_detection
         n = self.spec.n_hinges
         self.hinges = _Hinges(self.model, n)
-        self.substeps = max(1, round(self.spec.firmware_dt / self.model.opt.timestep))
-        self.pid = FirmwarePid(gains or PidGains.from_spec(self.spec), n, self.spec.firmware_dt)
+        self.substeps = physics_substeps(self.spec, self.model)
+        self.gains = per_hinge(gains or PidGains.from_spec(self.spec), n)
         self._root_body = self.model.body(f"flap{self.spec.root_flap}").id
-        self._target = np.zeros(n, np.int64)
+        self._target = np.zeros(n, np.int32)
+        self._counts = np.zeros(n, np.int32)  # the core's input and output buffers
+        self._duty = np.zeros(n, np.float32)
+        self._decay = np.zeros(n, np.uint8)
         self.reset()
         self._run(np.zeros(n), 0.0, False)  # compile the loop now, so moves time only the simulation
 
     # ---- state ---------------------------------------------------------------
     def reset(self, angles=None) -> None:
-        """Back to the `flat` keyframe (or given hinge angles, rad), firmware state cleared."""
+        """Back to the `flat` keyframe (or given hinge angles, rad); the firmware restarted, holding there."""
         mujoco.mj_resetDataKeyframe(self.model, self.data, self.model.key("flat").id)
         if angles is not None:
             self.data.qpos[self.hinges.qadr] = check_targets(self.spec, angles)
         mujoco.mj_forward(self.model, self.data)
-        self.pid.reset(self.counts)
         self._target[:] = self.counts
+        self.firmware = start_core(self.spec, self.gains, self._target, self.stall_detection)
+        self._now_us = 0
+
+    def set_gains(self, gains) -> None:
+        """New firmware gains (one PidGains, or one per hinge), as SET_GAINS would; the PID memory is kept.
+
+        ValueError naming the hinge for gains outside the firmware's bounds (nothing changes then).
+        """
+        gains = per_hinge(gains, self.spec.n_hinges)
+        start_core(self.spec, gains, self._target)  # a scratch core: refused before anything changes
+        set_core_gains(self.firmware, gains)
+        self.gains = gains
+
+    @property
+    def pid(self) -> np.recarray:
+        """The firmware's PID memory per hinge (live): prev (counts), rate (counts/s), integral (duty)."""
+        return pid_memory(self.firmware)
 
     def set_root_pose(self, position, quat=(1.0, 0.0, 0.0, 0.0)) -> None:
         """Place the root flap's anchor at position (m) with orientation quat (w, x, y, z)."""
@@ -191,7 +293,7 @@ class Twin:
     @property
     def counts(self) -> np.ndarray:
         """Encoder counts, as the firmware reads them."""
-        return counts_from_angle(self.spec, self.data.sensordata[self.hinges.enc] / self.spec.gear_ratio)
+        return counts_from_motor_angles(self.data.sensordata[self.hinges.enc], self.spec.counts_per_motor_rev)
 
     @property
     def time(self) -> float:
@@ -201,10 +303,17 @@ class Twin:
     def move_to(self, targets, max_time: float = 3.0, stop_when_settled: bool = True) -> Trace:
         """Command hinge targets (rad) and run the firmware until all settle or max_time (s) passes.
 
-        Raises TargetError, before anything moves, for a target outside the hinge range.
+        Raises TargetError, before anything moves, for a target outside the hinge range or one the
+        firmware refuses (it is in FAULT or ESTOP: its state says why).
         """
         targets = check_targets(self.spec, targets)
-        self._target[:] = target_counts(self.spec, targets)
+        counts = target_counts(self.spec, targets)
+        refused = self.firmware.set_targets(counts, self._now_us)
+        if refused:
+            raise TargetError(f"the firmware refused the targets (NACK reason {refused}); its state "
+                              f"{self.firmware.state}, faults {self.firmware.faults:#x}, hinge "
+                              f"{self.firmware.fault_hinge}")
+        self._target[:] = counts
         return self._run(targets, max_time, stop_when_settled)
 
     def hold(self, duration: float) -> Trace:
@@ -219,27 +328,27 @@ class Twin:
         t0 = d.time
         start = time.perf_counter()
         done = _firmware_loop(
-            m._address, d._address, self.substeps, d.sensordata, d.qpos, d.qvel, d.ctrl, d.qfrc_actuator,
-            h.enc, h.qadr, h.dadr, float(s.counts_per_motor_rev), s.drive_cap,
-            s.motor_constant * s.gear_ratio, s.resistance, self._target, self.pid.prev, self.pid.rate,
-            self.pid.integral, self.pid.gains, s.firmware_dt, ticks, s.settle_band,
-            int(round(s.settle_hold / s.firmware_dt)), stop_when_settled, *rec)
+            m._address, d._address, self.substeps, self.firmware.address, self._now_us, tick_us(s), d.sensordata,
+            d.qpos, d.qvel, d.ctrl, d.qfrc_actuator, h.enc, h.qadr, h.dadr, float(s.counts_per_motor_rev),
+            s.drive_cap, s.motor_constant * s.gear_ratio, s.resistance, self._target, self._counts, self._duty,
+            self._decay, ticks, s.settle_band, int(round(s.settle_hold / s.firmware_dt)), stop_when_settled, *rec)
         wall = time.perf_counter() - start
+        self._now_us = (self._now_us + done * tick_us(s)) & 0xFFFFFFFF
         angle, counts, duty, current, torque = (r[:done] for r in rec)
         return Trace(
             time=t0 + np.arange(done) * s.firmware_dt,
             target=np.tile(targets, (done, 1)),
-            target_counts=np.tile(self._target, (done, 1)),
+            target_counts=np.tile(self._target, (done, 1)).astype(np.int64),
             angle=angle, counts=counts, duty=duty, current=current, torque=torque, wall_time=wall,
         )
 
 
 class TwinBatch:
-    """nsim twins in lockstep on MuJoCo's `Batch` thread pool, the firmware PID vectorised over all.
+    """nsim twins in lockstep on MuJoCo's `Batch` thread pool, one firmware core per simulation.
 
     specs: one plant spec per simulation (e.g. perturbed friction or motor
     constant for robust tuning); they must share the device's layout. gains: one
-    PidGains for all, or a (nsim, n_hinges, 7) table of kernel rows.
+    PidGains for all, or per simulation a sequence of one PidGains per hinge.
     """
 
     def __init__(self, nsim: int, spec: DeviceSpec | None = None, gains=None, specs=None, nthread: int = 0):
@@ -255,68 +364,98 @@ class TwinBatch:
             self._models = [load_model(p) for p in specs]
             self.batch.set_models(self._models)
         self.hinges = _Hinges(model, n)
+        self.substeps = physics_substeps(self.spec, model)
         self.sensordata = self.batch.bind("sensordata")
         self.qpos = self.batch.bind("qpos")
         self.qvel = self.batch.bind("qvel")
         self.ctrl = self.batch.bind("ctrl")
-        self.qfrc = self.batch.bind("qfrc_actuator")
-        self.set_gains(gains or PidGains.from_spec(self.spec))
+        self._counts = np.zeros((nsim, n), np.int32)  # the cores' input and output buffers
+        self._duty = np.zeros((nsim, n), np.float32)
+        self._decay = np.zeros((nsim, n), np.uint8)
+        self.gains = self._per_simulation(gains or PidGains.from_spec(self.spec))
         self.reset()
 
     def set_gains(self, gains) -> None:
-        n = self.spec.n_hinges
+        """One PidGains for every simulation and hinge, or per simulation a sequence of n, as SET_GAINS would.
+
+        ValueError naming the simulation and hinge for gains outside the firmware's bounds (nothing changes then).
+        """
+        gains = self._per_simulation(gains)
+        scratch = start_core(self.spec, self.gains[0], np.zeros(self.spec.n_hinges, np.int32))
+        for i, g in enumerate(gains):
+            try:
+                set_core_gains(scratch, g)
+            except ValueError as exc:
+                raise ValueError(f"simulation {i}: {exc}") from None
+        lib, base, size = core.library(), self._cores.ctypes.data, self._cores.shape[1]
+        for i, g in enumerate(gains):
+            table = core.gains_struct(g)  # held until the calls return
+            for k in range(len(g)):
+                lib.vrs_set_gains(base + i * size, k, ctypes.addressof(table[k]))
+        self.gains = gains
+
+    def _per_simulation(self, gains) -> list[list[PidGains]]:
         if isinstance(gains, PidGains):
-            self.gains = np.tile(gains_table(gains, n, self.spec.firmware_dt), (self.nsim, 1))
-        else:
-            self.gains = np.ascontiguousarray(np.reshape(gains, (self.nsim * n, 7)), dtype=float)
+            gains = [gains] * self.nsim
+        if len(gains) != self.nsim:
+            raise ValueError(f"expected gains for {self.nsim} simulations, got {len(gains)}")
+        return [per_hinge(g, self.spec.n_hinges) for g in gains]
 
     def reset(self, angles=None) -> None:
-        """All simulations back to flat (or to angles, rad, shape (nsim, n_hinges))."""
+        """All simulations back to flat (or to angles, rad, shape (nsim, n_hinges)); their firmware restarted."""
         self.batch.reset(keyframe=0, stage=mujoco.mjtStage.mjSTAGE_NONE.value)
         if angles is not None:
             self.qpos[:, self.hinges.qadr] = angles
         self.batch.forward()
-        counts = self._counts().ravel()
-        self.prev = counts.copy()
-        self.rate = np.zeros(counts.shape)
-        self.integral = np.zeros(counts.shape)
+        counts = self._counts_now()
+        size = core.library().vrs_core_size()
+        self._cores = np.zeros((self.nsim, size), np.uint8)  # one vrs_core per simulation, contiguous
+        for i in range(self.nsim):
+            self._cores[i] = _core_bytes(start_core(self.spec, self.gains[i], counts[i]))
+        self._now_us = 0
 
-    def _counts(self) -> np.ndarray:
-        motor = self.sensordata[:, self.hinges.enc]
-        return np.floor(motor * self.spec.counts_per_motor_rev / (2 * np.pi)).astype(np.int64)
+    def _counts_now(self) -> np.ndarray:
+        return counts_from_motor_angles(self.sensordata[:, self.hinges.enc], self.spec.counts_per_motor_rev)
 
     def run(self, targets, duration: float) -> dict:
         """Run every simulation to its targets (rad, (nsim, n_hinges)) for `duration` s.
 
         Returns arrays (ticks, nsim, n_hinges): 'angle' (rad), 'counts', 'duty',
-        'current' (A); 'time' (s), 'wall_time' (s).
+        'current' (A); 'time' (s), 'wall_time' (s). TargetError if a firmware refuses its targets.
         """
         s = self.spec
         n = s.n_hinges
         targets = np.broadcast_to(np.asarray(targets, float), (self.nsim, n))
         for row in targets:
             check_targets(s, row)
-        tgt = target_counts(s, targets).ravel()
+        tgt = target_counts(s, targets).astype(np.int32)
+        lib, base, size = core.library(), self._cores.ctypes.data, self._cores.shape[1]
+        for i in range(self.nsim):
+            refused = lib.vrs_set_targets(base + i * size, tgt[i].ctypes.data, self._now_us)
+            if refused:
+                raise TargetError(f"simulation {i}: the firmware refused the targets (NACK reason {refused})")
         ticks = int(round(duration / s.firmware_dt))
         out = {k: np.zeros((ticks, self.nsim, n)) for k in ("angle", "duty", "current")}
         out["counts"] = np.zeros((ticks, self.nsim, n), np.int64)
-        duty = np.zeros(self.nsim * n)
         back_emf = s.motor_constant * s.gear_ratio
         vel_stage = mujoco.mjtStage.mjSTAGE_VEL.value
+        dt_us = tick_us(s)
         start = time.perf_counter()
         for i in range(ticks):
-            counts = self._counts()
-            pid_update(tgt, counts.ravel(), self.prev, self.rate, self.integral, self.gains, s.firmware_dt, duty)
-            volts = duty.reshape(self.nsim, n) * s.drive_cap
-            self.ctrl[:] = volts
-            out["angle"][i] = self.qpos[:, self.hinges.qadr]
-            out["counts"][i] = counts
-            out["duty"][i] = volts / s.drive_cap
-            out["current"][i] = (volts - back_emf * self.qvel[:, self.hinges.dadr]) / s.resistance
-            self.batch.step(stage=vel_stage)
+            _batch_tick(i, base, size, self._now_us, self.sensordata, self.qpos, self.qvel, self.ctrl,
+                        self.hinges.enc, self.hinges.qadr, self.hinges.dadr, float(s.counts_per_motor_rev),
+                        s.drive_cap, back_emf, s.resistance, self._counts, self._duty, self._decay,
+                        out["angle"], out["counts"], out["duty"], out["current"])
+            self.batch.step(nstep=self.substeps, stage=vel_stage)
+            self._now_us = (self._now_us + dt_us) & 0xFFFFFFFF
         out["wall_time"] = time.perf_counter() - start
         out["time"] = np.arange(ticks) * s.firmware_dt
         return out
+
+
+def _core_bytes(fw: core.Core) -> np.ndarray:
+    """A copy of a core's state (a vrs_core holds no pointers: its copy is a core)."""
+    return np.ctypeslib.as_array((ctypes.c_uint8 * core.library().vrs_core_size()).from_address(fw.address)).copy()
 
 
 def hinge_metrics(spec: DeviceSpec, time_s, target_counts: float, counts, target: float, angle):

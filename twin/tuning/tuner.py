@@ -134,9 +134,10 @@ class RobustEvaluator:
         """kp, ki, kd: (population, n_hinges). Returns the worst-plant cost and scores, each (population, n)."""
         s, g = self.spec, self.goal
         P, n = kp.shape
-        table = np.tile(PidGains.from_spec(s).row(s.firmware_dt), (P, n, 1))
-        table[..., 0], table[..., 1], table[..., 2] = kp, ki, kd
-        self.batch.set_gains(np.repeat(table, self.nplant, axis=0))  # (P * nplant, n, 7)
+        base = PidGains.from_spec(s)
+        candidates = [[base.replace(kp=float(kp[c, h]), ki=float(ki[c, h]), kd=float(kd[c, h])) for h in range(n)]
+                      for c in range(P)]
+        self.batch.set_gains([g for g in candidates for _ in range(self.nplant)])
         self.batch.reset()
         target = np.full(n, g.step)
         out = self.batch.run(np.tile(target, (P * self.nplant, 1)), g.duration)

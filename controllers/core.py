@@ -1,0 +1,268 @@
+"""The firmware core (controllers/firmware, C99) built for this host and bound with ctypes.
+
+The twin, the batch twin and the emulator run the device's own C code: `library()` compiles
+the core's sources with the system C compiler on first use (`cc -std=c99 -Wall -Wextra -Werror
+-O2 -shared -fPIC`), caches the shared library under `$VRSCROLL_CACHE/firmware` (default
+~/.cache/vrscroll/firmware) keyed by a hash of the sources, flags and compiler, and loads it with
+argtypes set (pointers as `c_void_p`, so numba's nopython code can call `vrs_tick` with integer
+addresses). `Core` holds one core's state in a numpy byte buffer. Units at this edge: counts,
+microseconds of device time, duty in [-1, 1], mA; gains as `controllers.pid.PidGains` (SI).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import math
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from controllers.pid import PidGains
+from twin.device.spec import DeviceSpec
+
+FIRMWARE_DIR = Path(__file__).resolve().parent / "firmware"
+FIRMWARE_VERSION = (0, 2, 0)  # major, minor, patch: reported in HELLO_REPLY and STATE
+WARNINGS = ("-std=c99", "-Wall", "-Wextra", "-Werror")
+LIBRARY_FLAGS = (*WARNINGS, "-O2", "-shared", "-fPIC")
+MAX_HINGES = 8  # VRS_MAX_HINGES in vrs_core.h
+TX_CHUNK = 4096  # VRS_TX_CAP: everything queued fits in one read
+
+
+class FirmwareBuildError(RuntimeError):
+    """The C core could not be compiled (no compiler, or it refused the sources)."""
+
+
+class Config(ctypes.Structure):
+    """vrs_config (vrs_core.h): the device's fixed figures."""
+
+    _fields_ = [("n_hinges", ctypes.c_uint8), ("loop_rate_hz", ctypes.c_uint16), ("watchdog_ms", ctypes.c_uint16),
+                ("max_telemetry_hz", ctypes.c_uint16), ("limit_counts", ctypes.c_int32),
+                ("limit_margin_counts", ctypes.c_int32), ("stall_duty", ctypes.c_float),
+                ("stall_counts", ctypes.c_int32), ("stall_ms", ctypes.c_uint16), ("overcurrent_ma", ctypes.c_int16),
+                ("fw_version", ctypes.c_uint8 * 3)]
+
+
+class Gains(ctypes.Structure):
+    """vrs_gains (vrs_core.h): one hinge's PID gains in SI, as float."""
+
+    _fields_ = [("kp", ctypes.c_float), ("ki", ctypes.c_float), ("kd", ctypes.c_float), ("cutoff_hz", ctypes.c_float),
+                ("integral_limit", ctypes.c_float), ("deadband", ctypes.c_float), ("hold_band", ctypes.c_uint16)]
+
+
+class PidState(ctypes.Structure):
+    """vrs_pid (vrs_core.h): one hinge's PID memory."""
+
+    _fields_ = [("prev", ctypes.c_int32), ("rate", ctypes.c_float), ("integral", ctypes.c_float)]
+
+
+def config_from_spec(spec: DeviceSpec) -> Config:
+    """The core's config for a device spec (the twin sets watchdog_ms = 0 on the result)."""
+    return Config(n_hinges=spec.n_hinges, loop_rate_hz=round(spec.loop_rate), watchdog_ms=round(spec.watchdog * 1000),
+                  max_telemetry_hz=round(spec.max_telemetry_rate),
+                  limit_counts=math.floor(spec.hinge_limit / spec.rad_per_count),
+                  limit_margin_counts=spec.limit_margin, stall_duty=spec.stall_duty, stall_counts=spec.stall_counts,
+                  stall_ms=round(spec.stall_time * 1000), overcurrent_ma=round(spec.overcurrent * 1000),
+                  fw_version=(ctypes.c_uint8 * 3)(*FIRMWARE_VERSION))
+
+
+def gains_struct(gains) -> ctypes.Array:
+    """An array of vrs_gains from a sequence of PidGains."""
+    return (Gains * len(gains))(*(Gains(g.kp, g.ki, g.kd, g.derivative_cutoff, g.integral_limit, g.deadband_duty,
+                                        g.hold_band) for g in gains))
+
+
+def pid_gains(g: Gains) -> PidGains:
+    """The PidGains a vrs_gains holds (float32 values widened)."""
+    return PidGains(g.kp, g.ki, g.kd, g.cutoff_hz, g.integral_limit, g.deadband, g.hold_band)
+
+
+# ---- building ---------------------------------------------------------------------------
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("VRSCROLL_CACHE", "~/.cache/vrscroll")).expanduser() / "firmware"
+
+
+def compiler() -> str:
+    """The C compiler: $CC, else cc; FirmwareBuildError naming it where it is missing."""
+    name = os.environ.get("CC", "cc")
+    path = shutil.which(name)
+    if path is None:
+        raise FirmwareBuildError(f"the firmware core needs a C compiler and `{name}` was not found on PATH: "
+                                 "install one (Debian/Ubuntu: apt install gcc) or set CC")
+    return path
+
+
+def core_sources() -> list[Path]:
+    return sorted(FIRMWARE_DIR.glob("*.c"))
+
+
+def build(flags=LIBRARY_FLAGS, extra_sources=(), name: str = "vrs_core", suffix: str = ".so") -> Path:
+    """Compile the core (and extra_sources) with flags into the cache; the cached file if present."""
+    cc = compiler()
+    sources = [*core_sources(), *map(Path, extra_sources)]
+    h = hashlib.sha256()
+    for part in (cc, *flags):
+        h.update(part.encode() + b"\0")
+    for p in [*sorted(FIRMWARE_DIR.glob("*.h")), *sources]:
+        h.update(p.name.encode() + b"\0" + p.read_bytes() + b"\0")
+    out = cache_dir() / f"{name}-{h.hexdigest()[:16]}{suffix}"
+    if out.exists():
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=out.name, dir=out.parent)
+    os.close(fd)
+    try:
+        r = subprocess.run([cc, *flags, f"-I{FIRMWARE_DIR}", "-o", tmp, *map(str, sources)],
+                           capture_output=True, text=True)
+        if r.returncode != 0:
+            raise FirmwareBuildError(f"{cc} could not build the firmware core:\n{r.stderr.strip()}")
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
+
+
+_VP, _U8, _U16, _U32, _I32, _F = (ctypes.c_void_p, ctypes.c_uint8, ctypes.c_uint16, ctypes.c_uint32, ctypes.c_int32,
+                                  ctypes.c_float)
+_SIGNATURES = {  # name: (argtypes, restype), as vrs_core.h declares them
+    "vrs_core_size": ([], ctypes.c_size_t),
+    "vrs_init": ([_VP, _VP, _VP, _VP], ctypes.c_int),
+    "vrs_rx": ([_VP, _VP, _U32, _U32], None),
+    "vrs_tx": ([_VP, _VP, _U32], _U32),
+    "vrs_tick": ([_VP, _U32, _VP, _VP, _VP, _VP], None),
+    "vrs_set_targets": ([_VP, _VP, _U32], ctypes.c_int),
+    "vrs_set_gains": ([_VP, _U8, _VP], ctypes.c_int),
+    "vrs_set_telemetry_rate": ([_VP, _U16], ctypes.c_int),
+    "vrs_estop": ([_VP], None),
+    "vrs_clear_fault": ([_VP], None),
+    "vrs_get_state": ([_VP], _U8),
+    "vrs_get_faults": ([_VP], _U16),
+    "vrs_get_fault_hinge": ([_VP], _U8),
+    "vrs_get_targets": ([_VP, _VP], None),
+    "vrs_get_gains": ([_VP, _U8, _VP], ctypes.c_int),
+    "vrs_get_rx_bad_frames": ([_VP], _U32),
+    "vrs_get_telemetry_dropped": ([_VP], _U32),
+    "vrs_get_battery_mv": ([_VP], _U16),
+    "vrs_pid_update": ([_VP, _VP, _F, _F, _I32, _I32], _F),
+    "vrs_pid_alpha": ([_F, _F], _F),
+    "vrs_crc16": ([_VP, _U32], _U16),
+    "vrs_encode": ([_U8, _U16, _VP, _U8, _VP, _U32], _U32),
+    "vrs_decode": ([_VP, _U32, _VP, _VP, _VP, _VP], ctypes.c_int),
+}
+
+_LIBRARY = None
+
+
+def library() -> ctypes.CDLL:
+    """The core built for this host (compiled on first use), with argtypes and restypes set."""
+    global _LIBRARY
+    if _LIBRARY is None:
+        lib = ctypes.CDLL(str(build()))
+        for fn, (args, res) in _SIGNATURES.items():
+            f = getattr(lib, fn)
+            f.argtypes, f.restype = args, res
+        _LIBRARY = lib
+    return _LIBRARY
+
+
+class Core:
+    """One firmware core: config, gains (PidGains per hinge) and the counts it starts at."""
+
+    def __init__(self, config: Config, gains, counts):
+        self.lib = lib = library()
+        self.n = config.n_hinges
+        if len(gains) != self.n:
+            raise ValueError(f"expected gains for {self.n} hinges, got {len(gains)}")
+        self._config = config
+        self._state = np.zeros(lib.vrs_core_size(), np.uint8)
+        self.address = self._state.ctypes.data
+        self._counts = np.zeros(MAX_HINGES, np.int32)
+        self._current = np.zeros(MAX_HINGES, np.int16)
+        self._duty = np.zeros(MAX_HINGES, np.float32)
+        self._decay = np.zeros(MAX_HINGES, np.uint8)
+        self._tx = ctypes.create_string_buffer(TX_CHUNK)
+        self._counts[:self.n] = counts
+        table = gains_struct(gains)  # held until the call returns
+        if lib.vrs_init(self.address, ctypes.addressof(config), ctypes.addressof(table), self._counts.ctypes.data):
+            raise ValueError(f"the firmware core refuses this config or these gains: {config.n_hinges} hinges, "
+                             f"loop rate {config.loop_rate_hz} Hz, gains {list(gains)}")
+
+    def rx(self, data: bytes, now_us: int) -> None:
+        """Bytes from the host at device time now_us (µs, wraps at 2**32)."""
+        self.lib.vrs_rx(self.address, data, len(data), now_us & 0xFFFFFFFF)
+
+    def tx(self) -> bytes:
+        """Every byte queued for the host."""
+        n = self.lib.vrs_tx(self.address, self._tx, TX_CHUNK)
+        return self._tx.raw[:n]
+
+    def tick(self, now_us: int, counts, current_ma=None) -> tuple[np.ndarray, np.ndarray]:
+        """One control tick: (duty float32 (n,), decay uint8 (n,): 0 coast, 1 brake)."""
+        n = self.n
+        self._counts[:n] = counts
+        cur = 0
+        if current_ma is not None:
+            self._current[:n] = current_ma
+            cur = self._current.ctypes.data
+        self.lib.vrs_tick(self.address, now_us & 0xFFFFFFFF, self._counts.ctypes.data, cur,
+                          self._duty.ctypes.data, self._decay.ctypes.data)
+        return self._duty[:n].copy(), self._decay[:n].copy()
+
+    def set_targets(self, counts, now_us: int) -> int:
+        """0, or the NACK reason (twin.link.protocol.Nack); nothing changes on a refusal."""
+        self._counts[:self.n] = counts
+        return self.lib.vrs_set_targets(self.address, self._counts.ctypes.data, now_us & 0xFFFFFFFF)
+
+    def set_gains(self, hinge: int, gains: PidGains) -> int:
+        """0, or the NACK reason; hinge 0xFF sets every hinge."""
+        table = gains_struct([gains])
+        return self.lib.vrs_set_gains(self.address, hinge, ctypes.addressof(table))
+
+    def set_telemetry_rate(self, rate_hz: int) -> int:
+        return self.lib.vrs_set_telemetry_rate(self.address, rate_hz)
+
+    def estop(self) -> None:
+        self.lib.vrs_estop(self.address)
+
+    def clear_fault(self) -> None:
+        self.lib.vrs_clear_fault(self.address)
+
+    @property
+    def state(self) -> int:
+        """twin.link.protocol.State value."""
+        return self.lib.vrs_get_state(self.address)
+
+    @property
+    def faults(self) -> int:
+        """twin.link.protocol.Fault bits."""
+        return self.lib.vrs_get_faults(self.address)
+
+    @property
+    def fault_hinge(self) -> int:
+        return self.lib.vrs_get_fault_hinge(self.address)
+
+    @property
+    def targets(self) -> np.ndarray:
+        out = np.zeros(self.n, np.int32)
+        self.lib.vrs_get_targets(self.address, out.ctypes.data)
+        return out
+
+    def gains(self, hinge: int) -> PidGains:
+        g = Gains()
+        if self.lib.vrs_get_gains(self.address, hinge, ctypes.addressof(g)):
+            raise ValueError(f"no hinge {hinge}")
+        return pid_gains(g)
+
+    @property
+    def rx_bad_frames(self) -> int:
+        return self.lib.vrs_get_rx_bad_frames(self.address)
+
+    @property
+    def telemetry_dropped(self) -> int:
+        return self.lib.vrs_get_telemetry_dropped(self.address)

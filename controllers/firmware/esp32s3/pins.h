@@ -1,0 +1,26 @@
+/* VRScroll on an ESP32-S3-DevKitC-1: every pin in one place (docs/firmware.md, "Wiring").
+ * Hinge k is the hinge between flap k and flap k + 1, counted from the end with the lowest x.
+ * Avoided: strapping pins 0, 3, 45, 46; USB 19, 20; flash and PSRAM 26-37. */
+#ifndef VRS_PINS_H
+#define VRS_PINS_H
+
+/* quadrature encoder channels A and B, per hinge (3.3 V logic; the motor's Hall encoder runs on 3.3 V) */
+static const int PIN_ENC_A[6] = {4, 6, 8, 10, 12, 14};
+static const int PIN_ENC_B[6] = {5, 7, 9, 11, 13, 15};
+
+/* DRV8833 inputs per hinge: IN1 and IN2 of one H-bridge (three DRV8833 boards, two bridges each) */
+static const int PIN_IN1[6] = {16, 18, 38, 40, 42, 48};
+static const int PIN_IN2[6] = {17, 21, 39, 41, 47, 2};
+
+/* battery through a divider (ADC1 channel 0; ADC2 is unusable while Wi-Fi runs) */
+#define PIN_BATTERY 1
+#define BATTERY_DIVIDER 3  /* 20 kOhm over 10 kOhm: 8.4 V (2S full) -> 2.8 V at the pin */
+
+/* the ESP32-S3 has four PCNT units: hinges 0-3 count in hardware, 4-5 in a pin-change interrupt */
+#define N_PCNT_HINGES 4
+
+#define PWM_HZ 20000       /* above hearing */
+#define PWM_BITS 11        /* 80 MHz / 20 kHz = 4000 steps: 11 bits fit */
+#define PWM_FIRST_CHANNEL 0 /* LEDC channels 0-5, one per hinge, routed to IN1 or IN2 by direction */
+
+#endif

@@ -1,0 +1,499 @@
+/* The supervisor: commands from the host, states and faults, the control tick, telemetry.
+ * docs/protocol.md is the contract; docs/firmware.md the architecture. */
+#include <string.h>
+
+#include "vrs_core.h"
+
+/* ---- small helpers -------------------------------------------------------------------- */
+
+static uint32_t round_to_u32(float x) { return x <= 0.0f ? 0u : (uint32_t)(x + 0.5f); }
+
+static int16_t duty_to_wire(float d)
+{
+    float x = d * (float)VRS_DUTY_SCALE;
+    return (int16_t)(x >= 0.0f ? x + 0.5f : x - 0.5f);
+}
+
+static int out_of(float x, float lo, float hi) { return !(x >= lo && x <= hi); }
+
+static int gains_valid(const vrs_gains *g)
+{
+    return !(out_of(g->kp, VRS_BOUND_KP_MIN, VRS_BOUND_KP_MAX) || out_of(g->ki, VRS_BOUND_KI_MIN, VRS_BOUND_KI_MAX)
+             || out_of(g->kd, VRS_BOUND_KD_MIN, VRS_BOUND_KD_MAX)
+             || out_of(g->cutoff_hz, VRS_BOUND_DERIVATIVE_CUTOFF_MIN, VRS_BOUND_DERIVATIVE_CUTOFF_MAX)
+             || out_of(g->integral_limit, VRS_BOUND_INTEGRAL_LIMIT_MIN, VRS_BOUND_INTEGRAL_LIMIT_MAX)
+             || out_of(g->deadband, VRS_BOUND_DEADBAND_DUTY_MIN, VRS_BOUND_DEADBAND_DUTY_MAX)
+             || (int32_t)g->hold_band - VRS_BOUND_HOLD_BAND_MIN < 0 || g->hold_band > VRS_BOUND_HOLD_BAND_MAX);
+}
+
+/* ---- transmit queue (ring) ------------------------------------------------------------ */
+
+static int queue(vrs_core *c, const uint8_t *bytes, uint32_t n)
+{
+    uint32_t at, first;
+    if (n == 0 || c->tx_len + n > VRS_TX_CAP)
+        return 0;
+    at = (c->tx_head + c->tx_len) % VRS_TX_CAP;
+    first = VRS_TX_CAP - at < n ? VRS_TX_CAP - at : n;
+    memcpy(c->tx_buf + at, bytes, first);
+    memcpy(c->tx_buf, bytes + first, n - first);
+    c->tx_len += n;
+    return 1;
+}
+
+uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max)
+{
+    uint32_t n = c->tx_len < max ? c->tx_len : max;
+    uint32_t first = VRS_TX_CAP - c->tx_head < n ? VRS_TX_CAP - c->tx_head : n;
+    memcpy(out, c->tx_buf + c->tx_head, first);
+    memcpy(out + first, c->tx_buf, n - first);
+    c->tx_head = (c->tx_head + n) % VRS_TX_CAP;
+    c->tx_len -= n;
+    return n;
+}
+
+/* commands that act: their replies are kept for repeats; queries are answered afresh */
+static int acts(uint8_t id)
+{
+    return id == VRS_MSG_SET_TARGETS || id == VRS_MSG_SET_GAINS || id == VRS_MSG_ESTOP || id == VRS_MSG_CLEAR_FAULT
+           || id == VRS_MSG_SET_TELEMETRY_RATE;
+}
+
+/* queue a reply to the command (request id, seq, frame CRC); keep it if the command acts */
+static void reply(vrs_core *c, uint8_t request, uint16_t seq, uint16_t request_crc, uint8_t id,
+                  const uint32_t *values, uint8_t n)
+{
+    uint8_t frame_bytes[VRS_MAX_PAYLOAD + VRS_MAX_PAYLOAD / 254 + 2];
+    uint32_t len = vrs_encode(id, seq, values, n, frame_bytes, sizeof frame_bytes);
+    vrs_reply *r = &c->replies[c->reply_next];
+    queue(c, frame_bytes, len);
+    if (!acts(request) || len == 0 || len > VRS_REPLY_CAP)
+        return;
+    memcpy(r->payload, frame_bytes, len);
+    r->used = 1;
+    r->seq = seq;
+    r->at_us = c->now_us;
+    r->request_crc = request_crc;
+    r->len = (uint16_t)len;
+    c->reply_next = (uint8_t)((c->reply_next + 1) % VRS_REPLY_MEMORY);
+}
+
+static void ack(vrs_core *c, uint16_t seq, uint16_t crc, uint8_t acked)
+{
+    uint32_t v[2];
+    v[0] = acked;
+    v[1] = c->now_us;
+    reply(c, acked, seq, crc, VRS_MSG_ACK, v, 0);
+}
+
+static void nack(vrs_core *c, uint16_t seq, uint16_t crc, uint8_t acked, int reason, uint32_t detail)
+{
+    uint32_t v[3];
+    v[0] = acked;
+    v[1] = (uint32_t)reason;
+    v[2] = detail & 0xFFu;
+    reply(c, acked, seq, crc, VRS_MSG_NACK, v, 0);
+}
+
+/* ---- supervisor ------------------------------------------------------------------------ */
+
+static void fault(vrs_core *c, uint16_t flag, uint8_t hinge)
+{
+    c->state = flag == VRS_FAULT_ESTOP ? VRS_STATE_ESTOP : VRS_STATE_FAULT;
+    c->faults |= flag;
+    if (c->fault_hinge == 0xFF)
+        c->fault_hinge = hinge;
+}
+
+void vrs_estop(vrs_core *c)
+{
+    if (c->state != VRS_STATE_ESTOP)
+        fault(c, VRS_FAULT_ESTOP, 0xFF);
+}
+
+void vrs_clear_fault(vrs_core *c)
+{
+    c->state = VRS_STATE_IDLE;
+    c->faults = 0;
+    c->fault_hinge = 0xFF;
+    memcpy(c->targets, c->counts, sizeof c->targets);
+}
+
+static int set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us, uint32_t *detail)
+{
+    uint8_t k, n = c->cfg.n_hinges;
+    if (c->state == VRS_STATE_ESTOP || c->state == VRS_STATE_FAULT) {
+        *detail = c->state;
+        return VRS_NACK_BAD_STATE;
+    }
+    for (k = 0; k < n; k++)
+        if (counts[k] > c->cfg.limit_counts || counts[k] < -c->cfg.limit_counts) {
+            *detail = k;
+            return VRS_NACK_OUT_OF_RANGE;
+        }
+    memcpy(c->targets, counts, n * sizeof counts[0]);
+    if (c->state == VRS_STATE_IDLE) {
+        for (k = 0; k < n; k++) {
+            c->pid[k].prev = c->counts[k];
+            c->pid[k].rate = 0.0f;
+            c->pid[k].integral = 0.0f;
+            c->stall_ref[k] = c->counts[k];
+            c->stall_since_us[k] = now_us;
+        }
+        c->state = VRS_STATE_ACTIVE;
+    }
+    return 0;
+}
+
+int vrs_set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us)
+{
+    uint32_t detail;
+    c->now_us = now_us;
+    return set_targets(c, counts, now_us, &detail);
+}
+
+int vrs_set_gains(vrs_core *c, uint8_t hinge, const vrs_gains *g)
+{
+    uint8_t k;
+    if ((hinge != VRS_BROADCAST && hinge >= c->cfg.n_hinges) || !gains_valid(g))
+        return VRS_NACK_BAD_VALUE;
+    for (k = 0; k < c->cfg.n_hinges; k++)
+        if (hinge == VRS_BROADCAST || hinge == k) {
+            c->gains[k] = *g;
+            c->alpha[k] = vrs_pid_alpha(g->cutoff_hz, c->dt);
+        }
+    return 0;
+}
+
+int vrs_set_telemetry_rate(vrs_core *c, uint16_t rate_hz)
+{
+    if (rate_hz > c->cfg.max_telemetry_hz)
+        return VRS_NACK_BAD_VALUE;
+    c->telemetry_every = rate_hz == 0 ? 0 : (uint16_t)((c->cfg.loop_rate_hz + rate_hz / 2) / rate_hz);
+    if (rate_hz && c->telemetry_every == 0)
+        c->telemetry_every = 1;
+    return 0;
+}
+
+int vrs_init(vrs_core *c, const vrs_config *cfg, const vrs_gains *gains, const int32_t *counts_now)
+{
+    uint8_t k;
+    memset(c, 0, sizeof *c);
+    if (cfg->n_hinges == 0 || cfg->n_hinges > VRS_MAX_HINGES || cfg->loop_rate_hz == 0)
+        return -1;
+    c->cfg = *cfg;
+    c->dt = 1.0f / (float)cfg->loop_rate_hz;
+    for (k = 0; k < cfg->n_hinges; k++) {
+        if (vrs_set_gains(c, k, &gains[k]) != 0)
+            return -1;
+        c->counts[k] = c->targets[k] = c->pid[k].prev = c->stall_ref[k] = counts_now[k];
+    }
+    c->state = VRS_STATE_IDLE;
+    c->fault_hinge = 0xFF;
+    return 0;
+}
+
+/* ---- commands ------------------------------------------------------------------------- */
+
+/* state, faults, fault_hinge: three body values, as STATE and TELEMETRY carry them */
+static void put_status(const vrs_core *c, uint32_t *v)
+{
+    v[0] = c->state;
+    v[1] = c->faults;
+    v[2] = c->fault_hinge;
+}
+
+/* counts then targets: two per-hinge arrays, as STATE and TELEMETRY carry them */
+static void put_positions(const vrs_core *c, uint32_t *v)
+{
+    uint8_t k, n = c->cfg.n_hinges;
+    for (k = 0; k < n; k++) {
+        v[k] = (uint32_t)c->counts[k];
+        v[n + k] = (uint32_t)c->targets[k];
+    }
+}
+
+static void gains_to_wire(const vrs_gains *g, uint32_t *v)
+{
+    v[0] = round_to_u32(g->kp * (float)VRS_GAIN_SCALE);
+    v[1] = round_to_u32(g->ki * (float)VRS_GAIN_SCALE);
+    v[2] = round_to_u32(g->kd * (float)VRS_GAIN_SCALE);
+    v[3] = round_to_u32(g->cutoff_hz * (float)VRS_CUTOFF_SCALE);
+    v[4] = round_to_u32(g->integral_limit * (float)VRS_DUTY_SCALE);
+    v[5] = round_to_u32(g->deadband * (float)VRS_DUTY_SCALE);
+    v[6] = g->hold_band;
+}
+
+static void gains_from_wire(const uint32_t *v, vrs_gains *g)
+{
+    g->kp = (float)(int32_t)v[0] / (float)VRS_GAIN_SCALE;
+    g->ki = (float)(int32_t)v[1] / (float)VRS_GAIN_SCALE;
+    g->kd = (float)(int32_t)v[2] / (float)VRS_GAIN_SCALE;
+    g->cutoff_hz = (float)v[3] / (float)VRS_CUTOFF_SCALE;
+    g->integral_limit = (float)v[4] / (float)VRS_DUTY_SCALE;
+    g->deadband = (float)v[5] / (float)VRS_DUTY_SCALE;
+    g->hold_band = (uint16_t)v[6];
+}
+
+static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const uint32_t *v, uint8_t n)
+{
+    uint32_t out[VRS_MAX_FIELDS], detail = 0;
+    int32_t targets[VRS_MAX_HINGES];
+    vrs_gains g;
+    uint8_t k, nh = c->cfg.n_hinges;
+    int r;
+    switch (id) {
+    case VRS_MSG_HEARTBEAT:
+        return;
+    case VRS_MSG_HELLO:
+        out[0] = c->cfg.fw_version[0];
+        out[1] = c->cfg.fw_version[1];
+        out[2] = c->cfg.fw_version[2];
+        out[3] = VRS_PROTOCOL_VERSION;
+        out[4] = nh;
+        out[5] = c->cfg.loop_rate_hz;
+        out[6] = c->cfg.watchdog_ms;
+        out[7] = c->cfg.max_telemetry_hz;
+        memset(c->replies, 0, sizeof c->replies);  /* a new session: its seqs start again */
+        reply(c, id, seq, crc, VRS_MSG_HELLO_REPLY, out, 0);
+        return;
+    case VRS_MSG_GET_STATE:
+        out[0] = c->cfg.fw_version[0];
+        out[1] = c->cfg.fw_version[1];
+        out[2] = c->cfg.fw_version[2];
+        put_status(c, out + 3);
+        out[6] = c->now_us;
+        out[7] = c->rx_bad_frames;
+        put_positions(c, out + 8);
+        reply(c, id, seq, crc, VRS_MSG_STATE, out, nh);
+        return;
+    case VRS_MSG_SET_TARGETS:
+        if (n != nh) {
+            nack(c, seq, crc, id, VRS_NACK_BAD_LENGTH, n);
+            return;
+        }
+        for (k = 0; k < nh; k++)
+            targets[k] = (int32_t)v[k];
+        r = set_targets(c, targets, c->now_us, &detail);
+        break;
+    case VRS_MSG_SET_GAINS:
+        gains_from_wire(v + 1, &g);
+        detail = v[0];
+        r = vrs_set_gains(c, (uint8_t)v[0], &g);
+        break;
+    case VRS_MSG_GET_GAINS:
+        if (v[0] >= nh) {
+            nack(c, seq, crc, id, VRS_NACK_BAD_VALUE, v[0]);
+            return;
+        }
+        out[0] = v[0];
+        gains_to_wire(&c->gains[v[0]], out + 1);
+        reply(c, id, seq, crc, VRS_MSG_GAINS, out, 0);
+        return;
+    case VRS_MSG_ESTOP:
+        vrs_estop(c);
+        r = 0;
+        break;
+    case VRS_MSG_CLEAR_FAULT:
+        vrs_clear_fault(c);
+        r = 0;
+        break;
+    case VRS_MSG_SET_TELEMETRY_RATE:
+        r = vrs_set_telemetry_rate(c, (uint16_t)v[0]);
+        break;
+    default: /* a device -> host message sent to the device */
+        r = VRS_NACK_UNKNOWN_MESSAGE;
+        break;
+    }
+    if (r)
+        nack(c, seq, crc, id, r, detail);
+    else
+        ack(c, seq, crc, id);
+}
+
+static void frame(vrs_core *c, const uint8_t *bytes, uint32_t len)
+{
+    uint32_t values[VRS_MAX_FIELDS];
+    uint16_t seq, crc;
+    uint8_t id, n, i;
+    int r = vrs_decode(bytes, len, &id, &seq, values, &n);
+    if (r < 0) {
+        c->rx_bad_frames++;
+        return;
+    }
+    crc = vrs_crc16(bytes, len);
+    if (r == VRS_NACK_BAD_VERSION) {  /* not our protocol: answered, but it does not feed the watchdog */
+        nack(c, seq, crc, id, r, VRS_PROTOCOL_VERSION);
+        return;
+    }
+    c->rx_good_frames++;
+    c->last_rx_us = c->now_us;
+    for (i = 0; i < VRS_REPLY_MEMORY; i++) {
+        const vrs_reply *m = &c->replies[i];
+        if (m->used && m->seq == seq && m->request_crc == crc && c->now_us - m->at_us < VRS_REPLY_KEEP_US) {
+            /* a repeat: the original answer, and nothing run again */
+            queue(c, m->payload, m->len);
+            return;
+        }
+    }
+    if (r)
+        nack(c, seq, crc, id, r, n);
+    else
+        execute(c, id, seq, crc, values, n);
+}
+
+void vrs_rx(vrs_core *c, const uint8_t *bytes, uint32_t n, uint32_t now_us)
+{
+    uint32_t i;
+    c->now_us = now_us;
+    for (i = 0; i < n; i++) {
+        if (bytes[i] != 0) {
+            if (c->rx_overflow)
+                continue;
+            if (c->rx_len < VRS_RX_CAP)
+                c->rx_buf[c->rx_len++] = bytes[i];
+            else {
+                c->rx_overflow = 1;
+                c->rx_len = 0;
+            }
+            continue;
+        }
+        if (c->rx_overflow)
+            c->rx_bad_frames++;
+        else if (c->rx_len)
+            frame(c, c->rx_buf, c->rx_len);
+        c->rx_overflow = 0;
+        c->rx_len = 0;
+    }
+}
+
+/* ---- the control tick ------------------------------------------------------------------ */
+
+static void checks(vrs_core *c, uint32_t now_us)
+{
+    uint8_t k, n = c->cfg.n_hinges;
+    int32_t far = c->cfg.limit_counts + c->cfg.limit_margin_counts;
+    if (c->cfg.watchdog_ms && now_us - c->last_rx_us > (uint32_t)c->cfg.watchdog_ms * 1000u) {
+        fault(c, VRS_FAULT_WATCHDOG, 0xFF);
+        return;
+    }
+    for (k = 0; k < n; k++)
+        if (c->counts[k] > far || c->counts[k] < -far) {
+            fault(c, VRS_FAULT_LIMIT, k);
+            return;
+        }
+    if (c->cfg.overcurrent_ma > 0)
+        for (k = 0; k < n; k++)
+            if (c->current_ma[k] > c->cfg.overcurrent_ma || c->current_ma[k] < -c->cfg.overcurrent_ma) {
+                fault(c, VRS_FAULT_OVERCURRENT, k);
+                return;
+            }
+    for (k = 0; k < n; k++) {
+        int32_t moved = c->counts[k] - c->stall_ref[k];
+        float d = c->duty[k] < 0.0f ? -c->duty[k] : c->duty[k];
+        if (moved > c->cfg.stall_counts || moved < -c->cfg.stall_counts || d < c->cfg.stall_duty) {
+            c->stall_ref[k] = c->counts[k];
+            c->stall_since_us[k] = now_us;
+        }
+    }
+    for (k = 0; k < n; k++)
+        if (now_us - c->stall_since_us[k] > (uint32_t)c->cfg.stall_ms * 1000u) {
+            fault(c, VRS_FAULT_STALL, k);
+            return;
+        }
+}
+
+static void telemetry(vrs_core *c)
+{
+    uint32_t v[VRS_MAX_FIELDS];
+    uint8_t frame_bytes[VRS_MAX_PAYLOAD];
+    uint8_t k, n = c->cfg.n_hinges;
+    uint32_t len;
+    v[0] = c->now_us;
+    put_status(c, v + 1);
+    put_positions(c, v + 4);
+    for (k = 0; k < n; k++) {
+        v[4 + 2 * n + k] = (uint32_t)(int32_t)duty_to_wire(c->duty[k]);
+        v[4 + 3 * n + k] = (uint32_t)(int32_t)c->current_ma[k];
+    }
+    len = vrs_encode(VRS_MSG_TELEMETRY, c->telemetry_seq, v, n, frame_bytes, sizeof frame_bytes);
+    if (!queue(c, frame_bytes, len))
+        c->telemetry_dropped++;
+    c->telemetry_seq++;
+}
+
+void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t *current_ma,
+              float *duty_out, uint8_t *decay_out)
+{
+    uint8_t k, n = c->cfg.n_hinges;
+    c->now_us = now_us;
+    for (k = 0; k < n; k++) {
+        c->counts[k] = counts[k];
+        c->current_ma[k] = current_ma ? current_ma[k] : 0;
+    }
+    if (c->state == VRS_STATE_ACTIVE)
+        checks(c, now_us);
+    for (k = 0; k < n; k++) {
+        if (c->state == VRS_STATE_ACTIVE)
+            c->duty[k] = vrs_pid_update(&c->pid[k], &c->gains[k], c->alpha[k], c->dt, c->targets[k], counts[k]);
+        else {
+            c->duty[k] = 0.0f;
+            c->pid[k].prev = counts[k];
+        }
+        duty_out[k] = c->duty[k];
+        /* brake (slow decay): duty proportional to voltage while driving, and after an e-stop or a
+         * fault the flaps stop and hold where they are; coast when idle, so they turn by hand */
+        decay_out[k] = c->state == VRS_STATE_IDLE ? VRS_DECAY_COAST : VRS_DECAY_BRAKE;
+    }
+    if (c->telemetry_every && c->ticks % c->telemetry_every == 0)
+        telemetry(c);
+    c->ticks++;
+}
+
+/* ---- accessors ------------------------------------------------------------------------- */
+
+size_t vrs_core_size(void) { return sizeof(vrs_core); }
+uint8_t vrs_get_state(const vrs_core *c) { return c->state; }
+uint16_t vrs_get_faults(const vrs_core *c) { return c->faults; }
+uint8_t vrs_get_fault_hinge(const vrs_core *c) { return c->fault_hinge; }
+uint32_t vrs_get_rx_bad_frames(const vrs_core *c) { return c->rx_bad_frames; }
+uint32_t vrs_get_telemetry_dropped(const vrs_core *c) { return c->telemetry_dropped; }
+uint16_t vrs_get_battery_mv(const vrs_core *c) { return c->battery_mv; }
+
+void vrs_get_targets(const vrs_core *c, int32_t *out) { memcpy(out, c->targets, c->cfg.n_hinges * sizeof out[0]); }
+
+int vrs_get_gains(const vrs_core *c, uint8_t hinge, vrs_gains *out)
+{
+    if (hinge >= c->cfg.n_hinges)
+        return VRS_NACK_BAD_VALUE;
+    *out = c->gains[hinge];
+    return 0;
+}
+
+/* ---- through the hardware-access struct ----------------------------------------------- */
+
+void vrs_service(vrs_core *c, const vrs_hw *hw)
+{
+    uint8_t buf[64];
+    int got;
+    uint32_t n;
+    while ((got = hw->serial_read(hw->ctx, buf, (int)sizeof buf)) > 0)
+        vrs_rx(c, buf, (uint32_t)got, hw->micros(hw->ctx));
+    while ((n = vrs_tx(c, buf, sizeof buf)) > 0)
+        hw->serial_write(hw->ctx, buf, (int)n);
+}
+
+void vrs_control(vrs_core *c, const vrs_hw *hw)
+{
+    int32_t counts[VRS_MAX_HINGES];
+    int16_t current[VRS_MAX_HINGES];
+    float duty[VRS_MAX_HINGES];
+    uint8_t decay[VRS_MAX_HINGES];
+    uint16_t mv;
+    int sensed = hw->read_current_ma != NULL && hw->read_current_ma(hw->ctx, current) == 0;
+    hw->read_counts(hw->ctx, counts);
+    if (hw->read_battery_mv != NULL && hw->read_battery_mv(hw->ctx, &mv) == 0)
+        c->battery_mv = mv;
+    vrs_tick(c, hw->micros(hw->ctx), counts, sensed ? current : NULL, duty, decay);
+    hw->write_drive(hw->ctx, duty, decay);
+}

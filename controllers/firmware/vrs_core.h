@@ -1,0 +1,179 @@
+/* VRScroll firmware core: the protocol, the supervisor and the PID, portable C99.
+ *
+ * One build runs everywhere: the ESP32-S3 sketch (esp32s3/), the twin and the emulator
+ * (through controllers/core.py). All state lives in one fixed-size struct the caller
+ * allocates; no heap, no OS calls, float only (the ESP32-S3 FPU is single precision).
+ * Data in, data out: vrs_rx / vrs_tx carry the serial bytes, vrs_tick runs one control
+ * step on encoder counts and gives duty and decay mode per hinge. vrs_hw is a thin
+ * adapter over those calls for hardware (the sketch). See docs/firmware.md.
+ */
+#ifndef VRS_CORE_H
+#define VRS_CORE_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "vrs_protocol.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define VRS_MAX_HINGES 8
+#define VRS_RX_CAP (VRS_MAX_PAYLOAD + VRS_MAX_PAYLOAD / 254 + 2) /* longest COBS frame kept */
+#define VRS_TX_CAP 4096u        /* queued bytes for the host; telemetry is dropped beyond this */
+#define VRS_REPLY_MEMORY 4      /* commands whose replies are kept for repeats (same seq) */
+#define VRS_REPLY_CAP 16        /* a kept reply's frame: ACK 13 bytes, NACK 11 */
+#define VRS_REPLY_KEEP_US 1000000u /* how long: the host's retries come within 0.4 s */
+#define VRS_MAX_FIELDS 48       /* values in one message's body, per-hinge arrays spelled out */
+
+/* decay mode per hinge at zero duty (and in the PWM off-time) */
+#define VRS_DECAY_COAST 0       /* windings open: the flap turns freely, no back-EMF braking */
+#define VRS_DECAY_BRAKE 1       /* windings shorted (slow decay): duty is proportional to voltage */
+
+typedef struct {
+    float kp, ki, kd;           /* duty per count, duty per count*s, duty per count/s */
+    float cutoff_hz;            /* derivative low-pass cutoff, Hz */
+    float integral_limit;       /* duty */
+    float deadband;             /* duty */
+    uint16_t hold_band;         /* counts */
+} vrs_gains;
+
+typedef struct {
+    uint8_t n_hinges;
+    uint16_t loop_rate_hz;
+    uint16_t watchdog_ms;           /* 0 = no watchdog (the twin) */
+    uint16_t max_telemetry_hz;
+    int32_t limit_counts;           /* targets beyond +-limit_counts are refused */
+    int32_t limit_margin_counts;    /* LIMIT fault beyond range + margin */
+    float stall_duty;               /* |duty| at or above this ... */
+    int32_t stall_counts;           /* ... moving no more than this ... */
+    uint16_t stall_ms;              /* ... for longer than this: STALL */
+    int16_t overcurrent_ma;         /* 0 = current not sensed */
+    uint8_t fw_version[3];
+} vrs_config;
+
+/* one hinge's PID memory */
+typedef struct {
+    int32_t prev;               /* counts at the last tick */
+    float rate;                 /* filtered counts/s */
+    float integral;             /* duty */
+} vrs_pid;
+
+/* a reply kept so that a repeated command (same seq, same bytes, within VRS_REPLY_KEEP_US) gets
+ * it again instead of running twice; kept for commands that act, forgotten at HELLO */
+typedef struct {
+    uint8_t used;
+    uint16_t seq;
+    uint32_t at_us;
+    uint16_t request_crc;
+    uint16_t len;
+    uint8_t payload[VRS_REPLY_CAP];
+} vrs_reply;
+
+typedef struct vrs_core {
+    vrs_config cfg;
+    float dt;                                   /* s per tick */
+    vrs_gains gains[VRS_MAX_HINGES];
+    float alpha[VRS_MAX_HINGES];                /* derivative filter coefficient from cutoff_hz */
+    vrs_pid pid[VRS_MAX_HINGES];
+    int32_t targets[VRS_MAX_HINGES];
+    int32_t counts[VRS_MAX_HINGES];             /* as read at the last tick */
+    float duty[VRS_MAX_HINGES];                 /* as written at the last tick */
+    int16_t current_ma[VRS_MAX_HINGES];         /* as read at the last tick; 0 if not sensed */
+    int32_t stall_ref[VRS_MAX_HINGES];
+    uint32_t stall_since_us[VRS_MAX_HINGES];
+    uint8_t state;
+    uint16_t faults;
+    uint8_t fault_hinge;
+    uint32_t now_us;                            /* device time of the last call */
+    uint32_t last_rx_us;                        /* last valid frame from the host */
+    uint32_t ticks;
+    uint16_t telemetry_every;                   /* ticks between telemetry frames; 0 = off */
+    uint16_t telemetry_seq;
+    uint32_t telemetry_dropped;
+    uint32_t rx_bad_frames;
+    uint32_t rx_good_frames;
+    uint16_t battery_mv;                        /* last battery reading; 0 = not sensed */
+    uint8_t rx_buf[VRS_RX_CAP];
+    uint16_t rx_len;
+    uint8_t rx_overflow;
+    uint8_t tx_buf[VRS_TX_CAP];
+    uint32_t tx_head, tx_len;                   /* ring buffer */
+    vrs_reply replies[VRS_REPLY_MEMORY];
+    uint8_t reply_next;
+} vrs_core;
+
+size_t vrs_core_size(void);
+
+/* Start: config, gains for n_hinges hinges, present counts (targets start there). 0, or -1 for a
+ * config the core cannot run (no hinges, more than VRS_MAX_HINGES, no loop rate, gains out of bounds). */
+int vrs_init(vrs_core *c, const vrs_config *cfg, const vrs_gains *gains, const int32_t *counts_now);
+
+/* Bytes from the host: parse, execute, queue replies. now_us: device time. */
+void vrs_rx(vrs_core *c, const uint8_t *bytes, uint32_t n, uint32_t now_us);
+
+/* Take up to max queued bytes for the host; returns how many. */
+uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max);
+
+/* One control tick: supervisor, PID, telemetry. current_ma: NULL when not sensed. Writes
+ * duty_out[k] in [-1, 1] and decay_out[k] (VRS_DECAY_*) for each hinge. */
+void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t *current_ma,
+              float *duty_out, uint8_t *decay_out);
+
+/* 0, or the NACK reason (VRS_NACK_*); nothing changes on a refusal. SET_TARGETS calls these. */
+int vrs_set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us);
+int vrs_set_gains(vrs_core *c, uint8_t hinge /* VRS_BROADCAST: all */, const vrs_gains *g);
+int vrs_set_telemetry_rate(vrs_core *c, uint16_t rate_hz);
+void vrs_estop(vrs_core *c);
+void vrs_clear_fault(vrs_core *c);
+
+/* read-only accessors */
+uint8_t vrs_get_state(const vrs_core *c);
+uint16_t vrs_get_faults(const vrs_core *c);
+uint8_t vrs_get_fault_hinge(const vrs_core *c);
+void vrs_get_targets(const vrs_core *c, int32_t *out);
+int vrs_get_gains(const vrs_core *c, uint8_t hinge, vrs_gains *out);  /* 0, or VRS_NACK_BAD_VALUE */
+uint32_t vrs_get_rx_bad_frames(const vrs_core *c);
+uint32_t vrs_get_telemetry_dropped(const vrs_core *c);
+uint16_t vrs_get_battery_mv(const vrs_core *c);
+
+/* The PID of controllers/pid.py for one hinge and tick, in float: updates s, returns duty. */
+float vrs_pid_update(vrs_pid *s, const vrs_gains *g, float alpha, float dt, int32_t target, int32_t counts);
+/* The derivative filter's coefficient dt / (dt + 1 / (2 pi cutoff_hz)). */
+float vrs_pid_alpha(float cutoff_hz, float dt);
+
+/* Wire codec (vrs_wire.c), the one the core speaks; also used by the tests' golden frames.
+ * values: the body's fields in the order of vrs_protocol.h's VRS_MESSAGES table (fixed fields,
+ * then each per-hinge field as an array of n), as 32-bit patterns (signed fields sign-extended). */
+uint16_t vrs_crc16(const uint8_t *data, uint32_t n);
+uint32_t vrs_cobs_encode(const uint8_t *in, uint32_t n, uint8_t *out);        /* out: n + n/254 + 1 */
+int32_t vrs_cobs_decode(const uint8_t *in, uint32_t n, uint8_t *out);         /* -1: malformed */
+uint32_t vrs_encode(uint8_t msg_id, uint16_t seq, const uint32_t *values, uint8_t n, uint8_t *out, uint32_t max);
+/* Decode one frame without its 0x00: <0 dropped (VRS_DROP_*), 0 fine, >0 the NACK reason. */
+int vrs_decode(const uint8_t *frame, uint32_t len, uint8_t *msg_id, uint16_t *seq, uint32_t *values, uint8_t *n);
+
+#define VRS_DROP_COBS (-1)
+#define VRS_DROP_SHORT (-2)
+#define VRS_DROP_CRC (-3)
+
+/* hardware access: what the device (and only it) implements */
+typedef struct {
+    void *ctx;
+    uint32_t (*micros)(void *ctx);
+    void (*read_counts)(void *ctx, int32_t *counts);
+    void (*write_drive)(void *ctx, const float *duty, const uint8_t *decay);
+    int (*serial_read)(void *ctx, uint8_t *buf, int max);
+    void (*serial_write)(void *ctx, const uint8_t *buf, int n);
+    int (*read_current_ma)(void *ctx, int16_t *ma);    /* optional (NULL); 0 on success */
+    int (*read_battery_mv)(void *ctx, uint16_t *mv);   /* optional (NULL); 0 on success */
+} vrs_hw;
+
+void vrs_service(vrs_core *c, const vrs_hw *hw);   /* serial in -> vrs_rx, vrs_tx -> serial out */
+void vrs_control(vrs_core *c, const vrs_hw *hw);   /* one tick through hw: read, vrs_tick, write */
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif

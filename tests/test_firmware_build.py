@@ -1,0 +1,64 @@
+"""The firmware core's build: the generated header agrees with the protocol table and the spec, the
+core compiles with the sketch's warning flags, the host build is cached and fails clearly."""
+
+import re
+import subprocess
+
+import pytest
+
+from controllers import core
+from twin.link.firmware_header import HEADER_PATH, header
+
+# what the ESP32-S3 build would complain about: any double, any float narrowed without a cast
+SKETCH_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion", "-Wfloat-conversion",
+                "-Wconversion", "-pedantic")
+
+
+def test_committed_header_is_generated_from_protocol_and_spec():
+    assert HEADER_PATH.read_text() == header(), "run `vrscroll model --write`"
+
+
+def test_header_changes_with_the_spec(spec):
+    text = header(spec.replace(watchdog=0.35, kp=0.07))
+    assert "#define VRS_DEVICE_WATCHDOG_MS 350" in text and "#define VRS_DEVICE_KP 0.07f" in text
+
+
+@pytest.mark.parametrize("source", core.core_sources(), ids=lambda p: p.name)
+def test_core_compiles_with_the_sketch_flags(source, tmp_path):
+    cc = core.compiler()
+    r = subprocess.run([cc, *SKETCH_FLAGS, "-fsingle-precision-constant", f"-I{core.FIRMWARE_DIR}", "-c", str(source),
+                        "-o", str(tmp_path / "x.o")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+
+
+def test_no_double_anywhere_in_the_firmware():
+    """The ESP32-S3 FPU is single precision: no double in the core or the sketch, comments aside."""
+    for path in [*core.FIRMWARE_DIR.glob("*.[ch]"), *core.FIRMWARE_DIR.glob("esp32s3/*")]:
+        code = re.sub(r"/\*.*?\*/|//[^\n]*", "", path.read_text(), flags=re.S)
+        assert not re.search(r"\bdouble\b", code), path
+
+
+def test_build_is_cached_by_sources_and_flags(tmp_path, monkeypatch):
+    monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
+    first = core.build()
+    assert first.parent == tmp_path / "firmware" and first.exists()
+    mtime = first.stat().st_mtime_ns
+    assert core.build() == first and first.stat().st_mtime_ns == mtime  # not rebuilt
+    other = core.build((*core.WARNINGS, "-O0", "-shared", "-fPIC"))
+    assert other != first and other.exists()
+    assert [p.name for p in (tmp_path / "firmware").iterdir() if not p.name.endswith(".so")] == []  # no leftovers
+
+
+def test_missing_compiler_is_named(tmp_path, monkeypatch):
+    monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
+    monkeypatch.setenv("CC", "no-such-cc")
+    with pytest.raises(core.FirmwareBuildError, match="needs a C compiler and `no-such-cc` was not found"):
+        core.build()
+
+
+def test_compiler_errors_are_reported(tmp_path, monkeypatch):
+    monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
+    bad = tmp_path / "bad.c"
+    bad.write_text("int f(void) { return; }\n")
+    with pytest.raises(core.FirmwareBuildError, match="could not build the firmware core"):
+        core.build(extra_sources=[bad])

@@ -1,0 +1,320 @@
+"""The C firmware core's supervisor, through its serial bytes and its control tick: refusals that
+change nothing, the watchdog, repeated commands, stall, limit, overcurrent, e-stop, telemetry."""
+
+import ctypes
+import struct
+
+import numba
+import numpy as np
+import pytest
+
+from controllers import core
+from controllers.pid import PidGains
+from twin.link import protocol as P
+
+
+def make(spec, **config) -> core.Core:
+    cfg = core.config_from_spec(spec)
+    for k, v in config.items():
+        setattr(cfg, k, v)
+    return core.Core(cfg, [PidGains.from_spec(spec)] * spec.n_hinges, [0] * spec.n_hinges)
+
+
+def replies(c: core.Core) -> list:
+    return P.Decoder().feed(c.tx())
+
+
+def ask(c: core.Core, msg, seq: int = 1, now_us: int = 0):
+    c.rx(P.encode(msg, seq), now_us)
+    (got,) = replies(c)
+    return got
+
+
+def raw(version: int, mid: int, seq: int, body: bytes) -> bytes:
+    payload = struct.pack("<BBH", version, mid, seq) + body
+    return P.cobs_encode(payload + struct.pack("<H", P.crc16(payload))) + b"\x00"
+
+
+def snapshot(c: core.Core) -> tuple:
+    return (c.state, c.faults, c.fault_hinge, tuple(c.targets), tuple(c.gains(k) for k in range(c.n)),
+            c.rx_bad_frames)
+
+
+def limit(spec) -> int:
+    return core.config_from_spec(spec).limit_counts
+
+
+# ---- refusals: a NACK with its reason, and nothing changed --------------------------------------
+
+def _bad_gains(spec):
+    ok = P.Gains.from_pid(PidGains.from_spec(spec))
+    return [("kp", ok.__class__(**{**ok.__dict__, "kp": 2**31 - 1})),  # 214 duty per count
+            ("kp<0", ok.__class__(**{**ok.__dict__, "kp": -1})),
+            ("ki", ok.__class__(**{**ok.__dict__, "ki": 10 * P.GAIN_SCALE + 100})),
+            ("kd", ok.__class__(**{**ok.__dict__, "kd": int(0.05 * P.GAIN_SCALE) + 1})),
+            ("cutoff0", ok.__class__(**{**ok.__dict__, "cutoff": 0})),
+            ("cutoff", ok.__class__(**{**ok.__dict__, "cutoff": 4501})),
+            ("integral_limit", ok.__class__(**{**ok.__dict__, "integral_limit": 2 * P.DUTY_SCALE})),
+            ("deadband", ok.__class__(**{**ok.__dict__, "deadband": P.DUTY_SCALE // 2 + 2})),
+            ("hold_band", ok.__class__(**{**ok.__dict__, "hold_band": 51}))]
+
+
+def refusals(spec):
+    n, lim = spec.n_hinges, limit(spec)
+    out = [("target beyond +range", P.encode(P.SetTargets((0, 0, lim + 1, 0, 0, 0)), 9), P.MsgId.SET_TARGETS,
+            P.Nack.OUT_OF_RANGE, 2),
+           ("target beyond -range", P.encode(P.SetTargets((-lim - 1,) + (0,) * (n - 1)), 9), P.MsgId.SET_TARGETS,
+            P.Nack.OUT_OF_RANGE, 0),
+           ("five targets", P.encode(P.SetTargets((1,) * 5), 9), P.MsgId.SET_TARGETS, P.Nack.BAD_LENGTH, 5),
+           ("targets body short", raw(1, 0x03, 9, bytes([6]) + b"\x01" * 20), P.MsgId.SET_TARGETS,
+            P.Nack.BAD_LENGTH, 6),
+           ("gains body short", raw(1, 0x04, 9, b"\xff" * 19), P.MsgId.SET_GAINS, P.Nack.BAD_LENGTH, 0),
+           ("hello with a body", raw(1, 0x01, 9, b"\x01"), P.MsgId.HELLO, P.Nack.BAD_LENGTH, 0),
+           ("protocol version 2", raw(2, 0x03, 9, bytes([n]) + b"\x01" * 4 * n),
+            P.MsgId.SET_TARGETS, P.Nack.BAD_VERSION, P.PROTOCOL_VERSION),
+           ("unknown id 0x55", raw(1, 0x55, 9, b""), 0x55, P.Nack.UNKNOWN_MESSAGE, 0),
+           ("telemetry rate over the maximum", P.encode(P.SetTelemetryRate(501), 9), P.MsgId.SET_TELEMETRY_RATE,
+            P.Nack.BAD_VALUE, 0),
+           ("gains for hinge 6", P.encode(P.SetGains(n, P.Gains.from_pid(PidGains.from_spec(spec))), 9),
+            P.MsgId.SET_GAINS, P.Nack.BAD_VALUE, n),
+           ("get gains of hinge 6", P.encode(P.GetGains(n), 9), P.MsgId.GET_GAINS, P.Nack.BAD_VALUE, n)]
+    for m in P.MsgId:
+        if m >= 0x80:  # a device -> host message sent to the device
+            frame = P.encode(next(x for x in _DEVICE_MESSAGES if x.MSG == m), 9)
+            out.append((f"device message {m.name}", frame, m, P.Nack.UNKNOWN_MESSAGE, 0))
+    for name, g in _bad_gains(spec):
+        out.append((f"gains {name}", P.encode(P.SetGains(P.BROADCAST, g), 9), P.MsgId.SET_GAINS, P.Nack.BAD_VALUE,
+                    P.BROADCAST))
+    return out
+
+
+_DEVICE_MESSAGES = [P.Ack(3, 5), P.NackMsg(3, 4, 1), P.HelloReply((0, 1, 0), 1, 6, 1000, 200, 500),
+                    P.StateMsg((0, 1, 0), 0, 0, 255, 1, 0, (0,) * 6, (0,) * 6), P.GainsReply(0, P.Gains(*[1] * 7)),
+                    P.Telemetry(1, 0, 0, 255, (0,) * 6, (0,) * 6, (0,) * 6, (0,) * 6)]
+
+
+@pytest.mark.parametrize("active", [False, True], ids=["idle", "active"])
+def test_every_refusal_is_a_nack_and_changes_nothing(spec, active):
+    for name, frame, acked, reason, detail in refusals(spec):
+        c = make(spec)
+        c.tick(0, [0] * c.n)
+        if active:
+            assert ask(c, P.SetTargets((10,) * c.n), 1)[1] == P.Ack(P.MsgId.SET_TARGETS, 0)
+        before = snapshot(c)
+        c.rx(frame, 1000)
+        assert replies(c) == [(9, P.NackMsg(acked, reason, detail))], name
+        assert snapshot(c) == before, name
+
+
+def test_targets_refused_in_estop_and_fault(spec):
+    c = make(spec)
+    c.estop()
+    before = snapshot(c)
+    assert ask(c, P.SetTargets((1,) * c.n))[1] == P.NackMsg(P.MsgId.SET_TARGETS, P.Nack.BAD_STATE, P.State.ESTOP)
+    assert snapshot(c) == before
+    assert c.set_targets([1] * c.n, 0) == P.Nack.BAD_STATE
+
+
+def test_host_api_refusals_change_nothing(spec):
+    c = make(spec)
+    before = snapshot(c)
+    assert c.set_targets([limit(spec) + 1] + [0] * (c.n - 1), 0) == P.Nack.OUT_OF_RANGE
+    for g in (PidGains.from_spec(spec).replace(kp=1.5), PidGains.from_spec(spec).replace(derivative_cutoff=0.5),
+              PidGains.from_spec(spec).replace(integral_limit=float("nan"))):
+        assert c.set_gains(P.BROADCAST, g) == P.Nack.BAD_VALUE
+    assert c.set_gains(c.n, PidGains.from_spec(spec)) == P.Nack.BAD_VALUE
+    assert snapshot(c) == before
+    g = PidGains.from_spec(spec).replace(kp=1.0, ki=10.0, kd=0.05, derivative_cutoff=450.0, hold_band=50)
+    assert c.set_gains(2, g) == 0 and c.gains(2).hold_band == 50  # the bounds are inclusive
+
+
+def test_gains_set_on_the_wire_read_back_exactly(spec):
+    c = make(spec)
+    g = P.Gains(123457, 654321, 987, 1234, 16000, 1500, 7)
+    assert ask(c, P.SetGains(4, g), 3)[1] == P.Ack(P.MsgId.SET_GAINS, 0)
+    assert ask(c, P.GetGains(4), 4)[1] == P.GainsReply(4, g)
+    assert ask(c, P.GetGains(3), 5)[1] == P.GainsReply(3, P.Gains.from_pid(PidGains.from_spec(spec)))
+
+
+# ---- the watchdog and repeated commands ---------------------------------------------------------
+
+def test_watchdog_stops_the_motors_200_ms_after_the_last_valid_frame(spec):
+    c = make(spec)
+    c.rx(P.encode(P.SetTargets((200,) * c.n), 1), 0)
+    last_frame = 150_000
+    for t in range(1000, 400_001, 1000):
+        if t == last_frame:
+            c.rx(P.encode(P.Heartbeat(), 2), t)
+        if t == 300_000:
+            c.rx(b"\x00\x05garbage\x00", t)  # not a valid frame: does not feed the watchdog
+        duty, decay = c.tick(t, [t // 5000] * c.n)  # moving: no stall
+        if t <= last_frame + 200_000:
+            assert c.state == P.State.ACTIVE and np.all(duty > 0.5), t
+        else:
+            assert c.state == P.State.FAULT and c.faults == P.Fault.WATCHDOG, t
+            assert np.all(duty == 0) and np.all(decay == 1), t  # off, braking
+            break
+    assert t == last_frame + 201_000
+
+
+def test_no_watchdog_when_configured_off(spec):
+    c = make(spec, watchdog_ms=0)
+    c.set_targets([50] * c.n, 0)
+    for t in range(0, 2_000_000, 1000):
+        c.tick(t, [50] * c.n)
+    assert c.state == P.State.ACTIVE
+
+
+def test_repeated_set_targets_gets_the_original_ack_and_is_not_run_again(spec):
+    c = make(spec)
+    first = P.encode(P.SetTargets((100,) * c.n), 77)
+    c.rx(first, 1_000)
+    (a,) = replies(c)
+    c.tick(2_000, [0] * c.n)
+    c.rx(P.encode(P.SetTargets((-100,) * c.n), 78), 30_000)
+    replies(c)
+    c.rx(P.encode(P.Heartbeat(), 79), 40_000)  # a heartbeat between a command and its retry
+    c.rx(first, 51_000)  # the retry, 50 ms later
+    (b,) = replies(c)
+    assert a == b == (77, P.Ack(P.MsgId.SET_TARGETS, 1_000))
+    assert tuple(c.targets) == (-100,) * c.n
+
+
+def test_a_new_command_with_a_reused_seq_is_run(spec):
+    c = make(spec)
+    c.rx(P.encode(P.SetTargets((100,) * c.n), 5), 1_000)
+    c.rx(P.encode(P.SetTargets((30,) * c.n), 5), 9_000)
+    assert [m for _, m in replies(c)] == [P.Ack(P.MsgId.SET_TARGETS, 1_000), P.Ack(P.MsgId.SET_TARGETS, 9_000)]
+    assert tuple(c.targets) == (30,) * c.n
+
+
+def test_queries_are_answered_afresh_under_a_repeated_seq(spec):
+    """`vrscroll status` twice: each run's GET_STATE has the same seq and bytes, and must see now."""
+    c = make(spec)
+    c.tick(1_000, [3] * c.n)
+    assert ask(c, P.GetState(), 2, 1_500)[1].counts == (3,) * c.n
+    c.tick(2_000, [9] * c.n)
+    assert ask(c, P.GetState(), 2, 2_500)[1].counts == (9,) * c.n
+
+
+def test_a_new_session_runs_the_same_command_again(spec):
+    """The same SET_TARGETS under the same seq in a later session (after HELLO, or a second later)
+    is a new command: it runs and gets its own ACK."""
+    for between, gap_us in ((P.Hello(), 20_000), (P.Heartbeat(), 1_000_000)):
+        c = make(spec)
+        move = P.encode(P.SetTargets((100,) * c.n), 5)
+        c.rx(move, 1_000)
+        c.estop()
+        c.clear_fault()
+        c.rx(P.encode(between, 1), 1_000 + gap_us // 2)
+        replies(c)
+        c.rx(move, 1_000 + gap_us)
+        assert replies(c) == [(5, P.Ack(P.MsgId.SET_TARGETS, 1_000 + gap_us))]
+        assert c.state == P.State.ACTIVE
+
+
+# ---- faults -------------------------------------------------------------------------------------
+
+def test_stall_faults_a_jammed_hinge(spec):
+    c = make(spec, watchdog_ms=0)
+    c.set_targets([0, 0, 300, 0, 0, 0], 0)
+    t = 0
+    while c.state == P.State.ACTIVE and t < 1_000_000:
+        t += 1000
+        c.tick(t, [0, 0, 5, 0, 0, 0])  # hinge 2 stuck at 5 counts under full duty
+    assert (c.state, c.faults, c.fault_hinge) == (P.State.FAULT, P.Fault.STALL, 2)
+    assert 300_000 < t <= 303_000
+
+
+def test_limit_fault_past_the_range(spec):
+    c = make(spec, watchdog_ms=0)
+    far = limit(spec) + core.config_from_spec(spec).limit_margin_counts
+    c.set_targets([0] * c.n, 0)
+    c.tick(1000, [0, 0, 0, 0, far, 0])
+    assert c.state == P.State.ACTIVE
+    duty, _ = c.tick(2000, [0, 0, 0, 0, far + 1, 0])
+    assert (c.state, c.faults, c.fault_hinge) == (P.State.FAULT, P.Fault.LIMIT, 4) and not duty.any()
+
+
+def test_overcurrent_only_where_current_is_sensed(spec):
+    c = make(spec, watchdog_ms=0, overcurrent_ma=1000)
+    c.set_targets([100] * c.n, 0)
+    c.tick(1000, [0] * c.n)
+    c.tick(2000, [0] * c.n, current_ma=[0, 1000, 0, 0, 0, 0])
+    assert c.state == P.State.ACTIVE
+    c.tick(3000, [0] * c.n, current_ma=[0, 0, 0, -1001, 0, 0])
+    assert (c.state, c.faults, c.fault_hinge) == (P.State.FAULT, P.Fault.OVERCURRENT, 3)
+    off = make(spec, watchdog_ms=0)
+    off.set_targets([100] * c.n, 0)
+    off.tick(1000, [0] * c.n, current_ma=[30000] * c.n)
+    assert off.state == P.State.ACTIVE
+
+
+def test_estop_brakes_and_clear_fault_idles_at_the_present_counts(spec):
+    c = make(spec, watchdog_ms=0)
+    c.set_targets([100] * c.n, 0)
+    duty, decay = c.tick(1000, [0] * c.n)
+    assert duty.all() and decay.all()  # driving: brake (slow decay)
+    assert ask(c, P.EStop(), 3, 1500)[1] == P.Ack(P.MsgId.ESTOP, 1500)
+    duty, decay = c.tick(2000, [7] * c.n)
+    assert (c.state, c.faults) == (P.State.ESTOP, P.Fault.ESTOP) and not duty.any() and decay.all()
+    assert ask(c, P.ClearFault(), 4, 3000)[1] == P.Ack(P.MsgId.CLEAR_FAULT, 3000)
+    duty, decay = c.tick(4000, [7] * c.n)
+    assert (c.state, c.faults, c.fault_hinge) == (P.State.IDLE, 0, 0xFF)
+    assert tuple(c.targets) == (7,) * c.n and not duty.any() and not decay.any()  # idle: coast
+
+
+def test_hello_and_state_report_the_config_and_the_tick(spec):
+    c = make(spec)
+    assert ask(c, P.Hello())[1] == P.HelloReply(core.FIRMWARE_VERSION, 1, 6, 1000, 200, 500)
+    c.rx(b"\x01\x02\x00", 0)
+    c.tick(5000, [1, 2, 3, 4, 5, 6])
+    assert ask(c, P.GetState(), 2, 6000)[1] == P.StateMsg(core.FIRMWARE_VERSION, P.State.IDLE, 0, 0xFF, 6000, 1,
+                                                          (1, 2, 3, 4, 5, 6), (0,) * 6)
+
+
+def test_telemetry_at_the_set_rate_with_the_counts_the_pid_used(spec):
+    c = make(spec, watchdog_ms=0)
+    assert ask(c, P.SetTelemetryRate(300))[1].MSG == P.MsgId.ACK
+    c.set_targets([40] * c.n, 0)
+    sent, frames = [], []
+    for k in range(300):
+        duty, _ = c.tick(k * 1000, [k % 50] * c.n)
+        sent.append((k, duty))
+        frames += replies(c)
+    assert [s for s, _ in frames] == list(range(100))  # every 3rd tick (1000 / 300 rounded), seq +1 each
+    for (seq, m), (k, duty) in zip(frames, sent[::3]):
+        assert m.time_us == k * 1000 and m.counts == (k % 50,) * c.n and m.targets == (40,) * c.n
+        assert m.duty == tuple(int(round(float(d) * P.DUTY_SCALE)) for d in duty)
+
+
+def test_telemetry_dropped_not_replies_when_nobody_reads(spec):
+    c = make(spec, watchdog_ms=0)
+    c.set_telemetry_rate(500)
+    for k in range(2000):
+        c.tick(k * 1000, [0] * c.n)
+    assert c.telemetry_dropped > 0
+    c.tx()
+    c.rx(P.encode(P.GetState(), 3), 0)
+    assert isinstance(replies(c)[0][1], P.StateMsg)
+
+
+def test_numba_calls_the_core_tick_by_address(spec):
+    lib = core.library()
+    tick = lib.vrs_tick
+
+    @numba.njit
+    def run(address, counts, duty, decay, n_ticks):
+        for k in range(n_ticks):
+            counts[:] = k // 10
+            tick(address, k * 1000, counts.ctypes.data, 0, duty.ctypes.data, decay.ctypes.data)
+        return duty[0]
+
+    a, b = make(spec, watchdog_ms=0), make(spec, watchdog_ms=0)
+    for x in (a, b):
+        x.set_targets([120] * x.n, 0)
+    counts, duty, decay = np.zeros(8, np.int32), np.zeros(8, np.float32), np.zeros(8, np.uint8)
+    got = run(a.address, counts, duty, decay, 500)
+    for k in range(500):
+        want, _ = b.tick(k * 1000, [k // 10] * b.n)
+    assert got == want[0] and np.array_equal(duty[:6], want)

@@ -1,0 +1,89 @@
+"""Faults injected into the emulated device: command latency, a dropped link, corrupted bytes, a jammed hinge.
+
+Each acts at the device's edge, never inside its firmware: latency and a dead
+link on the bytes in, a dead link and corruption on the bytes out, a jam on the
+plant. Times are the device's, in seconds.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import random
+
+from twin.link.plant import Plant
+
+FRAME_END = b"\x00"  # every frame on the wire ends with this byte (COBS)
+
+
+@dataclasses.dataclass(frozen=True)
+class FaultOptions:
+    """Which faults to inject, and when."""
+
+    latency_ms: float = 1.0  # from a command's arrival to its effect (and its ACK)
+    jam_hinge: int | None = None  # this hinge locks ...
+    jam_after: float = 0.0  # ... this many seconds after it first moves under a target
+    drop_after: float | None = None  # s of device time after which the link goes dead (no bytes in or out)
+    corrupt: float = 0.0  # probability per outgoing frame of a flipped byte, and of garbage inserted
+
+
+class Faults:
+    """The injected faults' state for one device."""
+
+    def __init__(self, opt: FaultOptions, rng: random.Random):
+        self.opt = opt
+        self.rng = rng
+        self.incoming = collections.deque()  # (due time s, bytes)
+        self.jam_armed_at = None  # s
+        self.jam_angle = None  # rad
+
+    def link_dead(self, t: float) -> bool:
+        return self.opt.drop_after is not None and t >= self.opt.drop_after
+
+    def arrive(self, data: bytes, t: float) -> None:
+        """Bytes from the host at time t: they reach the firmware after the latency (never, on a dead link)."""
+        if not self.link_dead(t):
+            self.incoming.append((t + self.opt.latency_ms / 1000, data))
+
+    def due(self, t: float) -> bytes:
+        """The bytes whose latency has passed by time t."""
+        out = bytearray()
+        while self.incoming and self.incoming[0][0] <= t + 1e-9:
+            out += self.incoming.popleft()[1]
+        return bytes(out)
+
+    def outgoing(self, data: bytes, t: float) -> bytes:
+        """The firmware's bytes as the host receives them: per frame, maybe a flipped byte and garbage before it."""
+        if self.link_dead(t):
+            return b""
+        if self.opt.corrupt <= 0 or not data:
+            return data
+        out = bytearray()
+        for frame in data.split(FRAME_END)[:-1]:
+            frame = bytearray(frame + FRAME_END)
+            if self.rng.random() < self.opt.corrupt:
+                frame[self.rng.randrange(len(frame) - 1)] ^= self.rng.randrange(1, 256)
+            if self.rng.random() < self.opt.corrupt:
+                out += bytes(self.rng.randrange(256) for _ in range(self.rng.randrange(1, 40)))
+            out += frame
+        return bytes(out)
+
+    def jam(self, plant: Plant, active: bool, t: float) -> float | None:
+        """Hold the jammed hinge once it is due (armed when the device first runs under a target).
+
+        Returns the jam angle (rad) on the tick the hinge jams, else None.
+        """
+        k = self.opt.jam_hinge
+        if k is None:
+            return None
+        if self.jam_armed_at is None and active:
+            self.jam_armed_at = t
+        if self.jam_armed_at is None:
+            return None
+        jammed_now = None
+        if self.jam_angle is None and t - self.jam_armed_at >= self.opt.jam_after:
+            self.jam_angle = jammed_now = float(plant.data.qpos[plant.qadr[k]])
+        if self.jam_angle is not None:
+            plant.hold_hinge(k, self.jam_angle)
+        return jammed_now
+
