@@ -42,6 +42,7 @@ from twin.perception.thresholds import load_thresholds
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 EVENT_QUEUE = 256  # events waiting for one slow client; beyond this they are dropped and counted
+RATE_BURST = 2.0  # approximations the rate limit lets through back to back
 LATENCY_WINDOW = 2000  # service-side latencies kept for `status` (most recent)
 
 
@@ -136,7 +137,6 @@ class LiveService:
         self.pen_latency = collections.deque(maxlen=LATENCY_WINDOW)  # s, pen arrival -> redirected sent
         self._pose = None  # (Sample, client, arrival time): the newest pose not yet approximated
         self._pose_ready = asyncio.Event()
-        self._last_start = -math.inf
         self._udp = None
         self._stop = None
         self._tasks: set[asyncio.Task] = set()
@@ -348,14 +348,20 @@ class LiveService:
             self.pen_latency.append(time.perf_counter() - arrived)
 
     async def _approximate_forever(self) -> None:
-        gap = 0.9 / APPROXIMATION_RATE_HZ  # 10 % slack: poses sent at the rate are not held back by jitter
+        # a token bucket: on average at most APPROXIMATION_RATE_HZ, with a burst of RATE_BURST so that
+        # poses sent at that rate are not held back by their arrival jitter
         loop = asyncio.get_running_loop()
+        rate = APPROXIMATION_RATE_HZ
+        tokens, last = RATE_BURST, loop.time()
         while True:
             await self._pose_ready.wait()
             self._pose_ready.clear()
-            wait = self._last_start + gap - loop.time()
-            if wait > 0:
-                await asyncio.sleep(wait)
+            now = loop.time()
+            tokens, last = min(RATE_BURST, tokens + (now - last) * rate), now
+            if tokens < 1.0:
+                await asyncio.sleep((1.0 - tokens) / rate)
+                tokens, last = 1.0, loop.time()
+            tokens -= 1.0
             if self._pose is None:
                 continue
             sample, client, arrived = self._pose
@@ -363,7 +369,6 @@ class LiveService:
             if self.target is None:
                 client.report("out_of_order", "pose before a target: send target first")
                 continue
-            self._last_start = loop.time()
             gen = self.target_gen
             try:
                 approx, msd, share = await self.worker.call("approximate", sample.pose())
