@@ -275,6 +275,9 @@ def test_a_pose_never_moves_the_device_and_a_controller_leaving_mid_morph_leaves
     assert status["device_state"] == "ACTIVE" and status["faults"] == "none"
     assert np.allclose(status["angles_deg"], locked["angles_deg"], atol=1.0)
     assert not [e for e in emu.events("rx") if e["msg"] == "ESTOP"]
+    # telemetry is switched off after the morph (the link would queue 500 frames a second for nobody)
+    rates = [e["rate_hz"] for e in emu.events("rx") if e["msg"] == "SET_TELEMETRY_RATE"]
+    assert rates[-1] == 0 and 500 in rates
 
 
 @pytest.mark.parametrize("shapes", ["cylinder,stairs",

@@ -109,7 +109,16 @@ class DeviceMorpher:
             return MorphOutcome("stopped", None, f"link: {exc}")
         finally:
             self.link.listener = None
+            self._quiet()
         return MorphOutcome("done" if result.ok else "stopped", np.radians(result.final_deg), result.message)
+
+    def _quiet(self) -> None:
+        """Telemetry off between morphs: the link queues every frame until it is read, and nothing reads it then."""
+        try:
+            self.link.set_telemetry_rate(0)
+        except LinkError:
+            pass  # the link is gone; the next lock says so
+        self.link.drain_telemetry()
 
     def status(self) -> dict:
         state = self.link.get_state()
