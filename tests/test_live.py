@@ -83,6 +83,41 @@ def test_a_datagram_round_trips_in_si():
     assert np.allclose(sample.device_pose[:3, :3], np.diag([-1, -1, 1]))
 
 
+def test_frame_estimates_agree_with_the_exact_metrics(spec):
+    from twin.morphpatch.approximation import approximate, pose_from_mm_deg
+    from twin.morphpatch.fields import build_fields
+    from twin.morphpatch.frame_metrics import frame_estimates
+    from twin.morphpatch.redirection import build_field, threshold_summary
+    from twin.morphpatch.surface_metrics import msd_hd
+    from twin.perception.thresholds import load_thresholds
+
+    thresholds = load_thresholds()
+    for shape, start in [("cylinder", [10, 0, 190, 5, 5, 10]), ("stairs", [10, 0, 130, 0, -20, 5])]:
+        mesh = load_shape(shape)
+        fields = build_fields(mesh)
+        a = approximate(fields, pose_from_mm_deg(start), spec)
+        msd, share = frame_estimates(spec, fields, thresholds, a.root_pose, a.angles, a.widths)
+        exact_msd, _ = msd_hd(spec, mesh, a.root_pose, a.angles, a.widths)
+        exact_share = threshold_summary(build_field(spec, a.root_pose, a.angles, a.widths, mesh, fields))["share_within"]
+        assert abs(msd - exact_msd) < 0.3e-3 + 0.1 * exact_msd, (shape, msd, exact_msd)
+        assert abs(share - exact_share) < 0.1, (shape, share, exact_share)
+    # flat and 60 mm above the cylinder's top: beyond the 50 mm positional threshold everywhere
+    lifted = a.root_pose.copy()
+    lifted[:3, 3] = [0.0, 0.0, 0.21]
+    lifted[:3, :3] = np.eye(3)
+    msd, share = frame_estimates(spec, build_fields(load_shape("cylinder")), thresholds, lifted, np.zeros(6),
+                                 np.full(7, spec.flap_pitch))
+    assert msd > 0.05 and share == 0.0
+
+
+def test_bad_command_lines_are_one_line_errors(capsys):
+    assert vrscroll(["play", "--shapes", "teapot"]) == 2
+    assert vrscroll(["play", "--url", "nonsense", "--shapes", "cube"]) == 2
+    assert vrscroll(["serve", "--host", "10.1.2.3"]) == 2  # refused before anything is bound
+    err = capsys.readouterr().err
+    assert "unknown teapot" in err and "nonsense" in err and "--allow-remote" in err
+
+
 # ---- the service -----------------------------------------------------------------------------
 
 def test_bad_messages_get_errors_and_the_connection_stays_open(twin_service):

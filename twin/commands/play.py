@@ -15,10 +15,11 @@ import json
 import tempfile
 from pathlib import Path
 
+from websockets.exceptions import WebSocketException
+
 from twin.cli import UserError
 from twin.device.spec import load_spec
 from twin.link.emulator import EmulatorProcess
-from twin.live.client import LiveError
 from twin.live.player import play
 from twin.live.process import ServiceProcess
 from twin.morphpatch.approximation import VARIANTS
@@ -47,14 +48,8 @@ def _line(r: dict) -> str:
             f"{red['share_within']:.0%} within; approximation p99 {r['approximation_latency_p99_ms']} ms")
 
 
-def run(args) -> int:
-    shapes = [s for s in args.shapes.split(",") if s]
-    unknown = [s for s in shapes if s not in shape_names()]
-    if unknown or not shapes:
-        raise UserError(f"--shapes: unknown {', '.join(unknown) or '(none given)'}; known: {', '.join(shape_names())}")
-    if args.attempts < 1:
-        raise UserError("--attempts must be at least 1")
-    spec = load_spec()
+def _play(args, spec, shapes) -> list[dict]:
+    """Start the emulator and the service unless --url, then play every shape; the records."""
     with contextlib.ExitStack() as stack:
         url = args.url
         if url is None:
@@ -67,11 +62,21 @@ def run(args) -> int:
             service = stack.enter_context(ServiceProcess(*serve_args, stderr_path=tmp / "serve.stderr"))
             url = service.url
             print(service.banner.strip(), flush=True)
-        try:
-            records = asyncio.run(play(url, spec, shapes, args.token, args.attempts, args.seed,
-                                       on_record=lambda r: print(_line(r), flush=True)))
-        except (LiveError, OSError) as exc:
-            raise UserError(f"{url}: {exc}") from None
+        return asyncio.run(play(url, spec, shapes, args.token, args.attempts, args.seed,
+                                on_record=lambda r: print(_line(r), flush=True)))
+
+
+def run(args) -> int:
+    shapes = [s for s in args.shapes.split(",") if s]
+    unknown = [s for s in shapes if s not in shape_names()]
+    if unknown or not shapes:
+        raise UserError(f"--shapes: unknown {', '.join(unknown) or '(none given)'}; known: {', '.join(shape_names())}")
+    if args.attempts < 1:
+        raise UserError("--attempts must be at least 1")
+    try:
+        records = _play(args, load_spec(), shapes)
+    except (RuntimeError, OSError, WebSocketException) as exc:  # LiveError, a process that did not start, a bad URL
+        raise UserError(str(exc)) from None
     if args.json:
         Path(args.json).write_text(json.dumps(records, indent=2) + "\n")
     ok = all(r["morphed"] and r["pen"]["redirected"] == r["pen"]["sent"] for r in records)

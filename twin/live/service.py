@@ -35,6 +35,7 @@ from twin.live.messages import (APPROXIMATION_RATE_HZ, DEFAULT_LISTEN_PORT, ERRO
                                 MAX_DATAGRAM_BYTES, MAX_FRAME_BYTES, PROTOCOL_VERSION, ProtocolError,
                                 approximation_datagram, error, mesh_arrays, parse_control, parse_datagram,
                                 pen_datagram)
+from twin.live.morph import MorphOutcome
 from twin.live.worker import Worker, WorkerError
 from twin.morphpatch.redirection import redirect, within_samples
 from twin.morphpatch.shapes import shape_names
@@ -101,9 +102,12 @@ class _Client:
             self.send(error(code, message, "datagram", self._unreported.pop(code)))
 
     async def pump(self) -> None:
-        while True:
-            event = await self.events.get()
-            await self.ws.send(json.dumps(event))
+        try:
+            while True:
+                event = await self.events.get()
+                await self.ws.send(json.dumps(event))
+        except ConnectionClosed:
+            pass
 
 
 class _Datagrams(asyncio.DatagramProtocol):
@@ -285,7 +289,10 @@ class LiveService:
         def emit(event):
             loop.call_soon_threadsafe(self._broadcast, event)
 
-        outcome = await asyncio.to_thread(self.morpher.morph, approx.angles, emit)
+        try:
+            outcome = await asyncio.to_thread(self.morpher.morph, approx.angles, emit)
+        except Exception as exc:  # the morph thread's boundary: report it, and never stay "morphing"
+            outcome = MorphOutcome("stopped", None, f"{type(exc).__name__}: {exc}")
         if outcome.status != "done":
             self.state = "idle"
             self._broadcast({"type": outcome.status, "message": outcome.message,
