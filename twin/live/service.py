@@ -43,6 +43,7 @@ from twin.perception.thresholds import load_thresholds
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 EVENT_QUEUE = 256  # events waiting for one slow client; beyond this they are dropped and counted
+PING_INTERVAL = 20.0  # s: a client that answers no ping for this long after one is dropped (its role freed)
 RATE_BURST = 2.0  # approximations the rate limit lets through back to back
 LATENCY_WINDOW = 2000  # service-side latencies kept for `status` (most recent)
 
@@ -157,7 +158,7 @@ class LiveService:
                 await self._load_target(self.config.shape, vertices, faces)
             await asyncio.to_thread(self.morpher.open)
             async with serve(self._connection, self.config.host, self.config.listen, max_size=MAX_FRAME_BYTES,
-                             ping_interval=None) as server:
+                             ping_interval=PING_INTERVAL, ping_timeout=PING_INTERVAL) as server:
                 self.port = server.sockets[0].getsockname()[1]
                 self._udp, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self),
                                                                    local_addr=(self.config.host, self.port))
@@ -198,11 +199,11 @@ class LiveService:
                     await self._dispatch(client, parse_control(message))
                 except ProtocolError as exc:
                     self.counts[exc.code] += 1
-                    client.send(error(exc.code, str(exc)))
-                    if exc.code == "unauthorized":
-                        await asyncio.sleep(0.05)  # let the error go out first
+                    if exc.code == "unauthorized":  # said at once, not queued behind events, then closed
+                        await ws.send(json.dumps(error(exc.code, str(exc))))
                         await ws.close(1008, "unauthorized")
                         return
+                    client.send(error(exc.code, str(exc)))
         except ConnectionClosed:
             pass
         finally:
