@@ -9,13 +9,21 @@ import json
 import numpy as np
 import pytest
 
+from websockets.asyncio.client import connect
+
 from twin.cli import main as vrscroll
 from twin.live.client import LiveClient, LiveError
 from twin.live.messages import (MAX_CONTROL_BYTES, MAX_DATAGRAM_BYTES, ProtocolError, parse_control,
                                 parse_datagram, sample_datagram)
+from twin.live.player import stroke
 from twin.live.process import ServiceProcess
+from twin.morphpatch.approximation import Approximation, approximate, default_spec, pose_from_mm_deg
+from twin.morphpatch.fields import build_fields
+from twin.morphpatch.frame_metrics import frame_estimates
+from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import load_shape
-from twin.morphpatch.surface_metrics import point_distances
+from twin.morphpatch.surface_metrics import msd_hd, point_distances
+from twin.perception.thresholds import load_thresholds
 
 CYLINDER_START = ([10.0, 0.0, 190.0], [1.0, 0.0, 0.0, 0.0])  # mm, above the cylinder's top, level
 
@@ -84,13 +92,6 @@ def test_a_datagram_round_trips_in_si():
 
 
 def test_frame_estimates_agree_with_the_exact_metrics(spec):
-    from twin.morphpatch.approximation import approximate, pose_from_mm_deg
-    from twin.morphpatch.fields import build_fields
-    from twin.morphpatch.frame_metrics import frame_estimates
-    from twin.morphpatch.redirection import build_field, threshold_summary
-    from twin.morphpatch.surface_metrics import msd_hd
-    from twin.perception.thresholds import load_thresholds
-
     thresholds = load_thresholds()
     for shape, start in [("cylinder", [10, 0, 190, 5, 5, 10]), ("stairs", [10, 0, 130, 0, -20, 5])]:
         mesh = load_shape(shape)
@@ -158,8 +159,6 @@ def test_bad_messages_get_errors_and_the_connection_stays_open(twin_service):
 
 def test_nothing_but_hello_is_taken_before_hello(twin_service):
     async def session():
-        from websockets.asyncio.client import connect
-
         async with connect(twin_service.url) as ws:
             await ws.send(json.dumps({"type": "lock"}))
             event = json.loads(await ws.recv())
@@ -259,9 +258,6 @@ def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twi
             progress = await client.expect("progress")
             done = await client.expect("done", timeout=10)
             assert (await observer.expect("done", timeout=10))["seq"] == locked["seq"]
-            from twin.live.player import stroke
-            from twin.morphpatch.approximation import Approximation, default_spec
-
             approx = Approximation.from_json(locked)
             points, quats = stroke(default_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths,
                                    duration=0.1)
