@@ -86,7 +86,9 @@ async def bench(url: str, shape: str, seconds: float) -> None:
             sent += 1
             await asyncio.sleep(max(0.0, t0 + sent / POSE_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
-        print(stats("pose -> approximation at 90 Hz", [latency(a) for a in client.drain("approximation")], sent, 11.1))
+        replies = client.drain("approximation")
+        print(stats("pose -> approximation at 90 Hz", [latency(a) for a in replies], sent, 11.1))
+        print(stats("  of which the approximation itself (worker)", [a["time_ms"] / 1e3 for a in replies], len(replies)))
 
         locked = await client.lock()
         done = await client.expect("done", "refused", "stopped", timeout=15)
