@@ -58,8 +58,10 @@ def run(args) -> int:
                            allow_remote=args.allow_remote, variant=args.variant, shape=args.shape, mesh=mesh)
     service = LiveService(config)
 
+    host = f"[{args.host}]" if ":" in args.host else args.host  # an IPv6 address in a URL
+
     def ready(port):
-        print(f"vrscroll serve: listening on ws://{args.host}:{port} (control) and udp {args.host}:{port} "
+        print(f"vrscroll serve: listening on ws://{host}:{port} (control) and udp {host}:{port} "
               f"(pose, pen); device: {morpher.name}; target: {service.target['name'] if service.target else 'none'}; "
               f"variant {args.variant}" + ("; token required" if token else ""), flush=True)
 
