@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+import trimesh
 
 from websockets.asyncio.client import connect
 
@@ -186,6 +187,33 @@ def test_a_second_controller_is_refused_and_observers_watch(twin_service):
             await first.set_target(shape="cylinder")
 
     run(session())
+
+
+def test_a_mesh_sent_as_the_target_is_approximated_and_an_open_one_refused(twin_service):
+    box = trimesh.creation.box([0.3, 0.3, 0.1])  # its top larger than the device
+    box.apply_translation([0, 0, 0.05])  # on the ground, top face at z = 100 mm
+    open_box = box.copy()
+    open_box.update_faces(np.arange(len(open_box.faces)) > 1)  # one side's two triangles gone
+
+    def mesh(m):
+        return {"vertices_mm": (m.vertices * 1e3).tolist(), "faces": m.faces.tolist()}
+
+    async def session():
+        async with LiveClient(twin_service.url) as client:
+            await client.send({"type": "target", "mesh": mesh(open_box)})
+            refused = await expect_error(client, "bad_target")
+            ready = await client.set_target(mesh=mesh(box))
+            client.send_pose([0, 0, 140], [1, 0, 0, 0])
+            approx = await client.datagram("approximation", timeout=5)
+            await client.set_target(shape="cylinder")
+            return refused, ready, approx
+
+    refused, ready, approx = run(session())
+    assert "mesh" in refused["message"]
+    assert ready["target"]["name"] == "mesh" and np.allclose(ready["target"]["bounds_mm"], [[-150, -150, 0], [150, 150, 100]])
+    # flat on the box's top: the anchor at 100 mm, hinges flat, the surface on the face
+    assert abs(approx["root_position_mm"][2] - 100) < 1 and max(map(abs, approx["angles_deg"])) < 1
+    assert approx["msd_estimate_mm"] < 0.5 and approx["share_within_estimate"] == 1.0
 
 
 def test_off_loopback_needs_the_flag_and_every_client_the_token(tmp_path):
