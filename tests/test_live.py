@@ -341,6 +341,27 @@ def test_a_pose_never_moves_the_device_and_a_controller_leaving_mid_morph_leaves
     assert rates[-1] == 0 and 500 in rates
 
 
+def test_a_device_that_goes_away_is_reported_and_the_service_stays(emulator, tmp_path):
+    emu = emulator()
+    with ServiceProcess("--shape", "cylinder", "--port", emu.port, "--log", str(tmp_path / "session.jsonl"),
+                        stderr_path=tmp_path / "serve.err") as service:
+        async def session():
+            async with LiveClient(service.url) as client:
+                assert (await client.status())["device_state"] == "IDLE"
+                emu.kill()  # the cable is pulled
+                await asyncio.sleep(0.3)
+                gone = await client.status()
+                await first_approximation(client)  # approximations go on without a device
+                await client.lock()
+                outcome = await client.expect("done", "refused", "stopped", timeout=10)
+                return gone, outcome, await client.status()
+
+        gone, outcome, after = run(session())
+    assert gone["device_state"] == "UNREACHABLE" and "went away" in gone["faults"]
+    assert outcome["type"] == "stopped" and "link" in outcome["message"]
+    assert after["state"] == "idle"
+
+
 @pytest.mark.parametrize("shapes", ["cylinder,stairs",
                                     pytest.param(None, marks=pytest.mark.slow)])
 def test_session_player_against_the_emulator_locks_morphs_and_redirects_every_pen_sample(shapes, tmp_path, capsys):

@@ -121,7 +121,10 @@ class DeviceMorpher:
         self.link.drain_telemetry()
 
     def status(self) -> dict:
-        state = self.link.get_state()
+        try:
+            state = self.link.get_state()
+        except LinkError as exc:
+            return {"device": self.name, "device_state": "UNREACHABLE", "faults": str(exc), "angles_deg": None}
         return {"device": self.name, "device_state": P.State(state.state).name, "faults": faults_text(state.faults),
                 "angles_deg": _degrees(angle_from_counts(self.spec, state.counts))}
 

@@ -284,7 +284,6 @@ class LiveService:
 
     async def _lock(self, seq: int, approx) -> None:
         loop = asyncio.get_running_loop()
-        gen = self.target_gen
         self._broadcast({"type": "locked", "seq": seq, **approx.to_json()})
 
         def emit(event):
@@ -304,8 +303,6 @@ class LiveService:
         except WorkerError as exc:
             self.state = "idle"
             self._broadcast({"type": "stopped", "message": f"redirection field: {exc}", "angles_deg": None})
-            return
-        if gen != self.target_gen:
             return
         redirect(field, np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0, 0.0]]))  # loads the compiled kernel now
         self.field, self.state = field, "locked"
