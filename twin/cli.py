@@ -27,6 +27,8 @@ COMMANDS = {
     "calibrate": ("twin.commands.calibrate", "fit the twin's motor and gearbox parameters to recorded HIL runs"),
     "redirect": ("twin.commands.redirect", "pen redirection field of an approximation; redirect pen samples (CSV)"),
     "psychometric": ("twin.commands.psychometric", "psychometric fit of redirection trials: CDT and DT with CIs, plot"),
+    "serve": ("twin.commands.serve", "the live service for VR applications: pose in, approximation out, lock, pen"),
+    "play": ("twin.commands.play", "play synthetic VR sessions over the evaluation shapes against the live service"),
 }
 
 

@@ -1,0 +1,379 @@
+"""The live service (twin/live), run as `vrscroll serve` in its own process and talked to over
+loopback by the Python client (twin/live/client.py), with the emulator as the device where one
+is needed. The C# client's test is tests/test_live_unity.py.
+"""
+
+import asyncio
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from websockets.asyncio.client import connect
+
+from twin.cli import main as vrscroll
+from twin.live.client import LiveClient, LiveError
+from twin.live.messages import (MAX_CONTROL_BYTES, MAX_DATAGRAM_BYTES, ProtocolError, parse_control,
+                                parse_datagram, sample_datagram)
+from twin.live.player import stroke
+from twin.live.process import ServiceProcess
+from twin.morphpatch.approximation import Approximation, approximate, default_spec, pose_from_mm_deg
+from twin.morphpatch.fields import build_fields
+from twin.morphpatch.frame_metrics import frame_estimates
+from twin.morphpatch.redirection import build_field, threshold_summary
+from twin.morphpatch.shapes import load_shape
+from twin.morphpatch.surface_metrics import msd_hd, point_distances
+from twin.perception.thresholds import load_thresholds
+
+CYLINDER_START = ([10.0, 0.0, 190.0], [1.0, 0.0, 0.0, 0.0])  # mm, above the cylinder's top, level
+
+
+@pytest.fixture(scope="module")
+def twin_service(tmp_path_factory):
+    """A service without a device (locks morph the twin), the cylinder as its first target."""
+    with ServiceProcess("--shape", "cylinder", stderr_path=tmp_path_factory.mktemp("live") / "serve.err") as s:
+        yield s
+
+
+def run(coroutine):
+    return asyncio.run(asyncio.wait_for(coroutine, 120))
+
+
+async def first_approximation(client, timeout=5.0):
+    """Stream the cylinder start at 90 Hz until an approximation comes back."""
+    for _ in range(int(timeout * 90)):
+        client.send_pose(*CYLINDER_START)
+        try:
+            return await client.datagram("approximation", timeout=1 / 90)
+        except LiveError:
+            pass
+    raise AssertionError("no approximation")
+
+
+async def expect_error(client, code, source="control"):
+    event = await client.expect("error", timeout=5)
+    assert (event["code"], event["source"]) == (code, source), event
+    return event
+
+
+# ---- the wire format -----------------------------------------------------------------------
+
+@pytest.mark.parametrize("message, code", [
+    (b"\x00\x01", "malformed"), ("{", "malformed"), ("[1, 2]", "malformed"), ('{"type": "fly"}', "unknown_type"),
+    ('{"type": "hello", "protocol": 2, "role": "control"}', "malformed"),
+    ('{"type": "hello", "protocol": 1, "role": "king"}', "malformed"),
+    ('{"type": "target"}', "malformed"), ('{"type": "target", "shape": "cube", "mesh": {}}', "malformed"),
+    ("x" * (MAX_CONTROL_BYTES + 1), "oversized")])
+def test_bad_control_messages_are_named(message, code):
+    with pytest.raises(ProtocolError) as exc:
+        parse_control(message)
+    assert exc.value.code == code
+
+
+@pytest.mark.parametrize("data, code, words", [
+    (b"x" * (MAX_DATAGRAM_BYTES + 1), "oversized", "limit"), (b"\xff\xfe", "malformed", "not JSON"),
+    (b'{"type": "pose"}', "malformed", "session"), (b'{"type": "wave", "session": "s"}', "unknown_type", "wave"),
+    (sample_datagram("pose", "s", 1, [0, 0, float("nan")], [1, 0, 0, 0]), "malformed", "position_mm"),
+    (sample_datagram("pen", "s", 1, [0, 0, 0], [0, 0, 0, 0]), "malformed", "zero quaternion"),
+    (sample_datagram("pose", "s", -1, [0, 0, 0], [1, 0, 0, 0]), "malformed", "seq")])
+def test_bad_datagrams_are_named(data, code, words):
+    with pytest.raises(ProtocolError) as exc:
+        parse_datagram(data)
+    assert exc.value.code == code and words in str(exc.value)
+
+
+def test_a_datagram_round_trips_in_si():
+    sample = parse_datagram(sample_datagram("pen", "abc", 7, [10, 20, 30], [2, 0, 0, 0], t_s=1.5,
+                                            device_position_mm=[1, 2, 3], device_quat_wxyz=[0, 0, 0, 1]))
+    assert sample.seq == 7 and sample.t_s == 1.5
+    assert np.allclose(sample.position, [0.01, 0.02, 0.03]) and np.allclose(sample.quat, [1, 0, 0, 0])
+    assert np.allclose(sample.device_pose[:3, 3], [0.001, 0.002, 0.003])
+    assert np.allclose(sample.device_pose[:3, :3], np.diag([-1, -1, 1]))
+
+
+def test_frame_estimates_agree_with_the_exact_metrics(spec):
+    thresholds = load_thresholds()
+    for shape, start in [("cylinder", [10, 0, 190, 5, 5, 10]), ("stairs", [10, 0, 130, 0, -20, 5])]:
+        mesh = load_shape(shape)
+        fields = build_fields(mesh)
+        a = approximate(fields, pose_from_mm_deg(start), spec)
+        msd, share = frame_estimates(spec, fields, thresholds, a.root_pose, a.angles, a.widths)
+        exact_msd, _ = msd_hd(spec, mesh, a.root_pose, a.angles, a.widths)
+        exact_share = threshold_summary(build_field(spec, a.root_pose, a.angles, a.widths, mesh, fields))["share_within"]
+        assert abs(msd - exact_msd) < 0.3e-3 + 0.1 * exact_msd, (shape, msd, exact_msd)
+        assert abs(share - exact_share) < 0.1, (shape, share, exact_share)
+    # flat and 60 mm above the cylinder's top: beyond the 50 mm positional threshold everywhere
+    lifted = a.root_pose.copy()
+    lifted[:3, 3] = [0.0, 0.0, 0.21]
+    lifted[:3, :3] = np.eye(3)
+    msd, share = frame_estimates(spec, build_fields(load_shape("cylinder")), thresholds, lifted, np.zeros(6),
+                                 np.full(7, spec.flap_pitch))
+    assert msd > 0.05 and share == 0.0
+
+
+def test_bad_command_lines_are_one_line_errors(capsys):
+    assert vrscroll(["play", "--shapes", "teapot"]) == 2
+    assert vrscroll(["play", "--url", "nonsense", "--shapes", "cube"]) == 2
+    assert vrscroll(["serve", "--host", "10.1.2.3"]) == 2  # refused before anything is bound
+    err = capsys.readouterr().err
+    assert "unknown teapot" in err and "nonsense" in err and "--allow-remote" in err
+
+
+# ---- the service -----------------------------------------------------------------------------
+
+def test_bad_messages_get_errors_and_the_connection_stays_open(twin_service):
+    async def session():
+        async with LiveClient(twin_service.url, "observer") as observer:
+            await observer.send({"type": "lock"})
+            await expect_error(observer, "forbidden")
+        client = LiveClient(twin_service.url)
+        await client.connect()
+        for bad, code in [("not json", "malformed"), (b"\x01\x02", "malformed"), ('{"type": "fly"}', "unknown_type"),
+                          ("[" + " " * (MAX_CONTROL_BYTES + 10) + "]", "oversized"),
+                          ('{"type": "target", "shape": "teapot"}', "bad_target"),
+                          ('{"type": "target", "mesh": {"vertices_mm": [[0, 0, 0]], "faces": [[0, 1, 2]]}}',
+                           "malformed"),
+                          ('{"type": "hello", "protocol": 1, "role": "control"}', "out_of_order")]:
+            await client.send(bad)
+            await expect_error(client, code)
+        await client.send({"type": "lock"})  # nothing approximated yet on this session
+        await expect_error(client, "out_of_order")
+        first = await first_approximation(client)
+        # datagrams: pen before any lock, malformed, oversized, an old sequence number
+        client.send_pen([0, 0, 150], [1, 0, 0, 0])
+        await expect_error(client, "out_of_order", "datagram")
+        client.send_raw_datagram(b"{nope")
+        await expect_error(client, "malformed", "datagram")
+        client.send_raw_datagram(b" " * (MAX_DATAGRAM_BYTES + 100))
+        await expect_error(client, "oversized", "datagram")
+        client.send_raw_datagram(sample_datagram("pose", client.session, first["seq"], *CYLINDER_START))
+        await expect_error(client, "stale", "datagram")
+        # still served: a status, and a new pose still gets its approximation
+        status = await client.status()
+        assert status["counts"]["stale"] >= 1 and status["counts"]["malformed"] >= 3
+        assert (await first_approximation(client))["seq"] > first["seq"]
+        await client.close()
+
+    run(session())
+
+
+def test_nothing_but_hello_is_taken_before_hello(twin_service):
+    async def session():
+        async with connect(twin_service.url) as ws:
+            await ws.send(json.dumps({"type": "lock"}))
+            event = json.loads(await ws.recv())
+            assert event["code"] == "out_of_order" and "hello" in event["message"]
+            await ws.send(json.dumps({"type": "status"}))
+            assert json.loads(await ws.recv())["code"] == "out_of_order"
+
+    run(session())
+
+
+def test_a_second_controller_is_refused_and_observers_watch(twin_service):
+    async def session():
+        async with LiveClient(twin_service.url) as first, LiveClient(twin_service.url, "observer") as observer:
+            second = LiveClient(twin_service.url)
+            with pytest.raises(LiveError, match="controller_taken"):
+                await second.connect()
+            await second.send({"type": "hello", "protocol": 1, "role": "observer"})  # same connection, now watching
+            assert (await second.expect("welcome"))["role"] == "observer"
+            await second.send({"type": "target", "shape": "cube"})
+            await expect_error(second, "forbidden")
+            await first.set_target(shape="arch")
+            for watcher in (observer, second):
+                assert (await watcher.expect("target_ready"))["target"]["name"] == "arch"
+            await second.close()
+            await first.set_target(shape="cylinder")
+
+    run(session())
+
+
+def test_a_mesh_sent_as_the_target_is_approximated_and_an_open_one_refused(twin_service):
+    box = trimesh.creation.box([0.3, 0.3, 0.1])  # its top larger than the device
+    box.apply_translation([0, 0, 0.05])  # on the ground, top face at z = 100 mm
+    open_box = box.copy()
+    open_box.update_faces(np.arange(len(open_box.faces)) > 1)  # one side's two triangles gone
+
+    def mesh(m):
+        return {"vertices_mm": (m.vertices * 1e3).tolist(), "faces": m.faces.tolist()}
+
+    async def session():
+        async with LiveClient(twin_service.url) as client:
+            await client.send({"type": "target", "mesh": mesh(open_box)})
+            refused = await expect_error(client, "bad_target")
+            ready = await client.set_target(mesh=mesh(box))
+            client.send_pose([0, 0, 140], [1, 0, 0, 0])
+            approx = await client.datagram("approximation", timeout=5)
+            await client.set_target(shape="cylinder")
+            return refused, ready, approx
+
+    refused, ready, approx = run(session())
+    assert "mesh" in refused["message"]
+    assert ready["target"]["name"] == "mesh" and np.allclose(ready["target"]["bounds_mm"], [[-150, -150, 0], [150, 150, 100]])
+    # flat on the box's top: the anchor at 100 mm, hinges flat, the surface on the face
+    assert abs(approx["root_position_mm"][2] - 100) < 1 and max(map(abs, approx["angles_deg"])) < 1
+    assert approx["msd_estimate_mm"] < 0.5 and approx["share_within_estimate"] == 1.0
+
+
+def test_off_loopback_needs_the_flag_and_every_client_the_token(tmp_path):
+    assert vrscroll(["serve", "--host", "127.0.0.2"]) == 2  # not the loopback address, no --allow-remote
+    with ServiceProcess("--host", "127.0.0.2", "--allow-remote", "--token", "s3cret",
+                        stderr_path=tmp_path / "serve.err") as service:
+        assert service.url.startswith("ws://127.0.0.2:")
+
+        async def session():
+            for token in (None, "wrong"):
+                client = LiveClient(service.url, token=token)
+                with pytest.raises(LiveError, match="unauthorized"):
+                    await client.connect()
+                closed = await client.expect("closed")
+                assert closed["code"] == 1008
+            async with LiveClient(service.url, "observer", token="s3cret") as good:
+                assert good.welcome["role"] == "observer"
+
+        run(session())
+
+
+def test_memory_stays_bounded_under_a_flood_of_datagrams(twin_service):
+    """200 000 datagrams as fast as a loop can send them: valid, stale, malformed, pens out of turn."""
+    async def session():
+        async with LiveClient(twin_service.url) as client:
+            await first_approximation(client)
+
+            async def flood(n):
+                for k in range(n):
+                    kind = k % 4
+                    if kind == 0:
+                        client.send_pose(*CYLINDER_START)
+                    elif kind == 1:
+                        client.send_raw_datagram(sample_datagram("pose", client.session, 0, *CYLINDER_START))
+                    elif kind == 2:
+                        client.send_raw_datagram(b'{"type": "pose", "seq": "x"}')
+                    else:
+                        client.send_pen([0, 0, 150], [1, 0, 0, 0])
+                    if k % 200 == 0:
+                        await asyncio.sleep(0.001)  # bursts the service can mostly keep up with
+
+            await flood(40_000)
+            await asyncio.sleep(0.5)
+            before = twin_service.rss_bytes()
+            await flood(160_000)
+            await asyncio.sleep(0.5)
+            after = twin_service.rss_bytes()
+            status = await client.status()
+            errors = [e for e in client.history if e["type"] == "error"]
+            return before, after, status, errors
+
+    before, after, status, errors = run(session())
+    # 160 000 datagrams kept would be well over 100 MB of Python objects
+    assert after - before < 8e6, (before, after)
+    counts = status["counts"]
+    assert counts["datagrams"] > 40_000 and counts["stale"] > 10_000 and counts["pen_not_locked"] > 10_000
+    assert 0 < counts["approximations"] < counts["pose"]  # the newest pose wins; the rest were superseded
+    # errors reported with counts, not one per datagram: at most one per kind every 0.1 s
+    assert sum(e["count"] for e in errors) > 10 * len(errors)
+
+
+def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twin_service):
+    mesh = load_shape("cylinder")
+
+    async def session():
+        async with LiveClient(twin_service.url) as client, LiveClient(twin_service.url, "observer") as observer:
+            await first_approximation(client)
+            locked = await client.lock()
+            gate = await client.expect("gate")
+            progress = await client.expect("progress")
+            done = await client.expect("done", timeout=10)
+            assert (await observer.expect("done", timeout=10))["seq"] == locked["seq"]
+            approx = Approximation.from_json(locked)
+            points, quats = stroke(default_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths,
+                                   duration=0.1)
+            for p, q in zip(points, quats):
+                client.send_pen(p * 1e3, q)
+            replies = [await client.datagram("pen_redirected") for _ in points]
+            return gate, progress, done, points, replies
+
+    gate, progress, done, points, replies = run(session())
+    assert gate["passed"] and progress["source"] == "twin"
+    assert done["redirection"]["share_within"] > 0.9
+    virtual = np.array([r["position_mm"] for r in replies]) / 1e3
+    on_device = point_distances(mesh, points)
+    on_target = point_distances(mesh, virtual)
+    # the device is within a few mm of the cylinder; the redirected pen lands on it (the blur leaves < 1 mm)
+    assert on_device.max() > 1e-3 and on_target.max() < 1e-3, (on_device.max(), on_target.max())
+
+
+def test_a_pose_never_moves_the_device_and_a_controller_leaving_mid_morph_leaves_it_holding(emulator, tmp_path):
+    emu = emulator()
+    with ServiceProcess("--shape", "cylinder", "--port", emu.port, "--log", str(tmp_path / "session.jsonl"),
+                        stderr_path=tmp_path / "serve.err") as service:
+        async def session():
+            async with LiveClient(service.url, "observer") as observer:
+                client = LiveClient(service.url)
+                await client.connect()
+                for _ in range(45):  # half a second of poses
+                    client.send_pose(*CYLINDER_START)
+                    await asyncio.sleep(1 / 90)
+                await first_approximation(client)
+                await asyncio.sleep(0.1)
+                moved_by_poses = [e for e in emu.events("rx") if e["msg"] == "SET_TARGETS"]
+                locked = await client.lock()
+                await client.expect("progress", timeout=10)  # moving
+                await client.close()  # the VR application goes away mid-morph
+                done = await observer.expect("done", "stopped", timeout=10)
+                seen = [e["type"] for e in observer.history]
+                left = observer.history[seen.index("controller_left")]
+                assert left["state"] == "morphing" and seen.index("controller_left") < seen.index(done["type"])
+                await asyncio.sleep(0.6)  # three watchdog periods
+                async with LiveClient(service.url) as again:
+                    status = await again.status()
+                return moved_by_poses, locked, done, status
+
+        moved_by_poses, locked, done, status = run(session())
+    assert moved_by_poses == []
+    assert done["type"] == "done", done
+    assert status["device_state"] == "ACTIVE" and status["faults"] == "none"
+    assert np.allclose(status["angles_deg"], locked["angles_deg"], atol=1.0)
+    assert not [e for e in emu.events("rx") if e["msg"] == "ESTOP"]
+    # telemetry is switched off after the morph (the link would queue 500 frames a second for nobody)
+    rates = [e["rate_hz"] for e in emu.events("rx") if e["msg"] == "SET_TELEMETRY_RATE"]
+    assert rates[-1] == 0 and 500 in rates
+
+
+def test_a_device_that_goes_away_is_reported_and_the_service_stays(emulator, tmp_path):
+    emu = emulator()
+    with ServiceProcess("--shape", "cylinder", "--port", emu.port, "--log", str(tmp_path / "session.jsonl"),
+                        stderr_path=tmp_path / "serve.err") as service:
+        async def session():
+            async with LiveClient(service.url) as client:
+                assert (await client.status())["device_state"] == "IDLE"
+                emu.kill()  # the cable is pulled
+                await asyncio.sleep(0.3)
+                gone = await client.status()
+                await first_approximation(client)  # approximations go on without a device
+                await client.lock()
+                outcome = await client.expect("done", "refused", "stopped", timeout=10)
+                return gone, outcome, await client.status()
+
+        gone, outcome, after = run(session())
+    assert gone["device_state"] == "UNREACHABLE" and "went away" in gone["faults"]
+    assert outcome["type"] == "stopped" and "link" in outcome["message"]
+    assert after["state"] == "idle"
+
+
+@pytest.mark.parametrize("shapes", ["cylinder,stairs",
+                                    pytest.param(None, marks=pytest.mark.slow)])
+def test_session_player_against_the_emulator_locks_morphs_and_redirects_every_pen_sample(shapes, tmp_path, capsys):
+    out = tmp_path / "play.json"
+    args = ["play", "--json", str(out)] + (["--shapes", shapes] if shapes else [])
+    assert vrscroll(args) == 0, capsys.readouterr()
+    records = json.loads(out.read_text())
+    assert [r["shape"] for r in records] == (shapes.split(",") if shapes else
+                                             ["cube", "torus", "arch", "cone", "cylinder", "ellipsoid", "stairs",
+                                              "curved_stairs"])
+    for r in records:
+        assert r["morphed"] and r["attempts"][-1]["outcome"] == "done"
+        assert r["pen"]["sent"] == r["pen"]["redirected"] > 100
+        assert r["redirection"]["share_within"] > 0.5
+    assert "every pen sample redirected" in capsys.readouterr().out

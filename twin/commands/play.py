@@ -1,0 +1,85 @@
+"""`vrscroll play`: synthetic VR sessions over the evaluation shapes, played against the live service.
+
+With `--url` it plays against a running `vrscroll serve`. Without it, it starts its own:
+an emulated device (`vrscroll emulate`'s emulator on a pseudo-terminal) and `vrscroll serve
+--port` on it, on a free loopback port (`--no-device`: the service morphs the twin alone).
+The sessions are described in twin/live/player.py and docs/live.md. Exit status 0 when
+every shape locked, morphed and had every pen sample redirected; 1 otherwise.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import tempfile
+from pathlib import Path
+
+from websockets.exceptions import WebSocketException
+
+from twin.cli import UserError
+from twin.device.spec import load_spec
+from twin.link.emulator import EmulatorProcess
+from twin.live.player import play
+from twin.live.process import ServiceProcess
+from twin.morphpatch.approximation import VARIANTS
+from twin.morphpatch.shapes import shape_names
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--url", help="a running service (ws://host:port); default: start an emulator and a service")
+    p.add_argument("--token", help="the service's token, if it needs one")
+    p.add_argument("--no-device", action="store_true", help="without --url: the service morphs the twin alone")
+    p.add_argument("--variant", choices=VARIANTS, default="full", help="without --url: approximation variant")
+    p.add_argument("--shapes", default=",".join(shape_names()),
+                   help="comma-separated shapes (default all eight evaluation shapes)")
+    p.add_argument("--attempts", type=int, default=4, help="approaches per shape until one morphs (default 4)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the starts after each shape's own (default 0)")
+    p.add_argument("--json", metavar="FILE", help="write every session's record as JSON")
+
+
+def _line(r: dict) -> str:
+    tries = ", ".join(a["outcome"] for a in r["attempts"])
+    if not r["morphed"]:
+        return f"{r['shape']:<14} not morphed ({tries}): {r['attempts'][-1]['message'] if r['attempts'] else ''}"
+    pen, red = r["pen"], r["redirection"]
+    return (f"{r['shape']:<14} {tries:<28} morph {r['attempts'][-1]['morph_s']:5.2f} s  pen {pen['redirected']}/"
+            f"{pen['sent']} redirected, p99 {pen['latency_p99_ms']} ms, {pen['within_share']:.0%} within; surface "
+            f"{red['share_within']:.0%} within; approximation p99 {r['approximation_latency_p99_ms']} ms")
+
+
+def _play(args, spec, shapes) -> list[dict]:
+    """Start the emulator and the service unless --url, then play every shape; the records."""
+    with contextlib.ExitStack() as stack:
+        url = args.url
+        if url is None:
+            tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="vrscroll-play-")))
+            serve_args = ["--variant", args.variant]
+            if not args.no_device:
+                emulator = stack.enter_context(EmulatorProcess(tmp / "emulator.jsonl"))
+                serve_args += ["--port", emulator.port, "--log", str(tmp / "session.jsonl")]
+                print(f"emulator on {emulator.port}", flush=True)
+            service = stack.enter_context(ServiceProcess(*serve_args, stderr_path=tmp / "serve.stderr"))
+            url = service.url
+            print(service.banner.strip(), flush=True)
+        return asyncio.run(play(url, spec, shapes, args.token, args.attempts, args.seed,
+                                on_record=lambda r: print(_line(r), flush=True)))
+
+
+def run(args) -> int:
+    shapes = [s for s in args.shapes.split(",") if s]
+    unknown = [s for s in shapes if s not in shape_names()]
+    if unknown or not shapes:
+        raise UserError(f"--shapes: unknown {', '.join(unknown) or '(none given)'}; known: {', '.join(shape_names())}")
+    if args.attempts < 1:
+        raise UserError("--attempts must be at least 1")
+    try:
+        records = _play(args, load_spec(), shapes)
+    except (RuntimeError, OSError, WebSocketException) as exc:  # LiveError, a process that did not start, a bad URL
+        raise UserError(str(exc)) from None
+    if args.json:
+        Path(args.json).write_text(json.dumps(records, indent=2) + "\n")
+    ok = all(r["morphed"] and r["pen"]["redirected"] == r["pen"]["sent"] for r in records)
+    print(f"{sum(r['morphed'] for r in records)}/{len(records)} shapes morphed; "
+          + ("every pen sample redirected" if ok else "NOT every shape morphed with every pen sample redirected"))
+    return 0 if ok else 1

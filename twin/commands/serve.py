@@ -1,0 +1,78 @@
+"""`vrscroll serve`: the live service for VR applications (docs/live.md).
+
+On the loopback address by default. `--port` attaches the device (a serial port, or the
+emulator's pty); without it a lock morphs the twin alone. `--shape`/`--mesh` gives the
+first target (a client may send another). Serving beyond loopback needs `--allow-remote`
+and a token (`--token`, or the VRSCROLL_TOKEN environment variable) that every client presents.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import secrets
+import signal
+
+from twin.cli import UserError
+from twin.device.spec import load_spec
+from twin.link.serial_link import LinkError
+from twin.live.messages import DEFAULT_LISTEN_PORT
+from twin.live.morph import DeviceMorpher, TwinMorpher
+from twin.live.service import LOOPBACK, LiveService, ServiceConfig
+from twin.morphpatch.approximation import VARIANTS
+from twin.morphpatch.shapes import load_mesh, shape_names
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--port", help="the device: serial port or pyserial URL (e.g. the pty `vrscroll emulate` prints); "
+                   "without it a lock morphs the twin alone")
+    target = p.add_mutually_exclusive_group()
+    target.add_argument("--shape", choices=shape_names(), help="first target: one of the evaluation shapes")
+    target.add_argument("--mesh", metavar="FILE", help="first target: a watertight mesh file in metres")
+    p.add_argument("--variant", choices=VARIANTS, default="full", help="approximation variant (default full)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default the loopback 127.0.0.1)")
+    p.add_argument("--listen", type=int, default=DEFAULT_LISTEN_PORT,
+                   help="TCP (control) and UDP (pose, pen) port number; 0 picks a free one (default %(default)s)")
+    p.add_argument("--allow-remote", action="store_true", help="allow --host beyond loopback (needs a token)")
+    p.add_argument("--token", default=os.environ.get("VRSCROLL_TOKEN"),
+                   help="token every client must present (default $VRSCROLL_TOKEN; generated and printed when "
+                   "--allow-remote is given without one)")
+    p.add_argument("--log", default="vrscroll-live.jsonl", help="serial session log with --port (default %(default)s)")
+    p.add_argument("--tolerance-deg", type=float, default=5.0,
+                   help="e-stop when a hinge parts from the twin's prediction by more (default %(default)s)")
+
+
+def run(args) -> int:
+    spec = load_spec()
+    token = args.token
+    if args.allow_remote and not token and args.host not in LOOPBACK:
+        token = secrets.token_urlsafe(24)
+        print(f"token (give it to every client): {token}", flush=True)
+    mesh = None
+    if args.mesh:
+        loaded = load_mesh(args.mesh)
+        mesh = (loaded.vertices, loaded.faces)
+    morpher = (DeviceMorpher(spec, args.port, args.log, args.tolerance_deg) if args.port
+               else TwinMorpher(spec))
+    config = ServiceConfig(spec, morpher, host=args.host, listen=args.listen, token=token,
+                           allow_remote=args.allow_remote, variant=args.variant, shape=args.shape, mesh=mesh)
+    service = LiveService(config)
+
+    host = f"[{args.host}]" if ":" in args.host else args.host  # an IPv6 address in a URL
+
+    def ready(port):
+        print(f"vrscroll serve: listening on ws://{host}:{port} (control) and udp {host}:{port} "
+              f"(pose, pen); device: {morpher.name}; target: {service.target['name'] if service.target else 'none'}; "
+              f"variant {args.variant}" + ("; token required" if token else ""), flush=True)
+
+    async def main():
+        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, service.stop)
+        await service.run(ready)
+
+    try:
+        asyncio.run(main())
+    except LinkError as exc:
+        raise UserError(f"device: {exc}") from None
+    except OSError as exc:
+        raise UserError(f"cannot serve on {args.host}:{args.listen}: {exc}") from None
+    return 0

@@ -1,0 +1,185 @@
+"""A Python client of the live service (docs/live.md): the control channel and the datagram socket.
+
+    async with LiveClient("ws://127.0.0.1:8765") as client:
+        await client.set_target(shape="cylinder")
+        client.send_pose([10, 0, 190], [1, 0, 0, 0])          # mm, quaternion w first
+        approximation = await client.datagram("approximation")
+        await client.lock()
+        outcome = await client.expect("done", "refused", "stopped", timeout=10)
+        client.send_pen([0, 0, 150], [1, 0, 0, 0])
+        redirected = await client.datagram("pen_redirected")
+
+Events from the control channel and datagrams from the service are queued as they come
+(bounded: the oldest go first when a queue is full); every event is also kept in `history`.
+Times put in `t_s` are this process's `time.perf_counter()`, and each datagram reply is
+stamped `received_s` on arrival, so `latency(reply)` is the round trip of the sample it answers.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import json
+import time
+from urllib.parse import urlparse
+
+from websockets.asyncio.client import connect
+
+from twin.live.messages import MAX_FRAME_BYTES, PROTOCOL_VERSION, sample_datagram
+
+QUEUE = 4096  # datagram replies kept per kind before the oldest are dropped
+
+
+class LiveError(RuntimeError):
+    """The service refused (an "error" event where another was expected), or did not answer in time."""
+
+
+def _put(queue: asyncio.Queue, item) -> None:
+    if queue.full():
+        queue.get_nowait()
+    queue.put_nowait(item)
+
+
+class _Replies(asyncio.DatagramProtocol):
+    def __init__(self, client: "LiveClient"):
+        self.client = client
+
+    def datagram_received(self, data, addr) -> None:
+        obj = json.loads(data)
+        obj["received_s"] = time.perf_counter()
+        self.client.received[obj["type"]] += 1
+        _put(self.client._datagram_queues[obj["type"]], obj)
+
+
+class LiveClient:
+    """One connection: `role` "control" (streams and locks) or "observer" (events only)."""
+
+    def __init__(self, url: str, role: str = "control", token: str | None = None):
+        self.url, self.role, self.token = url, role, token
+        self.ws = None
+        self.welcome = None
+        self.history: list[dict] = []
+        self.received: collections.Counter = collections.Counter()  # datagrams received, by type
+        self._events: asyncio.Queue = asyncio.Queue()
+        self._datagram_queues = collections.defaultdict(lambda: asyncio.Queue(QUEUE))
+        self._udp = None
+        self._reader = None
+        self._seq = {"pose": 0, "pen": 0}
+
+    async def __aenter__(self) -> "LiveClient":
+        await self.connect()
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.close()
+
+    async def connect(self, timeout: float = 10.0) -> dict:
+        """Open the control channel, say hello, open the datagram socket; the welcome event (LiveError if refused)."""
+        self.ws = await connect(self.url, max_size=MAX_FRAME_BYTES, ping_interval=None)
+        self._reader = asyncio.create_task(self._read())
+        hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": self.role}
+        if self.token is not None:
+            hello["token"] = self.token
+        await self.send(hello)
+        self.welcome = await self.expect("welcome", timeout=timeout)
+        if self.role == "control":
+            host = urlparse(self.url).hostname
+            self._udp, _ = await asyncio.get_running_loop().create_datagram_endpoint(
+                lambda: _Replies(self), remote_addr=(host, self.welcome["udp_port"]))
+        return self.welcome
+
+    async def close(self) -> None:
+        if self._udp is not None:
+            self._udp.close()
+        if self.ws is not None:
+            await self.ws.close()
+        if self._reader is not None:
+            self._reader.cancel()
+
+    async def _read(self) -> None:
+        try:
+            async for message in self.ws:
+                event = json.loads(message)
+                self.history.append(event)
+                self._events.put_nowait(event)
+        finally:
+            self._events.put_nowait({"type": "closed", "code": self.ws.close_code, "reason": self.ws.close_reason})
+
+    # ---- control channel --------------------------------------------------------------------
+    async def send(self, message) -> None:
+        """A control message: a dict (sent as JSON), or text/bytes as they are."""
+        await self.ws.send(json.dumps(message) if isinstance(message, dict) else message)
+
+    async def expect(self, *types: str, timeout: float = 10.0) -> dict:
+        """The next event of one of `types`, skipping others (they stay in `history`).
+
+        LiveError on an "error" about a control message (unless "error" is asked for; datagram errors are
+        only kept in `history`), on the connection closing, or on timeout.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                event = await asyncio.wait_for(self._events.get(), max(0.0, deadline - time.monotonic()))
+            except TimeoutError:
+                raise LiveError(f"no {' or '.join(types)} within {timeout:g} s") from None
+            if event["type"] in types:
+                return event
+            if event["type"] == "closed" or (event["type"] == "error" and event["source"] == "control"):
+                raise LiveError(f"{event['type']}: {event.get('code', '')} {event.get('message', event.get('reason'))}")
+
+    async def set_target(self, shape: str | None = None, mesh: dict | None = None, timeout: float = 60.0) -> dict:
+        """Name a shape, or send a mesh {vertices_mm, faces}; the target_ready event."""
+        await self.send({"type": "target", **({"shape": shape} if shape is not None else {"mesh": mesh})})
+        return await self.expect("target_ready", timeout=timeout)
+
+    async def lock(self) -> dict:
+        """Lock the newest approximation; the "locked" event (then await done, refused or stopped)."""
+        await self.send({"type": "lock"})
+        return await self.expect("locked")
+
+    async def status(self) -> dict:
+        await self.send({"type": "status"})
+        return await self.expect("status")
+
+    # ---- datagrams ------------------------------------------------------------------------------
+    def _send_sample(self, kind: str, position_mm, quat_wxyz, **extra) -> int:
+        seq = self._seq[kind]
+        self._seq[kind] += 1
+        self._udp.sendto(sample_datagram(kind, self.welcome["session"], seq, position_mm, quat_wxyz,
+                                         t_s=time.perf_counter(), **extra))
+        return seq
+
+    def send_pose(self, position_mm, quat_wxyz) -> int:
+        """The tracked device pose (anchor, target's frame): mm and a quaternion w first; returns its seq."""
+        return self._send_sample("pose", position_mm, quat_wxyz)
+
+    def send_pen(self, position_mm, quat_wxyz, device_position_mm=None, device_quat_wxyz=None) -> int:
+        """A pen sample (tip, mm; orientation w first), optionally with the device pose it was tracked with."""
+        return self._send_sample("pen", position_mm, quat_wxyz, device_position_mm=device_position_mm,
+                                 device_quat_wxyz=device_quat_wxyz)
+
+    def send_raw_datagram(self, data: bytes) -> None:
+        self._udp.sendto(data)
+
+    async def datagram(self, kind: str, timeout: float = 2.0) -> dict:
+        """The next "approximation" or "pen_redirected" datagram; LiveError after `timeout` s."""
+        try:
+            return await asyncio.wait_for(self._datagram_queues[kind].get(), timeout)
+        except TimeoutError:
+            raise LiveError(f"no {kind} datagram within {timeout:g} s") from None
+
+    def drain(self, kind: str) -> list[dict]:
+        """Every queued datagram of `kind`, oldest first."""
+        queue, out = self._datagram_queues[kind], []
+        while not queue.empty():
+            out.append(queue.get_nowait())
+        return out
+
+    @property
+    def session(self) -> str:
+        return self.welcome["session"]
+
+
+def latency(reply: dict) -> float:
+    """s from sending the sample (its t_s) to receiving the reply."""
+    return reply["received_s"] - reply["t_s"]

@@ -1,0 +1,169 @@
+"""What a lock does to the hardware: gate the move on the twin, then morph the device (or the twin alone).
+
+Both morphers run in a thread (they block) and report through `emit(event)`, called from
+that thread with the control channel's event dicts (docs/live.md): "gate" (the gate's
+report), "progress" (hinge angles as the device reports them, or as the twin predicts
+them, at PROGRESS_HZ), and return a MorphOutcome that the service turns into "done",
+"refused" or "stopped".
+
+- `DeviceMorpher`: over the serial link, `twin.hil.mirror.mirror` (state, device gains,
+  the gate's `check_move` from the device's present angles, send, watch, e-stop on
+  divergence). The gate's report is the one mirror writes to the session log.
+- `TwinMorpher`: no device: the gate simulates the move on the twin, and its predicted
+  trace is played out in real time as the progress.
+
+A client that leaves mid-morph does not stop it: the move was gated whole, so it is
+finished and held (docs/live.md says why).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+
+import numpy as np
+
+from controllers.encoder import angle_from_counts
+from twin.device.spec import DeviceSpec
+from twin.hil.mirror import DeviceNotReady, faults_text, mirror
+from twin.link import protocol as P
+from twin.link.serial_link import Link, LinkError
+from twin.live.messages import PROGRESS_HZ
+from twin.sim.gate import GateRefused, check_move
+from twin.sim.simulation import Twin
+
+SETTLE_LIMIT = 2.0  # s a morph may take (the gate's settle check and mirror's watch)
+
+
+@dataclasses.dataclass
+class MorphOutcome:
+    status: str  # "done", "refused" (nothing moved) or "stopped" (the device stopped mid-way)
+    final: np.ndarray | None  # rad, the hinge angles where the device ended (None when refused)
+    message: str
+
+
+def _degrees(angles) -> list[float]:
+    return [round(math.degrees(a), 3) for a in angles]
+
+
+class _Throttle:
+    """True at most `rate_hz` times per second of the given clock (and always for the first)."""
+
+    def __init__(self, rate_hz: float):
+        self.period, self.last = 1.0 / rate_hz, -math.inf
+
+    def due(self, t: float) -> bool:
+        if t - self.last >= self.period:
+            self.last = t
+            return True
+        return False
+
+
+class _ReportingLink(Link):
+    """A Link whose session-log events also go to `listener(event, fields)`: the gate report mirror logs."""
+
+    listener = None
+
+    def log(self, event: str, **fields) -> None:
+        super().log(event, **fields)
+        listener = self.listener
+        if listener is not None:
+            listener(event, fields)
+
+
+class DeviceMorpher:
+    """The device on a serial port (or the emulator's pty); the link stays open, so the device holds."""
+
+    def __init__(self, spec: DeviceSpec, port: str, log_path=None, tolerance_deg: float = 5.0):
+        self.spec = spec
+        self.tolerance_deg = tolerance_deg
+        self.link = _ReportingLink(port, log_path=log_path, log_telemetry=False)
+        self.name = f"device on {port}"
+
+    def open(self) -> None:
+        self.link.open()
+
+    def morph(self, targets, emit) -> MorphOutcome:
+        throttle = _Throttle(PROGRESS_HZ)
+
+        def on_log(event, fields):
+            if event == "gate":
+                emit({"type": "gate", **fields})
+
+        def on_frame(elapsed, device_deg, predicted_deg):
+            if throttle.due(elapsed):
+                emit({"type": "progress", "elapsed_s": round(elapsed, 4), "source": "device",
+                      "angles_deg": np.round(device_deg, 3).tolist(),
+                      "predicted_deg": np.round(predicted_deg, 3).tolist()})
+
+        self.link.listener = on_log
+        try:
+            result = mirror(self.link, self.spec, targets, tolerance_deg=self.tolerance_deg,
+                            settle_limit=SETTLE_LIMIT, on_frame=on_frame)
+        except GateRefused as exc:
+            return MorphOutcome("refused", None, str(exc))
+        except DeviceNotReady as exc:
+            return MorphOutcome("refused", None, str(exc))
+        except LinkError as exc:
+            return MorphOutcome("stopped", None, f"link: {exc}")
+        finally:
+            self.link.listener = None
+            self._quiet()
+        return MorphOutcome("done" if result.ok else "stopped", np.radians(result.final_deg), result.message)
+
+    def _quiet(self) -> None:
+        """Telemetry off between morphs: the link queues every frame until it is read, and nothing reads it then."""
+        try:
+            self.link.set_telemetry_rate(0)
+        except LinkError:
+            pass  # the link is gone; the next lock says so
+        self.link.drain_telemetry()
+
+    def status(self) -> dict:
+        try:
+            state = self.link.get_state()
+        except LinkError as exc:
+            return {"device": self.name, "device_state": "UNREACHABLE", "faults": str(exc), "angles_deg": None}
+        return {"device": self.name, "device_state": P.State(state.state).name, "faults": faults_text(state.faults),
+                "angles_deg": _degrees(angle_from_counts(self.spec, state.counts))}
+
+    def close(self) -> None:
+        self.link.close()
+
+
+class TwinMorpher:
+    """No device: the twin is the device; it holds the angles its last morph reached."""
+
+    def __init__(self, spec: DeviceSpec, gains=None):
+        self.spec = spec
+        self.gains = gains
+        self.twin = None
+        self.angles = np.zeros(spec.n_hinges)
+        self.name = "twin (no device attached)"
+
+    def open(self) -> None:
+        self.twin = Twin(self.spec, self.gains)
+
+    def morph(self, targets, emit) -> MorphOutcome:
+        report = check_move(self.spec, self.angles, targets, self.gains, settle_limit=SETTLE_LIMIT, twin=self.twin)
+        emit({"type": "gate", **report.to_dict()})
+        if not report.passed:
+            return MorphOutcome("refused", None, report.refusal())
+        trace = report.prediction
+        t0 = time.monotonic()
+        step = 1.0 / PROGRESS_HZ
+        for k in range(int(trace.duration / step) + 1):
+            time.sleep(max(0.0, t0 + k * step - time.monotonic()))
+            row = min(int(round(k * step / self.spec.firmware_dt)), len(trace.time) - 1)
+            angles = _degrees(trace.angle[row])
+            emit({"type": "progress", "elapsed_s": round(k * step, 4), "source": "twin",
+                  "angles_deg": angles, "predicted_deg": angles})
+        self.angles = trace.angle[-1].copy()
+        return MorphOutcome("done", self.angles.copy(), f"the twin settled in {trace.duration:.3f} s")
+
+    def status(self) -> dict:
+        return {"device": self.name, "device_state": "TWIN", "faults": "none", "angles_deg": _degrees(self.angles)}
+
+    def close(self) -> None:
+        self.twin = None

@@ -1,0 +1,389 @@
+"""The live service: one asyncio loop serving the control channel and the datagram streams.
+
+- Control channel (WebSocket): hello (role, token), target, lock, status; events back to the
+  controller and every observer. One controlling client at a time.
+- Datagrams (UDP, same port number): the controller's pose and pen samples. Each stream keeps
+  only its newest sample: an older sequence number is dropped as stale, a pose that arrives
+  before the previous one was approximated replaces it. Memory per stream is one sample.
+- The worker process approximates the newest pose at most APPROXIMATION_RATE_HZ times a second
+  and the reply goes back as a datagram. A pose never moves the device.
+- Lock: the newest approximation's hinge angles go through the morpher (gate, then the device or
+  the twin) in a thread; once done, the redirection field of the reached shape is built by the
+  worker and pen samples are redirected here, as they arrive.
+
+Errors in a client's messages are answered with an "error" event; the connection stays open.
+Datagram errors are reported at most every ERROR_INTERVAL s per kind, with a count.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import dataclasses
+import hmac
+import json
+import math
+import secrets
+import time
+
+import numpy as np
+from websockets.asyncio.server import serve
+from websockets.exceptions import ConnectionClosed
+
+from twin.device.spec import DeviceSpec
+from twin.live.messages import (APPROXIMATION_RATE_HZ, DEFAULT_LISTEN_PORT, ERROR_INTERVAL, MAX_CONTROL_BYTES,
+                                MAX_DATAGRAM_BYTES, MAX_FRAME_BYTES, PROTOCOL_VERSION, ProtocolError,
+                                approximation_datagram, error, mesh_arrays, parse_control, parse_datagram,
+                                pen_datagram)
+from twin.live.morph import MorphOutcome
+from twin.live.worker import Worker, WorkerError
+from twin.morphpatch.redirection import redirect, within_samples
+from twin.morphpatch.shapes import shape_names
+from twin.perception.thresholds import load_thresholds
+
+LOOPBACK = ("127.0.0.1", "::1", "localhost")
+EVENT_QUEUE = 256  # events waiting for one slow client; beyond this they are dropped and counted
+PING_INTERVAL = 20.0  # s: a client that answers no ping for this long after one is dropped (its role freed)
+RATE_BURST = 2.0  # approximations the rate limit lets through back to back
+LATENCY_WINDOW = 2000  # service-side latencies kept for `status` (most recent)
+
+
+def check_exposure(host: str, allow_remote: bool, token: str | None) -> None:
+    """ValueError unless the address is loopback, or remote serving was asked for with a token."""
+    if host in LOOPBACK:
+        return
+    if not allow_remote:
+        raise ValueError(f"--host {host}: serving beyond the loopback address (127.0.0.1, ::1) needs "
+                         "--allow-remote, and every client must then present the token")
+    if not token:
+        raise ValueError(f"--host {host}: serving beyond loopback needs a token (--token, or VRSCROLL_TOKEN)")
+
+
+@dataclasses.dataclass
+class ServiceConfig:
+    """What `vrscroll serve` starts. spec/gains: the twin's (a device profile will set them)."""
+
+    spec: DeviceSpec
+    morpher: object  # morph.DeviceMorpher or morph.TwinMorpher
+    host: str = "127.0.0.1"
+    listen: int = DEFAULT_LISTEN_PORT  # 0: any free port
+    token: str | None = None
+    allow_remote: bool = False
+    variant: str = "full"
+    shape: str | None = None  # the initial target: a named shape ...
+    mesh: tuple | None = None  # ... or (vertices (V, 3) m, faces (F, 3))
+
+
+class _Client:
+    """One control-channel connection: its role, its session secret, its event queue and error reports."""
+
+    def __init__(self, ws):
+        self.ws = ws
+        self.role = None
+        self.session = None
+        self.udp_addr = None
+        self.last_seq = {"pose": -1, "pen": -1}
+        self.events: asyncio.Queue = asyncio.Queue(EVENT_QUEUE)
+        self.dropped_events = 0
+        self._reported: dict[str, float] = {}
+        self._unreported: collections.Counter = collections.Counter()
+
+    def send(self, event: dict) -> None:
+        try:
+            self.events.put_nowait(event)
+        except asyncio.QueueFull:
+            self.dropped_events += 1
+
+    def report(self, code: str, message: str) -> None:
+        """A datagram error, rate-limited per code; the count says how many since the last report."""
+        self._unreported[code] += 1
+        now = time.monotonic()
+        if now - self._reported.get(code, -math.inf) >= ERROR_INTERVAL:
+            self._reported[code] = now
+            self.send(error(code, message, "datagram", self._unreported.pop(code)))
+
+    async def pump(self) -> None:
+        try:
+            while True:
+                event = await self.events.get()
+                await self.ws.send(json.dumps(event))
+        except ConnectionClosed:
+            pass
+
+
+class _Datagrams(asyncio.DatagramProtocol):
+    def __init__(self, service: "LiveService"):
+        self.service = service
+
+    def datagram_received(self, data: bytes, addr) -> None:
+        self.service.on_datagram(data, addr)
+
+
+class LiveService:
+    """The service's state; `run()` serves until `stop()`."""
+
+    def __init__(self, config: ServiceConfig):
+        check_exposure(config.host, config.allow_remote, config.token)
+        self.config = config
+        self.spec = config.spec
+        self.morpher = config.morpher
+        self.worker = Worker(config.spec, config.variant)
+        self.thresholds = load_thresholds()
+        self.port = None
+        self.controller: _Client | None = None
+        self.observers: set[_Client] = set()
+        self.target = None  # info of the target the worker holds
+        self.target_gen = 0  # +1 per target change: approximations of an older target are not sent
+        self.state = "idle"  # "idle", "morphing" or "locked" (pen samples redirected)
+        self.field = None
+        self.latest = None  # (target_gen, pose seq, Approximation)
+        self.counts: collections.Counter = collections.Counter()
+        self.latency = collections.deque(maxlen=LATENCY_WINDOW)  # s, pose arrival -> approximation sent
+        self.pen_latency = collections.deque(maxlen=LATENCY_WINDOW)  # s, pen arrival -> redirected sent
+        self._pose = None  # (Sample, client, arrival time): the newest pose not yet approximated
+        self._pose_ready = asyncio.Event()
+        self._udp = None
+        self._stop = None
+        self._tasks: set[asyncio.Task] = set()
+
+    # ---- running ------------------------------------------------------------------------
+    async def run(self, ready=None) -> None:
+        """Start the worker, the initial target, the morpher and both sockets; ready(port) once serving."""
+        loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        self.worker.start()
+        try:
+            if self.config.shape or self.config.mesh:
+                vertices, faces = self.config.mesh or (None, None)
+                await self._load_target(self.config.shape, vertices, faces)
+            await asyncio.to_thread(self.morpher.open)
+            async with serve(self._connection, self.config.host, self.config.listen, max_size=MAX_FRAME_BYTES,
+                             ping_interval=PING_INTERVAL, ping_timeout=PING_INTERVAL) as server:
+                self.port = server.sockets[0].getsockname()[1]
+                self._udp, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self),
+                                                                   local_addr=(self.config.host, self.port))
+                self._spawn(self._approximate_forever())
+                if ready:
+                    ready(self.port)
+                await self._stop.wait()
+        finally:
+            for task in self._tasks:
+                task.cancel()
+            if self._udp is not None:
+                self._udp.close()
+            self.worker.stop()
+            await asyncio.to_thread(self.morpher.close)
+
+    def stop(self) -> None:
+        """Stop serving (from the loop's thread)."""
+        if self._stop is not None:
+            self._stop.set()
+
+    def _spawn(self, coroutine) -> asyncio.Task:
+        task = asyncio.create_task(coroutine)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    def _broadcast(self, event: dict) -> None:
+        for client in ([self.controller] if self.controller else []) + list(self.observers):
+            client.send(event)
+
+    # ---- control channel ----------------------------------------------------------------
+    async def _connection(self, ws) -> None:
+        client = _Client(ws)
+        pump = self._spawn(client.pump())
+        try:
+            async for message in ws:
+                try:
+                    await self._dispatch(client, parse_control(message))
+                except ProtocolError as exc:
+                    self.counts[exc.code] += 1
+                    if exc.code == "unauthorized":  # said at once, not queued behind events, then closed
+                        await ws.send(json.dumps(error(exc.code, str(exc))))
+                        await ws.close(1008, "unauthorized")
+                        return
+                    client.send(error(exc.code, str(exc)))
+        except ConnectionClosed:
+            pass
+        finally:
+            pump.cancel()
+            self._leave(client)
+
+    def _leave(self, client: _Client) -> None:
+        self.observers.discard(client)
+        if client is self.controller:
+            self.controller = None
+            self._pose = None
+            self._broadcast({"type": "controller_left", "state": self.state})
+
+    async def _dispatch(self, client: _Client, msg: dict) -> None:
+        kind = msg["type"]
+        if kind == "hello":
+            return self._hello(client, msg)
+        if client.role is None:
+            raise ProtocolError("out_of_order", f"{kind} before hello: send hello first")
+        if kind == "status":
+            return client.send(await self._status())
+        if client is not self.controller:
+            raise ProtocolError("forbidden", f"{kind}: observers only watch; connect with role 'control'")
+        if self.state == "morphing":
+            raise ProtocolError("out_of_order", f"{kind} during a morph: wait for done, refused or stopped")
+        if kind == "target":
+            vertices, faces = mesh_arrays(msg["mesh"]) if "mesh" in msg else (None, None)
+            if "shape" in msg and msg["shape"] not in shape_names():
+                raise ProtocolError("bad_target", f"unknown shape {msg['shape']!r}; known: {', '.join(shape_names())}")
+            try:
+                await self._load_target(msg.get("shape"), vertices, faces)
+            except WorkerError as exc:
+                raise ProtocolError("bad_target", str(exc)) from None
+            return
+        # lock
+        if self.latest is None or self.latest[0] != self.target_gen:
+            raise ProtocolError("out_of_order", "lock before any approximation of this target: stream poses first")
+        self.state = "morphing"
+        self._spawn(self._lock(*self.latest[1:]))
+
+    def _hello(self, client: _Client, msg: dict) -> None:
+        if client.role is not None:
+            raise ProtocolError("out_of_order", "hello twice on one connection")
+        token = self.config.token
+        if token and not hmac.compare_digest(msg.get("token", "").encode(), token.encode()):
+            raise ProtocolError("unauthorized", "this service needs a token, and the one given is not it")
+        if msg["role"] == "control":
+            if self.controller is not None:
+                raise ProtocolError("controller_taken", "another client controls the service; connect as 'observer'")
+            self.controller = client
+            client.session = secrets.token_hex(16)
+            self.latest = None
+        else:
+            self.observers.add(client)
+        client.role = msg["role"]
+        client.send({"type": "welcome", "protocol": PROTOCOL_VERSION, "role": client.role, "session": client.session,
+                     "udp_port": self.port, "variant": self.config.variant, "device": self.morpher.name,
+                     "target": self.target, "state": self.state, "approximation_rate_hz": APPROXIMATION_RATE_HZ,
+                     "max_control_bytes": MAX_CONTROL_BYTES, "max_datagram_bytes": MAX_DATAGRAM_BYTES})
+
+    async def _load_target(self, shape, vertices, faces) -> None:
+        self.target_gen += 1
+        self.target, self.state, self.field, self.latest = None, "idle", None, None
+        self.target = await self.worker.call("target", shape, vertices, faces)
+        self._broadcast({"type": "target_ready", "target": self.target})
+
+    async def _status(self) -> dict:
+        device = await asyncio.to_thread(self.morpher.status)
+
+        def ms(values, q):
+            return round(float(np.percentile(values, q)) * 1e3, 3) if values else None
+
+        return {"type": "status", "state": self.state, "target": self.target, "variant": self.config.variant,
+                "controller": self.controller is not None, "observers": len(self.observers), **device,
+                "counts": dict(self.counts),
+                "approximation_latency_ms": {"p50": ms(self.latency, 50), "p99": ms(self.latency, 99)},
+                "pen_latency_ms": {"p50": ms(self.pen_latency, 50), "p99": ms(self.pen_latency, 99)}}
+
+    async def _lock(self, seq: int, approx) -> None:
+        loop = asyncio.get_running_loop()
+        self._broadcast({"type": "locked", "seq": seq, **approx.to_json()})
+
+        def emit(event):
+            loop.call_soon_threadsafe(self._broadcast, event)
+
+        try:
+            outcome = await asyncio.to_thread(self.morpher.morph, approx.angles, emit)
+        except Exception as exc:  # the morph thread's boundary: report it, and never stay "morphing"
+            outcome = MorphOutcome("stopped", None, f"{type(exc).__name__}: {exc}")
+        if outcome.status != "done":
+            self.state = "idle"
+            self._broadcast({"type": outcome.status, "message": outcome.message,
+                             "angles_deg": None if outcome.final is None else np.degrees(outcome.final).round(3).tolist()})
+            return
+        try:
+            field, summary = await self.worker.call("field", approx.root_pose, outcome.final, approx.widths)
+        except WorkerError as exc:
+            self.state = "idle"
+            self._broadcast({"type": "stopped", "message": f"redirection field: {exc}", "angles_deg": None})
+            return
+        redirect(field, np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0, 0.0]]))  # loads the compiled kernel now
+        self.field, self.state = field, "locked"
+        self._broadcast({"type": "done", "message": outcome.message, "seq": seq,
+                         "angles_deg": np.degrees(outcome.final).round(3).tolist(), "redirection": summary})
+
+    # ---- datagrams ------------------------------------------------------------------------
+    def on_datagram(self, data: bytes, addr) -> None:
+        arrived = time.perf_counter()
+        self.counts["datagrams"] += 1
+        client = self.controller
+        known = client is not None and client.udp_addr == addr
+        try:
+            sample = parse_datagram(data)
+        except ProtocolError as exc:
+            self.counts[exc.code] += 1
+            if known:
+                client.report(exc.code, str(exc))
+            return
+        if client is None or not hmac.compare_digest(sample.session.encode(), client.session.encode()):
+            self.counts["unknown_session"] += 1
+            return
+        client.udp_addr = addr
+        last = client.last_seq[sample.kind]
+        if sample.seq <= last:
+            self.counts["stale"] += 1
+            client.report("stale", f"{sample.kind} seq {sample.seq} after {last}: dropped (the newest wins)")
+            return
+        if last >= 0:
+            self.counts["missing"] += sample.seq - last - 1
+        client.last_seq[sample.kind] = sample.seq
+        self.counts[sample.kind] += 1
+        if sample.kind == "pose":
+            if self._pose is not None:
+                self.counts["superseded"] += 1
+            self._pose = (sample, client, arrived)
+            self._pose_ready.set()
+        elif self.state != "locked":
+            self.counts["pen_not_locked"] += 1
+            client.report("out_of_order", "pen sample before a lock's morph is done: not redirected")
+        else:
+            r = redirect(self.field, sample.position[None], sample.quat[None],
+                         None if sample.device_pose is None else sample.device_pose[None])
+            within = bool(within_samples(r, self.thresholds)[0])
+            self._udp.sendto(pen_datagram(sample.seq, sample.t_s, r.position[0], r.orientation[0], r.offset[0],
+                                          r.angle[0], r.height[0], r.flap[0], within), addr)
+            self.counts["pen_redirected"] += 1
+            self.pen_latency.append(time.perf_counter() - arrived)
+
+    async def _approximate_forever(self) -> None:
+        # a token bucket: on average at most APPROXIMATION_RATE_HZ, with a burst of RATE_BURST so that
+        # poses sent at that rate are not held back by their arrival jitter
+        loop = asyncio.get_running_loop()
+        rate = APPROXIMATION_RATE_HZ
+        tokens, last = RATE_BURST, loop.time()
+        while True:
+            await self._pose_ready.wait()
+            self._pose_ready.clear()
+            now = loop.time()
+            tokens, last = min(RATE_BURST, tokens + (now - last) * rate), now
+            if tokens < 1.0:
+                await asyncio.sleep((1.0 - tokens) / rate)
+                tokens, last = 1.0, loop.time()
+            tokens -= 1.0
+            if self._pose is None:
+                continue
+            sample, client, arrived = self._pose
+            self._pose = None
+            if self.target is None:
+                client.report("out_of_order", "pose before a target: send target first")
+                continue
+            gen = self.target_gen
+            try:
+                approx, msd, share = await self.worker.call("approximate", sample.pose())
+            except WorkerError as exc:
+                client.report("approximation_failed", str(exc))
+                continue
+            if gen != self.target_gen or client is not self.controller:
+                continue
+            self.latest = (gen, sample.seq, approx)
+            self._udp.sendto(approximation_datagram(sample.seq, sample.t_s, approx.to_json(), msd, share),
+                             client.udp_addr)
+            self.counts["approximations"] += 1
+            self.latency.append(time.perf_counter() - arrived)
