@@ -43,3 +43,10 @@ def test_demo_approximates_validates_simulates_and_draws(tmp_path):
     assert report["approximation"]["msd_mm"] < 2.0  # the cylinder is followed closely
     assert report["morph"]["msd_after_morph_mm"] < report["approximation"]["msd_mm"] + 1.0
     assert png.stat().st_size > 10_000
+
+
+def test_user_error_is_one_line_under_python_dash_m():
+    """`python -m twin.cli` runs the module as __main__; its UserError must still be caught (no traceback)."""
+    r = vrscroll("approximate", "--shape", "cube", "--start", "1,2")
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr and "expected six finite numbers" in r.stderr

@@ -58,4 +58,8 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # run the package's module, not this __main__ copy: the commands raise twin.cli.UserError, which
+    # only the package module's main() catches
+    from twin.cli import main as package_main
+
+    sys.exit(package_main())
