@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
 from twin.morphpatch.approximation import VARIANTS, approximate, default_spec  # noqa: E402
-from twin.morphpatch.fields import SPACING, build_fields, exact_signed_distance  # noqa: E402
+from twin.morphpatch.fields import GRID_SPACING, build_fields, exact_signed_distance  # noqa: E402
 from twin.morphpatch.shapes import load_shape, shape_names  # noqa: E402
 from twin.evaluation.starts import approach_starts  # noqa: E402
 from twin.morphpatch.surface_metrics import msd_hd  # noqa: E402
@@ -30,7 +30,7 @@ from twin.morphpatch.surface_metrics import msd_hd  # noqa: E402
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--starts", type=int, default=50)
-    parser.add_argument("--spacing", type=float, default=SPACING, help="grid spacing, m")
+    parser.add_argument("--spacing", type=float, default=GRID_SPACING, help="grid spacing, m")
     args = parser.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
