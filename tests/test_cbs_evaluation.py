@@ -69,6 +69,15 @@ def test_starts_are_seeded_and_documented():
     assert tilt.max() <= MAX_TILT + math.radians(1.0)
 
 
+@pytest.mark.parametrize("name", ["cube", "torus", "stairs", "curved_stairs"])
+def test_starts_come_from_where_a_user_is(name):
+    """Above the plane the shape rests on and outside it (before: 6-20 of 50 from beneath the ground)."""
+    mesh = load_shape(name)
+    anchors = approach_starts(mesh, 50, seed=0)[:, :3, 3]
+    assert np.all(anchors[:, 2] > mesh.bounds[0][2])
+    assert np.all(exact_signed_distance(mesh, anchors)[0] > 0.0)
+
+
 def test_small_evaluation_keeps_the_papers_order_and_resumes(tmp_path):
     shapes = ["cube", "torus", "arch", "cone", "cylinder", "ellipsoid", "stairs", "curved_stairs"]
     out = tmp_path / "ev"
