@@ -20,7 +20,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
-from twin.morphpatch.approximation import VARIANTS, approximate, default_spec  # noqa: E402
+from twin.device.spec import load_spec  # noqa: E402
+from twin.morphpatch.approximation import VARIANTS, approximate  # noqa: E402
 from twin.morphpatch.fields import GRID_SPACING, build_fields, exact_signed_distance  # noqa: E402
 from twin.morphpatch.shapes import load_shape, shape_names  # noqa: E402
 from twin.evaluation.starts import approach_starts  # noqa: E402
@@ -34,7 +35,7 @@ def main() -> None:
     args = parser.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
-    spec = default_spec()
+    spec = load_spec()
     times = []
     print(f"grid spacing {args.spacing * 1e3:g} mm, {args.starts} starts per shape, one core")
     print(f"{'shape':14s} {'grid':>15s} {'build_s':>7s} {'err_mean_mm':>11s} {'err_p99_mm':>10s} "

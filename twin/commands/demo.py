@@ -12,7 +12,8 @@ import math
 
 import numpy as np
 
-from twin.morphpatch.approximation import approximate, default_spec, pose_from_mm_deg
+from twin.device.spec import load_spec
+from twin.morphpatch.approximation import approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.sim.gate import check_move, redirection_check
 from twin.device.kinematics import flap_frames
@@ -31,7 +32,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    spec = default_spec()
+    spec = load_spec()
     mesh = load_shape(args.shape)
     print(f"[1/5] fields of {args.shape} (cached after the first run) ...", flush=True)
     fields = build_fields(mesh)

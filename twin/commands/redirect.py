@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.morphpatch.approximation import Approximation, default_spec
+from twin.device.spec import load_spec
+from twin.morphpatch.approximation import Approximation
 from twin.cli import UserError
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.redirection import (PADDING, SIGMA, build_field, read_pen_samples, redirect, threshold_summary,
@@ -57,7 +58,7 @@ def _load(args):
 
 
 def run(args) -> int:
-    spec = default_spec()
+    spec = load_spec()
     approx, name, mesh = _load(args)
     if len(approx.angles) != spec.n_hinges or len(approx.widths) != spec.n_flaps:
         raise UserError(f"{args.approximation}: {len(approx.angles)} hinges and {len(approx.widths)} flaps, "

@@ -28,13 +28,13 @@ _CONTEXT: dict = {}  # per worker process: shape -> (mesh, fields, CBS simulator
 def _context(shape: str, n_starts: int, seed: int):
     key = (shape, n_starts, seed)
     if key not in _CONTEXT:
-        from twin.morphpatch.approximation import default_spec
+        from twin.device.spec import load_spec
         from twin.evaluation.cbs import CbsSimulator
         from twin.morphpatch.fields import build_fields
         from twin.morphpatch.shapes import load_shape
         from twin.evaluation.starts import approach_starts
 
-        spec = default_spec()
+        spec = load_spec()
         mesh = load_shape(shape)
         _CONTEXT[key] = (spec, mesh, build_fields(mesh), CbsSimulator(spec, mesh),
                          approach_starts(mesh, n_starts, seed=_shape_seed(seed, shape)))
