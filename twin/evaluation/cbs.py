@@ -165,6 +165,8 @@ class CbsSimulator:
         twin.hold(0.2)
         self.last_touching = sorted(self.touching())
         self._collide(range(spec.n_flaps))
-        return Approximation(root_pose=pose @ FLIP, angles=-twin.angles,
+        # the hinge stops are soft in MuJoCo: a hinge held against one reads a hair past it
+        angles = np.clip(-twin.angles, -spec.hinge_limit, spec.hinge_limit)
+        return Approximation(root_pose=pose @ FLIP, angles=angles,
                              widths=np.full(spec.n_flaps, spec.flap_pitch),
                              time=time.perf_counter() - t0, variant="cbs")

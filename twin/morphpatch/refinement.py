@@ -43,7 +43,7 @@ from twin.device.spec import DeviceSpec
 from twin.morphpatch.fields import Fields
 
 ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
-MAX_STEPS = 20  # Levenberg-Marquardt trials
+MAX_STEPS = 40  # Levenberg-Marquardt trials
 DAMPING = 1e-3  # initial damping, relative to the normal matrix's diagonal
 TOLERANCE = 1e-4  # a kept step that lowers the sum by less than this fraction ends the search
 ANCHOR_DEPTH = 0.5e-3  # m: the anchor may sit this far inside the target, no farther (on the SDF grid)
