@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from twin.device.spec import load_spec
-from twin.morphpatch.approximation import approximate, pose_from_mm_deg
+from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.sim.gate import check_move, redirection_check
 from twin.device.kinematics import flap_frames
@@ -25,6 +25,8 @@ from twin.morphpatch.surface_metrics import msd_hd
 
 def add_arguments(p) -> None:
     p.add_argument("--shape", choices=shape_names(), default="cylinder", help="target shape (default cylinder)")
+    p.add_argument("--variant", choices=VARIANTS, default="full",
+                   help="approximation: the paper's full, no_hcevf, or ours, refined (default full)")
     p.add_argument("--png", default="demo.png", help="picture to write (default demo.png)")
     p.add_argument("--json", metavar="FILE", help="also write the report as JSON")
     p.add_argument("--strict", action="store_true",
@@ -38,9 +40,9 @@ def run(args) -> int:
     fields = build_fields(mesh)
     start = shape_table()[args.shape]["start"]
     pose = pose_from_mm_deg(start)
-    approximate(fields, pose, spec)  # warm-up: loads compiled code
-    approx = approximate(fields, pose, spec).measured(spec, mesh)
-    print(f"[2/5] approximated in {approx.time * 1e3:.2f} ms: MSD {approx.msd * 1e3:.2f} mm, "
+    approximate(fields, pose, spec, args.variant)  # warm-up: loads compiled code
+    approx = approximate(fields, pose, spec, args.variant).measured(spec, mesh)
+    print(f"[2/5] {args.variant} approximated in {approx.time * 1e3:.2f} ms: MSD {approx.msd * 1e3:.2f} mm, "
           f"HD {approx.hd * 1e3:.2f} mm; hinges {np.degrees(approx.angles).round(1).tolist()} deg", flush=True)
 
     print("[3/5] validating and simulating the morph on the twin (firmware PID at 1 kHz) ...", flush=True)

@@ -23,9 +23,10 @@ Bounds, so every result is a pose the device can take where the user asked for i
   flat patch, which is not the region the user chose); a step that leaves the ball is
   projected back onto it;
 - hinge angles are clipped inside +-spec.hinge_limit;
-- no flap-on-flap contact (twin.device.flap_collision, the gate's check): if the last
-  iterate collides, the latest one that does not is returned (the pipeline's result,
-  where the gate has its say, at worst).
+- no flap-on-flap contact (twin.device.flap_collision, the gate's check): a step into
+  contact is refused like one that does not lower the sum; a pipeline result that is
+  in contact already (it curls a thin cylinder's 188 mm round a 94 mm circumference)
+  is first unrolled, all its angles scaled down together, until it is not.
 A step is kept only when it lowers the sum, so the result is never worse than the
 pipeline's on the grid's objective. SI units (m, rad).
 """
@@ -42,6 +43,7 @@ from twin.device.kinematics import flap_frames, hinge_axis_sign, outer_flap, pos
 from twin.device.spec import DeviceSpec
 from twin.morphpatch.fields import Fields
 
+CLEARANCE = 0.0  # m: refined poses keep the flaps out of contact altogether (the gate refuses past 0.1 mm)
 ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
 MAX_STEPS = 40  # Levenberg-Marquardt trials
 DAMPING = 1e-3  # initial damping, relative to the normal matrix's diagonal
@@ -61,10 +63,9 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
     moved = _moved(spec)
     sign, outer = hinge_axis_sign(spec), outer_flap(spec)
     limit = spec.hinge_limit
-    rot, angles = root_pose[:3, :3].copy(), np.asarray(angles, float).copy()
-    anchor = _out_of_target(fields, _into_ball(root_pose[:3, 3], centre, radius))
+    rot, angles = root_pose[:3, :3].copy(), _uncurled(spec, np.asarray(angles, float))
+    anchor = _bounded(fields, root_pose[:3, 3], centre, radius)
     state = _evaluate(fields, spec, local, rot, anchor, angles, widths, moved, sign, outer)
-    kept = [(rot, anchor, angles)]
     damping = DAMPING
     for _ in range(MAX_STEPS):
         cost, jtj, jtr, s_anchor, g_anchor = state
@@ -72,21 +73,31 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
         lhs = basis.T @ jtj @ basis
         step = -basis @ np.linalg.solve(lhs + damping * np.diag(np.diag(lhs) + 1e-12), basis.T @ jtr)
         new_rot = _rodrigues(step[3:6]) @ rot
-        new_anchor = _out_of_target(fields, _into_ball(anchor + step[:3], centre, radius))
+        new_anchor = _bounded(fields, anchor + step[:3], centre, radius)
         new_angles = np.clip(angles + step[6:], -limit, limit)
+        if collides(spec, new_angles, CLEARANCE):
+            damping *= 4.0
+            continue
         trial = _evaluate(fields, spec, local, new_rot, new_anchor, new_angles, widths, moved, sign, outer)
         if trial[0] < cost:
             rot, anchor, angles, state = new_rot, new_anchor, new_angles, trial
-            kept.append((rot, anchor, angles))
             damping *= 0.3
             if cost - trial[0] < TOLERANCE * cost:
                 break
         else:
             damping *= 4.0
-    for rot, anchor, angles in reversed(kept):
-        if not collides(spec, angles):
-            break
     return pose_matrix(anchor, rot), angles
+
+
+def _uncurled(spec: DeviceSpec, angles: np.ndarray) -> np.ndarray:
+    """The angles if no flaps collide there, else the largest fraction of them (bisection) at which none do."""
+    if not collides(spec, angles, CLEARANCE):
+        return angles
+    lo, hi = 0.0, 1.0
+    for _ in range(12):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if not collides(spec, mid * angles, CLEARANCE) else (lo, mid)
+    return lo * angles
 
 
 def _free_directions(jtr: np.ndarray, s_anchor: float, g_anchor: np.ndarray) -> np.ndarray:
@@ -203,6 +214,11 @@ def _moved(spec: DeviceSpec) -> np.ndarray:
         else:
             out[:o + 1, h] = 1.0
     return out
+
+
+def _bounded(fields: Fields, p: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """p moved into the ball, out of the target (to ANCHOR_DEPTH), and into the ball again (a few um)."""
+    return _into_ball(_out_of_target(fields, _into_ball(p, centre, radius)), centre, radius)
 
 
 def _into_ball(p: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
