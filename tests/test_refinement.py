@@ -70,16 +70,18 @@ def test_hcevf_translation_keeps_the_anchor_on_a_wave(spec):
 
 
 def test_ours_is_well_below_full_on_every_shape(runs):
+    """Issue 14: at least 20 % lower mean MSD and 15 % lower mean HD than full on every shape, 50 % lower MSD
+    averaged over the shapes, and no start's MSD more than 0.5 mm above full's."""
     drops = []
     for name, (_, _, _, results) in runs.items():
         full = np.array([[r.msd, r.hd] for r in results["full"]])
         ours = np.array([[r.msd, r.hd] for r in results["refined"]])
         msd_drop, hd_drop = 1 - ours.mean(axis=0) / full.mean(axis=0)
         assert msd_drop >= 0.2, (name, msd_drop)
-        assert hd_drop >= 0.05, (name, hd_drop)
+        assert hd_drop >= 0.15, (name, hd_drop)
         assert np.max(ours[:, 0] - full[:, 0]) <= 0.5e-3, name
         drops.append(msd_drop)
-    assert np.mean(drops) >= 0.45
+    assert np.mean(drops) >= 0.5
 
 
 def test_ours_keeps_the_anchor_where_the_user_brought_the_device(spec, runs):

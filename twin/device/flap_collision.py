@@ -12,38 +12,61 @@ The gate (twin/sim/gate.py) counts a contact deeper than CONTACT_DEPTH; so does
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from twin.device.kinematics import flap_frames
 from twin.device.spec import DeviceSpec
 
 CONTACT_DEPTH = 1e-4  # m: a flap-on-flap penetration deeper than this is a collision
-# rad: two flaps meet only once the chain turns back on itself; below this total of |hinge angles| none
-# can (measured: no collision under 208 deg in 40000 random curls), so `collides` answers at once
+# rad: two flaps meet only once the chain between them turns back on itself; below this total of |hinge
+# angles| between them they cannot (measured: no collision under 208 deg in 40000 random curls), so
+# `collides` skips those pairs
 FREE_TURN = 0.8 * np.pi
 
 
-def flap_overlap(spec: DeviceSpec, angles) -> float:
+def flap_overlap(spec: DeviceSpec, angles, turn: float = 0.0) -> float:
     """Deepest penetration (m) between any two flaps two or more apart at these hinge angles; 0 if none.
 
     All hinge axes are parallel (the device's y) and every box spans the same y range, so
     of the fifteen axes only the boxes' x and z in the x-z plane can separate them (along
     y they overlap by the full depth, and every cross product lies in that plane along one
-    of those four): the test runs on the rectangles in the x-z plane.
+    of those four): the test runs on the rectangles in the x-z plane. Pairs whose hinges
+    between them turn by less than `turn` (rad, total of |angle|) in all are skipped.
     """
+    angles = np.asarray(angles, float)
     frames = flap_frames(spec, angles)
-    centre = frames[:, [0, 2], 3] - frames[:, [0, 2], 2] * (spec.thickness / 2)  # (n, 2) x, z
-    axes = frames[:, [0, 2]][:, :, [0, 2]]  # (n, 2 (x, z), 2 (box x, box z)): columns are the box's axes
     half = np.array([(spec.flap_pitch - spec.flap_gap) / 2, spec.thickness / 2])
-    i, j = np.triu_indices(spec.n_flaps, k=2)
-    candidates = np.concatenate([axes[i], axes[j]], axis=2)  # (P, 2, 4) unit axes
-    ra = np.einsum("k,pkl->pl", half, np.abs(np.einsum("pdk,pdl->pkl", axes[i], candidates)))
-    rb = np.einsum("k,pkl->pl", half, np.abs(np.einsum("pdk,pdl->pkl", axes[j], candidates)))
-    gap = np.abs(np.einsum("pd,pdl->pl", centre[j] - centre[i], candidates))
-    depth = (ra + rb - gap).min(axis=1)
-    return float(max(0.0, depth.max()))
+    return _deepest(frames, half, np.abs(angles), turn)
+
+
+@numba.njit(cache=True)
+def _deepest(frames, half, turns, turn):
+    n = frames.shape[0]
+    deepest = 0.0
+    axes = np.empty((4, 2))
+    for i in range(n):
+        for j in range(i + 2, n):
+            if turns[i:j].sum() < turn:
+                continue
+            # rectangle centres (x, z), a thickness/2 behind the touch surface, and their axes
+            ci = (frames[i, 0, 3] - frames[i, 0, 2] * half[1], frames[i, 2, 3] - frames[i, 2, 2] * half[1])
+            cj = (frames[j, 0, 3] - frames[j, 0, 2] * half[1], frames[j, 2, 3] - frames[j, 2, 2] * half[1])
+            axes[0, 0], axes[0, 1] = frames[i, 0, 0], frames[i, 2, 0]
+            axes[1, 0], axes[1, 1] = frames[i, 0, 2], frames[i, 2, 2]
+            axes[2, 0], axes[2, 1] = frames[j, 0, 0], frames[j, 2, 0]
+            axes[3, 0], axes[3, 1] = frames[j, 0, 2], frames[j, 2, 2]
+            depth = np.inf
+            for k in range(4):
+                ux, uz = axes[k, 0], axes[k, 1]
+                ra = half[0] * abs(axes[0, 0] * ux + axes[0, 1] * uz) + half[1] * abs(axes[1, 0] * ux + axes[1, 1] * uz)
+                rb = half[0] * abs(axes[2, 0] * ux + axes[2, 1] * uz) + half[1] * abs(axes[3, 0] * ux + axes[3, 1] * uz)
+                gap = abs((cj[0] - ci[0]) * ux + (cj[1] - ci[1]) * uz)
+                depth = min(depth, ra + rb - gap)
+            deepest = max(deepest, depth)
+    return deepest
 
 
 def collides(spec: DeviceSpec, angles, depth: float = CONTACT_DEPTH) -> bool:
     """True where two flaps at these hinge angles (rad) press into each other deeper than `depth` (m)."""
-    return float(np.abs(angles).sum()) >= FREE_TURN and flap_overlap(spec, angles) > depth
+    return flap_overlap(spec, angles, FREE_TURN) > depth

@@ -16,24 +16,26 @@ with g_j = grad S(x_j), a_h and q_h hinge h's axis and a point on it in the worl
 Bounds, so every result is a pose the device can take where the user asked for it:
 - the anchor stays (nearly) out of the target, at most ANCHOR_DEPTH in: where a step
   would take it deeper, it is moved back along grad S, and while it is at that depth
-  with the sum falling inwards, steps keep to the surface's tangent plane there (least squares alone sinks
-  the root flap's middle up to 17 mm into a convex target to bring its long ends closer);
+  with the sum falling inwards, steps keep to the surface's tangent plane there (least
+  squares alone sinks the root flap's middle up to 17 mm into a convex target to bring
+  its 155 mm long ends closer; the device is meant to lie on the target, not in it);
 - the anchor stays within ANCHOR_RADIUS of the snapped point (the pipeline's step 1:
   where the user brought the device; unbounded, it drifts up to 150 mm to the easiest
   flat patch, which is not the region the user chose); a step that leaves the ball is
-  projected back onto it;
+  cut back to it;
 - hinge angles are clipped inside +-spec.hinge_limit;
 - no flap-on-flap contact (twin.device.flap_collision, the gate's check): a step into
   contact is refused like one that does not lower the sum; a pipeline result that is
-  in contact already (it curls a thin cylinder's 188 mm round a 94 mm circumference)
-  is first unrolled, all its angles scaled down together, until it is not.
-A step is kept only when it lowers the sum, so the result is never worse than the
-pipeline's on the grid's objective. SI units (m, rad).
+  in contact already (it curls 188 mm of flaps round a thin cylinder's 126 mm
+  circumference) is first unrolled, all its angles scaled down together, until it is not.
+A step is kept only when it lowers the sum, so the result is never worse than its start
+on the grid's objective. SI units (m, rad).
 """
 
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 
 import numba
 import numpy as np
@@ -47,7 +49,7 @@ CLEARANCE = 0.0  # m: refined poses keep the flaps out of contact altogether (th
 ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
 MAX_STEPS = 40  # Levenberg-Marquardt trials
 DAMPING = 1e-3  # initial damping, relative to the normal matrix's diagonal
-TOLERANCE = 1e-4  # a kept step that lowers the sum by less than this fraction ends the search
+TOLERANCE = 1e-4  # a step that lowers the sum (or is expected to) by less than this fraction ends the search
 ANCHOR_DEPTH = 0.5e-3  # m: the anchor may sit this far inside the target, no farther (on the SDF grid)
 ON_LIMIT = 1e-5  # m: an anchor this close to that depth may not be pushed further in
 
@@ -60,26 +62,25 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
     stay as given; centre (3,) m: the snapped anchor, which the anchor stays within
     `radius` of.
     """
-    moved = _moved(spec)
-    sign, outer = hinge_axis_sign(spec), outer_flap(spec)
+    chain = _chain(spec)
     limit = spec.hinge_limit
     rot, angles = root_pose[:3, :3].copy(), _uncurled(spec, np.asarray(angles, float))
     anchor = _bounded(fields, root_pose[:3, 3], centre, radius)
-    state = _evaluate(fields, spec, local, rot, anchor, angles, widths, moved, sign, outer)
+    state = _evaluate(fields, spec, chain, local, rot, anchor, angles, widths)
     damping = DAMPING
     for _ in range(MAX_STEPS):
         cost, jtj, jtr, s_anchor, g_anchor = state
         basis = _free_directions(jtr, s_anchor, g_anchor)
         lhs = basis.T @ jtj @ basis
         step = -basis @ np.linalg.solve(lhs + damping * np.diag(np.diag(lhs) + 1e-12), basis.T @ jtr)
+        if -(2.0 * jtr @ step + step @ jtj @ step) < TOLERANCE * cost:  # the model expects no real gain
+            break
         new_rot = _rodrigues(step[3:6]) @ rot
         new_anchor = _bounded(fields, anchor + step[:3], centre, radius)
         new_angles = np.clip(angles + step[6:], -limit, limit)
-        if collides(spec, new_angles, CLEARANCE):
-            damping *= 4.0
-            continue
-        trial = _evaluate(fields, spec, local, new_rot, new_anchor, new_angles, widths, moved, sign, outer)
-        if trial[0] < cost:
+        trial = None if collides(spec, new_angles, CLEARANCE) else _evaluate(
+            fields, spec, chain, local, new_rot, new_anchor, new_angles, widths)
+        if trial is not None and trial[0] < cost:
             rot, anchor, angles, state = new_rot, new_anchor, new_angles, trial
             damping *= 0.3
             if cost - trial[0] < TOLERANCE * cost:
@@ -107,9 +108,11 @@ def _free_directions(jtr: np.ndarray, s_anchor: float, g_anchor: np.ndarray) -> 
     normal = g_anchor / max(float(np.linalg.norm(g_anchor)), 1e-12)
     if s_anchor > -ANCHOR_DEPTH + ON_LIMIT or jtr[:3] @ normal <= 0.0:
         return np.eye(n)
-    tangent = np.linalg.svd(normal[None])[2][1:]  # (2, 3), orthonormal and orthogonal to the normal
+    other = np.eye(3)[int(np.argmin(np.abs(normal)))]
+    t1 = np.cross(normal, other)
+    t1 /= np.linalg.norm(t1)
     basis = np.zeros((n, n - 1))
-    basis[:3, :2] = tangent.T
+    basis[:3, 0], basis[:3, 1] = t1, np.cross(normal, t1)  # orthonormal, along the surface
     basis[3:, 2:] = np.eye(n - 3)
     return basis
 
@@ -125,19 +128,33 @@ def _out_of_target(fields: Fields, p: np.ndarray) -> np.ndarray:
     return p
 
 
-def _evaluate(fields, spec, local, rot, anchor, angles, widths, moved, sign, outer):
+def _evaluate(fields, spec, chain, local, rot, anchor, angles, widths):
     """(sum of S^2 m^2, J^T J, J^T S, S and grad S at the anchor) at one state; J over (anchor, rotation,
     hinge angles)."""
+    moved, sign, inner, half = chain
     frames = flap_frames(spec, angles, pose_matrix(anchor, rot), widths)
     points = _place(frames, local, anchor)
     s, g = fields.sdf_grad(points)
     # hinge h turns the flaps beyond it about axis a_h through q_h on its inner flap's outer edge
-    out = outer > spec.root_flap
-    inner = np.where(out, outer - 1, outer + 1)
     axes = frames[inner, :3, 1] * sign[:, None]
-    on_axis = frames[inner, :3, 3] + frames[inner, :3, 0] * (np.where(out, 0.5, -0.5) * widths[inner])[:, None]
+    on_axis = frames[inner, :3, 3] + frames[inner, :3, 0] * (half * widths[inner])[:, None]
     cost, jtj, jtr = _normal_equations(points, s, g, local.shape[1], moved, axes, on_axis, anchor)
     return cost, jtj, jtr, s[-1], g[-1]
+
+
+@lru_cache(maxsize=8)
+def _chain(spec: DeviceSpec) -> tuple:
+    """Per spec: which flaps each hinge turns (n_flaps, n_hinges), each hinge's axis sign, its inner flap,
+    and the side (+-1/2 of the inner flap's width) its axis lies on."""
+    outer = outer_flap(spec)
+    beyond = outer > spec.root_flap
+    moved = np.zeros((spec.n_flaps, spec.n_hinges))
+    for h, o in enumerate(outer):
+        if beyond[h]:
+            moved[o:, h] = 1.0
+        else:
+            moved[:o + 1, h] = 1.0
+    return moved, hinge_axis_sign(spec), np.where(beyond, outer - 1, outer + 1), np.where(beyond, 0.5, -0.5)
 
 
 @numba.njit(cache=True)
@@ -205,26 +222,22 @@ def _normal_equations(points, s, g, per_flap, moved, axes, on_axis, anchor):
     return cost, jtj, jtr
 
 
-def _moved(spec: DeviceSpec) -> np.ndarray:
-    """(n_flaps, n_hinges): 1 where the hinge turns the flap (the flap lies beyond it from the root)."""
-    out = np.zeros((spec.n_flaps, spec.n_hinges))
-    for h, o in enumerate(outer_flap(spec)):
-        if o > spec.root_flap:
-            out[o:, h] = 1.0
-        else:
-            out[:o + 1, h] = 1.0
-    return out
-
-
 def _bounded(fields: Fields, p: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
-    """p moved into the ball, out of the target (to ANCHOR_DEPTH), and into the ball again (a few um)."""
-    return _into_ball(_out_of_target(fields, _into_ball(p, centre, radius)), centre, radius)
-
-
-def _into_ball(p: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
-    d = p - centre
-    n = float(np.linalg.norm(d))
-    return p if n <= radius else centre + d * (radius / n)
+    """p moved out of the target (to ANCHOR_DEPTH); if that is farther than `radius` from the centre, the
+    farthest such point towards p that is not (bisection along centre -> p: pulling a point on a convex
+    target straight back into the ball would cut a chord through it, 2 mm deep for 20 mm on the cone)."""
+    q = _out_of_target(fields, p)
+    if np.linalg.norm(q - centre) <= radius:
+        return q
+    lo, hi, best = 0.0, 1.0, _out_of_target(fields, centre)
+    for _ in range(10):
+        mid = (lo + hi) / 2
+        q = _out_of_target(fields, centre + mid * (p - centre))
+        if np.linalg.norm(q - centre) <= radius:
+            lo, best = mid, q
+        else:
+            hi = mid
+    return best
 
 
 def _rodrigues(w: np.ndarray) -> np.ndarray:
