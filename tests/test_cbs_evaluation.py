@@ -1,6 +1,5 @@
 """CBS with real MuJoCo contact, the start generator and the evaluation runner."""
 
-import json
 import math
 
 import numpy as np

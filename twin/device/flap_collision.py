@@ -1,4 +1,4 @@
-"""Flap-on-flap contact from the hinge angles alone (pure numpy), as the gate finds it in MuJoCo.
+"""Flap-on-flap contact from the hinge angles alone (no MuJoCo), as the gate finds it in MuJoCo.
 
 Each flap's collision body is the MJCF's box (twin/device/mjcf.py): (pitch - flap_gap) long
 across the row, the full depth along the hinges, the thickness behind the touch surface.

@@ -21,8 +21,8 @@ Bounds, so every result is a pose the device can take where the user asked for i
   its 155 mm long ends closer; the device is meant to lie on the target, not in it);
 - the anchor stays within ANCHOR_RADIUS of the snapped point (the pipeline's step 1:
   where the user brought the device; unbounded, it drifts up to 150 mm to the easiest
-  flat patch, which is not the region the user chose); a step that leaves the ball is
-  cut back to it;
+  flat patch, which is not the region the user chose); on the ball's surface, steps
+  slide along it, and one that still leaves the ball is cut back to it;
 - hinge angles are clipped inside +-spec.hinge_limit;
 - no flap-on-flap contact (twin.device.flap_collision, the gate's check): a step into
   contact is refused like one that does not lower the sum; a pipeline result that is
@@ -51,7 +51,7 @@ MAX_STEPS = 40  # Levenberg-Marquardt trials
 DAMPING = 1e-3  # initial damping, relative to the normal matrix's diagonal
 TOLERANCE = 1e-4  # a step that lowers the sum (or is expected to) by less than this fraction ends the search
 ANCHOR_DEPTH = 0.5e-3  # m: the anchor may sit this far inside the target, no farther (on the SDF grid)
-ON_LIMIT = 1e-5  # m: an anchor this close to that depth may not be pushed further in
+ON_LIMIT = 1e-5  # m: an anchor this close to a bound (its depth, the ball) is on it
 
 
 def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.ndarray, angles: np.ndarray,
@@ -70,7 +70,7 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
     damping = DAMPING
     for _ in range(MAX_STEPS):
         cost, jtj, jtr, s_anchor, g_anchor = state
-        basis = _free_directions(jtr, s_anchor, g_anchor)
+        basis = _free_directions(jtr, s_anchor, g_anchor, anchor, centre, radius)
         lhs = basis.T @ jtj @ basis
         step = -basis @ np.linalg.solve(lhs + damping * np.diag(np.diag(lhs) + 1e-12), basis.T @ jtr)
         if -(2.0 * jtr @ step + step @ jtj @ step) < TOLERANCE * cost:  # the model expects no real gain
@@ -101,19 +101,25 @@ def _uncurled(spec: DeviceSpec, angles: np.ndarray) -> np.ndarray:
     return lo * angles
 
 
-def _free_directions(jtr: np.ndarray, s_anchor: float, g_anchor: np.ndarray) -> np.ndarray:
-    """Columns spanning the parameter directions a step may take: all, but when the anchor is as deep
-    as it may go and the sum would fall by pushing it in, not along the surface's normal there."""
+def _free_directions(jtr: np.ndarray, s_anchor: float, g_anchor: np.ndarray, anchor: np.ndarray,
+                     centre: np.ndarray, radius: float) -> np.ndarray:
+    """Columns spanning the parameter directions a step may take: all, but where the anchor is on one of
+    its bounds (as deep as it may go, or on the ball's surface) and the sum would fall by crossing it, not
+    across that bound (the surface's normal, the ball's radius): the step slides along it instead."""
     n = len(jtr)
-    normal = g_anchor / max(float(np.linalg.norm(g_anchor)), 1e-12)
-    if s_anchor > -ANCHOR_DEPTH + ON_LIMIT or jtr[:3] @ normal <= 0.0:
+    blocked = []
+    if s_anchor <= -ANCHOR_DEPTH + ON_LIMIT and jtr[:3] @ g_anchor > 0.0:  # the sum falls inwards
+        blocked.append(g_anchor)
+    out = anchor - centre
+    if _distance(anchor, centre) >= radius - ON_LIMIT and jtr[:3] @ out < 0.0:  # ... or outwards
+        blocked.append(out)
+    if not blocked:
         return np.eye(n)
-    other = np.eye(3)[int(np.argmin(np.abs(normal)))]
-    t1 = np.cross(normal, other)
-    t1 /= np.linalg.norm(t1)
-    basis = np.zeros((n, n - 1))
-    basis[:3, 0], basis[:3, 1] = t1, np.cross(normal, t1)  # orthonormal, along the surface
-    basis[3:, 2:] = np.eye(n - 3)
+    _, sv, vt = np.linalg.svd(np.array(blocked))
+    rank = int(np.sum(sv > 1e-9 * sv[0]))
+    basis = np.zeros((n, n - rank))
+    basis[:3, :3 - rank] = vt[rank:].T  # orthonormal, across none of the blocked directions
+    basis[3:, 3 - rank:] = np.eye(n - 3)
     return basis
 
 
@@ -223,21 +229,31 @@ def _normal_equations(points, s, g, per_flap, moved, axes, on_axis, anchor):
 
 
 def _bounded(fields: Fields, p: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
-    """p moved out of the target (to ANCHOR_DEPTH); if that is farther than `radius` from the centre, the
-    farthest such point towards p that is not (bisection along centre -> p: pulling a point on a convex
-    target straight back into the ball would cut a chord through it, 2 mm deep for 20 mm on the cone)."""
+    """p moved out of the target (to ANCHOR_DEPTH); if that is farther than `radius` from the centre (the
+    snapped anchor, on the surface), pulled back just inside the ball and out of the target again, or,
+    if that still leaves the ball, the farthest point out of the target towards p that does not, to 1/64
+    of the way (bisection along centre -> p: only pulling a point on a convex target back into the ball
+    would cut a chord through it, 2 mm deep for 20 mm on the cone)."""
     q = _out_of_target(fields, p)
-    if np.linalg.norm(q - centre) <= radius:
+    if _distance(q, centre) <= radius:
         return q
-    lo, hi, best = 0.0, 1.0, _out_of_target(fields, centre)
-    for _ in range(10):
+    pulled = _out_of_target(fields, centre + (q - centre) * (0.999 * radius / _distance(q, centre)))
+    if _distance(pulled, centre) <= radius:  # a step along the ball's surface leaves it by a hair
+        return pulled
+    lo, hi, best = 0.0, 1.0, centre
+    for _ in range(6):
         mid = (lo + hi) / 2
         q = _out_of_target(fields, centre + mid * (p - centre))
-        if np.linalg.norm(q - centre) <= radius:
+        if _distance(q, centre) <= radius:
             lo, best = mid, q
         else:
             hi = mid
     return best
+
+
+def _distance(a: np.ndarray, b: np.ndarray) -> float:
+    d = a - b
+    return math.sqrt(float(d @ d))
 
 
 def _rodrigues(w: np.ndarray) -> np.ndarray:
