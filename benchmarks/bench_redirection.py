@@ -24,7 +24,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from twin.morphpatch.approximation import approximate, default_spec  # noqa: E402
+from twin.device.spec import load_spec  # noqa: E402
+from twin.morphpatch.approximation import approximate  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
 from twin.morphpatch.redirection import build_field, largest_virtual_step, redirect, threshold_summary  # noqa: E402
 from twin.morphpatch.shapes import load_shape, shape_names  # noqa: E402
@@ -38,7 +39,7 @@ def main() -> None:
     args = parser.parse_args()
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
-    spec = default_spec()
+    spec = load_spec()
     rng = np.random.default_rng(0)
     builds, singles, batches, steps, raw_steps = [], [], [], [], []
     print(f"{args.starts} starts per shape, one core")

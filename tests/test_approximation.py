@@ -145,13 +145,14 @@ def cache(tmp_path, monkeypatch):
     monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path / "cache"))
 
 
-def test_cli_prints_json(tmp_path, capsys, cache):
+@pytest.mark.parametrize("variant", ["no_hcevf", "refined"])
+def test_cli_prints_json(tmp_path, capsys, cache, variant):
     path = tmp_path / "out.json"
-    assert cli.main(["approximate", "--shape", "cylinder", "--start", "0,0,190,0,0,0", "--variant", "no_hcevf",
+    assert cli.main(["approximate", "--shape", "cylinder", "--start", "0,0,190,0,0,0", "--variant", variant,
                      "--json", str(path)]) == 0
     printed = json.loads(capsys.readouterr().out)
     assert printed == json.loads(path.read_text())
-    assert printed["variant"] == "no_hcevf" and printed["msd_mm"] < 1.0
+    assert printed["variant"] == variant and printed["msd_mm"] < 1.0
 
 
 def test_cli_user_errors(tmp_path, capsys, cache):
@@ -174,6 +175,7 @@ def test_the_approximation_never_imports_mujoco():
     import subprocess
     import sys
 
-    code = ("import sys, twin.morphpatch.approximation, twin.morphpatch.fields, twin.morphpatch.shapes, twin.morphpatch.surface_metrics; "
+    code = ("import sys, twin.morphpatch.approximation, twin.morphpatch.fields, twin.morphpatch.shapes, "
+            "twin.morphpatch.surface_metrics, twin.morphpatch.refinement; "
             "assert not any(m.startswith('mujoco') for m in sys.modules)")
     subprocess.run([sys.executable, "-c", code], check=True)

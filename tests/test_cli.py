@@ -4,6 +4,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 
 def vrscroll(*args):
     return subprocess.run([sys.executable, "-m", "twin.cli", *args], capture_output=True, text=True, timeout=120)
@@ -34,11 +36,13 @@ def test_model_check_and_help():
         assert out.returncode == 0 and "usage" in out.stdout
 
 
-def test_demo_approximates_validates_simulates_and_draws(tmp_path):
+@pytest.mark.parametrize("variant", ["full", "refined"])
+def test_demo_approximates_validates_simulates_and_draws(tmp_path, variant):
     png, js = tmp_path / "demo.png", tmp_path / "demo.json"
-    out = vrscroll("demo", "--png", str(png), "--json", str(js))
+    out = vrscroll("demo", "--variant", variant, "--png", str(png), "--json", str(js))
     assert out.returncode == 0, out.stdout + out.stderr
     report = json.loads(js.read_text())
+    assert report["approximation"]["variant"] == variant
     assert report["gate"]["passed"]
     assert report["approximation"]["msd_mm"] < 2.0  # the cylinder is followed closely
     assert report["morph"]["msd_after_morph_mm"] < report["approximation"]["msd_mm"] + 1.0

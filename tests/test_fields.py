@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from twin.morphpatch.fields import SPACING, build_fields, exact_signed_distance
+from twin.morphpatch.fields import GRID_SPACING, build_fields, exact_signed_distance
 from twin.morphpatch.shapes import load_shape
 import twin.morphpatch.fields as module
 
@@ -88,20 +88,39 @@ def test_high_curvature_points_lie_on_the_cube_edges(cube):
     half = np.array([0.1, 0.1, 0.1])
     p = np.abs(fields.edges - [0.0, 0.0, 0.1])
     d = np.sort(half - p, axis=1)[:, :2]  # two smallest distances to the faces' planes
-    assert np.all(np.linalg.norm(d, axis=1) < 1.5 * SPACING)
-    assert len(fields.edges) > 12 * 0.2 / SPACING  # all twelve edges found along their length
+    assert np.all(np.linalg.norm(d, axis=1) < 1.5 * GRID_SPACING)
+    assert len(fields.edges) > 12 * 0.2 / GRID_SPACING  # all twelve edges found along their length
+
+
+@pytest.mark.parametrize("name", ["torus", "ellipsoid"])
+def test_smooth_tessellated_shapes_have_no_high_curvature_points(name):
+    """Their true |tr H| stays below 41 1/m (torus: 1/40 mm + 1/140 mm at the outer equator), under
+    MIN_CURVATURE; the facet edges' one-cell spikes (52 and 1068 points before) must not count."""
+    fields = build_fields(load_shape(name), disk_cache=False)
+    assert len(fields.edges) == 0
+
+
+def test_stairs_edges_are_all_found(stairs):
+    """Every one of the stairs' eight profile corners (convex and concave), along the 200 mm width."""
+    mesh, fields = stairs
+    corners = [(-0.09, 0.0), (-0.09, 0.035), (-0.03, 0.035), (-0.03, 0.07), (0.03, 0.07), (0.03, 0.105),
+               (0.09, 0.105), (0.09, 0.0)]
+    inner = np.abs(fields.edges[:, 1]) < 0.09  # away from the end caps' own edges
+    for x, z in corners:
+        near = inner & (np.hypot(fields.edges[:, 0] - x, fields.edges[:, 2] - z) < 1.5 * GRID_SPACING)
+        assert near.sum() > 0.18 / GRID_SPACING, (x, z)
 
 
 def test_hcevf_points_to_the_nearest_edge_within_the_threshold(cube):
     mesh, fields = cube
     q = np.array([[0.09, 0.0, 0.2], [0.0, 0.0, 0.2], [0.093, 0.02, 0.2]])
     v = fields.hcevf(q)
-    assert v[0] == pytest.approx([0.01, 0.0, 0.0], abs=2 * SPACING)  # towards the edge x = 0.1, z = 0.2
+    assert v[0] == pytest.approx([0.01, 0.0, 0.0], abs=2 * GRID_SPACING)  # towards the edge x = 0.1, z = 0.2
     assert np.all(v[1] == 0.0)  # face centre: no edge within edge_radius
     assert fields.edge_radius == pytest.approx(0.188 / 7 / 2)  # half the flap pitch (spec)
     # query points reuse their nearest grid point's target edge: the same e* for q and q + small offset
     grid_q = fields.origin + np.rint((q[2] - fields.origin) / fields.spacing) * fields.spacing
-    shifted = np.array([grid_q, grid_q + 0.3 * SPACING])
+    shifted = np.array([grid_q, grid_q + 0.3 * GRID_SPACING])
     targets = fields.hcevf(shifted) + shifted
     assert targets[0] == pytest.approx(targets[1])
 

@@ -18,7 +18,8 @@ from twin.live.messages import (MAX_CONTROL_BYTES, MAX_DATAGRAM_BYTES, ProtocolE
                                 parse_datagram, sample_datagram)
 from twin.live.player import stroke
 from twin.live.process import ServiceProcess
-from twin.morphpatch.approximation import Approximation, approximate, default_spec, pose_from_mm_deg
+from twin.device.spec import load_spec
+from twin.morphpatch.approximation import Approximation, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.frame_metrics import frame_estimates
 from twin.morphpatch.redirection import build_field, threshold_summary
@@ -287,7 +288,7 @@ def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twi
             done = await client.expect("done", timeout=10)
             assert (await observer.expect("done", timeout=10))["seq"] == locked["seq"]
             approx = Approximation.from_json(locked)
-            points, quats = stroke(default_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths,
+            points, quats = stroke(load_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths,
                                    duration=0.1)
             for p, q in zip(points, quats):
                 client.send_pen(p * 1e3, q)

@@ -9,7 +9,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from twin.morphpatch.approximation import approximate, default_spec, pose_from_mm_deg
+from twin.morphpatch.approximation import approximate, pose_from_mm_deg
 from twin.cli import main
 from twin.morphpatch.fields import build_fields
 from twin.perception.thresholds import load_thresholds
@@ -18,7 +18,7 @@ from twin.morphpatch.redirection import (build_field, largest_virtual_step, redi
                               threshold_summary, within_samples)
 from twin.morphpatch.shapes import load_shape, shape_table, sweep_solid
 
-SPEC = default_spec()
+SPEC = load_spec()
 FLAT = np.zeros(SPEC.n_hinges)
 PITCH = np.full(SPEC.n_flaps, SPEC.flap_pitch)
 

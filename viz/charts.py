@@ -10,29 +10,33 @@ import numpy as np  # noqa: E402
 
 
 def method_bars(rows: list[dict], methods: list[str], shapes: list[str], path, paper: dict | None = None) -> None:
-    """Bars of MSD and HD (mean ± SD, mm) per shape and method; paper's means as black ticks.
+    """Bars of MSD, HD and the MSD where the twin ended (mean ± SD, mm) per shape and method; the paper's
+    means as black ticks. The twin's panel is left out when no row has it.
 
-    rows: dicts with shape, method, msd_mean_mm, msd_sd_mm, hd_mean_mm, hd_sd_mm.
-    paper: (shape, method) -> the paper's row, same keys.
+    rows: dicts with shape, method, msd_mean_mm, msd_sd_mm, hd_mean_mm, hd_sd_mm (and twin_msd_mean_mm,
+    twin_msd_sd_mm). paper: (shape, method) -> the paper's row, same keys.
     """
     by = {(r["shape"], r["method"]): r for r in rows}
-    fig, axes = plt.subplots(2, 1, figsize=(max(8, 1.4 * len(shapes)), 7), sharex=True)
+    panels = [("msd", "MSD (mm)"), ("hd", "HD (mm)")]
+    if any("twin_msd_mean_mm" in r for r in rows):
+        panels.append(("twin_msd", "MSD on the twin\nafter the morph (mm)"))
+    fig, axes = plt.subplots(len(panels), 1, figsize=(max(8, 1.4 * len(shapes)), 3.5 * len(panels)), sharex=True)
     x = np.arange(len(shapes))
     w = 0.8 / len(methods)
-    for ax, metric in zip(axes, ("msd", "hd")):
+    for ax, (metric, label) in zip(axes, panels):
         for j, method in enumerate(methods):
             mean = [by.get((s, method), {}).get(f"{metric}_mean_mm", np.nan) for s in shapes]
             sd = [by.get((s, method), {}).get(f"{metric}_sd_mm", np.nan) for s in shapes]
             pos = x + (j - (len(methods) - 1) / 2) * w
             ax.bar(pos, mean, w, yerr=sd, capsize=2, label=method)
-            if paper:
+            if paper and metric != "twin_msd":
                 ref = [paper.get((s, method), {}).get(f"{metric}_mean_mm", np.nan) for s in shapes]
                 ax.scatter(pos, ref, marker="_", s=200, color="black", zorder=3,
                            label="paper" if j == 0 else None)
-        ax.set_ylabel(f"{metric.upper()} (mm)")
+        ax.set_ylabel(label)
         ax.grid(axis="y", alpha=0.3)
     axes[0].legend(ncol=len(methods) + 1, fontsize=8)
-    axes[1].set_xticks(x, shapes, rotation=20)
+    axes[-1].set_xticks(x, shapes, rotation=20)
     axes[0].set_title("Surface approximation: mean ± SD over starts (paper's means as black ticks)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

@@ -15,7 +15,8 @@ import json
 
 import numpy as np
 
-from twin.morphpatch.approximation import VARIANTS, approximate, default_spec, pose_from_mm_deg
+from twin.device.spec import load_spec
+from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.cli import UserError
 from twin.formats.target import write_approximation
 from twin.morphpatch.fields import build_fields
@@ -77,7 +78,7 @@ def write_result(args, name, start, result, mesh, spec, extra: dict | None = Non
 
 
 def run(args) -> int:
-    spec = default_spec()
+    spec = load_spec()
     name, mesh, start, pose = target_and_start(args)
     fields = build_fields(mesh)
     approximate(fields, pose, spec, args.variant)  # warm-up: the first call in a process loads compiled code

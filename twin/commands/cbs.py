@@ -8,7 +8,7 @@ shape is from the mesh.
 
 from __future__ import annotations
 
-from twin.morphpatch.approximation import default_spec
+from twin.device.spec import load_spec
 from twin.evaluation.cbs import CbsSimulator
 from twin.commands.approximate import add_target_arguments, target_and_start, write_result
 
@@ -18,7 +18,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    spec = default_spec()
+    spec = load_spec()
     name, mesh, start, pose = target_and_start(args)
     sim = CbsSimulator(spec, mesh)
     result = sim.run(pose).measured(spec, mesh)

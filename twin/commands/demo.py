@@ -12,7 +12,8 @@ import math
 
 import numpy as np
 
-from twin.morphpatch.approximation import approximate, default_spec, pose_from_mm_deg
+from twin.device.spec import load_spec
+from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.sim.gate import check_move, redirection_check
 from twin.device.kinematics import flap_frames
@@ -25,6 +26,8 @@ from viz.scene import render_approximation
 
 def add_arguments(p) -> None:
     p.add_argument("--shape", choices=shape_names(), default="cylinder", help="target shape (default cylinder)")
+    p.add_argument("--variant", choices=VARIANTS, default="full",
+                   help="approximation: the paper's full, no_hcevf, or ours, refined (default full)")
     p.add_argument("--png", default="demo.png", help="picture to write (default demo.png)")
     p.add_argument("--json", metavar="FILE", help="also write the report as JSON")
     p.add_argument("--strict", action="store_true",
@@ -32,15 +35,15 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    spec = default_spec()
+    spec = load_spec()
     mesh = load_shape(args.shape)
     print(f"[1/5] fields of {args.shape} (cached after the first run) ...", flush=True)
     fields = build_fields(mesh)
     start = shape_table()[args.shape]["start"]
     pose = pose_from_mm_deg(start)
-    approximate(fields, pose, spec)  # warm-up: loads compiled code
-    approx = approximate(fields, pose, spec).measured(spec, mesh)
-    print(f"[2/5] approximated in {approx.time * 1e3:.2f} ms: MSD {approx.msd * 1e3:.2f} mm, "
+    approximate(fields, pose, spec, args.variant)  # warm-up: loads compiled code
+    approx = approximate(fields, pose, spec, args.variant).measured(spec, mesh)
+    print(f"[2/5] {args.variant} approximated in {approx.time * 1e3:.2f} ms: MSD {approx.msd * 1e3:.2f} mm, "
           f"HD {approx.hd * 1e3:.2f} mm; hinges {np.degrees(approx.angles).round(1).tolist()} deg", flush=True)
 
     print("[3/5] validating and simulating the morph on the twin (firmware PID at 1 kHz) ...", flush=True)

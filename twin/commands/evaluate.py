@@ -1,4 +1,4 @@
-"""`vrscroll evaluate`: the paper's Table 1 (CBS, full, no_hcevf) from the same seeded starts.
+"""`vrscroll evaluate`: the paper's Table 1 (CBS, no_hcevf, full) and ours (refined) from the same seeded starts.
 
 Results are appended to OUT/results.jsonl as they come; rerunning with the same
 --out, --starts and --seed resumes. Writes OUT/table.md, OUT/table.csv and

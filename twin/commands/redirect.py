@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.morphpatch.approximation import Approximation, default_spec
+from twin.device.spec import load_spec
+from twin.morphpatch.approximation import Approximation
 from twin.cli import UserError
 from twin.formats.pen import read_pen_samples, write_redirected
 from twin.formats.target import read_approximation
@@ -54,7 +55,7 @@ def _load(args, spec):
 
 
 def run(args) -> int:
-    spec = default_spec()
+    spec = load_spec()
     approx, name, mesh = _load(args, spec)
     if args.sigma_mm < 0 or args.padding_mm < 0:
         raise UserError("--sigma-mm and --padding-mm must be >= 0")

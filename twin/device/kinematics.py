@@ -10,6 +10,7 @@ concave (the outer flap's free end rises towards +z, as when wrapping a ball).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from twin.device.spec import DeviceSpec
@@ -27,13 +28,6 @@ def outer_flap(spec: DeviceSpec) -> np.ndarray:
     return np.where(k < spec.root_flap, k, k + 1)
 
 
-def rot_y(angle: np.ndarray) -> np.ndarray:
-    """Rotation matrices about +y, shape (..., 3, 3)."""
-    c, s = np.cos(angle), np.sin(angle)
-    z, o = np.zeros_like(c), np.ones_like(c)
-    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
-
-
 def flap_frames(spec: DeviceSpec, angles, root_pose=None, widths=None) -> np.ndarray:
     """Pose of each flap's touch-surface frame, shape (n_flaps, 4, 4).
 
@@ -47,21 +41,35 @@ def flap_frames(spec: DeviceSpec, angles, root_pose=None, widths=None) -> np.nda
     if angles.shape != (spec.n_hinges,):
         raise ValueError(f"expected {spec.n_hinges} hinge angles, got shape {angles.shape}")
     w = np.full(spec.n_flaps, spec.flap_pitch) if widths is None else np.asarray(widths, float)
-    rots = rot_y(hinge_axis_sign(spec) * angles)
-    frames = np.tile(np.eye(4), (spec.n_flaps, 1, 1))
-    r = spec.root_flap
-    for step, flaps in ((1, range(r + 1, spec.n_flaps)), (-1, range(r - 1, -1, -1))):
-        inner = frames[r]
-        for i in flaps:
+    root = np.eye(4) if root_pose is None else np.asarray(root_pose, float)
+    return _chain(hinge_axis_sign(spec) * angles, w, spec.root_flap, root)
+
+
+@numba.njit(cache=True)
+def _chain(signed_angles, widths, r, root):
+    """flap_frames' loop, compiled (it is the approximation's and the refinement's inner step)."""
+    n = len(widths)
+    frames = np.zeros((n, 4, 4))
+    for i in range(n):
+        frames[i] = np.eye(4)
+    for step in (1, -1):
+        inner = r
+        i = r + step
+        while 0 <= i < n:
             hinge = i - 1 if step == 1 else i
-            hinge_point = inner[:3, 3] + inner[:3, :3] @ np.array([step * w[i - step] / 2, 0.0, 0.0])
-            rot = inner[:3, :3] @ rots[hinge]
-            frames[i, :3, :3] = rot
-            frames[i, :3, 3] = hinge_point + rot @ np.array([step * w[i] / 2, 0.0, 0.0])
-            inner = frames[i]
-    if root_pose is not None:
-        frames = np.asarray(root_pose, float) @ frames
-    return frames
+            c, s = np.cos(signed_angles[hinge]), np.sin(signed_angles[hinge])
+            for a in range(3):  # rot = inner rot @ (rotation by the angle about +y)
+                x, y, z = frames[inner, a, 0], frames[inner, a, 1], frames[inner, a, 2]
+                frames[i, a, 0], frames[i, a, 1], frames[i, a, 2] = c * x - s * z, y, s * x + c * z
+            for a in range(3):  # hinge point on the inner flap's edge, then this flap's centre beyond it
+                frames[i, a, 3] = (frames[inner, a, 3] + frames[inner, a, 0] * step * widths[inner] / 2
+                                   + frames[i, a, 0] * step * widths[i] / 2)
+            inner = i
+            i += step
+    out = np.empty((n, 4, 4))
+    for i in range(n):
+        out[i] = root @ frames[i]
+    return out
 
 
 def bend(spec: DeviceSpec, frames: np.ndarray, widths, hinge: int, delta: float) -> np.ndarray:

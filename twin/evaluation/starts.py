@@ -7,7 +7,10 @@ published, so this is our documented stand-in):
 2. a stand-off distance d, uniform in STANDOFF (m), along n: the anchor sits at p + d n;
 3. the device's z axis (touch-surface normal) is n tilted by an angle uniform in
    [0, MAX_TILT] about a random axis perpendicular to n;
-4. a yaw about that axis, uniform in [0, 2 pi); hinges flat.
+4. a yaw about that axis, uniform in [0, 2 pi); hinges flat;
+5. only where a user approaches from: a draw whose anchor is below the support plane
+   (the plane the target rests on, its lowest z) or inside the target (a stand-off
+   across a concave region) is dropped and drawn again, in order, from the same stream.
 
 The same seed gives the same starts on any machine (numpy's PCG64).
 """
@@ -20,6 +23,8 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from twin.morphpatch.fields import exact_signed_distance
+
 STANDOFF = (0.02, 0.06)  # m
 MAX_TILT = math.radians(30.0)
 
@@ -27,6 +32,18 @@ MAX_TILT = math.radians(30.0)
 def approach_starts(mesh: trimesh.Trimesh, n: int = 50, seed: int = 0) -> np.ndarray:
     """n start poses of the anchor (n, 4, 4), device frame in the world, from a seeded generator."""
     rng = np.random.default_rng(seed)
+    support = mesh.bounds[0][2]
+    poses = []
+    while len(poses) < n:
+        batch = _draw(mesh, rng, n)
+        anchors = batch[:, :3, 3]
+        keep = (anchors[:, 2] > support) & (exact_signed_distance(mesh, anchors)[0] > 0.0)
+        poses += list(batch[keep])
+    return np.array(poses[:n])
+
+
+def _draw(mesh: trimesh.Trimesh, rng: np.random.Generator, n: int) -> np.ndarray:
+    """n candidate starts (steps 1-4 of the module docstring), (n, 4, 4)."""
     areas = mesh.area_faces
     faces = rng.choice(len(areas), size=n, p=areas / areas.sum())
     tri = mesh.triangles[faces]

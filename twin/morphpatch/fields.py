@@ -21,10 +21,15 @@ Queries are the approximation's hot path:
   it (an upper bound; the grid's margin keeps the device inside in normal use).
 - `Fields.hcevf(points)`: the High-Curvature Edge Vector Field as the paper
   defines it. Curvature kappa = tr(H(S)) (7-point Laplacian, 1/m). High-curvature
-  points: grid points within one cell of the surface with |kappa| >= `min_curvature`,
-  moved onto the surface (their exact closest surface point; our refinement,
-  so that hinge lines are drawn to the edge itself, not a cell beside it). For each grid
-  point x_g the nearest high-curvature point e* within `edge_radius` is stored;
+  points: grid points within one cell of the surface with |kappa| >= `min_curvature`
+  both at the point and averaged over CURVATURE_SCALE (a Gaussian), moved onto the
+  surface (their exact closest surface point; our refinement, so that hinge lines are
+  drawn to the edge itself, not a cell beside it). The average tells a ridge from
+  tessellation: each facet edge of a smooth mesh bends S's gradient by a few degrees
+  within one cell, so kappa spikes above the threshold there (a tessellated ellipsoid
+  had 52 such points, the torus 1068), while over a few facets it is the surface's
+  true curvature (below 41 1/m on both); at a real edge it stays in the hundreds.
+  For each grid point x_g the nearest high-curvature point e* within `edge_radius` is stored;
   V(x_g) = e* - x_g, or 0 if there is none. A query point q reuses its nearest
   grid point's target edge: V(q) = e*(round(q)) - q.
 
@@ -48,14 +53,16 @@ import igl
 import numba
 import numpy as np
 import trimesh
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from twin.device.spec import load_spec
 
-SPACING = 0.003  # m, default grid spacing
+GRID_SPACING = 0.003  # m, default spacing of the SDF grid
 MARGIN = 0.1  # m, grid padding around the mesh's bounding box (the device's half length)
 MIN_CURVATURE = 1.0 / 0.015  # 1/m: |tr H| of a ridge sharper than a 15 mm radius cylinder
-_VERSION = 1  # bump when the stored arrays change meaning
+CURVATURE_SCALE = 0.003  # m: Gaussian sigma over which a ridge's curvature must persist (a few facets' width)
+_VERSION = 2  # bump when the stored arrays change meaning
 
 _MEMORY: dict[str, "Fields"] = {}
 FIELD_ARRAYS = ("origin", "spacing", "sdf", "edges", "edge_index", "curvature", "min_curvature", "edge_radius")
@@ -228,7 +235,7 @@ def load_npz(path: Path, required=()) -> dict | None:
     return arrays
 
 
-def build_fields(mesh: trimesh.Trimesh, spacing: float = SPACING, margin: float = MARGIN,
+def build_fields(mesh: trimesh.Trimesh, spacing: float = GRID_SPACING, margin: float = MARGIN,
                  min_curvature: float = MIN_CURVATURE, edge_radius: float | None = None,
                  disk_cache: bool = True) -> Fields:
     """The fields of a watertight mesh (metres) on a grid of `spacing` m padded by `margin` m.
@@ -304,7 +311,8 @@ def _compute(mesh, spacing, margin, min_curvature, edge_radius) -> Fields:
     curvature = (padded[2:, 1:-1, 1:-1] + padded[:-2, 1:-1, 1:-1] + padded[1:-1, 2:, 1:-1]
                  + padded[1:-1, :-2, 1:-1] + padded[1:-1, 1:-1, 2:] + padded[1:-1, 1:-1, :-2]
                  - 6.0 * sdf) / spacing**2
-    high = (np.abs(sdf) <= spacing) & (np.abs(curvature) >= min_curvature)
+    high = (np.abs(sdf) <= spacing) & (np.abs(curvature) >= min_curvature) & (
+        np.abs(ndimage.gaussian_filter(curvature, CURVATURE_SCALE / spacing, mode="nearest")) >= min_curvature)
     edges = np.unique(np.round(closest[high.ravel()] / 1e-6) * 1e-6, axis=0)  # on the surface, deduplicated
     edge_index = np.full(sdf.size, -1, dtype=np.int32)
     if len(edges):

@@ -51,7 +51,7 @@ from twin.device.kinematics import flap_frames
 from twin.perception.thresholds import Thresholds, load_thresholds
 from twin.device.spec import DeviceSpec
 
-SPACING = 0.002  # m, grid over the touch surface (the metrics' 2 mm)
+NODE_SPACING = 0.002  # m, between the redirection grid's nodes over the touch surface (as the metrics' samples)
 SIGMA = 0.005  # m, Gaussian blur of the offsets (assumption: the paper gives none; about a fifth of a flap)
 PADDING = 0.03  # m, interaction space around the device's edges that the field covers
 REACH = 0.1  # m, how far along the proxy's normal the target is looked for (twice the 50 mm threshold)
@@ -243,7 +243,7 @@ def _axis(lo: float, hi: float, spacing: float, padding: float) -> tuple[float, 
 
 
 def build_field(spec: DeviceSpec, root_pose, angles, widths, mesh: trimesh.Trimesh, fields: Fields,
-                sigma: float = SIGMA, padding: float = PADDING, spacing: float = SPACING,
+                sigma: float = SIGMA, padding: float = PADDING, spacing: float = NODE_SPACING,
                 reach: float = REACH) -> RedirectionField:
     """The redirection field of a proxy (root pose 4x4 m, hinge angles rad, flap widths m) on a target.
 

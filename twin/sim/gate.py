@@ -5,7 +5,8 @@ device's present hinge angles with the device's gains and checks:
 
 - range:     every target inside the hinge range (deg);
 - collision: no flap-on-flap contact anywhere along the simulated trajectory
-             (trace angles replayed through mj_forward, every `collision_step` s);
+             (trace angles replayed through mj_forward, every `collision_step` s; the
+             same contact as twin.device.flap_collision finds without MuJoCo);
 - settle:    every hinge settles (|error| <= settle_band counts for settle_hold s)
              within `settle_limit` s;
 - peak current: the largest winding current, A, within the motor driver's peak rating
@@ -27,6 +28,7 @@ import mujoco
 import numpy as np
 
 from controllers.pid import PidGains
+from twin.device.flap_collision import CONTACT_DEPTH
 from twin.sim.simulation import Trace, Twin
 from twin.device.spec import DeviceSpec
 
@@ -90,7 +92,7 @@ class GateRefused(RuntimeError):
 
 
 def flap_contacts(model: mujoco.MjModel, data: mujoco.MjData, hinge_qadr, angles,
-                  min_depth: float = 1e-4) -> list[tuple[str, str, float]]:
+                  min_depth: float = CONTACT_DEPTH) -> list[tuple[str, str, float]]:
     """Flap-on-flap contacts at hinge angles (rad): (flap, flap, penetration m) deeper than min_depth."""
     data.qpos[hinge_qadr] = angles
     mujoco.mj_forward(model, data)

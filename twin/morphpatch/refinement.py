@@ -1,0 +1,266 @@
+"""Our method beyond the paper: a bounded local refinement of the pipeline's result ("refined").
+
+The pipeline (twin.morphpatch.approximation) turns the root and each hinge by the
+angle of a mean gradient: a good start, not a fit. This refines its result by
+minimising what the metrics measure, the squared signed distance of the proxy's
+touch-surface samples (the pipeline's 5 mm flap grid, the pipeline's widths) to the
+target, sum_j S(x_j)^2 on the SDF grid, over the root pose (anchor position and a
+rotation about it) and the hinge angles: Levenberg-Marquardt with analytic Jacobians,
+
+    dS_j/d(anchor)   = g_j,
+    dS_j/d(rotation) = (x_j - anchor) x g_j           (a small turn w about the anchor),
+    dS_j/d(angle_h)  = a_h . ((x_j - q_h) x g_j)      for samples on the flaps hinge h moves,
+
+with g_j = grad S(x_j), a_h and q_h hinge h's axis and a point on it in the world.
+
+Bounds, so every result is a pose the device can take where the user asked for it:
+- the anchor stays (nearly) out of the target, at most ANCHOR_DEPTH in: where a step
+  would take it deeper, it is moved back along grad S, and while it is at that depth
+  with the sum falling inwards, steps keep to the surface's tangent plane there (least
+  squares alone sinks the root flap's middle up to 17 mm into a convex target to bring
+  its 155 mm long ends closer; the device is meant to lie on the target, not in it);
+- the anchor stays within ANCHOR_RADIUS of the snapped point (the pipeline's step 1:
+  where the user brought the device; unbounded, it drifts up to 150 mm to the easiest
+  flat patch, which is not the region the user chose); on the ball's surface, steps
+  slide along it, and one that still leaves the ball is cut back to it;
+- hinge angles are clipped inside +-spec.hinge_limit;
+- no flap-on-flap contact (twin.device.flap_collision, the gate's check): a step into
+  contact is refused like one that does not lower the sum; a pipeline result that is
+  in contact already (it curls 188 mm of flaps round a thin cylinder's 126 mm
+  circumference) is first unrolled, all its angles scaled down together, until it is not.
+A step is kept only when it lowers the sum, so the result is never worse than its start
+on the grid's objective. SI units (m, rad).
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numba
+import numpy as np
+
+from twin.device.flap_collision import collides
+from twin.device.kinematics import flap_frames, hinge_axis_sign, outer_flap, pose_matrix
+from twin.device.spec import DeviceSpec
+from twin.morphpatch.fields import Fields
+
+CLEARANCE = 0.0  # m: refined poses keep the flaps out of contact altogether (the gate refuses past 0.1 mm)
+ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
+MAX_STEPS = 40  # Levenberg-Marquardt trials
+DAMPING = 1e-3  # initial damping, relative to the normal matrix's diagonal
+TOLERANCE = 1e-4  # a step that lowers the sum (or is expected to) by less than this fraction ends the search
+ANCHOR_DEPTH = 0.5e-3  # m: the anchor may sit this far inside the target, no farther (on the SDF grid)
+ON_LIMIT = 1e-5  # m: an anchor this close to a bound (its depth, the ball) is on it
+
+
+def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.ndarray, angles: np.ndarray,
+           widths: np.ndarray, centre: np.ndarray, radius: float = ANCHOR_RADIUS) -> tuple[np.ndarray, np.ndarray]:
+    """The refined (root pose 4x4, hinge angles rad) from the pipeline's root pose and angles.
+
+    local: (n_flaps, M, 3) sample points in each flap's frame at its width (m); widths (m)
+    stay as given; centre (3,) m: the snapped anchor, which the anchor stays within
+    `radius` of.
+    """
+    chain = _chain(spec)
+    limit = spec.hinge_limit
+    rot, angles = root_pose[:3, :3].copy(), _uncurled(spec, np.asarray(angles, float))
+    anchor = _bounded(fields, root_pose[:3, 3], centre, radius)
+    state = _evaluate(fields, spec, chain, local, rot, anchor, angles, widths)
+    damping = DAMPING
+    for _ in range(MAX_STEPS):
+        cost, jtj, jtr, s_anchor, g_anchor = state
+        basis = _free_directions(jtr, s_anchor, g_anchor, anchor, centre, radius)
+        lhs = basis.T @ jtj @ basis
+        step = -basis @ np.linalg.solve(lhs + damping * np.diag(np.diag(lhs) + 1e-12), basis.T @ jtr)
+        if -(2.0 * jtr @ step + step @ jtj @ step) < TOLERANCE * cost:  # the model expects no real gain
+            break
+        new_rot = _rodrigues(step[3:6]) @ rot
+        new_anchor = _bounded(fields, anchor + step[:3], centre, radius)
+        new_angles = np.clip(angles + step[6:], -limit, limit)
+        trial = None if collides(spec, new_angles, CLEARANCE) else _evaluate(
+            fields, spec, chain, local, new_rot, new_anchor, new_angles, widths)
+        if trial is not None and trial[0] < cost:
+            rot, anchor, angles, state = new_rot, new_anchor, new_angles, trial
+            damping *= 0.3
+            if cost - trial[0] < TOLERANCE * cost:
+                break
+        else:
+            damping *= 4.0
+    return pose_matrix(anchor, rot), angles
+
+
+def _uncurled(spec: DeviceSpec, angles: np.ndarray) -> np.ndarray:
+    """The angles if no flaps collide there, else the largest fraction of them (bisection) at which none do."""
+    if not collides(spec, angles, CLEARANCE):
+        return angles
+    lo, hi = 0.0, 1.0
+    for _ in range(12):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if not collides(spec, mid * angles, CLEARANCE) else (lo, mid)
+    return lo * angles
+
+
+def _free_directions(jtr: np.ndarray, s_anchor: float, g_anchor: np.ndarray, anchor: np.ndarray,
+                     centre: np.ndarray, radius: float) -> np.ndarray:
+    """Columns spanning the parameter directions a step may take: all, but where the anchor is on one of
+    its bounds (as deep as it may go, or on the ball's surface) and the sum would fall by crossing it, not
+    across that bound (the surface's normal, the ball's radius): the step slides along it instead."""
+    n = len(jtr)
+    blocked = []
+    if s_anchor <= -ANCHOR_DEPTH + ON_LIMIT and jtr[:3] @ g_anchor > 0.0:  # the sum falls inwards
+        blocked.append(g_anchor)
+    out = anchor - centre
+    if _distance(anchor, centre) >= radius - ON_LIMIT and jtr[:3] @ out < 0.0:  # ... or outwards
+        blocked.append(out)
+    if not blocked:
+        return np.eye(n)
+    _, sv, vt = np.linalg.svd(np.array(blocked))
+    rank = int(np.sum(sv > 1e-9 * sv[0]))
+    basis = np.zeros((n, n - rank))
+    basis[:3, :3 - rank] = vt[rank:].T  # orthonormal, across none of the blocked directions
+    basis[3:, 3 - rank:] = np.eye(n - 3)
+    return basis
+
+
+def _out_of_target(fields: Fields, p: np.ndarray) -> np.ndarray:
+    """p if it is no deeper in the target than ANCHOR_DEPTH, else the point at that depth that Newton's
+    steps along grad S reach from it."""
+    for _ in range(3):
+        s, g = fields.sdf_grad(p[None])
+        if s[0] >= -ANCHOR_DEPTH:
+            break
+        p = p - (s[0] + ANCHOR_DEPTH) * g[0] / max(float(g[0] @ g[0]), 1e-12)
+    return p
+
+
+def _evaluate(fields, spec, chain, local, rot, anchor, angles, widths):
+    """(sum of S^2 m^2, J^T J, J^T S, S and grad S at the anchor) at one state; J over (anchor, rotation,
+    hinge angles)."""
+    moved, sign, inner, half = chain
+    frames = flap_frames(spec, angles, pose_matrix(anchor, rot), widths)
+    points = _place(frames, local, anchor)
+    s, g = fields.sdf_grad(points)
+    # hinge h turns the flaps beyond it about axis a_h through q_h on its inner flap's outer edge
+    axes = frames[inner, :3, 1] * sign[:, None]
+    on_axis = frames[inner, :3, 3] + frames[inner, :3, 0] * (half * widths[inner])[:, None]
+    cost, jtj, jtr = _normal_equations(points, s, g, local.shape[1], moved, axes, on_axis, anchor)
+    return cost, jtj, jtr, s[-1], g[-1]
+
+
+@lru_cache(maxsize=8)
+def _chain(spec: DeviceSpec) -> tuple:
+    """Per spec: which flaps each hinge turns (n_flaps, n_hinges), each hinge's axis sign, its inner flap,
+    and the side (+-1/2 of the inner flap's width) its axis lies on."""
+    outer = outer_flap(spec)
+    beyond = outer > spec.root_flap
+    moved = np.zeros((spec.n_flaps, spec.n_hinges))
+    for h, o in enumerate(outer):
+        if beyond[h]:
+            moved[o:, h] = 1.0
+        else:
+            moved[:o + 1, h] = 1.0
+    return moved, hinge_axis_sign(spec), np.where(beyond, outer - 1, outer + 1), np.where(beyond, 0.5, -0.5)
+
+
+@numba.njit(cache=True)
+def _place(frames, local, anchor):
+    """World points (n_flaps * M + 1, 3) of the flaps' local samples (n_flaps, M, 3), the anchor last."""
+    n_flaps, m = local.shape[0], local.shape[1]
+    out = np.empty((n_flaps * m + 1, 3))
+    for f in range(n_flaps):
+        for p in range(m):
+            for i in range(3):
+                out[f * m + p, i] = (frames[f, i, 3] + frames[f, i, 0] * local[f, p, 0]
+                                     + frames[f, i, 1] * local[f, p, 1] + frames[f, i, 2] * local[f, p, 2])
+    out[n_flaps * m] = anchor
+    return out
+
+
+@numba.njit(cache=True)
+def _normal_equations(points, s, g, per_flap, moved, axes, on_axis, anchor):
+    """Sum of s^2, J^T J (12, 12) and J^T s (12,) over the flap samples (the rows before the last).
+
+    A sample's Jacobian row is linear in w = (g, x cross g): row = M_f w, with M_f fixed per flap
+    (module docstring), so the samples are summed per flap as w w^T and w s first.
+    """
+    n_flaps, n_hinges = moved.shape
+    ww = np.zeros((n_flaps, 6, 6))
+    ws = np.zeros((n_flaps, 6))
+    w = np.zeros(6)
+    cost = 0.0
+    for p in range(n_flaps * per_flap):
+        f = p // per_flap
+        gx, gy, gz = g[p, 0], g[p, 1], g[p, 2]
+        x, y, z = points[p, 0], points[p, 1], points[p, 2]
+        w[0], w[1], w[2] = gx, gy, gz
+        w[3], w[4], w[5] = y * gz - z * gy, z * gx - x * gz, x * gy - y * gx
+        r = s[p]
+        cost += r * r
+        for a in range(6):
+            ws[f, a] += w[a] * r
+            for b in range(a, 6):
+                ww[f, a, b] += w[a] * w[b]
+    n = 6 + n_hinges
+    jtj = np.zeros((n, n))
+    jtr = np.zeros(n)
+    mf = np.zeros((n, 6))
+    for f in range(n_flaps):
+        for a in range(6):
+            for b in range(a):
+                ww[f, a, b] = ww[f, b, a]
+        mf[:] = 0.0
+        for i in range(3):
+            mf[i, i] = 1.0  # anchor: g
+            mf[3 + i, 3 + i] = 1.0  # rotation: x cross g - anchor cross g
+        c = anchor
+        mf[3, 1], mf[3, 2] = c[2], -c[1]
+        mf[4, 0], mf[4, 2] = -c[2], c[0]
+        mf[5, 0], mf[5, 1] = c[1], -c[0]
+        for h in range(n_hinges):
+            if moved[f, h] != 0.0:  # a . (x cross g) - (a cross q) . g
+                a0, a1, a2 = axes[h, 0], axes[h, 1], axes[h, 2]
+                q0, q1, q2 = on_axis[h, 0], on_axis[h, 1], on_axis[h, 2]
+                mf[6 + h, 0], mf[6 + h, 1], mf[6 + h, 2] = -(a1 * q2 - a2 * q1), -(a2 * q0 - a0 * q2), -(a0 * q1 - a1 * q0)
+                mf[6 + h, 3], mf[6 + h, 4], mf[6 + h, 5] = a0, a1, a2
+        jtj += mf @ ww[f] @ mf.T
+        jtr += mf @ ws[f]
+    return cost, jtj, jtr
+
+
+def _bounded(fields: Fields, p: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """p moved out of the target (to ANCHOR_DEPTH); if that is farther than `radius` from the centre (the
+    snapped anchor, on the surface), pulled back just inside the ball and out of the target again, or,
+    if that still leaves the ball, the farthest point out of the target towards p that does not, to 1/64
+    of the way (bisection along centre -> p: only pulling a point on a convex target back into the ball
+    would cut a chord through it, 2 mm deep for 20 mm on the cone)."""
+    q = _out_of_target(fields, p)
+    if _distance(q, centre) <= radius:
+        return q
+    pulled = _out_of_target(fields, centre + (q - centre) * (0.999 * radius / _distance(q, centre)))
+    if _distance(pulled, centre) <= radius:  # a step along the ball's surface leaves it by a hair
+        return pulled
+    lo, hi, best = 0.0, 1.0, centre
+    for _ in range(6):
+        mid = (lo + hi) / 2
+        q = _out_of_target(fields, centre + mid * (p - centre))
+        if _distance(q, centre) <= radius:
+            lo, best = mid, q
+        else:
+            hi = mid
+    return best
+
+
+def _distance(a: np.ndarray, b: np.ndarray) -> float:
+    d = a - b
+    return math.sqrt(float(d @ d))
+
+
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector w (rad)."""
+    theta = math.sqrt(float(w @ w))
+    if theta < 1e-12:
+        return np.eye(3)
+    k = w / theta
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(theta) * kx + (1.0 - math.cos(theta)) * (kx @ kx)
