@@ -35,7 +35,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from twin.device.spec import load_spec  # noqa: E402
-from twin.link.emulator import EmulatorProcess  # noqa: E402
+from twin.link.emulator_process import EmulatorProcess  # noqa: E402
 from twin.live.client import LiveClient, latency  # noqa: E402
 from twin.live.player import POSE_HZ, PEN_HZ, TREMOR, stroke  # noqa: E402
 from twin.live.process import ServiceProcess  # noqa: E402

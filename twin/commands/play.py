@@ -19,7 +19,7 @@ from websockets.exceptions import WebSocketException
 
 from twin.cli import UserError
 from twin.device.spec import load_spec
-from twin.link.emulator import EmulatorProcess
+from twin.link.emulator_process import EmulatorProcess
 from twin.live.player import play
 from twin.live.process import ServiceProcess
 from twin.morphpatch.approximation import VARIANTS
