@@ -17,9 +17,11 @@ from twin.device.spec import MODELS_DIR, DeviceSpec, load_spec
 
 ROTOR_MASS = 1e-9  # kg: a body with a joint needs some; negligible beside the device's 0.228 kg
 ROTOR_INERTIA = 1e-12  # kg*m^2: negligible beside the reflected rotor inertia (armature, ~1e-4)
-# The dead zone's ends are hard stops: impedance near 1, so a loaded flap presses into its stop by
-# (1 - 0.99) of what a soft constraint would let it (~0.01 deg under the stall torque)
-BACKLASH_SOLIMP = (0.99, 0.99, 0.001)
+# The dead zone's ends (and the rigid coupling without backlash) are hard stops: the shortest time
+# constant MuJoCo integrates stably (two 1 ms steps) and an impedance near 1, so a flap loaded by its
+# weight presses ~0.005 deg into its stop (0.1 deg with MuJoCo's defaults 0.02 s, 0.9-0.95)
+BACKLASH_SOLREF = (0.002, 1.0)
+BACKLASH_SOLIMP = (0.999, 0.999, 0.001)
 MJCF_PATH = MODELS_DIR / "vrscroll" / "vrscroll.xml"  # the device alone
 SCENE_PATH = MODELS_DIR / "vrscroll" / "scene.xml"  # includes the device, adds floor, light and camera
 
@@ -87,7 +89,8 @@ def _backlash(spec: DeviceSpec) -> str:
     constraint only at its ends), or a rigid joint coupling where the spec has no backlash."""
     n = spec.n_hinges
     if spec.backlash <= 0:
-        pairs = "\n".join(f'    <joint name="backlash{k}" joint1="hinge{k}" joint2="gear{k}"/>' for k in range(n))
+        pairs = "\n".join(f'    <joint name="backlash{k}" joint1="hinge{k}" joint2="gear{k}" solref="{_f(*BACKLASH_SOLREF)}"'
+                          f' solimp="{_f(*BACKLASH_SOLIMP)}"/>' for k in range(n))
         return f"  <equality>\n{pairs}\n  </equality>"
     half = math.degrees(spec.backlash) / 2
     rows = "\n".join(f'    <fixed name="backlash{k}" class="backlash"><joint joint="hinge{k}" coef="1"/>'
@@ -160,7 +163,8 @@ def mjcf(spec: DeviceSpec | None = None, root: str = "fixed") -> str:
       </default>
       <default class="backlash">
         <!-- range in rad (MuJoCo does not convert tendon lengths): spec [motor] backlash / 2 -->
-        <tendon limited="true" range="{_f(-s.backlash / 2, s.backlash / 2)}" solimplimit="{_f(*BACKLASH_SOLIMP)}"/>
+        <tendon limited="true" range="{_f(-s.backlash / 2, s.backlash / 2)}" solreflimit="{_f(*BACKLASH_SOLREF)}"
+          solimplimit="{_f(*BACKLASH_SOLIMP)}"/>
       </default>
       <!-- 6 V micro metal gearmotor, 100.37:1 (spec [motor]) on the gearbox output joint gearK.
            K from the datasheet's no-load point; R is the winding's and the driver's FETs' (spec

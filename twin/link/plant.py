@@ -100,6 +100,9 @@ class Plant:
         mujoco.mj_forward(self.model, self.data)
         self.bus = self.spec.supply_voltage  # V, the battery voltage the firmware reads
         self.current = np.zeros(n)  # A, winding current of the last tick
+        scratch = mujoco.MjData(self.model)  # the drive model compiled (or loaded) now, so the first tick is on time
+        drive(self.params, np.zeros(n, np.float32), np.zeros(n, np.uint8), scratch.qvel, self.hinges.gear_dof,
+              scratch.ctrl, scratch.qfrc_applied, np.zeros(n))
         self._shaft = self._shaft_counts()  # the counts the shaft has turned through
         self.missed = np.zeros(n, np.int64)  # edges the counter missed, signed: they accumulate
         self.counts = self._shaft - self.missed

@@ -91,6 +91,13 @@ class Trace:
         os.replace(tmp, path)
 
 
+def join_traces(traces: list[Trace]) -> Trace:
+    """Consecutive traces of one twin as one (their wall times summed)."""
+    cat = {f.name: np.concatenate([getattr(t, f.name) for t in traces])
+           for f in dataclasses.fields(Trace) if f.name != "wall_time"}
+    return Trace(**cat, wall_time=float(sum(t.wall_time for t in traces)))
+
+
 # MuJoCo's C API and the firmware core's control tick, for the compiled loops
 _LIB = ctypes.CDLL(os.path.join(os.path.dirname(mujoco.__file__), f"libmujoco.so.{mujoco.__version__}"))
 _mj_step1, _mj_step2, _mj_step = _LIB.mj_step1, _LIB.mj_step2, _LIB.mj_step
