@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from controllers.encoder import target_counts
+from twin.cli import main
 from twin.formats.scenario import Scenario
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
@@ -176,3 +177,14 @@ def test_the_gate_refuses_a_reversal_30_ms_after_a_step_naming_the_current_and_t
         enforce(report)
     calm = Scenario("steps", np.zeros(6), [0.0, 1.0], [step, np.zeros(6)], 2.0)
     assert check_scenario(spec, calm, twin=twin).passed  # the same steps, a second apart
+
+
+@pytest.mark.parametrize("option, value, message", [
+    ("--speed-scale", "1.3,0.7", "--speed-scale: range 1.3..0.7 must be finite, low <= high, not negative"),
+    ("--backlash-deg", "abc", "--backlash-deg abc: expected a number or LOW,HIGH"),
+    ("--latency-ms", "1,2,3", "--latency-ms 1,2,3: expected a number or LOW,HIGH"),
+    ("--encoder-miss", "2", "--encoder-miss 2.0: a probability, 0 to 1"),
+])
+def test_emulate_refuses_a_bad_range_in_one_line(option, value, message, capsys):
+    assert main(["emulate", option, value]) == 2
+    assert capsys.readouterr().err.strip() == f"vrscroll emulate: error: {message}"
