@@ -17,6 +17,7 @@ from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
 from twin.link.faults import FaultOptions
 from twin.link.plant import Plant, PlantOptions, PlantRanges, as_twin, draw_plant
 from twin.sim.gate import GateRefused, check_move, check_scenario, enforce
+from twin.sim.response import step_metrics
 from twin.sim.simulation import Twin, move_report
 
 ZIGZAG_DEG = [90.0, -90.0, 90.0, -90.0, 90.0, -90.0]  # 90 deg on every hinge, the row free of itself
@@ -78,9 +79,9 @@ def test_zero_volts_from_flat_hinge_2_falls_slower_braked_than_coasting(spec):
     assert np.degrees(coasting.hold(0.5).angle[-1, 2]) < -85
 
 
-def emulated_settle(spec, opt, targets, seconds) -> float:
-    """The emulated device stepped to targets in process (the firmware's bytes in, its counts out): the
-    latest settle time over the hinges, s, from the counts and the firmware's settle band."""
+def emulated_settle(spec, opt, targets, seconds) -> np.ndarray:
+    """The emulated device stepped to targets in process (the firmware's bytes in, its counts out): each
+    hinge's settle time, s, from its counts and the firmware's settle band."""
     emu = Emulator(spec, opt)
     goal = target_counts(spec, targets)
     emu.receive(P.encode(P.SetTargets(tuple(int(c) for c in goal)), 1))
@@ -90,28 +91,26 @@ def emulated_settle(spec, opt, targets, seconds) -> float:
             emu.receive(P.encode(P.Heartbeat(), i // 100 + 1))
         emu.step()
         counts.append(emu.counts.copy())
-    inside = np.all(np.abs(np.array(counts) - goal) <= spec.settle_band, axis=1)
-    hold = int(round(spec.settle_hold / spec.firmware_dt))
-    run = 0
-    for i, ok in enumerate(inside):
-        run = run + 1 if ok else 0
-        if run >= hold:
-            return (i + 1 - hold) * spec.firmware_dt
-    return math.inf
+    time_s = np.arange(len(counts)) * spec.firmware_dt
+    return np.array([step_metrics(time_s, c, g, spec.settle_band, tail=spec.settle_hold).settle_time
+                     for c, g in zip(np.array(counts).T, goal)])
 
 
 def test_six_hinges_settle_later_on_a_low_pack_as_the_twin_predicts_for_the_emulator(spec):
-    """Six hinges stepped together share the pack: on 6.6 V it sags below the 6 V the firmware asks for and
-    the move is slower than on a full 8.4 V pack. The emulator (its own plant process, the command's latency)
-    settles later on 6.6 V, and within 15 % of the twin's prediction on each pack."""
+    """Six hinges stepped together share the pack: on 6.6 V it sags below the 6 V the firmware asks for while
+    they accelerate, and the move is slower than on a full 8.4 V pack (by a few ms: once the hinges turn,
+    their current and the sag fall). The emulator (its own plant process, the command's latency) settles
+    later on 6.6 V, and within 15 % of the twin's prediction on each pack (settle times averaged over the
+    hinges)."""
     targets = np.radians(ZIGZAG_DEG)
     got = {}
     for volts in (spec.pack_low_voltage, spec.pack_full_voltage):
         pack = spec.replace(supply_voltage=volts)
-        predicted = max(r["settle_time_s"] for r in move_report(pack, Twin(pack).move_to(targets, max_time=1.5)))
+        report = move_report(pack, Twin(pack).move_to(targets, max_time=1.5, stop_when_settled=False))
+        predicted = np.mean([r["settle_time_s"] for r in report])
         opt = EmulatorOptions(plant=dataclasses.replace(as_twin(spec), pack_voltage=volts),
                               faults=FaultOptions(latency_ms=1.0))
-        measured = emulated_settle(spec, opt, targets, 1.5)
+        measured = emulated_settle(spec, opt, targets, 1.5).mean()
         assert measured == pytest.approx(predicted, rel=0.15), volts
         got[volts] = measured
     assert got[spec.pack_low_voltage] > got[spec.pack_full_voltage]
