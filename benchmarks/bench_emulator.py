@@ -28,6 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from controllers.encoder import target_counts  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
+from twin.link import protocol as P  # noqa: E402
 from twin.link.emulator import Emulator  # noqa: E402
 from twin.link.pty_device import open_pty, serve  # noqa: E402
 from twin.link.serial_link import Link  # noqa: E402
@@ -69,8 +70,12 @@ def main() -> None:
     end = time.monotonic() + args.seconds - 1.0  # the host stops before the device does
     with Link(port) as link:
         link.set_telemetry_rate(500)
-        k = 0
+        k, faults = 0, []
         while time.monotonic() < end:
+            state = link.get_state()
+            if state.state == P.State.FAULT:  # e.g. a heartbeat late on a loaded machine: noted, cleared
+                faults.append(P.Fault(state.faults).name)
+                link.clear_fault()
             link.set_targets(target_counts(spec, np.radians(MOVES_DEG[k % 2])))
             time.sleep(0.5)
             link.drain_telemetry()
@@ -82,7 +87,7 @@ def main() -> None:
           f"at 500 Hz and moving all hinges every 0.5 s (load average {os.getloadavg()[0]:.2f}):")
     print(f"  period p50 {np.median(np.diff(stamps)) * 1e3:.3f} ms; |jitter| p50 {np.percentile(jitter, 50):.3f} ms, "
           f"p99 {np.percentile(jitter, 99):.3f} ms, max {jitter.max():.3f} ms (goal p99 <= 0.5 ms); "
-          f"overruns {overruns}")
+          f"overruns {overruns}; device faults seen {faults or 'none'}")
 
 
 if __name__ == "__main__":
