@@ -149,6 +149,7 @@ _SIGNATURES = {  # name: (argtypes, restype), as vrs_core.h declares them
     "vrs_get_rx_bad_frames": ([_VP], _U32),
     "vrs_get_telemetry_dropped": ([_VP], _U32),
     "vrs_get_battery_mv": ([_VP], _U16),
+    "vrs_pid_memory": ([_VP], _VP),
     "vrs_set_battery_mv": ([_VP, _U16], None),
     "vrs_pwm": ([_VP, _VP], None),
     "vrs_pid_update": ([_VP, _VP, _F, _F, _I32, _I32], _F),

@@ -484,6 +484,11 @@ int vrs_get_gains(const vrs_core *c, uint8_t hinge, vrs_gains *out)
     return 0;
 }
 
+vrs_pid *vrs_pid_memory(vrs_core *c)
+{
+    return c->pid;
+}
+
 /* ---- through the hardware-access struct ----------------------------------------------- */
 
 void vrs_service(vrs_core *c, const vrs_hw *hw)

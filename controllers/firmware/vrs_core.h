@@ -146,6 +146,7 @@ int vrs_get_gains(const vrs_core *c, uint8_t hinge, vrs_gains *out);  /* 0, or V
 uint32_t vrs_get_rx_bad_frames(const vrs_core *c);
 uint32_t vrs_get_telemetry_dropped(const vrs_core *c);
 uint16_t vrs_get_battery_mv(const vrs_core *c);
+vrs_pid *vrs_pid_memory(vrs_core *c);  /* the PID memory, one per hinge: the twin carries it across a reset */
 
 /* The PID of controllers/pid.py for one hinge and tick, in float: updates s, returns duty. */
 float vrs_pid_update(vrs_pid *s, const vrs_gains *g, float alpha, float dt, int32_t target, int32_t counts);

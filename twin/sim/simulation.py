@@ -220,16 +220,9 @@ def set_core_gains(fw: core.Core, gains: list[PidGains]) -> None:
             raise ValueError(f"hinge {k}: the firmware refuses gains outside its bounds (docs/protocol.md): {g}")
 
 
-class _CoreHead(ctypes.Structure):
-    """vrs_core's leading fields (vrs_core.h) up to its PID memory: where that memory lies in the struct."""
-
-    _fields_ = [("cfg", core.Config), ("dt", ctypes.c_float), ("gains", core.Gains * core.MAX_HINGES),
-                ("alpha", ctypes.c_float * core.MAX_HINGES), ("pid", core.PidState * core.MAX_HINGES)]
-
-
 def pid_memory(fw: core.Core) -> np.recarray:
     """A live view of the core's PID memory per hinge: fields prev (counts), rate (counts/s), integral (duty)."""
-    mem = (core.PidState * fw.n).from_address(fw.address + _CoreHead.pid.offset)
+    mem = (core.PidState * fw.n).from_address(fw.lib.vrs_pid_memory(fw.address))
     mem.owner = fw  # the view keeps the core's memory alive
     return np.ctypeslib.as_array(mem).view(np.recarray)
 
