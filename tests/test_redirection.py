@@ -9,6 +9,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from twin.device.spec import load_spec
 from twin.morphpatch.approximation import approximate, pose_from_mm_deg
 from twin.cli import main
 from twin.morphpatch.fields import build_fields
