@@ -2,7 +2,7 @@
 
 Results are appended to OUT/results.jsonl as they come; rerunning with the same
 --out, --starts and --seed resumes. Writes OUT/table.md, OUT/table.csv and
-OUT/chart.png (MSD and HD per shape and method, the paper's means as ticks).
+OUT/chart.png (MSD, HD and the MSD on the twin per shape and method, the paper's means as ticks).
 """
 
 from __future__ import annotations
