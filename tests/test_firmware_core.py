@@ -1,7 +1,6 @@
 """The C firmware core's supervisor, through its serial bytes and its control tick: refusals that
 change nothing, the watchdog, repeated commands, stall, limit, overcurrent, e-stop, telemetry."""
 
-import ctypes
 import struct
 
 import numba

@@ -22,9 +22,20 @@ import multiprocessing
 import statistics
 from pathlib import Path
 
+import mujoco
 import numpy as np
+from tqdm import tqdm
 
-from twin.device.spec import MODELS_DIR
+from twin.device.spec import MODELS_DIR, load_spec
+from twin.evaluation.cbs import CbsSimulator
+from twin.evaluation.starts import approach_starts
+from twin.morphpatch.approximation import approximate
+from twin.morphpatch.fields import build_fields, exact_signed_distance
+from twin.morphpatch.redirection import build_field, threshold_summary
+from twin.morphpatch.shapes import load_shape
+from twin.morphpatch.surface_metrics import msd_hd
+from twin.sim.gate import check_move
+from twin.sim.simulation import Twin
 
 METHODS = ("cbs", "no_hcevf", "full", "refined")
 PAPER_TABLE = MODELS_DIR / "shapes" / "paper_table1.csv"
@@ -35,13 +46,6 @@ _CONTEXT: dict = {}  # per worker process: shape -> (mesh, fields, CBS simulator
 def _context(shape: str, n_starts: int, seed: int):
     key = (shape, n_starts, seed)
     if key not in _CONTEXT:
-        from twin.device.spec import load_spec
-        from twin.evaluation.cbs import CbsSimulator
-        from twin.evaluation.starts import approach_starts
-        from twin.morphpatch.fields import build_fields
-        from twin.morphpatch.shapes import load_shape
-        from twin.sim.simulation import Twin
-
         spec = load_spec()
         mesh = load_shape(shape)
         _CONTEXT[key] = (spec, mesh, build_fields(mesh), CbsSimulator(spec, mesh), Twin(spec),
@@ -57,8 +61,6 @@ def _shape_seed(seed: int, shape: str) -> int:
 def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
     """All methods from one start: a record each with msd_mm, hd_mm, angles_deg, time_ms, the anchor's
     depth in the target, and what the twin made of it (see the module docstring)."""
-    from twin.morphpatch.approximation import approximate
-    from twin.morphpatch.fields import exact_signed_distance
 
     shape, index, n_starts, seed = task
     spec, mesh, fields, cbs, twin, starts = _context(shape, n_starts, seed)
@@ -80,11 +82,6 @@ def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
 def twin_outcome(spec, mesh, fields, twin, result) -> dict:
     """The morph to a result on the twin held at its root pose: MSD (mm) where it ended, the gate's range
     and collision verdicts, and the share of the touch surface within the perception thresholds."""
-    import mujoco
-
-    from twin.morphpatch.redirection import build_field, threshold_summary
-    from twin.morphpatch.surface_metrics import msd_hd
-    from twin.sim.gate import check_move
 
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, np.ascontiguousarray(result.root_pose[:3, :3]).ravel())
@@ -116,7 +113,6 @@ def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: 
     tasks = [(s, i, n_starts, seed) for s in shapes for i in range(n_starts) if (s, i) not in done]
     if not tasks:
         return records
-    from tqdm import tqdm
 
     bar = tqdm(total=len(tasks), desc="evaluate", unit="start", disable=not progress)
     ctx = multiprocessing.get_context("spawn")

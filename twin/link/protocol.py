@@ -20,6 +20,8 @@ import dataclasses
 import enum
 import struct
 
+from controllers.pid import PidGains
+
 PROTOCOL_VERSION = 1
 MAX_FRAME = 512  # bytes of decoded payload (header + body + crc); longer is garbage
 DUTY_SCALE = 32767  # duty [-1, 1] on the wire as int16 duty * 32767
@@ -191,10 +193,8 @@ class Gains:
                    round(g.derivative_cutoff * CUTOFF_SCALE), round(g.integral_limit * DUTY_SCALE),
                    round(g.deadband_duty * DUTY_SCALE), int(g.hold_band))
 
-    def to_pid(self):
+    def to_pid(self) -> PidGains:
         """The controllers.pid.PidGains these wire values stand for."""
-        from controllers.pid import PidGains
-
         return PidGains(self.kp / GAIN_SCALE, self.ki / GAIN_SCALE, self.kd / GAIN_SCALE,
                         self.cutoff / CUTOFF_SCALE, self.integral_limit / DUTY_SCALE,
                         self.deadband / DUTY_SCALE, self.hold_band)

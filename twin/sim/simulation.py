@@ -29,6 +29,7 @@ from controllers.encoder import angle_from_counts, counts_from_motor_angle, coun
 from controllers.pid import PidGains
 from twin.device.mjcf import load_model
 from twin.device.spec import DeviceSpec, load_spec
+from twin.sim.response import step_metrics
 from twin.sim.drive import V_PACK, drive, drive_params
 from twin.formats.trace import TWIN_COLUMNS, TraceWriter
 
@@ -494,8 +495,6 @@ def hinge_metrics(spec: DeviceSpec, time_s, target_counts: float, counts, target
     The one definition of settle time (from the counts, the firmware's settle
     band) and overshoot (from the true angle) that reports and the tuner share.
     """
-    from twin.sim.response import step_metrics
-
     return (step_metrics(time_s, counts, target_counts, spec.settle_band, tail=spec.settle_hold),
             step_metrics(time_s, angle, target, spec.settle_band * spec.rad_per_count, tail=spec.settle_hold))
 
