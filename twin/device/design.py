@@ -20,6 +20,8 @@ from twin.device.spec import DeviceSpec
 
 FIELDS = tuple(f.name for f in dataclasses.fields(DeviceSpec))
 _INTEGER = {f.name for f in dataclasses.fields(DeviceSpec) if f.type in (int, "int")}
+# what the total mass is made of: a design changing one of these, and not mass_total, gets a new total
+_MASS_PARTS = {"n_flaps", "length", "depth", "thickness", "mass_motor", "mass_electronics"}
 # SI values that must be above zero for any device
 _POSITIVE = ("length", "depth", "thickness", "usable_depth", "hinge_limit", "motor_diameter", "motor_length",
              "mass_total", "mass_motor", "gear_ratio", "no_load_speed", "stall_torque", "stall_current",
@@ -41,7 +43,7 @@ def design_spec(base: DeviceSpec, overrides: dict) -> DeviceSpec:
     if "n_flaps" in changes and "root_flap" not in changes:
         changes["root_flap"] = (changes["n_flaps"] - 1) // 2
     spec = dataclasses.replace(base, **changes)
-    if "mass_total" not in changes:
+    if "mass_total" not in changes and _MASS_PARTS & changes.keys():
         spec = dataclasses.replace(spec, mass_total=_mass_with_base_density(base, spec))
     reasons = impossible(spec)
     if reasons:
