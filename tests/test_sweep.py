@@ -136,6 +136,7 @@ tolerance_pct = { gear_friction = 30 }
     ("[plants]\ndraws = 2", "[plants] draws = 2 needs tolerance_pct"),
     ("[plants]\ndraws = 1\ntolerance_pct = { gear_friction = 150 }", "tolerance_pct gear_friction: 150 is not a percentage"),
     ("[plants]\ncount = 1", "[plants]: unknown key 'count'"),
+    ("[plants]\ndraws = 1\ntolerance_pct = { n_flaps = 10 }", "n_flaps is a whole number, not a value a plant varies"),
     ("starts = [", "not TOML"),
 ])
 def test_the_sweep_file_reader_refuses_bad_input(tmp_path, capsys, text, message):
@@ -208,6 +209,14 @@ def test_an_interrupted_sweep_resumes_losing_and_duplicating_nothing(tmp_path):
     assert len(lines) == len(tasks) == len(set(keys)) and set(keys) == {t.key for t in tasks}
     assert lines[:len(before)] == before  # what was there is kept as it was
     assert [r["key"] for r in records] == [t.key for t in tasks] and read_records(log).keys() == set(keys)
+    # another sweep into the folder: its n_flaps = 7 tasks are there already, only the 9-flap ones run, and
+    # its records are labelled as its designs are (7 is its design 0, the first sweep's design 1)
+    grown = _read(_sweep_file(tmp_path / "grown.toml", SMALL.replace("[5, 7]", "[7, 9]")))
+    with make_backend("local", 2) as backend:
+        records = run_sweep(out, grown, backend, progress=False)
+    assert len(log.read_text().splitlines()) == len(lines) + 6
+    assert {(r["design_index"], r["design_values"]["n_flaps"]) for r in records} == {(0, 7), (1, 9)}
+    assert [r for r in summarize_designs(records) if r["design"] == "n_flaps=7"][0]["n"] == 6
 
 
 def test_the_tuners_robustness_check_gives_the_same_numbers_on_a_backend(spec):
@@ -220,6 +229,12 @@ def test_the_tuners_robustness_check_gives_the_same_numbers_on_a_backend(spec):
     assert np.array_equal(here[0], there[0])
     for k in here[1]:
         assert np.array_equal(here[1][k], there[1][k]), k
+
+
+def test_the_ray_backend_without_ray_names_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # as where the extra is not installed: import ray fails
+    with pytest.raises(ValueError, match=r"the ray backend needs Ray: pip install -e '\.\[ray\]'"):
+        make_backend("ray")
 
 
 def test_an_unknown_backend_is_refused():

@@ -19,7 +19,7 @@ import math
 from twin.device.spec import DeviceSpec
 
 FIELDS = tuple(f.name for f in dataclasses.fields(DeviceSpec))
-_INTEGER = {f.name for f in dataclasses.fields(DeviceSpec) if f.type in (int, "int")}
+INTEGER_FIELDS = {f.name for f in dataclasses.fields(DeviceSpec) if f.type in (int, "int")}
 # what the total mass is made of: a design changing one of these, and not mass_total, gets a new total
 _MASS_PARTS = {"n_flaps", "length", "depth", "thickness", "mass_motor", "mass_electronics"}
 # SI values that must be above zero for any device
@@ -35,7 +35,7 @@ def design_spec(base: DeviceSpec, overrides: dict) -> DeviceSpec:
         if key not in FIELDS:
             raise ValueError(f"{key!r} is not a spec value (the spec's are: {', '.join(FIELDS)})")
     changes = dict(overrides)
-    for key in _INTEGER & changes.keys():
+    for key in INTEGER_FIELDS & changes.keys():
         value = changes[key]
         if isinstance(value, bool) or float(value) != int(value):
             raise ValueError(f"{key} = {value!r}: expected a whole number")

@@ -131,7 +131,7 @@ def run_sweep(out_dir, sweep: Sweep, backend, progress=True) -> list[dict]:
             log.write(record)
             done[record["key"]] = record
             bar.update(1)
-    return [done[t.key] for t in tasks]
+    return [{**done[t.key], **label} for t, label in zip(tasks, labels)]  # this sweep's labels (design_index)
 
 
 def summarize_designs(records: list[dict]) -> list[dict]:

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import tomlkit
 
-from twin.device.design import FIELDS, design_spec
+from twin.device.design import FIELDS, INTEGER_FIELDS, design_spec
 from twin.device.spec import SPEC_PATH, load_spec
 from twin.formats.common import known_keys, number
 from twin.formats.spec_toml import spec_units, value_in_si
@@ -117,6 +117,8 @@ def read_sweep(path, shapes: list[str], methods: list[str]) -> Sweep:
         where = f"{path}: [plants] tolerance_pct {key}"
         if key not in FIELDS:
             raise ValueError(f"{where}: not a spec key")
+        if key in INTEGER_FIELDS:
+            raise ValueError(f"{where}: {key} is a whole number, not a value a plant varies")
         if not 0 <= number(pct, where) < 100:
             raise ValueError(f"{where}: {pct!r} is not a percentage in [0, 100)")
     if draws and not tolerance:
