@@ -120,6 +120,9 @@ tolerance_pct = { gear_friction = 30 }
     tasks, labels = sweep_tasks(sweep)
     assert len(tasks) == 6 * 2 * 2 * 2 * 3 and len({t.key for t in tasks}) == len(tasks)
     assert labels[0]["design_values"] == {"n_flaps": 5, "hinge_limit_deg": 90.0}
+    assert main(["sweep", str(tmp_path / "example.toml"), "--example"]) == 0  # the example reads
+    example = _read(tmp_path / "example.toml")
+    assert len(example.designs) == 6 and len(example.plants()) == 2
 
 
 @pytest.mark.parametrize("text, message", [
