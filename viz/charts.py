@@ -1,4 +1,5 @@
-"""Matplotlib charts (files, no screen): the evaluation's bar chart, psychometric curves."""
+"""Matplotlib charts (files, no screen): the evaluation's bar chart, psychometric curves, a sweep's designs and
+Pareto front."""
 
 from __future__ import annotations
 
