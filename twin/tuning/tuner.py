@@ -209,7 +209,7 @@ def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, g
     rng = np.random.default_rng(seed)
     n = spec.n_hinges
     t0 = time.perf_counter()
-    ev = RobustEvaluator(spec, goal, population, nthread, backend)
+    ev = RobustEvaluator(spec, goal, population, nthread, backend=backend)
     mean = np.tile(_to_x(np.array(start.kp), np.array(start.ki), np.array(start.kd)), (n, 1))  # (n, 3)
     std = np.tile([0.5, 1.0, 0.7], (n, 1))
     best_x, best_cost = mean.copy(), np.full(n, math.inf)
@@ -230,7 +230,7 @@ def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, g
         if progress:
             progress(gen, best_cost, time.perf_counter() - t0)
     kp, ki, kd = _from_x(best_x)
-    cost, worst = RobustEvaluator(spec, goal, 1, nthread, backend).evaluate(kp[None], ki[None], kd[None])
+    cost, worst = RobustEvaluator(spec, goal, 1, nthread, backend=backend).evaluate(kp[None], ki[None], kd[None])
     gains = [start.replace(kp=float(kp[h]), ki=float(ki[h]), kd=float(kd[h])) for h in range(n)]
     return TuneResult(gains, cost[0], worst["settle"][0], worst["overshoot"][0], worst["peak_current"][0],
                       generations, ev.simulations + len(cost) * ev.nplant, time.perf_counter() - t0, history)
