@@ -19,6 +19,7 @@ COMMANDS = {
     "approximate": ("twin.commands.approximate", "approximate a target shape or mesh from a start pose; prints JSON"),
     "cbs": ("twin.commands.cbs", "collision-based simulation baseline in MuJoCo; prints JSON like approximate"),
     "evaluate": ("twin.commands.evaluate", "the paper's Table 1: CBS, full and no_hcevf from the same seeded starts"),
+    "sweep": ("twin.commands.sweep", "design sweeps: designs x shapes x starts x methods x plants, locally or on Ray"),
     "emulate": ("twin.commands.emulate", "run a device emulator on a pseudo-terminal (prints its port)"),
     "mirror": ("twin.commands.mirror", "gate a target on the twin, send it to the device, watch it follow"),
     "status": ("twin.commands.status", "the device's firmware version, state, faults and hinge angles"),

@@ -1,4 +1,5 @@
-"""Matplotlib charts (files, no screen): the evaluation's bar chart, psychometric curves."""
+"""Matplotlib charts (files, no screen): the evaluation's bar chart, psychometric curves, a sweep's designs and
+Pareto front."""
 
 from __future__ import annotations
 
@@ -79,5 +80,58 @@ def psychometric_curves(reports: list[dict], unit: str, path, paper: dict | None
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def design_bars(rows: list[dict], path) -> None:
+    """Per design, bars of the fit (mean MSD and MSD on the twin, mm) and the morph time (mean, with the worst as
+    a tick, s), one bar per method. rows: twin.evaluation.sweep.summarize_designs's."""
+    designs = list(dict.fromkeys(r["design"] for r in rows))
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    by = {(r["design"], r["method"]): r for r in rows}
+    panels = [("msd_mean_mm", "MSD (mm)"), ("twin_msd_mean_mm", "MSD on the twin\nafter the morph (mm)"),
+              ("morph_time_mean_s", "morph time (s)\nmean, worst as a tick")]
+    fig, axes = plt.subplots(len(panels), 1, figsize=(max(7, 1.3 * len(designs)), 3.2 * len(panels)), sharex=True)
+    x = np.arange(len(designs))
+    w = 0.8 / len(methods)
+    for ax, (key, label) in zip(axes, panels):
+        for j, method in enumerate(methods):
+            pos = x + (j - (len(methods) - 1) / 2) * w
+            value = [by.get((d, method), {}).get(key) for d in designs]
+            ax.bar(pos, [np.nan if v is None else v for v in value], w, label=method)
+            if key == "morph_time_mean_s":
+                worst = [by.get((d, method), {}).get("morph_time_max_s") for d in designs]
+                ax.scatter(pos, [np.nan if v is None else v for v in worst], marker="_", s=150, color="black", zorder=3)
+        ax.set_ylabel(label)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(ncol=len(methods), fontsize=8)
+    axes[-1].set_xticks(x, designs, rotation=20, ha="right")
+    axes[0].set_title("Designs: fit and morph time, means over shapes, starts and plants")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def pareto_front(rows: list[dict], path) -> None:
+    """MSD on the twin against the worst morph time and against the mass, a point per design and method, the
+    Pareto front of the three (rows' `pareto`) ringed and named. rows: summarize_designs's."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
+    timed = [r for r in rows if r["morph_time_max_s"] is not None]
+    for ax, key, label in ((axes[0], "morph_time_max_s", "worst morph time (s)"), (axes[1], "mass_g", "mass (g)")):
+        pts = ax.scatter([r[key] for r in timed], [r["twin_msd_mean_mm"] for r in timed],
+                         c=[r["mass_g"] for r in timed], cmap="viridis", s=30, zorder=2)
+        front = [r for r in timed if r["pareto"]]
+        ax.scatter([r[key] for r in front], [r["twin_msd_mean_mm"] for r in front], s=140, facecolors="none",
+                   edgecolors="red", linewidths=1.5, zorder=3, label="Pareto front (fit, morph time, mass)")
+        for r in front:
+            ax.annotate(f"{r['design']} {r['method']}", (r[key], r["twin_msd_mean_mm"]), fontsize=7,
+                        xytext=(4, 4), textcoords="offset points")
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("mean MSD on the twin (mm)")
+    axes[0].legend(fontsize=8)
+    fig.colorbar(pts, ax=axes, label="mass (g)")
+    fig.suptitle("Which design: fit against morph time and mass (lower is better in all three)")
     fig.savefig(path, dpi=110)
     plt.close(fig)

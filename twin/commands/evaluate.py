@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 
+from twin.evaluation.backends import add_backend_arguments, make_backend
 from twin.evaluation.lock import folder_lock
 from twin.evaluation.table1 import METHODS, paper_table, run_evaluation, summarize, write_tables
 from twin.morphpatch.shapes import shape_names
@@ -20,7 +21,7 @@ def add_arguments(p) -> None:
                    help=f"shapes to evaluate (default all: {', '.join(shape_names())})")
     p.add_argument("--starts", type=int, default=50, help="starts per shape (default 50)")
     p.add_argument("--seed", type=int, default=0, help="seed of the start generator (default 0)")
-    p.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
+    add_backend_arguments(p, workers_default=2)
     p.add_argument("--out", default="results/evaluation", help="output folder (default results/evaluation)")
 
 
@@ -29,7 +30,8 @@ def run(args) -> int:
         raise ValueError("--starts must be at least 2 (an SD needs two)")
     with folder_lock(args.out, "vrscroll evaluate"):  # two runs into one folder would compute every record twice
         t0 = time.perf_counter()
-        records = run_evaluation(args.out, args.shapes, args.starts, args.seed, args.workers)
+        with make_backend(args.backend, args.workers) as backend:
+            records = run_evaluation(args.out, args.shapes, args.starts, args.seed, backend=backend)
         wall = time.perf_counter() - t0
         rows = summarize([r for r in records if r["shape"] in args.shapes])
         md, csv_path = write_tables(rows, args.out, wall)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 
@@ -11,6 +12,7 @@ from controllers.encoder import target_counts
 from controllers.pid import PidGains
 from twin.cli import UserError
 from twin.device.spec import load_spec
+from twin.evaluation.backends import BACKENDS, make_backend
 from twin.formats.gains import write_gains
 from twin.hil.device_gains import push_gains
 from twin.hil.mirror import DeviceNotReady, device_step
@@ -35,6 +37,11 @@ def add_arguments(p) -> None:
     p.add_argument("--generations", type=int, default=8, help="cross-entropy generations (default %(default)s)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores)")
+    p.add_argument("--backend", choices=BACKENDS,
+                   help="run each plant's batch as a task on local worker processes or on Ray (RAY_ADDRESS, or a "
+                        "local Ray; the ray extra) (default: every plant in one batch here, on --threads)")
+    p.add_argument("--workers", type=int, help="with --backend: worker processes, or a local Ray's CPUs "
+                                               "(default all cores)")
     p.add_argument("--out", default="gains.json", help="gains file to write, JSON (default %(default)s)")
     p.add_argument("--port", help="also push the gains to the device and run the same step on it")
     p.add_argument("--log", default="vrscroll-tune.jsonl", help="session log with --port (default %(default)s)")
@@ -59,11 +66,12 @@ def run(args) -> int:
     goal = TuneGoal(max_overshoot=math.radians(args.max_overshoot_deg), tolerance=args.tolerance / 100,
                     step=step, duration=args.duration)
     before = PidGains.from_spec(spec)
-    result = tune(spec, goal, population=args.population, generations=args.generations, seed=args.seed,
-                  nthread=args.threads,
-                  progress=None if args.json else lambda g, c, t: print(
-                      f"generation {g + 1}/{args.generations}: worst-plant cost per hinge "
-                      + " ".join(f"{x * 1000:5.0f}" for x in c) + f" ms  ({t:.1f} s)", flush=True))
+    with make_backend(args.backend, args.workers) if args.backend else contextlib.nullcontext() as backend:
+        result = tune(spec, goal, population=args.population, generations=args.generations, seed=args.seed,
+                      nthread=args.threads, backend=backend,
+                      progress=None if args.json else lambda g, c, t: print(
+                          f"generation {g + 1}/{args.generations}: worst-plant cost per hinge "
+                          + " ".join(f"{x * 1000:5.0f}" for x in c) + f" ms  ({t:.1f} s)", flush=True))
     rows_before, _ = step_report(spec, before, goal)
     rows_after, _ = step_report(spec, result.gains, goal)
     meta = {"goal": {"max_overshoot_deg": args.max_overshoot_deg, "tolerance_pct": args.tolerance,

@@ -66,7 +66,8 @@ def _flap_body(spec: DeviceSpec, i: int, indent: str, children: str, root: str) 
     for hinge, outer in _hinges_from(spec, i):
         hx = cx + (p / 2 if outer > i else -p / 2)
         lines.append(
-            f'{indent}  <geom name="motor{hinge}_housing" class="motor" pos="{_f(hx, d / 2 - 0.012, -t - 0.005)}"/>'
+            f'{indent}  <geom name="motor{hinge}_housing" class="motor"'
+            f' pos="{_f(hx, d / 2 - spec.motor_length / 2, -t - spec.motor_diameter / 2)}"/>'
         )
     if children:
         lines.append(children)
@@ -193,7 +194,7 @@ def mjcf(spec: DeviceSpec | None = None, root: str = "fixed") -> str:
         <geom type="box" group="3" friction="0.6 0.005 0.0001" material="collision"/>
       </default>
       <default class="motor">
-        <geom type="cylinder" size="0.005 0.012" euler="90 0 0" group="2" contype="0" conaffinity="0"
+        <geom type="cylinder" size="{_f(s.motor_diameter / 2, s.motor_length / 2)}" euler="90 0 0" group="2" contype="0" conaffinity="0"
           mass="{_f(s.mass_motor)}" material="motor"/>
       </default>
       <default class="electronics">

@@ -30,6 +30,8 @@ class DeviceSpec:
     root_flap: int
     hinge_limit: float  # rad, symmetric about flat
     flap_gap: float  # m
+    motor_diameter: float  # m, across the row of flaps (x) and behind the flap (z)
+    motor_length: float  # m, along the hinge axis (y)
     # mass
     mass_total: float  # kg
     mass_motor: float  # kg

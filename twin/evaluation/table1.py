@@ -16,9 +16,10 @@ redirection, from the shape the twin reached, is within the perception threshold
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
-import multiprocessing
+import math
 import statistics
 from pathlib import Path
 
@@ -35,7 +36,8 @@ from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import load_shape
 from twin.morphpatch.surface_metrics import msd_hd
 from twin.sim.gate import check_move
-from twin.sim.simulation import Twin
+from twin.sim.simulation import Twin, move_report
+from twin.evaluation.backends import LocalBackend
 
 METHODS = ("cbs", "no_hcevf", "full", "refined")
 PAPER_TABLE = MODELS_DIR / "shapes" / "paper_table1.csv"
@@ -81,7 +83,8 @@ def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
 
 def twin_outcome(spec, mesh, fields, twin, result) -> dict:
     """The morph to a result on the twin held at its root pose: MSD (mm) where it ended, the gate's range
-    and collision verdicts, and the share of the touch surface within the perception thresholds."""
+    and collision verdicts, the share of the touch surface within the perception thresholds, and the
+    morph time (s, the last hinge's settle time; None where a hinge did not settle or the range was refused)."""
 
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, np.ascontiguousarray(result.root_pose[:3, :3]).ravel())
@@ -91,12 +94,16 @@ def twin_outcome(spec, mesh, fields, twin, result) -> dict:
     reached = twin.angles  # flat where the gate refused the range: the device does not move
     msd, _ = msd_hd(spec, mesh, result.root_pose, reached, result.widths)
     summary = threshold_summary(build_field(spec, result.root_pose, reached, result.widths, mesh, fields))
+    settle = [math.nan] if gate.prediction is None else [r["settle_time_s"] for r in move_report(spec, gate.prediction)]
     return {"twin_msd_mm": msd * 1e3, "gate_range_ok": verdict["range"], "gate_collision_ok": verdict.get("collision", False),
-            "share_within": summary["share_within"]}
+            "share_within": summary["share_within"],
+            "morph_time_s": None if any(math.isnan(t) for t in settle) else max(settle)}
 
 
-def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: int = 2, progress=True) -> list[dict]:
-    """Evaluate every (shape, start) not yet in out_dir/results.jsonl; returns all records."""
+def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: int = 2, progress=True,
+                   backend=None) -> list[dict]:
+    """Evaluate every (shape, start) not yet in out_dir/results.jsonl on `backend` (twin.evaluation.backends;
+    default a local pool of `workers` processes); returns all records."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     settings = {"starts": n_starts, "seed": seed, "methods": list(METHODS)}
@@ -115,9 +122,8 @@ def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: 
         return records
 
     bar = tqdm(total=len(tasks), desc="evaluate", unit="start", disable=not progress)
-    ctx = multiprocessing.get_context("spawn")
-    with open(log, "a") as f, ctx.Pool(workers) as pool:
-        for batch in pool.imap_unordered(evaluate_start, tasks, chunksize=1):
+    with open(log, "a") as f, LocalBackend(workers) if backend is None else contextlib.nullcontext(backend) as pool:
+        for _, batch in pool.map(evaluate_start, tasks):
             for r in batch:
                 f.write(json.dumps(r) + "\n")
             f.flush()

@@ -58,12 +58,24 @@ def read_spec_toml(path, fields) -> tuple[dict, dict]:
                 raise ValueError(f"{where}: {field} is given twice")
             value = entry["value"]
             number(value, f"{where}: value")
-            values[field] = TO_SI.get(entry["unit"], lambda v: v)(value)
+            values[field] = value_in_si(value, entry["unit"])
             sources[field] = str(entry["source"])
     missing, unknown = set(fields) - values.keys(), values.keys() - set(fields)
     if missing or unknown:
         raise ValueError(f"{path}: missing {sorted(missing)}, unknown {sorted(unknown)}")
     return values, sources
+
+
+def value_in_si(value, unit: str):
+    """A value given in a spec TOML unit, in SI (deg -> rad, rpm -> rad/s; every other unit is SI)."""
+    return TO_SI.get(unit, lambda v: v)(value)
+
+
+def spec_units(path) -> dict[str, str]:
+    """DeviceSpec field -> the unit a spec TOML (one read_spec_toml accepts) gives its value in."""
+    raw = tomllib.loads(Path(path).read_text())
+    return {FIELD.get((section, key), key): entry["unit"] for section, entries in raw.items()
+            for key, entry in entries.items()}
 
 
 def write_spec_toml(path, template, values: dict, source: str, header: str = "") -> None:

@@ -121,13 +121,16 @@ class TuneResult:
 class RobustEvaluator:
     """Evaluates candidate gain sets (one PidGains per hinge each) on every plant, with TwinBatch."""
 
-    def __init__(self, spec: DeviceSpec, goal: TuneGoal, population: int, nthread: int = 0):
+    def __init__(self, spec: DeviceSpec, goal: TuneGoal, population: int, nthread: int = 0, backend=None):
+        """backend: None runs every plant here in one TwinBatch; a twin.evaluation.backends backend runs
+        each plant's batch as a task on its workers (the same numbers)."""
         self.spec, self.goal, self.population = spec, goal, population
         self.plants = plant_corners(spec, goal.tolerance)
         self.nplant = len(self.plants)
-        # simulation index = candidate * nplant + plant
-        specs = [p for _ in range(population) for p in self.plants]
-        self.batch = TwinBatch(population * self.nplant, spec, specs=specs, nthread=nthread)
+        self.backend = backend
+        if backend is None:  # simulation index = candidate * nplant + plant
+            specs = [p for _ in range(population) for p in self.plants]
+            self.batch = TwinBatch(population * self.nplant, spec, specs=specs, nthread=nthread)
         self.simulations = 0
 
     def evaluate(self, kp, ki, kd):
@@ -137,15 +140,36 @@ class RobustEvaluator:
         base = PidGains.from_spec(s)
         candidates = [[base.replace(kp=float(kp[c, h]), ki=float(ki[c, h]), kd=float(kd[c, h])) for h in range(n)]
                       for c in range(P)]
-        self.batch.set_gains([g for g in candidates for _ in range(self.nplant)])
-        self.batch.reset()
         target = np.full(n, g.step)
-        out = self.batch.run(np.tile(target, (P * self.nplant, 1)), g.duration)
+        if self.backend is None:
+            self.batch.set_gains([g for g in candidates for _ in range(self.nplant)])
+            self.batch.reset()
+            out = self.batch.run(np.tile(target, (P * self.nplant, 1)), g.duration)
+            scores = {k: v.reshape(P, self.nplant, n) for k, v in step_scores(s, out, target).items()}
+        else:
+            per_plant = dict(self.backend.map(plant_scores, [(s, p, g, candidates) for p in self.plants]))
+            scores = {k: np.stack([per_plant[i][k] for i in range(self.nplant)], axis=1) for k in per_plant[0]}
         self.simulations += P * self.nplant
-        scores = {k: v.reshape(P, self.nplant, n) for k, v in step_scores(s, out, target).items()}
         cost = cost_of(scores, s, g)
         worst = {k: v.max(axis=1) for k, v in scores.items()}
         return cost.max(axis=1), worst
+
+
+_PLANT_BATCHES: dict = {}  # per worker process: (plant, population) -> TwinBatch
+
+
+def plant_scores(task) -> dict:
+    """A backend task: (spec, plant, goal, candidates) -> step_scores of every candidate on one plant,
+    each (population, n); the firmware is the spec's, the physics the plant's."""
+    spec, plant, goal, candidates = task
+    key = (plant, len(candidates))
+    if key not in _PLANT_BATCHES:
+        _PLANT_BATCHES[key] = TwinBatch(len(candidates), spec, specs=[plant] * len(candidates), nthread=1)
+    batch = _PLANT_BATCHES[key]
+    batch.set_gains(candidates)
+    batch.reset()
+    target = np.full(spec.n_hinges, goal.step)
+    return step_scores(spec, batch.run(np.tile(target, (len(candidates), 1)), goal.duration), target)
 
 
 def _to_x(kp, ki, kd):
@@ -171,20 +195,21 @@ def chains(spec: DeviceSpec) -> list[list[int]]:
 
 def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, generations: int = 8,
          elite: int = 6, seed: int = 0, nthread: int = 0, start: PidGains | None = None,
-         progress=None) -> TuneResult:
+         progress=None, backend=None) -> TuneResult:
     """Cross-entropy search per chain of hinges, on the sum of the chain's worst-plant costs.
 
     The starting gains (the spec's) are candidate 0 of the first generation, so
     the result is never worse than them on that sum; from then on candidate 0 is
     the best found so far. The chosen gains are simulated together once more at
-    the end, and the result's numbers are that run's.
+    the end, and the result's numbers are that run's. backend: where the plants' batches run
+    (RobustEvaluator).
     """
     goal = goal or TuneGoal()
     start = start or PidGains.from_spec(spec)
     rng = np.random.default_rng(seed)
     n = spec.n_hinges
     t0 = time.perf_counter()
-    ev = RobustEvaluator(spec, goal, population, nthread)
+    ev = RobustEvaluator(spec, goal, population, nthread, backend=backend)
     mean = np.tile(_to_x(np.array(start.kp), np.array(start.ki), np.array(start.kd)), (n, 1))  # (n, 3)
     std = np.tile([0.5, 1.0, 0.7], (n, 1))
     best_x, best_cost = mean.copy(), np.full(n, math.inf)
@@ -205,7 +230,7 @@ def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, g
         if progress:
             progress(gen, best_cost, time.perf_counter() - t0)
     kp, ki, kd = _from_x(best_x)
-    cost, worst = RobustEvaluator(spec, goal, 1, nthread).evaluate(kp[None], ki[None], kd[None])
+    cost, worst = RobustEvaluator(spec, goal, 1, nthread, backend=backend).evaluate(kp[None], ki[None], kd[None])
     gains = [start.replace(kp=float(kp[h]), ki=float(ki[h]), kd=float(kd[h])) for h in range(n)]
     return TuneResult(gains, cost[0], worst["settle"][0], worst["overshoot"][0], worst["peak_current"][0],
                       generations, ev.simulations + len(cost) * ev.nplant, time.perf_counter() - t0, history)
