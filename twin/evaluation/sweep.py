@@ -12,6 +12,7 @@ design or a shape computes only what is new.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import hashlib
 import json
@@ -19,11 +20,18 @@ import statistics
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from twin.device.design import design_spec
 from twin.device.spec import DeviceSpec, load_spec
+from twin.evaluation.cbs import CbsSimulator
+from twin.evaluation.starts import approach_starts
 from twin.evaluation.table1 import _shape_seed, twin_outcome
 from twin.formats.sweep import RecordLog, Sweep, read_records
+from twin.morphpatch.approximation import approximate
+from twin.morphpatch.fields import build_fields
+from twin.morphpatch.shapes import load_shape
+from twin.sim.simulation import Twin
 
 RECORDS = "records.jsonl"
 _TARGETS: dict = {}  # per worker process: (shape, starts, seed) -> (mesh, fields, starts)
@@ -81,10 +89,6 @@ def sweep_tasks(sweep: Sweep) -> tuple[list[Task], list[dict]]:
 def _target(shape: str, starts: int, seed: int):
     key = (shape, starts, seed)
     if key not in _TARGETS:
-        from twin.evaluation.starts import approach_starts
-        from twin.morphpatch.fields import build_fields
-        from twin.morphpatch.shapes import load_shape
-
         mesh = load_shape(shape)
         _TARGETS[key] = (mesh, build_fields(mesh), approach_starts(mesh, starts, seed=_shape_seed(seed, shape)))
     return _TARGETS[key]
@@ -92,16 +96,11 @@ def _target(shape: str, starts: int, seed: int):
 
 def run_task(task: Task) -> dict:
     """One task's results (a backend task): fit, morph and where the twin ended; see the module docstring."""
-    from twin.device.mjcf import load_model
-    from twin.evaluation.cbs import CbsSimulator
-    from twin.morphpatch.approximation import approximate
-    from twin.sim.simulation import Twin
-
     spec = task.spec
     mesh, fields, starts = _target(task.shape, task.starts, task.seed)
     if (spec, task.plant) not in _TWINS:
-        plant = spec.replace(**{k: getattr(spec, k) * scale for k, scale in task.plant})
-        _TWINS[(spec, task.plant)] = Twin(spec, model=load_model(plant))
+        # the plant differs only in physical values: its MJCF and its drive model (the tuner's rule)
+        _TWINS[(spec, task.plant)] = Twin(spec.replace(**{k: getattr(spec, k) * scale for k, scale in task.plant}))
     if task.method == "cbs":
         if (spec, task.shape) not in _CBS:
             _CBS[(spec, task.shape)] = CbsSimulator(spec, mesh)
@@ -117,7 +116,6 @@ def run_task(task: Task) -> dict:
 def run_sweep(out_dir, sweep: Sweep, backend, progress=True) -> list[dict]:
     """Run every task of the sweep whose key is not yet in out_dir/records.jsonl on `backend`
     (twin.evaluation.backends); returns the sweep's records, in task order."""
-    from tqdm import tqdm
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -176,7 +174,6 @@ def write_table(records: list[dict], path_stem) -> Path:
 
 def write_csv(rows: list[dict], path: Path, columns: list[str] | None = None) -> Path:
     """Rows as a CSV with the given columns (default: every key, in order of appearance)."""
-    import csv
 
     columns = columns or list(dict.fromkeys(k for r in rows for k in r))
     with open(path, "w", newline="") as f:
