@@ -27,6 +27,8 @@ COMMANDS = {
     "calibrate": ("twin.commands.calibrate", "fit the twin's motor and gearbox parameters to recorded HIL runs"),
     "redirect": ("twin.commands.redirect", "pen redirection field of an approximation; redirect pen samples (CSV)"),
     "psychometric": ("twin.commands.psychometric", "psychometric fit of redirection trials: CDT and DT with CIs, plot"),
+    "device": ("twin.commands.device", "list, show, select or create device profiles (calibrated spec and gains)"),
+    "view": ("twin.commands.view", "replay a HIL run's device and twin side by side in MuJoCo's viewer"),
 }
 
 
