@@ -44,7 +44,7 @@ class Config(ctypes.Structure):
                 ("max_telemetry_hz", ctypes.c_uint16), ("limit_counts", ctypes.c_int32),
                 ("limit_margin_counts", ctypes.c_int32), ("stall_duty", ctypes.c_float),
                 ("stall_counts", ctypes.c_int32), ("stall_ms", ctypes.c_uint16), ("overcurrent_ma", ctypes.c_int16),
-                ("fw_version", ctypes.c_uint8 * 3)]
+                ("drive_cap_mv", ctypes.c_uint16), ("fw_version", ctypes.c_uint8 * 3)]
 
 
 class Gains(ctypes.Structure):
@@ -67,7 +67,7 @@ def config_from_spec(spec: DeviceSpec) -> Config:
                   limit_counts=math.floor(spec.hinge_limit / spec.rad_per_count),
                   limit_margin_counts=spec.limit_margin, stall_duty=spec.stall_duty, stall_counts=spec.stall_counts,
                   stall_ms=round(spec.stall_time * 1000), overcurrent_ma=round(spec.overcurrent * 1000),
-                  fw_version=(ctypes.c_uint8 * 3)(*FIRMWARE_VERSION))
+                  drive_cap_mv=round(spec.drive_cap * 1000), fw_version=(ctypes.c_uint8 * 3)(*FIRMWARE_VERSION))
 
 
 def gains_struct(gains) -> ctypes.Array:
@@ -149,6 +149,8 @@ _SIGNATURES = {  # name: (argtypes, restype), as vrs_core.h declares them
     "vrs_get_rx_bad_frames": ([_VP], _U32),
     "vrs_get_telemetry_dropped": ([_VP], _U32),
     "vrs_get_battery_mv": ([_VP], _U16),
+    "vrs_set_battery_mv": ([_VP, _U16], None),
+    "vrs_pwm": ([_VP, _VP], None),
     "vrs_pid_update": ([_VP, _VP, _F, _F, _I32, _I32], _F),
     "vrs_pid_alpha": ([_F, _F], _F),
     "vrs_crc16": ([_VP, _U32], _U16),
@@ -213,6 +215,16 @@ class Core:
         self.lib.vrs_tick(self.address, now_us & 0xFFFFFFFF, self._counts.ctypes.data, cur,
                           self._duty.ctypes.data, self._decay.ctypes.data)
         return self._duty[:n].copy(), self._decay[:n].copy()
+
+    def battery(self, mv: int) -> None:
+        """The battery voltage now, mV, as the device's ADC reads it."""
+        self.lib.vrs_set_battery_mv(self.address, max(0, min(int(mv), 0xFFFF)))
+
+    def pwm(self) -> np.ndarray:
+        """The H-bridges' PWM (float32 (n,), [-1, 1]) for the last tick's duties: the core's battery compensation."""
+        out = np.zeros(MAX_HINGES, np.float32)
+        self.lib.vrs_pwm(self.address, out.ctypes.data)
+        return out[:self.n]
 
     def set_targets(self, counts, now_us: int) -> int:
         """0, or the NACK reason (twin.link.protocol.Nack); nothing changes on a refusal."""

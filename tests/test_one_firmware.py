@@ -9,16 +9,15 @@ from controllers.pid import PidGains
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions
 from twin.link.faults import FaultOptions
-from twin.link.plant import IDEAL
+from twin.link.plant import as_twin
 from twin.sim.simulation import TargetError, Twin, TwinBatch
 
 MOVE_DEG = [60.0, -45.0, 20.0, 30.0, 90.0, -100.0]  # every hinge moves
-AS_TWIN = EmulatorOptions(plant=IDEAL, faults=FaultOptions(latency_ms=0.0))  # the twin's plant, no latency
 
 
 def emulated_counts(spec, targets, ticks: int) -> np.ndarray:
     """Encoder counts the emulated device reads each tick, commanded in process (no pty, no pacing)."""
-    emu = Emulator(spec, AS_TWIN)
+    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), faults=FaultOptions(latency_ms=0.0)))  # no latency
     emu.receive(P.encode(P.SetTargets(tuple(int(c) for c in target_counts(spec, targets))), 1))
     out = np.zeros((ticks, spec.n_hinges), np.int64)
     for i in range(ticks):
@@ -90,7 +89,7 @@ def test_the_twins_pid_memory_is_the_cores(spec):
 def test_the_emulator_answers_with_the_cores_bytes(spec):
     """Software in the loop: a SET_TARGETS repeated with its sequence number 50 ms later gets the core's
     original ACK (the same device time), and a device -> host message sent to it gets NACK UNKNOWN_MESSAGE."""
-    emu = Emulator(spec, AS_TWIN)
+    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), faults=FaultOptions(latency_ms=0.0)))  # no latency
     frame = P.encode(P.SetTargets((30, 0, 0, 0, 0, -30)), 7)
     replies = []
     for wait in (0, 50):

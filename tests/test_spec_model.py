@@ -39,22 +39,29 @@ def test_committed_mjcf_is_generated_from_spec():
 
 
 def test_compiled_model_matches_spec(spec):
+    """Every number of the drive train in the compiled model is the spec's: a flap joint and a gearbox-output
+    joint per hinge, the dcmotor on the gear joint (K, winding + driver R, armature, viscous and LuGre
+    friction written motor side), the backlash dead zone between them."""
     m = mujoco.MjModel.from_xml_path(str(MJCF_PATH))
-    assert m.nu == m.njnt == spec.n_hinges
-    assert m.nbody == spec.n_flaps + 1
+    N = spec.gear_ratio
+    assert m.nu == m.ntendon == spec.n_hinges and m.njnt == 2 * spec.n_hinges
+    assert m.nbody == spec.n_flaps + 1 + spec.n_hinges  # the flaps, the world, a rotor per hinge
     assert m.body_subtreemass[0] == pytest.approx(spec.mass_total, rel=1e-6)
     assert m.opt.timestep == pytest.approx(spec.firmware_dt)
     for k in range(spec.n_hinges):
-        j, a = m.joint(f"hinge{k}"), m.actuator(f"motor{k}")
+        j, g, a = m.joint(f"hinge{k}"), m.joint(f"gear{k}"), m.actuator(f"motor{k}")
         assert np.degrees(j.range) == pytest.approx([-112.5, 112.5])
-        assert j.frictionloss[0] == pytest.approx(spec.gear_friction)
-        assert j.damping[0] == pytest.approx(spec.gear_damping)
-        assert a.gear[0] == pytest.approx(spec.gear_ratio)
+        assert j.frictionloss[0] == g.frictionloss[0] == 0.0  # no friction constraint rows: LuGre instead
+        assert a.trnid[0] == g.id and a.gear[0] == pytest.approx(N)
         assert m.actuator_armature[a.id] == pytest.approx(spec.rotor_inertia)
-        assert a.ctrlrange == pytest.approx([-spec.drive_cap, spec.drive_cap])
         assert m.actuator_dyntype[a.id] == mujoco.mjtDyn.mjDYN_DCMOTOR
-        assert a.gainprm[:2] == pytest.approx([spec.mechanical_resistance, spec.motor_constant])
-    assert m.key("flat").qpos == pytest.approx(np.zeros(spec.n_hinges))
+        assert a.gainprm[:2] == pytest.approx([spec.resistance + spec.driver_on_resistance, spec.motor_constant])
+        assert m.actuator_damping[a.id] * N**2 == pytest.approx(spec.gear_damping)
+        lugre = m.actuator_dynprm[a.id][5:7].tolist() + m.actuator_biasprm[a.id][3:6].tolist()
+        assert lugre == pytest.approx([spec.friction_stiffness / N**2, spec.friction_damping / N**2,
+                                       spec.gear_friction / N, spec.gear_stiction / N, spec.stribeck_speed * N])
+        assert m.tendon_range[m.tendon(f"backlash{k}").id] == pytest.approx([-spec.backlash / 2, spec.backlash / 2])
+    assert m.key("flat").qpos == pytest.approx(np.zeros(2 * spec.n_hinges))
 
 
 def test_neighbours_never_collide_but_others_can(spec):
@@ -97,7 +104,7 @@ def test_kinematics_matches_mujoco(spec, seed):
 
 def test_free_root_model_loads(spec):
     m = load_model(spec, root="free")
-    assert m.nq == 7 + spec.n_hinges and m.key("flat").qpos[3] == 1.0
+    assert m.nq == 7 + 2 * spec.n_hinges and m.key("flat").qpos[3] == 1.0
     with pytest.raises(ValueError, match="root must be"):
         mjcf(spec, root="floating")
 

@@ -450,6 +450,20 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
     c->ticks++;
 }
 
+/* ---- battery compensation -------------------------------------------------------------- */
+
+void vrs_set_battery_mv(vrs_core *c, uint16_t mv) { c->battery_mv = mv; }
+
+void vrs_pwm(const vrs_core *c, float *pwm_out)
+{
+    uint8_t k, n = c->cfg.n_hinges;
+    float scale = c->battery_mv ? (float)c->cfg.drive_cap_mv / (float)c->battery_mv : 1.0f;
+    for (k = 0; k < n; k++) {
+        float p = c->duty[k] * scale;
+        pwm_out[k] = p > 1.0f ? 1.0f : (p < -1.0f ? -1.0f : p);
+    }
+}
+
 /* ---- accessors ------------------------------------------------------------------------- */
 
 size_t vrs_core_size(void) { return sizeof(vrs_core); }
@@ -487,13 +501,14 @@ void vrs_control(vrs_core *c, const vrs_hw *hw)
 {
     int32_t counts[VRS_MAX_HINGES];
     int16_t current[VRS_MAX_HINGES];
-    float duty[VRS_MAX_HINGES];
+    float duty[VRS_MAX_HINGES], pwm[VRS_MAX_HINGES];
     uint8_t decay[VRS_MAX_HINGES];
     uint16_t mv;
     int sensed = hw->read_current_ma != NULL && hw->read_current_ma(hw->ctx, current) == 0;
     hw->read_counts(hw->ctx, counts);
     if (hw->read_battery_mv != NULL && hw->read_battery_mv(hw->ctx, &mv) == 0)
-        c->battery_mv = mv;
+        vrs_set_battery_mv(c, mv);
     vrs_tick(c, hw->micros(hw->ctx), counts, sensed ? current : NULL, duty, decay);
-    hw->write_drive(hw->ctx, duty, decay);
+    vrs_pwm(c, pwm);
+    hw->write_drive(hw->ctx, pwm, decay);
 }

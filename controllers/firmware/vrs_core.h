@@ -50,6 +50,7 @@ typedef struct {
     int32_t stall_counts;           /* ... moving no more than this ... */
     uint16_t stall_ms;              /* ... for longer than this: STALL */
     int16_t overcurrent_ma;         /* 0 = current not sensed */
+    uint16_t drive_cap_mv;          /* the motor voltage duty 1 means: vrs_pwm scales by it / battery */
     uint8_t fw_version[3];
 } vrs_config;
 
@@ -94,7 +95,7 @@ typedef struct vrs_core {
     uint32_t telemetry_dropped;
     uint32_t rx_bad_frames;
     uint32_t rx_good_frames;
-    uint16_t battery_mv;                        /* last battery reading; 0 = not sensed */
+    uint16_t battery_mv;                        /* last battery reading (vrs_set_battery_mv); 0 = not sensed */
     uint8_t rx_buf[VRS_RX_CAP];
     uint16_t rx_len;
     uint8_t rx_overflow;
@@ -120,6 +121,14 @@ uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max);
  * duty_out[k] in [-1, 1] and decay_out[k] (VRS_DECAY_*) for each hinge. */
 void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t *current_ma,
               float *duty_out, uint8_t *decay_out);
+
+/* The battery voltage now, mV (the device's ADC through the divider; the twin's and the emulator's pack). */
+void vrs_set_battery_mv(vrs_core *c, uint16_t mv);
+
+/* Battery compensation: the H-bridges' PWM per hinge for the last tick's duties, in [-1, 1]. Duty 1 means
+ * drive_cap_mv at the motor, so pwm = duty * drive_cap_mv / battery_mv, clamped (a pack sagging below the
+ * cap gives what it has); with no battery reading (0) pwm = duty. */
+void vrs_pwm(const vrs_core *c, float *pwm_out);
 
 /* 0, or the NACK reason (VRS_NACK_*); nothing changes on a refusal. SET_TARGETS calls these. */
 int vrs_set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us);

@@ -7,55 +7,90 @@ import argparse
 import os
 import signal
 
-from twin.device.spec import load_spec
-from twin.link.emulator import Emulator, EmulatorOptions
+from twin.device.spec import DeviceSpec, load_spec
+from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
 from twin.link.faults import FaultOptions
-from twin.link.plant import IDEAL, PlantOptions
+from twin.link.plant import PlantRanges, as_twin
 from twin.link.pty_device import open_pty, serve
+
+RANGED = {  # PlantRanges field (its option is --field-name) -> what it is
+    "speed_scale": "no-load speed x, i.e. motor constant / x",
+    "friction_scale": "gear Coulomb and static friction x",
+    "damping_scale": "gear viscous damping x",
+    "armature_scale": "rotor inertia (armature) x",
+    "backlash_deg": "backlash between gearbox output and flap, deg",
+    "latency_ms": "command latency, ms",
+}
+
+
+def _flag(field: str) -> str:
+    return "--" + field.replace("_", "-")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    pl, f = PlantOptions(), FaultOptions()
-    p.add_argument("--log", help="JSON-lines log of every command received (appended)")
+    ranges = PlantRanges()
+    p.add_argument("--log", help="JSON-lines log of every command received, and of the plant drawn (appended)")
     p.add_argument("--port-file", help="also write the pty path to this file")
-    p.add_argument("--friction-scale", type=float, default=pl.friction_scale,
-                   help="gear friction x (default %(default)s)")
-    p.add_argument("--damping-scale", type=float, default=pl.damping_scale, help="gear damping x (default %(default)s)")
-    p.add_argument("--speed-scale", type=float, default=pl.speed_scale,
-                   help="no-load speed x, i.e. motor constant / x (default %(default)s)")
-    p.add_argument("--armature-scale", type=float, default=pl.armature_scale,
-                   help="rotor inertia (armature) x (default %(default)s)")
-    p.add_argument("--backlash-deg", type=float, default=pl.backlash_deg, help="backlash, deg (default %(default)s)")
-    p.add_argument("--encoder-noise", type=float, default=pl.encoder_noise,
-                   help="probability per read of a count off by one (default %(default)s)")
-    p.add_argument("--latency-ms", type=float, default=f.latency_ms, help="command latency, ms (default %(default)s)")
+    for field, what in RANGED.items():
+        lo, hi = getattr(ranges, field)
+        p.add_argument(_flag(field), metavar="X or LOW,HIGH",
+                       help=f"{what}: fixed, or drawn uniformly from the seed (default {lo:g},{hi:g})")
+    p.add_argument("--encoder-miss", type=float, default=0.0,
+                   help="probability that the encoder's counter misses an edge; missed edges accumulate (default 0)")
+    p.add_argument("--pack-voltage", type=float,
+                   help="the 2S pack's open-circuit voltage, V (default: the spec's supply_voltage)")
     p.add_argument("--watchdog-ms", type=int, help="watchdog timeout, ms (default: the spec's, 0: off)")
     p.add_argument("--jam-hinge", type=int, help="this hinge jams ...")
     p.add_argument("--jam-after", type=float, default=0.0, help="... this many s after the first target (default 0)")
     p.add_argument("--drop-after", type=float, help="the link goes dead after this many s of device time")
     p.add_argument("--corrupt", type=float, default=0.0,
                    help="probability per frame sent of a flipped byte and of inserted garbage (default 0)")
-    p.add_argument("--seed", type=int, default=0, help="random seed for noise and corruption")
+    p.add_argument("--seed", type=int, default=0, help="random seed: the plant drawn, missed edges, corruption")
     p.add_argument("--ideal", action="store_true",
-                   help="plant identical to the twin: no perturbation, backlash, noise or latency")
+                   help="the twin's own plant: nothing drawn, no latency (the other options still apply)")
 
 
-def options_from_args(args, n_hinges: int) -> EmulatorOptions:
+def _range(flag: str, text: str | None, default: tuple[float, float]) -> tuple[float, float]:
+    """A fixed value "X" or a range "LOW,HIGH"; ValueError naming the option."""
+    if text is None:
+        return default
+    try:
+        parts = [float(x) for x in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{flag} {text}: expected a number or LOW,HIGH") from None
+    if len(parts) not in (1, 2):
+        raise ValueError(f"{flag} {text}: expected a number or LOW,HIGH")
+    return (parts[0], parts[-1])
+
+
+def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
     """The emulator's options from the command line; ValueError naming the option that is wrong."""
-    if args.jam_hinge is not None and not 0 <= args.jam_hinge < n_hinges:
+    if args.jam_hinge is not None and not 0 <= args.jam_hinge < spec.n_hinges:
         raise ValueError(f"--jam-hinge {args.jam_hinge}: no such hinge")
-    plant = IDEAL if args.ideal else PlantOptions(
-        friction_scale=args.friction_scale, damping_scale=args.damping_scale, speed_scale=args.speed_scale,
-        armature_scale=args.armature_scale, backlash_deg=args.backlash_deg, encoder_noise=args.encoder_noise)
-    faults = FaultOptions(latency_ms=0.0 if args.ideal else args.latency_ms, jam_hinge=args.jam_hinge,
-                          jam_after=args.jam_after, drop_after=args.drop_after, corrupt=args.corrupt)
-    return EmulatorOptions(plant=plant, faults=faults, watchdog_ms=args.watchdog_ms, seed=args.seed)
+    if not 0.0 <= args.encoder_miss <= 1.0:
+        raise ValueError(f"--encoder-miss {args.encoder_miss}: a probability, 0 to 1")
+    if args.pack_voltage is not None and not args.pack_voltage > 0:
+        raise ValueError(f"--pack-voltage {args.pack_voltage}: must be positive")
+    default = PlantRanges()
+    if args.ideal:
+        twin = as_twin(spec)
+        default = PlantRanges(speed_scale=(1, 1), friction_scale=(1, 1), damping_scale=(1, 1),
+                              armature_scale=(1, 1), backlash_deg=(twin.backlash_deg,) * 2, latency_ms=(0, 0))
+    given = {field: _range(_flag(field), getattr(args, field), getattr(default, field)) for field in RANGED}
+    try:
+        ranges = PlantRanges(**given)
+    except ValueError as exc:
+        field, reason = str(exc).split(": ", 1)
+        raise ValueError(f"{_flag(field)}: {reason}") from None
+    faults = FaultOptions(jam_hinge=args.jam_hinge, jam_after=args.jam_after, drop_after=args.drop_after,
+                          corrupt=args.corrupt)
+    return drawn_options(ranges, faults, args.seed, args.watchdog_ms, args.encoder_miss, args.pack_voltage)
 
 
 def run(args) -> int:
     """Open a pty, print its path, emulate the device until SIGINT/SIGTERM."""
     spec = load_spec()
-    opt = options_from_args(args, spec.n_hinges)
+    opt = options_from_args(args, spec)
     master, slave, path = open_pty()
     emu = Emulator(spec, opt, log_path=args.log)
     stop = []

@@ -2,7 +2,7 @@
 
 All fields are SI (m, kg, rad, s, V, A, N*m); the file is read (its rpm and degrees converted)
 by twin.formats.spec_toml, the one home of the spec TOML format. Derived quantities (motor constant, counts per output
-revolution, flap mass) are properties so they can never disagree with their inputs.
+revolution, gearbox efficiency, flap mass) are properties so they can never disagree with their inputs.
 """
 
 from __future__ import annotations
@@ -43,15 +43,26 @@ class DeviceSpec:
     resistance: float  # ohm
     rotor_inertia: float  # kg*m^2, motor side
     continuous_current: float  # A
-    gear_friction: float  # N*m at the output
+    no_load_current: float  # A
+    backdrive_efficiency: float  # share of the load's power that reaches the motor when the flap drives it
+    gear_friction: float  # N*m at the output, Coulomb
+    gear_stiction: float  # N*m at the output, static
+    stribeck_speed: float  # rad/s at the output
     gear_damping: float  # N*m*s/rad at the output
-    backlash: float  # rad
+    friction_stiffness: float  # N*m/rad at the output (LuGre bristles)
+    friction_damping: float  # N*m*s/rad at the output (LuGre bristles)
+    backlash: float  # rad, full width of the dead zone between gearbox output and flap
     # encoder
     counts_per_motor_rev: int
     # power
-    supply_voltage: float  # V
+    supply_voltage: float  # V, the pack's open-circuit voltage
+    pack_full_voltage: float  # V
+    pack_low_voltage: float  # V
+    pack_resistance: float  # ohm, shared by every driver
     drive_cap: float  # V at duty 1.0
-    driver_peak_current: float  # A, per motor channel
+    driver_on_resistance: float  # ohm, in series with each winding
+    driver_current_limit: float  # A, per motor channel: the bridge limits the current here
+    driver_peak_current: float  # A, per motor channel: the rating the gate checks
     # firmware
     loop_rate: float  # Hz
     kp: float  # duty per count
@@ -99,30 +110,19 @@ class DeviceSpec:
 
     @property
     def motor_constant(self) -> float:
-        """Back-EMF constant K, V*s/rad at the motor shaft.
-
-        The datasheet's no-load speed is reached against the gearbox's own
-        friction and damping, so the ideal (lossless) no-load speed is higher:
-        w_ideal = w0 / (1 - (friction + damping * w0) / stall_torque), and K = V / (N * w_ideal).
-        """
-        loss = (self.gear_friction + self.gear_damping * self.no_load_speed) / self.stall_torque
-        return self.rated_voltage * (1.0 - loss) / (self.no_load_speed * self.gear_ratio)
-
-    @property
-    def mechanical_resistance(self) -> float:
-        """Resistance, ohm, that makes K*V/R*N equal the datasheet's output stall torque.
-
-        The datasheet's stall torque already includes the gearbox's losses, and
-        MuJoCo's dcmotor has one constant for torque and back-EMF, so the model
-        carries the losses in R (see docs/device.md). Currents reported to the
-        user use the datasheet resistance instead (see `current`).
-        """
-        return self.motor_constant * self.rated_voltage * self.gear_ratio / self.stall_torque
+        """K, N*m/A = V*s/rad at the motor shaft, from the datasheet's no-load point: V = R*I0 + K*N*w0."""
+        return (self.rated_voltage - self.resistance * self.no_load_current) / (self.gear_ratio * self.no_load_speed)
 
     @property
     def gearbox_efficiency(self) -> float:
-        """Efficiency at stall implied by the datasheet: tau_stall / (N * K * I_stall)."""
-        return self.stall_torque / (self.gear_ratio * self.motor_constant * self.stall_current)
+        """Share of the motor's torque (times N) that reaches the output driving, from the datasheet's stall
+        point: tau_stall = eta * N * K * I_stall - gear_friction (the stall is where the output stops turning)."""
+        return (self.stall_torque + self.gear_friction) / (self.gear_ratio * self.motor_constant * self.stall_current)
+
+    @property
+    def drive_resistance(self) -> float:
+        """Ohm in each motor's circuit: the winding and the driver's two conducting FETs."""
+        return self.resistance + self.driver_on_resistance
 
     @property
     def firmware_dt(self) -> float:

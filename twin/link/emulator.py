@@ -27,7 +27,7 @@ from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec, load_spec
 from twin.link import protocol as P
 from twin.link.faults import FaultOptions, Faults
-from twin.link.plant import Plant, PlantOptions
+from twin.link.plant import Plant, PlantOptions, PlantRanges, draw_plant
 from twin.sim.simulation import tick_us
 
 BACKLOG = 4096  # bytes out of the firmware but not yet taken by the host: it is not asked for more beyond this
@@ -41,6 +41,15 @@ class EmulatorOptions:
     faults: FaultOptions = FaultOptions()
     watchdog_ms: int | None = None
     seed: int = 0
+
+
+def drawn_options(ranges: PlantRanges, faults: FaultOptions, seed: int, watchdog_ms: int | None = None,
+                  encoder_miss: float = 0.0, pack_voltage: float | None = None) -> EmulatorOptions:
+    """An emulated device whose plant and latency are drawn within `ranges` from `seed` (the faults' latency
+    replaced by the drawn one)."""
+    plant, latency = draw_plant(ranges, random.Random(seed), encoder_miss, pack_voltage)
+    return EmulatorOptions(plant=plant, faults=dataclasses.replace(faults, latency_ms=latency),
+                           watchdog_ms=watchdog_ms, seed=seed)
 
 
 class Emulator:
@@ -66,8 +75,9 @@ class Emulator:
         self._faults = 0
         self.log = open(log_path, "a", buffering=1) if log_path else None
         p = self.plant.spec
-        self._log("start", plant={k: getattr(p, k) for k in ("gear_friction", "gear_damping", "no_load_speed",
-                                                             "rotor_inertia", "backlash")},
+        self._log("start", plant={k: getattr(p, k) for k in ("gear_friction", "gear_stiction", "gear_damping",
+                                                             "no_load_speed", "rotor_inertia", "backlash",
+                                                             "supply_voltage")},
                   options=dataclasses.asdict(self.opt))
 
     @property
@@ -99,9 +109,10 @@ class Emulator:
             self._log_rx(data)
             self.firmware.rx(data, now_us)
         sensed = np.clip(np.rint(self.plant.current * 1000), -32768, 32767)  # mA, the last tick's winding current
-        duty, _ = self.firmware.tick(now_us, self.plant.sense(), sensed)  # decay: see twin.link.plant
+        self.firmware.battery(round(self.plant.bus * 1000))  # the battery the ADC reads, from the last tick
+        _, decay = self.firmware.tick(now_us, self.plant.sense(), sensed)
         self._log_faults()
-        self.plant.actuate(duty)
+        self.plant.actuate(self.firmware.pwm(), decay)
         jammed = self.faults.jam(self.plant, self.firmware.state == P.State.ACTIVE, self.time)
         if jammed is not None:
             self._log("jam", hinge=self.opt.faults.jam_hinge, angle_deg=math.degrees(jammed))

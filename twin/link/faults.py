@@ -82,7 +82,7 @@ class Faults:
             return None
         jammed_now = None
         if self.jam_angle is None and t - self.jam_armed_at >= self.opt.jam_after:
-            self.jam_angle = jammed_now = float(plant.data.qpos[plant.qadr[k]])
+            self.jam_angle = jammed_now = float(plant.data.qpos[plant.hinges.qadr[k]])
         if self.jam_angle is not None:
             plant.hold_hinge(k, self.jam_angle)
         return jammed_now

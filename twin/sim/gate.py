@@ -1,7 +1,10 @@
 """The gate: nothing reaches the hardware that the twin has not simulated and found safe.
 
 `check_move(spec, start, targets, gains)` runs the move on the twin from the
-device's present hinge angles with the device's gains and checks:
+device's present hinge angles with the device's gains; `check_scenario(spec,
+scenario, gains)` runs a timed scenario as one run, as it will be played (each
+target at its time, whatever the hinges are doing then: a reversal while a hinge
+still runs draws what the two steps from rest do not). Both check:
 
 - range:     every target inside the hinge range (deg);
 - collision: no flap-on-flap contact anywhere along the simulated trajectory
@@ -10,7 +13,8 @@ device's present hinge angles with the device's gains and checks:
              within `settle_limit` s;
 - peak current: the largest winding current, A, within the motor driver's peak rating
              (spec [power] driver_peak_current; not the stall current: braking or
-             reversing at speed draws more, back-EMF adding to the supply);
+             reversing at speed draws more, back-EMF adding to the supply), naming the
+             hinge and the moment;
 - hold current: the mean current over the last `settle_hold` s (what the device
              draws holding the pose indefinitely) within its continuous rating.
 
@@ -27,8 +31,10 @@ import mujoco
 import numpy as np
 
 from controllers.pid import PidGains
-from twin.sim.simulation import Trace, Twin
 from twin.device.spec import DeviceSpec
+from twin.formats.scenario import Scenario
+from twin.sim.replay import replay_targets
+from twin.sim.simulation import Trace, Twin, join_traces
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,26 +114,84 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
     """Simulate start -> targets (rad) on the twin with the device's gains (one PidGains or one per hinge)."""
     start = np.asarray(start, float)
     targets = np.asarray(targets, float)
-    lim = math.degrees(spec.hinge_limit)
-    checks = []
-    worst = int(np.argmax(np.abs(targets))) if targets.size else 0
-    ok_shape = targets.shape == (spec.n_hinges,) and np.all(np.isfinite(targets))
-    peak = float(np.degrees(np.abs(targets[worst]))) if ok_shape else float("inf")
-    checks.append(Check("range", ok_shape and peak <= lim + 1e-9, peak, lim, "deg",
-                        f"hinge {worst}" if ok_shape else f"expected {spec.n_hinges} finite targets"))
+    checks = [_range_check(spec, [targets])]
     if not checks[0].passed:
         return GateReport(start, targets, checks, None)
+    twin = _twin_at(spec, start, gains, twin)
+    trace = twin.move_to(targets, max_time=settle_limit, stop_when_settled=True)
+    settle_ticks = int(round(spec.settle_hold / spec.firmware_dt))
+    hold = twin.hold(spec.settle_hold)  # keep simulating: the hold current is what the device draws at rest
 
+    checks.append(_collision_check(spec, twin, trace, collision_step))
+    # settle: the twin stops early once every hinge has stayed in the band for settle_hold
+    err = np.abs(trace.target_counts[-settle_ticks:] - trace.counts[-settle_ticks:]).max(axis=0)
+    settled = len(trace.time) < int(round(settle_limit / spec.firmware_dt)) or bool(np.all(err <= spec.settle_band))
+    t_settle = trace.duration if settled else float("inf")
+    worst = int(np.argmax(err))
+    checks.append(Check("settle", settled, t_settle, settle_limit, "s",
+                        "all hinges" if settled else f"hinge {worst} still {int(err[worst])} counts off"))
+    checks += _current_checks(spec, trace, hold, peak_current_limit, hold_current_limit)
+    return GateReport(start, targets, checks, trace)
+
+
+def check_scenario(spec: DeviceSpec, scenario: Scenario, gains=None, settle_limit: float = 2.0,
+                   collision_step: float = 0.005, peak_current_limit: float | None = None,
+                   hold_current_limit: float | None = None, twin: Twin | None = None) -> GateReport:
+    """Simulate a whole scenario on the twin as one run, as it will be played, and check it whole.
+
+    From the scenario's start, each target takes effect at its time; the run lasts the scenario's
+    duration, or until settle_limit s after the last target if that is later. The settle check is the last
+    target's (earlier ones may be left on purpose before they settle); the currents are the whole run's,
+    the peak named with its hinge and moment (s from the first target).
+    """
+    start = np.asarray(scenario.start, float)
+    last = np.asarray(scenario.targets[-1], float)
+    checks = [_range_check(spec, scenario.targets)]
+    if not checks[0].passed:
+        return GateReport(start, last, checks, None)
+    twin = _twin_at(spec, start, gains, twin)
+    dt = spec.firmware_dt
+    end = int(round(max(scenario.duration, scenario.times[-1] + settle_limit) / dt))
+    trace = join_traces([tr for _, tr in replay_targets(twin, list(zip(scenario.times, scenario.targets)), 0, end)])
+    hold = twin.hold(spec.settle_hold)
+
+    checks.append(_collision_check(spec, twin, trace, collision_step))
+    first = int(round(scenario.times[-1] / dt))
+    t_settle = _settle_time(spec, trace.counts[first:], trace.target_counts[first:])
+    settled = t_settle <= settle_limit
+    err = np.abs(trace.target_counts[-1] - trace.counts[-1])
+    worst = int(np.argmax(err))
+    checks.append(Check("settle", settled, t_settle, settle_limit, "s",
+                        "the last target, all hinges" if settled else
+                        f"the last target: hinge {worst} still {int(err[worst])} counts off"))
+    checks += _current_checks(spec, trace, hold, peak_current_limit, hold_current_limit)
+    return GateReport(start, last, checks, trace)
+
+
+def _range_check(spec: DeviceSpec, steps) -> Check:
+    """Every target inside the hinge range: the farthest one, with its hinge (and step, if more than one)."""
+    lim = math.degrees(spec.hinge_limit)
+    steps = [np.asarray(t, float) for t in steps]
+    if not all(t.shape == (spec.n_hinges,) and np.all(np.isfinite(t)) for t in steps):
+        return Check("range", False, float("inf"), lim, "deg", f"expected {spec.n_hinges} finite targets")
+    far = np.abs(np.degrees(np.array(steps)))
+    i, k = np.unravel_index(int(np.argmax(far)), far.shape)
+    detail = f"hinge {k}" + (f", step {i}" if len(steps) > 1 else "")
+    return Check("range", float(far[i, k]) <= lim + 1e-9, float(far[i, k]), lim, "deg", detail)
+
+
+def _twin_at(spec: DeviceSpec, start, gains, twin: Twin | None) -> Twin:
+    """A twin (the given one, or a new one) with the device's gains, holding the start angles (rad)."""
     if twin is None:
         twin = Twin(spec, gains if isinstance(gains, PidGains) or gains is None else list(gains))
     else:
         twin.set_gains(PidGains.from_spec(spec) if gains is None else gains)
     twin.reset(np.clip(start, -spec.hinge_limit, spec.hinge_limit))
-    trace = twin.move_to(targets, max_time=settle_limit, stop_when_settled=True)
-    settle_ticks = int(round(spec.settle_hold / spec.firmware_dt))
-    hold = twin.hold(spec.settle_hold)  # keep simulating: the hold current is what the device draws at rest
+    return twin
 
-    # collision along the trajectory (and at rest)
+
+def _collision_check(spec: DeviceSpec, twin: Twin, trace: Trace, collision_step: float) -> Check:
+    """Flap-on-flap contact along the trajectory (every collision_step s, and at its end)."""
     m, d = twin.model, mujoco.MjData(twin.model)
     mujoco.mj_resetDataKeyframe(m, d, m.key("flat").id)
     every = max(1, int(round(collision_step / spec.firmware_dt)))
@@ -140,28 +204,34 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
             if depth > deepest:
                 deepest = depth
                 hit = f"{a} and {b} at t={trace.time[i] - trace.time[0]:.3f} s"
-    checks.append(Check("collision", hit is None, deepest * 1000, 0.0, "mm",
-                        hit or "no flap-on-flap contact"))
+    return Check("collision", hit is None, deepest * 1000, 0.0, "mm", hit or "no flap-on-flap contact")
 
-    # settle: the twin stops early once every hinge has stayed in the band for settle_hold
-    err = np.abs(trace.target_counts[-settle_ticks:] - trace.counts[-settle_ticks:]).max(axis=0)
-    settled = len(trace.time) < int(round(settle_limit / spec.firmware_dt)) or bool(np.all(err <= spec.settle_band))
-    t_settle = trace.duration if settled else float("inf")
-    worst = int(np.argmax(err))
-    checks.append(Check("settle", settled, t_settle, settle_limit, "s",
-                        "all hinges" if settled else f"hinge {worst} still {int(err[worst])} counts off"))
 
+def _settle_time(spec: DeviceSpec, counts, target_counts) -> float:
+    """s from the first row until every hinge has stayed within the settle band for settle_hold (inf: never)."""
+    hold = int(round(spec.settle_hold / spec.firmware_dt))
+    inside = np.all(np.abs(target_counts - counts) <= spec.settle_band, axis=1)
+    run = 0
+    for i, ok in enumerate(inside):
+        run = run + 1 if ok else 0
+        if run >= hold:
+            return (i + 1) * spec.firmware_dt
+    return float("inf")
+
+
+def _current_checks(spec: DeviceSpec, trace: Trace, hold: Trace, peak_current_limit, hold_current_limit) -> list:
+    """The peak winding current over the run (hinge and moment) and the mean over the hold after it."""
     peak_lim = peak_current_limit or spec.driver_peak_current
     cur = np.abs(trace.current)
-    k = int(np.unravel_index(np.argmax(cur), cur.shape)[1]) if cur.size else 0
-    peak_i = float(cur.max()) if cur.size else 0.0
-    checks.append(Check("peak_current", peak_i <= peak_lim, peak_i, peak_lim, "A", f"hinge {k}"))
-
+    i, k = np.unravel_index(int(np.argmax(cur)), cur.shape) if cur.size else (0, 0)
+    peak_i = float(cur[i, k]) if cur.size else 0.0
+    when = float(trace.time[i] - trace.time[0]) if cur.size else 0.0
+    out = [Check("peak_current", peak_i <= peak_lim, peak_i, peak_lim, "A", f"hinge {k} at t={when:.3f} s")]
     hold_lim = hold_current_limit or spec.continuous_current
     held = np.abs(hold.current).mean(axis=0)
     k = int(np.argmax(held))
-    checks.append(Check("hold_current", float(held[k]) <= hold_lim, float(held[k]), hold_lim, "A", f"hinge {k}"))
-    return GateReport(start, targets, checks, trace)
+    out.append(Check("hold_current", float(held[k]) <= hold_lim, float(held[k]), hold_lim, "A", f"hinge {k}"))
+    return out
 
 
 def redirection_check(summary: dict, strict: bool = False) -> Check:

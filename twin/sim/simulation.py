@@ -29,6 +29,7 @@ from controllers.encoder import angle_from_counts, counts_from_motor_angle, coun
 from controllers.pid import PidGains
 from twin.device.mjcf import load_model
 from twin.device.spec import DeviceSpec, load_spec
+from twin.sim.drive import V_PACK, drive, drive_params
 from twin.formats.trace import TWIN_COLUMNS, TraceWriter
 
 
@@ -90,45 +91,63 @@ class Trace:
         os.replace(tmp, path)
 
 
+def join_traces(traces: list[Trace]) -> Trace:
+    """Consecutive traces of one twin as one (their wall times summed)."""
+    cat = {f.name: np.concatenate([getattr(t, f.name) for t in traces])
+           for f in dataclasses.fields(Trace) if f.name != "wall_time"}
+    return Trace(**cat, wall_time=float(sum(t.wall_time for t in traces)))
+
+
 # MuJoCo's C API and the firmware core's control tick, for the compiled loops
 _LIB = ctypes.CDLL(os.path.join(os.path.dirname(mujoco.__file__), f"libmujoco.so.{mujoco.__version__}"))
 _mj_step1, _mj_step2, _mj_step = _LIB.mj_step1, _LIB.mj_step2, _LIB.mj_step
 for _fn in (_mj_step1, _mj_step2, _mj_step):
     _fn.argtypes, _fn.restype = [ctypes.c_void_p, ctypes.c_void_p], None
 _vrs_tick = core.library().vrs_tick
+_vrs_pwm = core.library().vrs_pwm
+_vrs_set_battery_mv = core.library().vrs_set_battery_mv
+
+
+@numba.njit(cache=False)
+def _control_tick(fw, now_us, sensordata, enc_adr, cpr_motor, bus, counts, duty, decay, pwm):
+    """The firmware's side of one tick: encoder counts, the battery it reads (bus[0], V), vrs_tick, vrs_pwm."""
+    for h in range(counts.shape[0]):
+        counts[h] = counts_from_motor_angle(sensordata[enc_adr[h]], cpr_motor)
+    _vrs_set_battery_mv(fw, min(max(int(round(bus[0] * 1000.0)), 0), 65535))
+    _vrs_tick(fw, now_us & 0xFFFFFFFF, counts.ctypes.data, 0, duty.ctypes.data, decay.ctypes.data)
+    _vrs_pwm(fw, pwm.ctypes.data)
 
 
 # not cacheable (it calls MuJoCo and the core through ctypes pointers): compiled once per process, in Twin()
 @numba.njit(cache=False)
-def _firmware_loop(m, d, substeps, fw, now_us, dt_us, sensordata, qpos, qvel, ctrl, qfrc, enc_adr, qadr, dadr,
-                   cpr_motor, cap, back_emf, resistance, target, counts, duty, decay, max_ticks, settle_band,
+def _firmware_loop(m, d, substeps, fw, now_us, dt_us, sensordata, qpos, qvel, ctrl, qfrc, qfrc_applied, enc_adr,
+                   qadr, gear_dof, cpr_motor, params, bus, target, counts, duty, decay, pwm, max_ticks, settle_band,
                    hold_ticks, stop_when_settled, rec_angle, rec_counts, rec_duty, rec_current, rec_torque):
     """Run firmware ticks until settled (if asked) or max_ticks; returns the ticks run.
 
     fw: the core's address; now_us: device time of the first tick (us), dt_us per tick; counts (int32),
-    duty (float32) and decay (uint8) are the core's input and output buffers.
+    duty and pwm (float32) and decay (uint8) are the core's input and output buffers; params the drive
+    model's (twin.sim.drive), bus[0] the bus voltage (V) the core reads, carried from tick to tick.
     """
     n = target.shape[0]
+    current = np.zeros(n)
     in_band = 0
     for i in range(max_ticks):
         _mj_step1(m, d)  # positions, velocities and sensors at the start of the tick
+        _control_tick(fw, now_us + i * dt_us, sensordata, enc_adr, cpr_motor, bus, counts, duty, decay, pwm)
+        bus[0] = drive(params, pwm, decay, qvel, gear_dof, ctrl, qfrc_applied, current)
         settled = True
         for h in range(n):
-            counts[h] = counts_from_motor_angle(sensordata[enc_adr[h]], cpr_motor)
             if abs(target[h] - counts[h]) > settle_band:
                 settled = False
-        _vrs_tick(fw, (now_us + i * dt_us) & 0xFFFFFFFF, counts.ctypes.data, 0, duty.ctypes.data, decay.ctypes.data)
-        for h in range(n):
-            v = duty[h] * cap
-            ctrl[h] = v
             rec_angle[i, h] = qpos[qadr[h]]
             rec_counts[i, h] = counts[h]
             rec_duty[i, h] = duty[h]
-            rec_current[i, h] = (v - back_emf * qvel[dadr[h]]) / resistance
+            rec_current[i, h] = current[h]
         _mj_step2(m, d)
         for h in range(n):
-            rec_torque[i, h] = qfrc[dadr[h]]
-        for _ in range(substeps - 1):  # finer physics than the firmware, duty held
+            rec_torque[i, h] = qfrc[gear_dof[h]] + qfrc_applied[gear_dof[h]]
+        for _ in range(substeps - 1):  # finer physics than the firmware, drive held
             _mj_step(m, d)
         in_band = in_band + 1 if settled else 0
         if stop_when_settled and in_band >= hold_ticks:
@@ -137,22 +156,26 @@ def _firmware_loop(m, d, substeps, fw, now_us, dt_us, sensordata, qpos, qvel, ct
 
 
 @numba.njit(cache=False)
-def _batch_tick(i, cores, core_size, now_us, sensordata, qpos, qvel, ctrl, enc_adr, qadr, dadr, cpr_motor, cap,
-                back_emf, resistance, counts, duty, decay, rec_angle, rec_counts, rec_duty, rec_current):
-    """Tick i of every simulation: its encoders, its core (at cores + sim * core_size), its drive voltage."""
+def _batch_tick(i, cores, core_size, now_us, sensordata, qpos, qvel, ctrl, qfrc_applied, enc_adr, qadr, gear_dof,
+                cpr_motor, params, bus, counts, duty, decay, pwm, rec_angle, rec_counts, rec_duty, rec_current):
+    """Tick i of every simulation: its encoders, its core (at cores + sim * core_size), its drive."""
     nsim, n = counts.shape
+    current = np.zeros(n)
     for s in range(nsim):
+        _control_tick(cores + s * core_size, now_us, sensordata[s], enc_adr, cpr_motor, bus[s:s + 1], counts[s],
+                      duty[s], decay[s], pwm[s])
+        bus[s] = drive(params[s], pwm[s], decay[s], qvel[s], gear_dof, ctrl[s], qfrc_applied[s], current)
         for h in range(n):
-            counts[s, h] = counts_from_motor_angle(sensordata[s, enc_adr[h]], cpr_motor)
-        _vrs_tick(cores + s * core_size, now_us & 0xFFFFFFFF, counts.ctypes.data + s * n * 4, 0,
-                  duty.ctypes.data + s * n * 4, decay.ctypes.data + s * n)
-        for h in range(n):
-            v = duty[s, h] * cap
-            ctrl[s, h] = v
             rec_angle[i, s, h] = qpos[s, qadr[h]]
             rec_counts[i, s, h] = counts[s, h]
             rec_duty[i, s, h] = duty[s, h]
-            rec_current[i, s, h] = (v - back_emf * qvel[s, dadr[h]]) / resistance
+            rec_current[i, s, h] = current[h]
+
+
+def place_hinges(qpos, hinges: "Hinges", angles) -> None:
+    """Put each flap at its hinge angle (rad) and its gearbox output with it, mid-backlash (in qpos)."""
+    qpos[hinges.qadr] = angles
+    qpos[hinges.gear_qadr] = angles
 
 
 def physics_substeps(spec: DeviceSpec, model: mujoco.MjModel) -> int:
@@ -211,12 +234,15 @@ def pid_memory(fw: core.Core) -> np.recarray:
     return np.ctypeslib.as_array(mem).view(np.recarray)
 
 
-class _Hinges:
-    """Addresses of each hinge's joint, dof, actuator and encoder in a compiled model."""
+class Hinges:
+    """Addresses of each hinge's joint and dof (the flap), its gear joint and dof (the gearbox output, beyond
+    the backlash), its actuator and encoder in a compiled model."""
 
     def __init__(self, model: mujoco.MjModel, n: int):
         self.qadr = np.array([model.joint(f"hinge{k}").qposadr[0] for k in range(n)], np.int64)
         self.dadr = np.array([model.joint(f"hinge{k}").dofadr[0] for k in range(n)], np.int64)
+        self.gear_qadr = np.array([model.joint(f"gear{k}").qposadr[0] for k in range(n)], np.int64)
+        self.gear_dof = np.array([model.joint(f"gear{k}").dofadr[0] for k in range(n)], np.int64)
         self.enc = np.array([model.sensor(f"encoder{k}").adr[0] for k in range(n)], np.int64)
         act = [model.actuator(f"motor{k}").id for k in range(n)]
         if act != list(range(n)):
@@ -240,7 +266,7 @@ class Twin:
         self.root = root
         self.stall_detection = stall_detection
         n = self.spec.n_hinges
-        self.hinges = _Hinges(self.model, n)
+        self.hinges = Hinges(self.model, n)
         self.substeps = physics_substeps(self.spec, self.model)
         self.gains = per_hinge(gains or PidGains.from_spec(self.spec), n)
         self._root_body = self.model.body(f"flap{self.spec.root_flap}").id
@@ -248,6 +274,9 @@ class Twin:
         self._counts = np.zeros(n, np.int32)  # the core's input and output buffers
         self._duty = np.zeros(n, np.float32)
         self._decay = np.zeros(n, np.uint8)
+        self._pwm = np.zeros(n, np.float32)
+        self._params = drive_params(self.spec)
+        self._bus = np.zeros(1)  # V: the bus voltage the core reads, from the last tick
         self.reset()
         self._run(np.zeros(n), 0.0, False)  # compile the loop now, so moves time only the simulation
 
@@ -256,8 +285,9 @@ class Twin:
         """Back to the `flat` keyframe (or given hinge angles, rad); the firmware restarted, holding there."""
         mujoco.mj_resetDataKeyframe(self.model, self.data, self.model.key("flat").id)
         if angles is not None:
-            self.data.qpos[self.hinges.qadr] = check_targets(self.spec, angles)
+            place_hinges(self.data.qpos, self.hinges, check_targets(self.spec, angles))
         mujoco.mj_forward(self.model, self.data)
+        self._bus[0] = self.spec.supply_voltage
         self._target[:] = self.counts
         self.firmware = start_core(self.spec, self.gains, self._target, self.stall_detection)
         self._now_us = 0
@@ -329,9 +359,10 @@ class Twin:
         start = time.perf_counter()
         done = _firmware_loop(
             m._address, d._address, self.substeps, self.firmware.address, self._now_us, tick_us(s), d.sensordata,
-            d.qpos, d.qvel, d.ctrl, d.qfrc_actuator, h.enc, h.qadr, h.dadr, float(s.counts_per_motor_rev),
-            s.drive_cap, s.motor_constant * s.gear_ratio, s.resistance, self._target, self._counts, self._duty,
-            self._decay, ticks, s.settle_band, int(round(s.settle_hold / s.firmware_dt)), stop_when_settled, *rec)
+            d.qpos, d.qvel, d.ctrl, d.qfrc_actuator, d.qfrc_applied, h.enc, h.qadr, h.gear_dof,
+            float(s.counts_per_motor_rev), self._params, self._bus, self._target, self._counts, self._duty,
+            self._decay, self._pwm, ticks, s.settle_band, int(round(s.settle_hold / s.firmware_dt)),
+            stop_when_settled, *rec)
         wall = time.perf_counter() - start
         self._now_us = (self._now_us + done * tick_us(s)) & 0xFFFFFFFF
         angle, counts, duty, current, torque = (r[:done] for r in rec)
@@ -363,15 +394,19 @@ class TwinBatch:
                 raise ValueError(f"expected {nsim} plant specs, got {len(specs)}")
             self._models = [load_model(p) for p in specs]
             self.batch.set_models(self._models)
-        self.hinges = _Hinges(model, n)
+        self.hinges = Hinges(model, n)
         self.substeps = physics_substeps(self.spec, model)
         self.sensordata = self.batch.bind("sensordata")
         self.qpos = self.batch.bind("qpos")
         self.qvel = self.batch.bind("qvel")
         self.ctrl = self.batch.bind("ctrl")
+        self.qfrc_applied = self.batch.bind("qfrc_applied")
         self._counts = np.zeros((nsim, n), np.int32)  # the cores' input and output buffers
         self._duty = np.zeros((nsim, n), np.float32)
         self._decay = np.zeros((nsim, n), np.uint8)
+        self._pwm = np.zeros((nsim, n), np.float32)
+        self._params = np.stack([drive_params(p) for p in (specs or [self.spec] * nsim)])
+        self._bus = np.zeros(nsim)  # V, per simulation
         self.gains = self._per_simulation(gains or PidGains.from_spec(self.spec))
         self.reset()
 
@@ -405,8 +440,10 @@ class TwinBatch:
         """All simulations back to flat (or to angles, rad, shape (nsim, n_hinges)); their firmware restarted."""
         self.batch.reset(keyframe=0, stage=mujoco.mjtStage.mjSTAGE_NONE.value)
         if angles is not None:
-            self.qpos[:, self.hinges.qadr] = angles
+            for q, a in zip(self.qpos, np.broadcast_to(angles, (self.nsim, self.spec.n_hinges))):
+                place_hinges(q, self.hinges, a)
         self.batch.forward()
+        self._bus[:] = self._params[:, V_PACK]
         counts = self._counts_now()
         size = core.library().vrs_core_size()
         self._cores = np.zeros((self.nsim, size), np.uint8)  # one vrs_core per simulation, contiguous
@@ -437,15 +474,14 @@ class TwinBatch:
         ticks = int(round(duration / s.firmware_dt))
         out = {k: np.zeros((ticks, self.nsim, n)) for k in ("angle", "duty", "current")}
         out["counts"] = np.zeros((ticks, self.nsim, n), np.int64)
-        back_emf = s.motor_constant * s.gear_ratio
         vel_stage = mujoco.mjtStage.mjSTAGE_VEL.value
         dt_us = tick_us(s)
         start = time.perf_counter()
         for i in range(ticks):
             _batch_tick(i, base, size, self._now_us, self.sensordata, self.qpos, self.qvel, self.ctrl,
-                        self.hinges.enc, self.hinges.qadr, self.hinges.dadr, float(s.counts_per_motor_rev),
-                        s.drive_cap, back_emf, s.resistance, self._counts, self._duty, self._decay,
-                        out["angle"], out["counts"], out["duty"], out["current"])
+                        self.qfrc_applied, self.hinges.enc, self.hinges.qadr, self.hinges.gear_dof,
+                        float(s.counts_per_motor_rev), self._params, self._bus, self._counts, self._duty, self._decay,
+                        self._pwm, out["angle"], out["counts"], out["duty"], out["current"])
             self.batch.step(nstep=self.substeps, stage=vel_stage)
             self._now_us = (self._now_us + dt_us) & 0xFFFFFFFF
         out["wall_time"] = time.perf_counter() - start
