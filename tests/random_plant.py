@@ -1,29 +1,25 @@
-"""A device plant nobody chose: the emulator's parameters drawn at random within the issue's ranges.
+"""A device plant nobody chose: the emulator draws its parameters at random within the issue's ranges.
 
-The drawn values go to the emulator only (its command line); the twin never sees them. Shared by the
-calibration tests and benchmarks/bench_calibration.py.
+The drawn values are in the emulator's log only (its "start" event); the twin never sees them. Shared by
+the calibration tests and benchmarks/bench_calibration.py.
 """
 
 from __future__ import annotations
 
-import numpy as np
-
-# x the spec's value (scales) or absolute (backlash deg, latency ms): issue 13, "Must hold"
-RANGES = {"speed_scale": (0.7, 1.3), "friction_scale": (0.7, 1.6), "armature_scale": (0.7, 1.4),
-          "backlash_deg": (0.0, 0.5), "latency_ms": (0.0, 3.0)}
-# the calibrated spec field each scale multiplies
-FIELD = {"speed_scale": "no_load_speed", "friction_scale": "gear_friction", "armature_scale": "rotor_inertia"}
+# issue 13, "Must hold": x the spec's value, or deg and ms
+RANGES = {"speed-scale": "0.7,1.3", "friction-scale": "0.7,1.6", "armature-scale": "0.7,1.4",
+          "damping-scale": "0.7,1.6", "backlash-deg": "0,0.5", "latency-ms": "0,3"}
+ENCODER_MISS = 0.0005  # probability per edge the encoder's counter misses it
 
 
-def draw_plant(seed: int) -> dict:
-    """{option: value} drawn uniformly within RANGES."""
-    rng = np.random.default_rng(seed)
-    return {k: float(rng.uniform(lo, hi)) for k, (lo, hi) in RANGES.items()}
-
-
-def emulator_args(plant: dict, seed: int) -> list[str]:
-    """`vrscroll emulate` options for the drawn plant (gear damping as the spec's; encoder noise on)."""
-    args = ["--damping-scale", "1", "--seed", str(seed)]
-    for k, v in plant.items():
-        args += ["--" + k.replace("_", "-"), f"{v:.6g}"]
+def emulator_args(seed: int) -> list[str]:
+    """`vrscroll emulate` options: every parameter drawn within RANGES from the seed."""
+    args = ["--seed", str(seed), "--encoder-miss", str(ENCODER_MISS)]
+    for k, v in RANGES.items():
+        args += ["--" + k, v]
     return args
+
+
+def drawn_plant(emulator) -> dict:
+    """The plant the emulator drew (spec field -> SI value), from its log."""
+    return next(e for e in emulator.events("start"))["plant"]

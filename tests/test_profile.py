@@ -11,6 +11,7 @@ import pytest
 from controllers.pid import PidGains
 from twin.cli import main as vrscroll
 from twin.device.profile import profiles_dir
+from twin.device.mjcf import load_model
 from twin.formats.gains import write_gains
 from twin.formats.profile import read_profile, select_profile, write_profile_spec
 from twin.formats.run import read_run
@@ -152,7 +153,7 @@ def test_view_without_a_display_is_one_line_and_the_replay_is_built(capsys, emul
     assert rc == 0 and out.rstrip().splitlines()[-1].startswith("no display")
     # what the window would show: two devices, the twin's translucent, replayed from the traces
     model = pair_model(spec)
-    assert model.njnt == 2 * spec.n_hinges
+    assert model.njnt == 2 * load_model(spec).njnt
     twin_geoms = [i for i in range(model.ngeom) if model.body(model.geom_bodyid[i]).name.startswith("twin/")]
     assert twin_geoms and all(model.geom_rgba[i, 3] == pytest.approx(TWIN_ALPHA) for i in twin_geoms)
     recorded = read_run(tmp_path / "run", spec)

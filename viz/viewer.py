@@ -50,7 +50,9 @@ def pair_model(spec: DeviceSpec) -> mujoco.MjModel:
 
 
 def hinge_qadr(model: mujoco.MjModel, n: int, prefix: str = "") -> np.ndarray:
-    return np.array([model.joint(f"{prefix}hinge{k}").qposadr[0] for k in range(n)])
+    """qpos addresses (2, n): each hinge's, then its gearbox output's (both shown at the hinge's angle: the
+    backlash between them is too small to see)."""
+    return np.array([[model.joint(f"{prefix}{j}{k}").qposadr[0] for k in range(n)] for j in ("hinge", "gear")])
 
 
 def run_frames(run: dict, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -68,8 +70,9 @@ def run_frames(run: dict, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
 
 
 def play(model: mujoco.MjModel, qadr: np.ndarray, t: np.ndarray, rows: np.ndarray, title: str) -> str:
-    """Show rows (frames, len(qadr)) of joint angles at their times t (s) in real time, then hold the last
-    until the window is closed. A one-line message for where no window can open."""
+    """Show rows (frames, m) of hinge angles at their times t (s) in real time, each row at the qpos
+    addresses qadr (r, m), then hold the last until the window is closed. A one-line message for where no
+    window can open."""
     missing = display_missing()
     if missing:
         return missing
@@ -78,7 +81,7 @@ def play(model: mujoco.MjModel, qadr: np.ndarray, t: np.ndarray, rows: np.ndarra
         start = time.monotonic()
         while viewer.is_running():
             i = min(int(np.searchsorted(t, time.monotonic() - start)), len(t) - 1)
-            data.qpos[qadr] = rows[i]
+            data.qpos[qadr] = rows[i][None]
             mujoco.mj_forward(model, data)
             viewer.sync()
             time.sleep(FRAME_PERIOD)
@@ -90,7 +93,7 @@ def view_run(run: dict, spec: DeviceSpec) -> str:
     model = pair_model(spec)
     t, rows = run_frames(run, spec)
     n = spec.n_hinges
-    qadr = np.concatenate([hinge_qadr(model, n), hinge_qadr(model, n, TWIN_PREFIX)])
+    qadr = np.concatenate([hinge_qadr(model, n), hinge_qadr(model, n, TWIN_PREFIX)], axis=1)
     return play(model, qadr, t, rows, f"{run['dir']}: device solid, twin translucent")
 
 

@@ -30,7 +30,9 @@ def add_arguments(p) -> None:
     p.add_argument("--holdout", metavar="RUN", help="a HIL run folder not fitted to: fit error before/after")
     p.add_argument("--out", help="also write the calibrated spec to this TOML (without a device profile: default "
                                  "spec.calibrated.toml)")
-    p.add_argument("--max-iter", type=int, default=25, help="Levenberg-Marquardt iterations (default %(default)s)")
+    p.add_argument("--generations", type=int, default=8,
+                   help="cross-entropy generations of the search (default %(default)s)")
+    p.add_argument("--population", type=int, default=24, help="twin replays per generation (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--incomplete", action="store_true",
                    help="also fit runs that did not complete (killed or interrupted while recorded): what they "
@@ -101,7 +103,9 @@ def run(args) -> int:
             raise UserError(f"{r['dir']}: fewer than 10 device frames; nothing to fit")
         if "before" not in r["meta"]:
             raise UserError(f"{r['dir']}: recorded without the device's state before the run; record it again")
-    res = calibrate(runs, spec, max_iter=args.max_iter)
+    res = calibrate(runs, spec, population=args.population, generations=args.generations,
+                    progress=None if args.json else lambda g, c: print(
+                        f"generation {g + 1}/{args.generations}: best cost {c:.4g}", flush=True))
     source = "calibrated from " + ", ".join(str(Path(r).resolve()) for r in args.runs) + " (vrscroll calibrate)"
     fitted = {p: e.value for p, e in res.estimates.items() if e.identifiable}
     written = []
@@ -135,11 +139,11 @@ def run(args) -> int:
         print(json.dumps(out, indent=2))
         return 0
     print(f"device profile: {out['device_profile']} (prior: {out['prior']})")
-    print(f"fitted in {res.iterations} iterations ({res.evaluations} twin replays); x prior value, 95 % interval:")
+    print(f"fitted in {res.iterations} generations ({res.evaluations} twin replays); x prior value, 95 % interval:")
     for p, e in res.estimates.items():
         print(f"  {p:<14} x{e.value / e.prior:.3f}  = {e.value:.6g}  interval x{e.low / e.prior:.3f} .. "
               f"x{e.high / e.prior:.3f}  {'identifiable' if e.identifiable else 'NOT IDENTIFIABLE'}: {e.note}")
-    print("singular values of the residual's Jacobian (log parameters, unit columns): "
+    print("singular values of the cost's Hessian (log parameters, unit diagonal): "
           + " ".join(f"{s:.3g}" for s in res.singular_values)
           + f"; residual autocorrelation {res.autocorrelation_frames:.0f} frames")
     print(f"fit RMSE (training runs, hinge angles): {res.rmse_before:.3f} deg -> {res.rmse_after:.3f} deg")

@@ -52,20 +52,23 @@ import dataclasses
 import math
 
 import numpy as np
-from mujoco import minimize
 
 from twin.device.spec import DeviceSpec
 from twin.sim.replay import replay_targets, twin_at_start
 
-PARAMS = ("no_load_speed", "gear_friction", "rotor_inertia")
+PARAMS = ("no_load_speed", "gear_friction", "gear_damping", "rotor_inertia", "backlash")
+# the spec fields that move with a parameter, in proportion: the static friction keeps its ratio to the
+# Coulomb friction (one gearbox's friction, the emulator scales them together)
+MOVES_WITH = {"gear_friction": ("gear_stiction",)}
 # x the prior: how far a device may differ from its datasheet (an assumption: the spread of a batch of micro
-# metal gearmotors and of their assembly). The interval a parameter the runs do not show is left with.
-PRIOR_RANGE = {"no_load_speed": (0.7, 1.3), "gear_friction": (0.7, 1.6), "rotor_inertia": (0.7, 1.4)}
+# metal gearmotors and of their assembly; the backlash 0 .. 2 x the spec's 0.25 deg). The interval a
+# parameter the runs do not show is left with.
+PRIOR_RANGE = {"no_load_speed": (0.7, 1.3), "gear_friction": (0.7, 1.6), "gear_damping": (0.7, 1.6),
+               "rotor_inertia": (0.7, 1.4), "backlash": (0.0, 2.0)}
 LOG_BOUND = math.log(3.0)
 MAX_HALFWIDTH = 0.15  # a parameter is identifiable when its 95 % interval is within x(1 -+ this) of its value
-CHI2_95 = 3.84  # ... and moving it that far raises the cost by more than this x the variance per independent sample
-ROUGH_STEP = 0.02  # log: the cost's change over +- this is roughness (stick-slip, quantisation), not information
-ROUGH_FACTOR = 1.0  # ... and the rise at the interval's edges must exceed this x that roughness
+SEARCH_STD = 0.25  # log: the cross-entropy search's first spread about the prior
+ELITE = 6  # samples per generation the next is drawn about
 DUTY_WINDOW = 0.2  # s: the duty is compared as means over windows this long
 DUTY_WEIGHT = 20.0  # deg per unit duty: a 0.01 duty error weighs as 0.2 deg (each about its noise floor)
 
@@ -175,97 +178,114 @@ def autocorrelation_time(blocks) -> float:
     return float(np.average(taus, weights=weights)) if taus else 1.0
 
 
-def log_sigma(J: np.ndarray, r: np.ndarray, tau: float) -> tuple[np.ndarray, np.ndarray]:
-    """(standard deviation of each log parameter, singular values of J with its columns scaled to unit norm).
-
-    The Gauss-Newton covariance s^2 (J^T J)^-1, s^2 the residual's variance per independent sample
-    (|r|^2 tau / (m - k)); a parameter in a direction J does not see (a singular value below 1e-9 of the
-    largest) gets an infinite deviation."""
-    m, k = J.shape
-    s2 = float(r @ r) * tau / max(m - k, 1)
-    norms = np.linalg.norm(J, axis=0)
-    sv = np.linalg.svd(J / np.where(norms > 0, norms, 1.0), compute_uv=False)
-    _, S, Vt = np.linalg.svd(J, full_matrices=False)
-    seen = S > 1e-9 * max(float(S.max()), 1e-300)
-    var = s2 * ((Vt[seen] ** 2) / S[seen, None] ** 2).sum(axis=0)
-    blind = (np.abs(Vt[~seen]) > 1e-6).any(axis=0)
-    return np.where(blind, np.inf, np.sqrt(var)), sv
+def quadratic_fit(X: np.ndarray, c: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(c0, gradient g, Hessian H) of the quadratic c0 + g.x + x.H.x / 2 that fits costs c at points X
+    (samples, k) best in least squares: the cost's shape at the scale of the samples, its roughness
+    averaged out."""
+    k = X.shape[1]
+    pairs = [(i, j) for i in range(k) for j in range(i, k)]
+    A = np.concatenate([np.ones((len(X), 1)), X, np.stack([X[:, i] * X[:, j] * (0.5 if i == j else 1.0)
+                                                         for i, j in pairs], axis=1)], axis=1)
+    coef = np.linalg.lstsq(A, c, rcond=None)[0]
+    H = np.zeros((k, k))
+    for (i, j), h in zip(pairs, coef[1 + k:]):
+        H[i, j] = H[j, i] = h
+    return float(coef[0]), coef[1:1 + k], H
 
 
-def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, max_iter: int = 25, eps: float = 0.1,
-              max_halfwidth: float = MAX_HALFWIDTH, verbose: bool = False) -> CalibrationResult:
-    """Fit `params` (log-scaled, bounded x1/3..x3 of `base`) to the runs' device traces (angles and duty),
+def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int = 24, generations: int = 8,
+              seed: int = 0, max_halfwidth: float = MAX_HALFWIDTH, progress=None) -> CalibrationResult:
+    """Fit `params` (log(value / base value), within x1/3 .. x3) to the runs' device traces (angles and duty),
     and say what the runs show.
 
-    After each fit, every parameter is moved x(1 -+ max_halfwidth) and x(1 -+ ROUGH_STEP) from the optimum.
-    The secants over the wider move are the Jacobian that gives its 95 % interval (Gauss-Newton, the
-    residual's autocorrelation allowed for); it is identifiable when that interval is within x(1 -+
-    max_halfwidth), and moving it that far raises the cost on both sides by more than the chi-square 95 %
-    point (CHI2_95 x the variance per independent sample) and by more than ROUGH_FACTOR x the cost's
-    change over the small move (the residual's roughness: stick-slip and encoder quantisation make the
-    cost jagged, and a jagged cost can look curved to a local Jacobian). The parameters that are not are put
-    back at their prior (base) and the rest fitted again, until every parameter left is identifiable. The interval reported is at least x(1 -+ eps): the residual is rough
-    at scales below the finite-difference step, so the fit cannot place a parameter closer than that. A
-    parameter left at its prior keeps its prior range (PRIOR_RANGE) as its interval.
+    The cost (the residual's sum of squares) is rough at small scales: the encoder quantises the closed loop
+    and the hinges stick and slip, so a gradient method stalls (Levenberg-Marquardt through
+    mujoco.minimize.least_squares stopped after 6-10 iterations with "insufficient reduction", well short of
+    the truth, on the emulator's drawn plants). So: a cross-entropy search (population x generations
+    replays), then a quadratic fitted to the costs of the samples near the best (the cost's shape at the
+    scale of the search, its roughness averaged out). Its Hessian H gives the covariance 2 s^2 H^-1, s^2 the
+    residual's variance per independent sample (its autocorrelation allowed for), and with it each
+    parameter's 95 % interval. A parameter whose interval is wider than x(1 -+ max_halfwidth), or along which
+    the quadratic does not curve up, is not shown by the runs: it is put back at its prior, the least seen
+    first, and the others re-estimated at the quadratic's minimum with it held there, until every parameter
+    left is identifiable. progress(generation, best cost) is called as the search goes.
     """
     params = tuple(params)
     prior = {p: float(getattr(base, p)) for p in params}
+    k = len(params)
     count = [0]
 
-    def plant(free, x):
-        return base.replace(**{p: prior[p] * math.exp(float(xi)) for p, xi in zip(free, x)})
+    def plant(x):
+        return base.replace(**{f: getattr(base, f) * math.exp(float(xi)) for p, xi in zip(params, x)
+                               for f in (p, *MOVES_WITH.get(p, ()))})
 
-    def stack(free, X):
-        cols = []
-        for j in range(X.shape[1]):
-            cols.append(np.concatenate([residuals(r, plant(free, X[:, j]), base) for r in runs]))
-            count[0] += 1
-        return np.stack(cols, axis=1)
+    def cost(x):
+        count[0] += 1
+        return float(sum((residuals(r, plant(x), base) ** 2).sum() for r in runs))
 
     def angle_rmse(p):
         return float(np.sqrt(np.mean(np.concatenate([trace_rmse(r, p, base) ** 2 for r in runs]))))
 
-    free, dropped = list(params), {}
-    x, iterations, sv, tau, sigma = np.zeros(0), 0, [], 1.0, np.zeros(0)
+    rng = np.random.default_rng(seed)
+    mean, std = np.zeros(k), np.full(k, SEARCH_STD)
+    X, C = [], []
+    best = (cost(mean), mean.copy())
+    X.append(mean.copy())
+    C.append(best[0])
+    for g in range(generations):
+        pop = np.clip(mean + std * rng.standard_normal((population, k)), -LOG_BOUND, LOG_BOUND)
+        pop[0] = best[1]
+        c = np.array([cost(x) for x in pop[1:]] + [best[0]])
+        c = np.roll(c, 1)
+        X.extend(pop[1:])
+        C.extend(c[1:])
+        order = np.argsort(c)
+        if c[order[0]] < best[0]:
+            best = (float(c[order[0]]), pop[order[0]].copy())
+        elite = pop[order[:ELITE]]
+        mean = elite.mean(axis=0)
+        std = np.maximum(0.7 * std + 0.3 * elite.std(axis=0), 0.02)
+        if progress:
+            progress(g, best[0])
+    X, C = np.array(X), np.array(C)
+    near = np.argsort(C)[:max(len(C) // 2, 3 * (1 + k + k * (k + 1) // 2))]
+    xb = best[1]
+    _, grad, H = quadratic_fit(X[near] - xb, C[near])
+    tau = autocorrelation_time([b for run in runs for b in residual_blocks(run, plant(xb), base)])
+    m = sum(len(r["device"]["time_s"]) for r in runs) * 2 * base.n_hinges
+    s2 = best[0] * tau / max(m - k, 1)
+
+    free, dropped = list(range(k)), {}
+    x, sigma = np.zeros(k), np.full(k, np.inf)
     while free:
-        k = len(free)
-        x, log = minimize.least_squares(np.zeros(k), lambda X: stack(free, X),
-                                        bounds=(np.full(k, -LOG_BOUND), np.full(k, LOG_BOUND)), eps=eps,
-                                        max_iter=max_iter, xtol=1e-4, gtol=1e-8,
-                                        verbose=minimize.Verbosity.ITER if verbose else minimize.Verbosity.SILENT)
-        x = np.asarray(x).ravel()
-        iterations += len(log)
-        H = math.log1p(max_halfwidth)
-        steps = np.concatenate([x[:, None] + H * np.eye(k), x[:, None] - H * np.eye(k),
-                                x[:, None] + ROUGH_STEP * np.eye(k), x[:, None] - ROUGH_STEP * np.eye(k),
-                                x[:, None]], axis=1)
-        R = stack(free, steps)
-        r = R[:, -1]
-        J = (R[:, :k] - R[:, k:2 * k]) / (2 * H)  # secants over the interval that would count as identifiable
-        cost = (R ** 2).sum(axis=0)
-        rise = np.minimum(cost[:k], cost[k:2 * k]) - cost[-1]  # cost at the edges of that interval, above the fit
-        rough = np.maximum(np.abs(cost[2 * k:3 * k] - cost[-1]), np.abs(cost[3 * k:4 * k] - cost[-1]))
-        tau = autocorrelation_time([b for run in runs for b in residual_blocks(run, plant(free, x), base)])
-        sigma, sv = log_sigma(J, r, tau)
-        s2 = cost[-1] * tau / max(len(r) - k, 1)  # residual variance per independent sample
-        unseen = {i: f"its 95 % interval would be x{math.exp(-1.96 * sigma[i]):.2f} .. x{math.exp(1.96 * sigma[i]):.2f}"
-                  for i in range(k) if not 1.96 * sigma[i] <= H}
-        unseen.update({i: f"moving it x(1 -+ {max_halfwidth:g}) raises the cost by {rise[i] / s2:.2g} (needs "
-                          f"{CHI2_95:g}) or by {rise[i] / max(rough[i], 1e-300):.2g} x its change over "
-                          f"+-{ROUGH_STEP:g} (needs {ROUGH_FACTOR:g})"
-                       for i in range(k) if i not in unseen and not (rise[i] > CHI2_95 * s2
-                                                                     and rise[i] > ROUGH_FACTOR * rough[i])})
-        if not unseen:
+        F = np.array(free)
+        x = np.zeros(k)  # the dropped ones at their prior: 0
+        # minimum of the quadratic (about xb) over the free parameters, the others held at 0
+        HFF = H[np.ix_(F, F)]
+        rhs = -(grad[F] + H[np.ix_(F, np.setdiff1d(np.arange(k), F))] @ (0.0 - xb[np.setdiff1d(np.arange(k), F)]))
+        curved = np.all(np.linalg.eigvalsh(HFF) > 0)
+        if curved:
+            x[F] = np.clip(xb[F] + np.linalg.solve(HFF, rhs), -LOG_BOUND, LOG_BOUND)
+            cov = 2.0 * s2 * np.linalg.inv(HFF)
+            sigma = np.full(k, np.inf)
+            sigma[F] = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        else:
+            x[F] = xb[F]
+            sigma = np.full(k, np.inf)
+            sigma[F] = [math.sqrt(2.0 * s2 / H[i, i]) if H[i, i] > 0 else np.inf for i in F]
+        wide = [i for i in free if not 1.96 * sigma[i] <= math.log1p(max_halfwidth)]
+        if curved and not wide:
             break
-        for i in sorted(unseen, reverse=True):
-            dropped[free[i]] = f"not shown by the runs: {unseen[i]}; left at its prior"
-            del free[i]
-    fitted = plant(free, x) if free else base
+        i = max(wide or free, key=lambda i: sigma[i])
+        dropped[params[i]] = (f"not shown by the runs: its 95 % interval would be x{math.exp(-1.96 * sigma[i]):.2f} .. "
+                              f"x{math.exp(1.96 * sigma[i]):.2f}" if math.isfinite(sigma[i]) else
+                              "not shown by the runs: the cost does not curve up along it") + "; left at its prior"
+        free.remove(i)
+    fitted = plant(x)
     estimates = {}
-    for p in params:
-        if p in free:
-            i = free.index(p)
-            half = max(1.96 * sigma[i], eps)
+    for i, p in enumerate(params):
+        if i in free:
+            half = 1.96 * sigma[i]
             estimates[p] = Estimate(float(getattr(fitted, p)), prior[p], prior[p] * math.exp(x[i] - half),
                                     prior[p] * math.exp(x[i] + half), True,
                                     f"fitted; 95 % interval x{math.exp(-half):.3f} .. x{math.exp(half):.3f}")
@@ -273,7 +293,9 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, max_iter: int =
             lo, hi = PRIOR_RANGE[p]
             estimates[p] = Estimate(prior[p], prior[p], prior[p] * lo, prior[p] * hi, False,
                                     dropped.get(p, "not fitted") + f"; prior range x{lo:g} .. x{hi:g}")
+    norms = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    sv = np.linalg.svd(H / np.outer(norms, norms), compute_uv=False)
     return CalibrationResult(
-        spec=fitted, estimates=estimates, singular_values=[float(s) for s in sv], autocorrelation_frames=tau,
-        rmse_before=angle_rmse(base), rmse_after=angle_rmse(fitted), iterations=iterations,
+        spec=fitted, estimates=estimates, singular_values=[float(v) for v in sv], autocorrelation_frames=tau,
+        rmse_before=angle_rmse(base), rmse_after=angle_rmse(fitted), iterations=generations,
         evaluations=count[0])
