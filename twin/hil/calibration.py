@@ -61,10 +61,11 @@ PARAMS = ("no_load_speed", "gear_friction", "gear_damping", "rotor_inertia", "ba
 # Coulomb friction (one gearbox's friction, the emulator scales them together)
 MOVES_WITH = {"gear_friction": ("gear_stiction",)}
 # x the prior: how far a device may differ from its datasheet (an assumption: the spread of a batch of micro
-# metal gearmotors and of their assembly; the backlash 0 .. 2 x the spec's 0.25 deg). The interval a
-# parameter the runs do not show is left with.
+# metal gearmotors and of their assembly; the backlash 0.01 .. 0.5 deg about the spec's 0.25 deg: not 0,
+# which the MJCF makes a rigid coupling, another model layout than the batch twin's other plants). The
+# interval a parameter the runs do not show is left with.
 PRIOR_RANGE = {"no_load_speed": (0.7, 1.3), "gear_friction": (0.7, 1.6), "gear_damping": (0.7, 1.6),
-               "rotor_inertia": (0.7, 1.4), "backlash": (0.0, 2.0)}
+               "rotor_inertia": (0.7, 1.4), "backlash": (0.04, 2.0)}
 LOG_BOUND = math.log(3.0)
 MAX_HALFWIDTH = 0.15  # a parameter is identifiable when its 95 % interval is within x(1 -+ this) of its value
 SEARCH_STD = 0.25  # log: the cross-entropy search's first spread about the prior
@@ -141,7 +142,7 @@ class Estimate:
 class CalibrationResult:
     spec: DeviceSpec  # calibrated
     estimates: dict  # parameter -> Estimate
-    singular_values: list  # of the Jacobian of the residual in log parameters, columns scaled to unit norm
+    singular_values: list  # of the cost's Hessian in log parameters, scaled to a unit diagonal
     autocorrelation_frames: float  # residual autocorrelation time the intervals allow for, frames
     rmse_before: float  # deg, hinge angles, all training runs, frames and hinges
     rmse_after: float
