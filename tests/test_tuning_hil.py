@@ -89,7 +89,9 @@ def test_tuned_gains_beat_the_spec_defaults_on_the_twin(tuned, tmp_path):
 
 
 def test_the_two_chains_of_hinges_do_not_move_each_other(spec):
-    """What lets the tuner search each chain on its own: the root flap is held."""
+    """What lets the tuner search each chain on its own: the root flap is held. They share the pack (its sag
+    under one chain's current slows the other), so they are independent only on a stiff pack."""
+    spec = spec.replace(pack_resistance=0.0)
     left, right = chains(spec)
     base = PidGains.from_spec(spec)
     other = [base.replace(kp=base.kp * 3.0) if k in right else base for k in range(spec.n_hinges)]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.sim.simulation import Twin, move_report
@@ -42,6 +43,8 @@ def run(args) -> int:
         summary["trace_csv"] = args.trace
     if args.json:
         print(json.dumps(summary, indent=2))
+        if args.view:
+            print(play_trace(twin.spec, trace), file=sys.stderr)
         return 0
     print(profile_line(profile))
     print(f"{'hinge':>5} {'target_deg':>10} {'final_deg':>9} {'settle_s':>8} {'overshoot_deg':>13} "

@@ -17,33 +17,22 @@ telemetry at every frame:
 The firmware PID is in the loop, exactly as on the device, so what is fitted is
 the closed loop.
 
-Parameters (all fitted as log(value / spec value), bounded x1/3 .. x3):
-    no_load_speed   sets the motor constant K (spec.motor_constant) and the
-                    viscous loss (tau_stall - friction) / no_load_speed
-    gear_friction   Coulomb friction at the output
+Parameters (PARAMS; each fitted as log(value / prior), within x1/3 .. x3):
+    no_load_speed   the motor constant and the top speed at full duty
+    gear_friction   Coulomb friction at the output (gear_stiction keeps its ratio to it)
+    gear_damping    viscous loss at the output
     rotor_inertia   the armature, reflected by gear_ratio^2 (most of a hinge's inertia)
-Not fitted, and why (docs/tuning-hil-calibration.md):
-    gear_damping    no effect on motion: the spec fixes the motor by its stall torque
-                    and no-load speed, so the total viscous coefficient is
-                    (tau_stall - friction) / no_load_speed whatever the gear damping is
-                    (it only moves the split with the back-EMF: K changes to keep the
-                    datasheet's no-load speed). Only the winding current would show it,
-                    by < 1 %, less than the no-load speed's own fit error.
-    latency         the HIL run aligns each target with the device's own ACK time,
-                    which already includes it.
-    backlash        not in the twin's MJCF (spec.backlash feeds the emulator only).
+    backlash        the dead zone between gearbox output and flap, outside the loop
+Not fitted: latency (the HIL run aligns each target with the device's own ACK time,
+which already includes it).
 
-Optimiser: mujoco.minimize.least_squares (Levenberg-Marquardt with box
-bounds). Its residual is vectorised over columns, and each column is one twin
-replay, so the finite-difference Jacobian costs n_params replays. The
-finite-difference step is large (10 % in log space) on purpose: the encoder
-quantises the closed loop and the hinges stick and slip, so the residual is
-rough at small scales (with 3 % steps the fit stopped 10 % short of the truth). mujoco.sysid (MuJoCo 4.0; needs the mujoco[sysid] extra, absl) was read
-and not used: its rollouts replay recorded controls open loop through MuJoCo's
-own actuators, whereas these traces are closed loop through the firmware's PID
-on quantised counts; replaying the recorded duty open loop drifts (friction and
-gravity make the open-loop plant an integrator), so the residual needs our own
-closed-loop replay.
+Search: a cross-entropy method, then a quadratic fitted to the better half of its
+samples (the cost is rough at small scales, where a gradient method stalls: see
+`calibrate`). The quadratic's Hessian gives each parameter's 95 % interval, the
+residual's autocorrelation allowed for; a parameter the runs do not pin within
+x(1 -+ MAX_HALFWIDTH) is left at its prior and reported so, with its prior range
+(PRIOR_RANGE) as what calibration leaves open. docs/tuning-hil-calibration.md says
+why mujoco.sysid is not used.
 """
 
 from __future__ import annotations
@@ -259,11 +248,11 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int
     free, dropped = list(range(k)), {}
     x, sigma = np.zeros(k), np.full(k, np.inf)
     while free:
-        F = np.array(free)
+        F, D = np.array(free), np.setdiff1d(np.arange(k), free)
         x = np.zeros(k)  # the dropped ones at their prior: 0
-        # minimum of the quadratic (about xb) over the free parameters, the others held at 0
+        # minimum of the quadratic (about xb) over the free parameters, the dropped ones held at 0
         HFF = H[np.ix_(F, F)]
-        rhs = -(grad[F] + H[np.ix_(F, np.setdiff1d(np.arange(k), F))] @ (0.0 - xb[np.setdiff1d(np.arange(k), F)]))
+        rhs = -(grad[F] - H[np.ix_(F, D)] @ xb[D])
         curved = np.all(np.linalg.eigvalsh(HFF) > 0)
         if curved:
             x[F] = np.clip(xb[F] + np.linalg.solve(HFF, rhs), -LOG_BOUND, LOG_BOUND)
@@ -282,6 +271,8 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int
                               f"x{math.exp(1.96 * sigma[i]):.2f}" if math.isfinite(sigma[i]) else
                               "not shown by the runs: the cost does not curve up along it") + "; left at its prior"
         free.remove(i)
+    if not free:
+        x = np.zeros(k)
     fitted = plant(x)
     estimates = {}
     for i, p in enumerate(params):
