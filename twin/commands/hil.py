@@ -56,7 +56,8 @@ def run(args) -> int:
                            tolerance_deg=args.tolerance_deg, profile=profile.label)
     except GainsRestored as exc:
         print(exc.report.text())
-        raise UserError(f"refused by the gate: {exc} (the gains of {args.gains} were sent, then the device's "
+        raise UserError(f"refused by the gate: {exc} (the gains of {args.gains or profile.gains_from} were sent, "
+                        "then the device's "
                         "previous gains sent back; no target was sent)") from None
     except GateRefused as exc:
         print(exc.report.text())
