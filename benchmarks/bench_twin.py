@@ -1,5 +1,7 @@
-"""Speed of the twin: real-time factor with the C firmware core in the loop, against the numba PID loop it
-replaced (kept here only, as the baseline), beside raw physics; and the batch twin's throughput.
+"""Speed of the twin: real-time factor with the full drive train (backlash, LuGre friction, pack, drivers,
+gearbox efficiency; the C firmware core in the loop) beside the previous model (issue 12's: joint friction,
+no backlash, duty x 6 V straight to the motor; kept here only as the baseline) and raw physics in the same
+run; where a step's time goes (MuJoCo's per-stage timers, data.timer); the batch twin's throughput.
 
     python benchmarks/bench_twin.py [--repeats 20] [--nsim 64] [--threads 2]
 
@@ -11,7 +13,6 @@ measured, not asserted: shared machines are noisy (the load average is printed).
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import statistics
 import time
@@ -23,86 +24,79 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 from controllers.encoder import counts_from_motor_angle, target_counts  # noqa: E402
-from controllers.pid import PidGains  # noqa: E402
-from twin.sim.simulation import Twin, TwinBatch, _mj_step, _mj_step1, _mj_step2  # noqa: E402
+from twin.device.mjcf import load_model  # noqa: E402
+from twin.sim.simulation import Twin, TwinBatch, _mj_step, _mj_step1, _mj_step2, _vrs_tick, start_core  # noqa: E402
 
 MORPH_DEG = [60.0, -45.0, 20.0, 30.0, 90.0, -100.0]  # all six hinges move
 DURATION = 2.0  # s
+STAGES = ("POSITION", "VELOCITY", "ACTUATION", "CONSTRAINT", "ADVANCE")  # a step's parts (mjTIMER_*)
+POSITION_PARTS = ("POS_KINEMATICS", "POS_INERTIA", "POS_COLLISION", "POS_MAKE", "POS_PROJECT")
 
 
-# ---- the baseline: the twin's loop before the C core (numba PID, float64), kept for comparison only ----------
+# ---- the baseline: issue 12's model and loop, kept for comparison only --------------------------------------
 
-def _baseline_row(g: PidGains, dt: float) -> np.ndarray:
-    tau = 1.0 / (2.0 * math.pi * g.derivative_cutoff)
-    return np.array([g.kp, g.ki, g.kd, dt / (dt + tau), g.integral_limit, g.deadband_duty, g.hold_band], float)
-
-
-@numba.njit(cache=False)
-def _baseline_pid(target, counts, prev, rate, integral, gains, dt, duty):
-    for i in range(target.shape[0]):
-        g = gains[i]
-        e = target[i] - counts[i]
-        rate[i] += g[3] * ((counts[i] - prev[i]) / dt - rate[i])
-        prev[i] = counts[i]
-        on_target = abs(e) <= g[6]
-        u_free = g[0] * e + integral[i] - g[2] * rate[i]
-        if not on_target and not (abs(u_free) >= 1.0 and u_free * e > 0):
-            integral[i] = min(max(integral[i] + g[1] * e * dt, -g[4]), g[4])
-        u = g[0] * e + integral[i] - g[2] * rate[i]
-        if not on_target and u != 0.0:
-            u = math.copysign(g[5] + (1.0 - g[5]) * abs(u), u)
-        duty[i] = min(max(u, -1.0), 1.0)
+def previous_model(spec) -> mujoco.MjModel:
+    """Issue 12's model: the motors on the flaps' joints, Coulomb friction as joint frictionloss (a constraint
+    row per hinge), viscous loss as joint damping, the gearbox's loss folded into the motor's resistance."""
+    m = load_model(spec.replace(backlash=0.0, friction_stiffness=0.0, gear_damping=0.0))
+    loss = (spec.gear_friction + spec.gear_damping * spec.no_load_speed) / spec.stall_torque
+    k = spec.rated_voltage * (1.0 - loss) / (spec.no_load_speed * spec.gear_ratio)
+    m.actuator_gainprm[:, :2] = [k * spec.rated_voltage * spec.gear_ratio / spec.stall_torque, k]
+    m.dof_frictionloss[:] = spec.gear_friction
+    m.dof_damping[:] = spec.gear_damping
+    return m
 
 
 @numba.njit(cache=False)
-def _baseline_loop(m, d, substeps, sensordata, qpos, qvel, ctrl, qfrc, enc_adr, qadr, dadr, cpr_motor, cap,
-                   back_emf, resistance, target, prev, rate, integral, gains, dt, max_ticks, settle_band, hold_ticks,
-                   stop_when_settled, rec_angle, rec_counts, rec_duty, rec_current, rec_torque):
-    n = target.shape[0]
-    counts = np.zeros(n, np.int64)
-    duty = np.zeros(n)
-    in_band = 0
+def _previous_loop(m, d, fw, sensordata, qpos, ctrl, enc_adr, qadr, cpr_motor, cap, counts, duty, decay,
+                   max_ticks, rec_angle):
     for i in range(max_ticks):
         _mj_step1(m, d)
-        settled = True
-        for h in range(n):
+        for h in range(counts.shape[0]):
             counts[h] = counts_from_motor_angle(sensordata[enc_adr[h]], cpr_motor)
-            if abs(target[h] - counts[h]) > settle_band:
-                settled = False
-        _baseline_pid(target, counts, prev, rate, integral, gains, dt, duty)
-        for h in range(n):
-            v = duty[h] * cap
-            ctrl[h] = v
+        _vrs_tick(fw, i * 1000, counts.ctypes.data, 0, duty.ctypes.data, decay.ctypes.data)
+        for h in range(counts.shape[0]):
+            ctrl[h] = duty[h] * cap
             rec_angle[i, h] = qpos[qadr[h]]
-            rec_counts[i, h] = counts[h]
-            rec_duty[i, h] = duty[h]
-            rec_current[i, h] = (v - back_emf * qvel[dadr[h]]) / resistance
         _mj_step2(m, d)
-        for h in range(n):
-            rec_torque[i, h] = qfrc[dadr[h]]
-        for _ in range(substeps - 1):
-            _mj_step(m, d)
-        in_band = in_band + 1 if settled else 0
-        if stop_when_settled and in_band >= hold_ticks:
-            return i + 1
     return max_ticks
 
 
-def baseline_wall(twin: Twin, targets, ticks: int) -> float:
-    """Wall time (s) of the numba-PID loop for `ticks` ticks from flat, on the twin's model."""
-    s, m, d, h = twin.spec, twin.model, mujoco.MjData(twin.model), twin.hinges
-    mujoco.mj_resetDataKeyframe(m, d, m.key("flat").id)
-    mujoco.mj_forward(m, d)
+def previous_wall(twin: Twin, model: mujoco.MjModel, targets, ticks: int) -> float:
+    """Wall time (s) of issue 12's loop on its model for `ticks` ticks from flat."""
+    s, h = twin.spec, twin.hinges
+    d = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, d, model.key("flat").id)
+    mujoco.mj_forward(model, d)
     n = s.n_hinges
-    gains = np.stack([_baseline_row(PidGains.from_spec(s), s.firmware_dt)] * n)
-    rec = [np.zeros((ticks, n)), np.zeros((ticks, n), np.int64)] + [np.zeros((ticks, n)) for _ in range(3)]
-    prev = np.zeros(n, np.int64)
+    fw = start_core(s, twin.gains, np.zeros(n, np.int32))
+    fw.set_targets(target_counts(s, targets), 0)
+    counts, duty, decay = np.zeros(n, np.int32), np.zeros(n, np.float32), np.zeros(n, np.uint8)
+    enc = np.array([model.sensor(f"encoder{k}").adr[0] for k in range(n)], np.int64)
+    rec = np.zeros((ticks, n))
     start = time.perf_counter()
-    _baseline_loop(m._address, d._address, twin.substeps, d.sensordata, d.qpos, d.qvel, d.ctrl, d.qfrc_actuator,
-                   h.enc, h.qadr, h.dadr, float(s.counts_per_motor_rev), s.drive_cap, s.motor_constant * s.gear_ratio,
-                   s.resistance, target_counts(s, targets), prev, np.zeros(n), np.zeros(n), gains, s.firmware_dt,
-                   ticks, s.settle_band, int(round(s.settle_hold / s.firmware_dt)), False, *rec)
+    _previous_loop(model._address, d._address, fw.address, d.sensordata, d.qpos, d.ctrl, enc, h.qadr,
+                   float(s.counts_per_motor_rev), s.drive_cap, counts, duty, decay, ticks, rec)
     return time.perf_counter() - start
+
+
+def stage_times(model: mujoco.MjModel, ctrl: np.ndarray) -> dict:
+    """Mean us per step of each of MuJoCo's stages (data.timer), the recorded drive voltages replayed."""
+    d = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, d, model.key("flat").id)
+    mujoco.set_mjcb_time(time.perf_counter)
+    try:
+        for row in ctrl:
+            d.ctrl[:] = row
+            mujoco.mj_step(model, d)
+    finally:
+        mujoco.set_mjcb_time(None)
+    out = {}
+    for name in ("STEP",) + STAGES + POSITION_PARTS:
+        t = d.timer[getattr(mujoco.mjtTimer, f"mjTIMER_{name}")]
+        out[name] = t.duration / max(t.number, 1) * 1e6 * t.number / len(ctrl)
+    out["nefc"] = int(d.nefc)
+    return out
 
 
 @numba.njit
@@ -123,40 +117,48 @@ def main() -> None:
     print(f"load average at start: {os.getloadavg()[0]:.2f}")
 
     twin = Twin()
-    ticks = int(round(DURATION / twin.spec.firmware_dt))
-    baseline_wall(twin, targets, 10)  # compile
-    c_walls, numba_walls, traces = [], [], []
+    spec = twin.spec
+    previous = previous_model(spec)
+    ticks = int(round(DURATION / spec.firmware_dt))
+    previous_wall(twin, previous, targets, 10)  # compile
+    walls, previous_walls, traces = [], [], []
     for _ in range(args.repeats):  # interleaved, so both see the same machine
         twin.reset()
         trace = twin.move_to(targets, max_time=DURATION, stop_when_settled=False)
-        c_walls.append(trace.wall_time)
+        walls.append(trace.wall_time)
         traces.append(trace)
-        numba_walls.append(baseline_wall(twin, targets, ticks))
-    c_loop, numba_loop = statistics.median(c_walls), statistics.median(numba_walls)
+        previous_walls.append(previous_wall(twin, previous, targets, ticks))
+    full, prev = statistics.median(walls), statistics.median(previous_walls)
 
     # the same physics with no controller: replay the recorded drive voltages, open loop
     m, d = twin.model, mujoco.MjData(twin.model)
-    ctrl = np.ascontiguousarray(traces[0].duty * twin.spec.drive_cap)
-    _open_loop(m._address, d._address, d.ctrl, ctrl[:1])  # compile
+    volts = np.ascontiguousarray(traces[0].duty * spec.drive_cap)  # the firmware's compensated drive, about
+    _open_loop(m._address, d._address, d.ctrl, volts[:1])  # compile
     phys_walls = []
     for _ in range(args.repeats):
         mujoco.mj_resetDataKeyframe(m, d, m.key("flat").id)
         start = time.perf_counter()
-        _open_loop(m._address, d._address, d.ctrl, ctrl)
+        _open_loop(m._address, d._address, d.ctrl, volts)
         phys_walls.append(time.perf_counter() - start)
     phys = statistics.median(phys_walls)
-    steps = len(ctrl)
+    steps = len(volts)
 
-    print(f"2 s morph of all six hinges, firmware at {twin.spec.loop_rate:.0f} Hz, one core "
-          f"(median of {args.repeats}):")
-    print(f"  C firmware core (vrs_tick) in the loop: {c_loop * 1e3:.2f} ms wall -> "
-          f"{DURATION / c_loop:.0f}x real time")
-    print(f"  baseline, the numba PID loop it replaced: {numba_loop * 1e3:.2f} ms wall -> "
-          f"{DURATION / numba_loop:.0f}x real time (goal: C no slower)")
-    print(f"  raw mj_step, same model and controls, no controller: {phys / steps * 1e6:.2f} us/step "
+    print(f"2 s morph of all six hinges, firmware at {spec.loop_rate:.0f} Hz, one core (median of {args.repeats}):")
+    print(f"  full drive train (backlash, LuGre friction, pack, drivers, efficiency), C core in the loop: "
+          f"{full * 1e3:.2f} ms wall -> {DURATION / full:.0f}x real time (goal >= 200x)")
+    print(f"  previous model (issue 12: joint friction, no backlash, duty x 6 V), C core in the loop: "
+          f"{prev * 1e3:.2f} ms wall -> {DURATION / prev:.0f}x real time")
+    print(f"  raw mj_step on the full model, duty x 6 V replayed, no controller or drive model: "
+          f"{phys / steps * 1e6:.2f} us/step "
           f"-> {steps / phys:.0f} steps/s, {DURATION / phys:.0f}x real time")
-    print(f"  controller loop overhead / physics: C {(c_loop - phys) / phys:.2f}, "
-          f"numba baseline {(numba_loop - phys) / phys:.2f}")
+    print(f"  controller and drive model overhead / physics: {(full - phys) / phys:.2f}")
+    print("  where a step's time goes (data.timer, us per step, duty x 6 V replayed; the timers' own calls included):")
+    for label, model in (("full", m), ("previous", previous)):
+        t = stage_times(model, volts)
+        parts = ", ".join(f"{k.lower()} {t[k]:.2f}" for k in STAGES)
+        inside = ", ".join(f"{k[4:].lower()} {t[k]:.2f}" for k in POSITION_PARTS)
+        print(f"    {label:<8} step {t['STEP']:.2f}: {parts} (position: {inside}); constraint rows at the end "
+              f"{t['nefc']}")
 
     batch = TwinBatch(args.nsim, nthread=args.threads)
     walls = []

@@ -261,7 +261,7 @@ def test_estop_brakes_and_clear_fault_idles_at_the_present_counts(spec):
     assert ask(c, P.ClearFault(), 4, 3000)[1] == P.Ack(P.MsgId.CLEAR_FAULT, 3000)
     duty, decay = c.tick(4000, [7] * c.n)
     assert (c.state, c.faults, c.fault_hinge) == (P.State.IDLE, 0, 0xFF)
-    assert tuple(c.targets) == (7,) * c.n and not duty.any() and not decay.any()  # idle: coast
+    assert tuple(c.targets) == (7,) * c.n and not duty.any() and decay.all()  # idle: brake too
 
 
 def test_hello_and_state_report_the_config_and_the_tick(spec):

@@ -48,8 +48,9 @@ def test_settle_and_current_limits_are_checked(spec, twin):
                    peak_current_limit=0.5, hold_current_limit=0.01)
     failed = {c.name for c in r.failed}
     assert failed == {"settle", "peak_current", "hold_current"}
-    # a step from rest: the drive cap across the winding and the driver's FETs
-    assert by_name(r)["peak_current"].value == pytest.approx(spec.drive_cap / spec.drive_resistance, rel=0.02)
+    # a step from rest: the drive cap across the winding and the driver's FETs (less the pack's sag in the
+    # tick before the firmware reads it)
+    assert by_name(r)["peak_current"].value == pytest.approx(spec.drive_cap / spec.drive_resistance, rel=0.05)
 
 
 def test_override_is_the_only_way_past_and_is_marked(spec, twin):

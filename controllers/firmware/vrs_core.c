@@ -443,7 +443,7 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
         duty_out[k] = c->duty[k];
         /* brake (slow decay): duty proportional to voltage while driving, and after an e-stop or a
          * fault the flaps stop and hold where they are; coast when idle, so they turn by hand */
-        decay_out[k] = c->state == VRS_STATE_IDLE ? VRS_DECAY_COAST : VRS_DECAY_BRAKE;
+        decay_out[k] = VRS_DECAY_BRAKE;
     }
     if (c->telemetry_every && c->ticks % c->telemetry_every == 0)
         telemetry(c);

@@ -28,18 +28,8 @@ from twin.formats.trace import TraceWriter
 from twin.hil.device_gains import device_gains, push_gains, restore_gains
 from twin.hil.mirror import mirror, wait_for_rest
 from twin.link import protocol as P
-from twin.sim.gate import GateRefused, check_move, enforce
+from twin.sim.gate import GateRefused, check_scenario, enforce
 from twin.sim.replay import replay_targets, twin_at_start
-from twin.sim.simulation import Twin
-
-
-def gate_scenario(spec: DeviceSpec, scenario: Scenario, gains, settle_limit: float = 2.0) -> None:
-    """Check every step of the scenario on the twin (range, collision, settle, current) before anything moves."""
-    twin = Twin(spec, gains)
-    prev = scenario.start
-    for tgt in scenario.targets:
-        enforce(check_move(spec, prev, tgt, gains, settle_limit=settle_limit, twin=twin))
-        prev = tgt
 
 
 class GainsRestored(GateRefused):
@@ -65,7 +55,7 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     previous = push_gains(link, gains, n) if gains is not None else None
     try:
         gains = device_gains(link, n)
-        gate_scenario(spec, scenario, gains, settle_limit)
+        enforce(check_scenario(spec, scenario, gains, settle_limit=settle_limit))  # the whole run, as played
         # the same start on both sides: move the device there (gated), then start the twin where the device
         # is, with the device's history (twin_at_start)
         prior = wait_for_rest(link, spec)

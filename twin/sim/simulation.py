@@ -235,14 +235,15 @@ def pid_memory(fw: core.Core) -> np.recarray:
 
 
 class Hinges:
-    """Addresses of each hinge's joint and dof (the flap), its gear joint and dof (the gearbox output, beyond
-    the backlash), its actuator and encoder in a compiled model."""
+    """Addresses of each hinge's joint and dof (the flap), the joint and dof its motor turns (the gearbox
+    output, beyond the backlash; the flap's own where there is none), its actuator and encoder."""
 
     def __init__(self, model: mujoco.MjModel, n: int):
         self.qadr = np.array([model.joint(f"hinge{k}").qposadr[0] for k in range(n)], np.int64)
         self.dadr = np.array([model.joint(f"hinge{k}").dofadr[0] for k in range(n)], np.int64)
-        self.gear_qadr = np.array([model.joint(f"gear{k}").qposadr[0] for k in range(n)], np.int64)
-        self.gear_dof = np.array([model.joint(f"gear{k}").dofadr[0] for k in range(n)], np.int64)
+        gear = [model.joint(model.actuator_trnid[model.actuator(f"motor{k}").id, 0]) for k in range(n)]
+        self.gear_qadr = np.array([j.qposadr[0] for j in gear], np.int64)  # the flap's own without backlash
+        self.gear_dof = np.array([j.dofadr[0] for j in gear], np.int64)
         self.enc = np.array([model.sensor(f"encoder{k}").adr[0] for k in range(n)], np.int64)
         act = [model.actuator(f"motor{k}").id for k in range(n)]
         if act != list(range(n)):

@@ -76,12 +76,12 @@ static void read_counts(void *ctx, int32_t *counts)
 /* DRV8833: IN1 IN2 = 1 0 forward, 0 1 reverse, 1 1 brake, 0 0 coast. Slow decay (brake in the
  * off-time) keeps one input high and puts the PWM, inverted, on the other; fast decay (coast in the
  * off-time) keeps one input low and puts the PWM on the other. */
-static void write_drive(void *ctx, const float *duty, const uint8_t *decay)
+static void write_drive(void *ctx, const float *pwm, const uint8_t *decay)
 {
     (void)ctx;
     const uint32_t full = (1u << PWM_BITS) - 1;
     for (int k = 0; k < 6; k++) {
-        int8_t dir = duty[k] > 0.0f ? 1 : (duty[k] < 0.0f ? -1 : 0);
+        int8_t dir = pwm[k] > 0.0f ? 1 : (pwm[k] < 0.0f ? -1 : 0);
         int pwm_pin = dir > 0 ? PIN_IN2[k] : PIN_IN1[k];
         int fixed_pin = dir > 0 ? PIN_IN1[k] : PIN_IN2[k];
         if (dir != drive_dir[k]) {
@@ -99,7 +99,7 @@ static void write_drive(void *ctx, const float *duty, const uint8_t *decay)
             digitalWrite(PIN_IN2[k], level);
             continue;
         }
-        float mag = duty[k] > 0.0f ? duty[k] : -duty[k];
+        float mag = pwm[k] > 0.0f ? pwm[k] : -pwm[k];
         uint32_t on = (uint32_t)(mag * (float)full + 0.5f);
         pinMode(fixed_pin, OUTPUT);
         if (decay[k] == VRS_DECAY_BRAKE) {
