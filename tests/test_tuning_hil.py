@@ -18,9 +18,10 @@ from controllers.pid import PidGains
 from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
 from twin.formats.gains import read_gains, write_gains
-from twin.formats.run import write_run_meta
+from twin.formats.run import read_run, write_run_meta
 from twin.formats.scenario import read_scenario
 from twin.formats.trace import TraceWriter, read_trace
+from twin.hil.calibration import trace_rmse
 from twin.hil.compare import compare
 from twin.hil.device_gains import device_gains
 from twin.hil.mirror import device_step, mirror
@@ -231,9 +232,15 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
         if res["parameters"][name]["identifiable"]:
             assert res["scales"][name] == pytest.approx(scale, rel=0.2), res["parameters"]
     assert res["parameters"]["no_load_speed"]["identifiable"], res["parameters"]
-    # held-out trace error (RMS over every frame of every hinge) at least halved
+    # held-out trace error (RMS over every frame of every hinge): at least half of what can go is gone (the
+    # twin given the emulator's own values leaves a floor; tests/test_calibration_profile.py)
     h = res["holdout"]
-    assert h["overall_after_deg"] <= 0.5 * h["overall_before_deg"], h
+    plant = spec.replace(no_load_speed=spec.no_load_speed * 0.75, gear_friction=spec.gear_friction * 1.6,
+                         gear_stiction=spec.gear_stiction * 1.6, rotor_inertia=spec.rotor_inertia * 1.3,
+                         backlash=math.radians(0.05))
+    floor = float(np.sqrt(np.mean(trace_rmse(read_run(hold, spec), plant, spec) ** 2)))
+    before, after = h["overall_before_deg"], h["overall_after_deg"]
+    assert after <= before - 0.5 * max(before - floor, 0.0), (h, floor)
     calibrated = load_spec(cal)
     assert calibrated.no_load_speed == pytest.approx(res["parameters"]["no_load_speed"]["value"], rel=1e-4)
     assert "calibrated from" in cal.read_text()
