@@ -30,3 +30,11 @@ def emulator(tmp_path):
     yield start
     for e in started:
         e.stop()
+
+
+@pytest.fixture(autouse=True)
+def device_profiles(tmp_path, monkeypatch):
+    """Every test gets its own, empty profiles folder: never the user's ~/.config/vrscroll/devices."""
+    folder = tmp_path / "devices"
+    monkeypatch.setenv("VRSCROLL_DEVICES", str(folder))
+    return folder

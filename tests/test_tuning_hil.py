@@ -18,9 +18,10 @@ from controllers.pid import PidGains
 from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
 from twin.formats.gains import read_gains, write_gains
-from twin.formats.run import write_run_meta
+from twin.formats.run import read_run, write_run_meta
 from twin.formats.scenario import read_scenario
 from twin.formats.trace import TraceWriter, read_trace
+from twin.hil.calibration import trace_rmse
 from twin.hil.compare import compare
 from twin.hil.device_gains import device_gains
 from twin.hil.mirror import device_step, mirror
@@ -209,11 +210,12 @@ def test_gear_damping_shows_in_the_motion(spec):
 
 def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     spec = load_spec()
-    # known to the test, not to the calibration: the parameters the device's motion shows (gear damping does
-    # not, see the test above; backlash is not in the twin's model; encoder noise and latency stay on)
-    truth = {"no_load_speed": 0.75, "gear_friction": 1.6, "rotor_inertia": 1.3}
+    # known to the test, not to the calibration (latency stays on); soft gains, another recipe than the
+    # calibration scenario's (tests/test_calibration_profile.py)
+    truth = {"no_load_speed": 0.75, "gear_friction": 1.6, "rotor_inertia": 1.3, "gear_damping": 1.0,
+             "backlash": 0.2}
     emu = emulator("--speed-scale", "0.75", "--friction-scale", "1.6", "--armature-scale", "1.3",
-                   "--damping-scale", "1", "--backlash-deg", "0")
+                   "--damping-scale", "1", "--backlash-deg", "0.05")
     soft = PidGains.from_spec(spec).replace(kp=0.015, ki=0.05, kd=0.0003)  # slow creeps: friction shows in the duty
     train, hold, cal = tmp_path / "train", tmp_path / "hold", tmp_path / "cal.toml"
     (tmp_path / "a.toml").write_text(SCENARIO.format(duration=2.0, t1=0.7, t2=1.4))
@@ -226,13 +228,21 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     capsys.readouterr()
     assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--out", str(cal), "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
-    for name, scale in truth.items():
-        assert res["scales"][name] == pytest.approx(scale, rel=0.2), res["scales"]
-    # held-out trace error (RMS over every frame of every hinge) at least halved
+    for name, scale in truth.items():  # what it reports as identifiable, within 20 % of the truth
+        if res["parameters"][name]["identifiable"]:
+            assert res["scales"][name] == pytest.approx(scale, rel=0.2), res["parameters"]
+    assert res["parameters"]["no_load_speed"]["identifiable"], res["parameters"]
+    # held-out trace error (RMS over every frame of every hinge): at least half of what can go is gone (the
+    # twin given the emulator's own values leaves a floor; tests/test_calibration_profile.py)
     h = res["holdout"]
-    assert h["overall_after_deg"] <= 0.5 * h["overall_before_deg"], h
+    plant = spec.replace(no_load_speed=spec.no_load_speed * 0.75, gear_friction=spec.gear_friction * 1.6,
+                         gear_stiction=spec.gear_stiction * 1.6, rotor_inertia=spec.rotor_inertia * 1.3,
+                         backlash=math.radians(0.05))
+    floor = float(np.sqrt(np.mean(trace_rmse(read_run(hold, spec), plant, spec) ** 2)))
+    before, after = h["overall_before_deg"], h["overall_after_deg"]
+    assert after <= before - 0.5 * max(before - floor, 0.0), (h, floor)
     calibrated = load_spec(cal)
-    assert calibrated.gear_friction == pytest.approx(res["values"]["gear_friction"], rel=1e-4)
+    assert calibrated.no_load_speed == pytest.approx(res["parameters"]["no_load_speed"]["value"], rel=1e-4)
     assert "calibrated from" in cal.read_text()
 
 

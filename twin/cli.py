@@ -30,6 +30,8 @@ COMMANDS = {
     "psychometric": ("twin.commands.psychometric", "psychometric fit of redirection trials: CDT and DT with CIs, plot"),
     "serve": ("twin.commands.serve", "the live service for VR applications: pose in, approximation out, lock, pen"),
     "play": ("twin.commands.play", "play synthetic VR sessions over the evaluation shapes against the live service"),
+    "device": ("twin.commands.device", "list, show, select or create device profiles (calibrated spec and gains)"),
+    "view": ("twin.commands.view", "replay a HIL run's device and twin side by side in MuJoCo's viewer"),
 }
 
 

@@ -24,7 +24,7 @@ def write_report(spec: DeviceSpec, run_dir, rows: list[dict] | None = None) -> P
     rows = rows or compare(spec, dev, tw, changes_t)
     lines = [f"# HIL run: {meta['scenario']}", "",
              f"Status: {meta['status']}; device rows {len(dev['time_s'])}, twin rows {len(tw['time_s'])}; "
-             f"port {meta.get('port')}. Angles are encoder angles (counts x {math.degrees(spec.rad_per_count):.4f} "
+             f"port {meta.get('port')}; device profile {meta.get('device_profile', 'not recorded')}. Angles are encoder angles (counts x {math.degrees(spec.rad_per_count):.4f} "
              "deg); error = device - twin; lag > 0: the device is later.", "",
              "| hinge | RMSE deg | largest error deg | lag s | settle device s | settle twin s |",
              "|---:|---:|---:|---:|---:|---:|"]

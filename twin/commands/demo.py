@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from twin.device.spec import load_spec
+from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.sim.gate import check_move, redirection_check
@@ -22,6 +22,7 @@ from twin.morphpatch.shapes import load_shape, shape_names, shape_table
 from twin.sim.simulation import move_report
 from twin.morphpatch.surface_metrics import msd_hd
 from viz.scene import render_approximation
+from viz.viewer import play_trace
 
 
 def add_arguments(p) -> None:
@@ -32,10 +33,14 @@ def add_arguments(p) -> None:
     p.add_argument("--json", metavar="FILE", help="also write the report as JSON")
     p.add_argument("--strict", action="store_true",
                    help="refuse (exit 1) when the pen redirection goes beyond the perception thresholds")
+    p.add_argument("--view", action="store_true", help="play the morph in MuJoCo's viewer, in real time")
+    add_device_option(p)
 
 
 def run(args) -> int:
-    spec = load_spec()
+    profile = profile_of(args)
+    spec = profile.spec
+    print(profile_line(profile), flush=True)
     mesh = load_shape(args.shape)
     print(f"[1/5] fields of {args.shape} (cached after the first run) ...", flush=True)
     fields = build_fields(mesh)
@@ -47,7 +52,7 @@ def run(args) -> int:
           f"HD {approx.hd * 1e3:.2f} mm; hinges {np.degrees(approx.angles).round(1).tolist()} deg", flush=True)
 
     print("[3/5] validating and simulating the morph on the twin (firmware PID at 1 kHz) ...", flush=True)
-    gate = check_move(spec, np.zeros(spec.n_hinges), approx.angles)
+    gate = check_move(spec, np.zeros(spec.n_hinges), approx.angles, profile.gains)
     trace = gate.prediction
     hinges = move_report(spec, trace) if trace is not None else []
     end_angles = trace.angle[-1] if trace is not None else np.zeros(spec.n_hinges)
@@ -70,7 +75,11 @@ def run(args) -> int:
     render_approximation(spec, mesh, frames, approx.widths, args.png,
                          title=f"{args.shape}: twin after the morph, MSD {end_msd * 1e3:.1f} mm")
     print(f"[5/5] picture: {args.png}")
+    if args.view:
+        print("      " + (play_trace(spec, trace) if trace is not None else "no morph to show: the twin could not "
+                          "simulate the move"))
     report = {
+        "device_profile": profile.label,
         "shape": args.shape,
         "start_mm_deg": start,
         "approximation": approx.to_json(),

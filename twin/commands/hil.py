@@ -6,7 +6,7 @@ import datetime
 from pathlib import Path
 
 from twin.cli import UserError
-from twin.device.spec import load_spec
+from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.formats.gains import read_gains
 from twin.formats.run import read_run
 from twin.formats.scenario import read_scenario
@@ -23,17 +23,22 @@ def add_arguments(p) -> None:
     p.add_argument("--port", required=True, help="serial port or pyserial URL of the device")
     p.add_argument("--out", help="run folder (default hil-<scenario>-<time>)")
     p.add_argument("--telemetry-hz", type=int, default=500, help="telemetry rate (default %(default)s)")
-    p.add_argument("--gains", help="gains file (vrscroll tune --out) to push to the device before the run")
+    p.add_argument("--gains", help="gains file (vrscroll tune --out) to push to the device before the run "
+                   "(default: the device profile's gains, if it holds any)")
     p.add_argument("--log", help="session log, JSON lines (default <out>/session.jsonl)")
     p.add_argument("--tolerance-deg", type=float, default=5.0,
                    help="e-stop when, on its way to the scenario's start, the device parts from the twin by more "
                         "(an uncalibrated device may need more; default %(default)s)")
+    add_device_option(p)
 
 
 def run(args) -> int:
-    spec = load_spec()
+    profile = profile_of(args)
+    spec = profile.spec
+    print(profile_line(profile))
     scenario = read_scenario(args.scenario, spec)
-    gains = read_gains(args.gains, spec.n_hinges) if args.gains else None
+    gains = read_gains(args.gains, spec.n_hinges) if args.gains else \
+        profile.gains if profile.gains_from != "spec" else None
     out = Path(args.out or f"hil-{scenario.name}-{datetime.datetime.now():%Y%m%d-%H%M%S}")
     out.mkdir(parents=True, exist_ok=True)
     log = args.log or str(out / "session.jsonl")
@@ -48,10 +53,11 @@ def run(args) -> int:
         with Link(args.port, log_path=log) as link:
             meta = run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz,
                            scenario_path=args.scenario, on_progress=progress, gains=gains,
-                           tolerance_deg=args.tolerance_deg)
+                           tolerance_deg=args.tolerance_deg, profile=profile.label)
     except GainsRestored as exc:
         print(exc.report.text())
-        raise UserError(f"refused by the gate: {exc} (the gains of {args.gains} were sent, then the device's "
+        raise UserError(f"refused by the gate: {exc} (the gains of {args.gains or profile.gains_from} were sent, "
+                        "then the device's "
                         "previous gains sent back; no target was sent)") from None
     except GateRefused as exc:
         print(exc.report.text())

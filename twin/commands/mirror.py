@@ -10,7 +10,7 @@ from twin.cli import UserError
 from twin.sim.gate import GateRefused
 from twin.link.serial_link import Link, LinkError
 from twin.hil.mirror import DeviceNotReady, mirror
-from twin.device.spec import load_spec
+from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.formats.common import hinge_angles
 from twin.formats.target import read_target
 
@@ -27,6 +27,7 @@ def add_arguments(p) -> None:
     p.add_argument("--log", default="vrscroll-session.jsonl", help="session log, JSON lines (default %(default)s)")
     p.add_argument("--override", action="store_true",
                    help="send even when the gate fails a check (logged); the device's own limits still apply")
+    add_device_option(p)
 
 
 HALF_TURN = math.pi  # rad: no hinge target given with --angles may be further from flat than this
@@ -50,7 +51,9 @@ def read_targets(args, spec) -> np.ndarray:
 
 
 def run(args) -> int:
-    spec = load_spec()
+    profile = profile_of(args)
+    spec = profile.spec
+    print(profile_line(profile))
     targets = read_targets(args, spec)
     last = [0.0]
 

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
+from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.sim.simulation import Twin, move_report
+from viz.viewer import play_trace
 
 
 def add_arguments(p) -> None:
@@ -15,16 +18,20 @@ def add_arguments(p) -> None:
     p.add_argument("--hold", action="store_true", help="run the full --max-time instead of stopping once settled")
     p.add_argument("--trace", metavar="CSV", help="write the firmware-rate trace to this CSV file")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--view", action="store_true", help="then play the move in MuJoCo's viewer, in real time")
+    add_device_option(p)
 
 
 def run(args) -> int:
-    twin = Twin()
+    profile = profile_of(args)
+    twin = Twin(profile.spec, profile.gains)
     if len(args.targets) != twin.spec.n_hinges:
         raise ValueError(f"expected {twin.spec.n_hinges} hinge targets in degrees, got {len(args.targets)}")
     trace = twin.move_to([math.radians(a) for a in args.targets], max_time=args.max_time,
                          stop_when_settled=not args.hold)
     rows = move_report(twin.spec, trace)
     summary = {
+        "device_profile": profile.label,
         "simulated_s": round(trace.duration, 3),
         "wall_s": round(trace.wall_time, 4),
         "real_time_factor": round(trace.real_time_factor, 1),
@@ -36,7 +43,10 @@ def run(args) -> int:
         summary["trace_csv"] = args.trace
     if args.json:
         print(json.dumps(summary, indent=2))
+        if args.view:
+            print(play_trace(twin.spec, trace), file=sys.stderr)
         return 0
+    print(profile_line(profile))
     print(f"{'hinge':>5} {'target_deg':>10} {'final_deg':>9} {'settle_s':>8} {'overshoot_deg':>13} "
           f"{'ss_err_deg':>10} {'ss_err_counts':>13} {'peak_A':>6}")
     for r in rows:
@@ -47,4 +57,6 @@ def run(args) -> int:
           f"({summary['real_time_factor']}x real time); settled: {summary['settled']}")
     if args.trace:
         print(f"trace: {args.trace}")
+    if args.view:
+        print(play_trace(twin.spec, trace))
     return 0

@@ -9,7 +9,7 @@ from twin.link import protocol as P
 from twin.cli import UserError
 from twin.link.serial_link import Link, LinkError
 from twin.hil.mirror import faults_text
-from twin.device.spec import load_spec
+from twin.commands.profile_option import add_device_option, profile_line, profile_of
 
 
 def add_arguments(p) -> None:
@@ -17,10 +17,12 @@ def add_arguments(p) -> None:
     p.add_argument("--clear-fault", action="store_true", help="clear an ESTOP or FAULT first")
     p.add_argument("--estop", action="store_true", help="e-stop the device first")
     p.add_argument("--log", help="session log, JSON lines")
+    add_device_option(p)
 
 
 def run(args) -> int:
-    spec = load_spec()
+    profile = profile_of(args)
+    spec = profile.spec
     try:
         with Link(args.port, log_path=args.log) as link:
             if args.estop:
@@ -29,10 +31,12 @@ def run(args) -> int:
                 link.clear_fault()
             s = link.get_state()
             info = link.info
+            held = [link.get_gains(k) for k in range(spec.n_hinges)]  # as the wire carries them
     except LinkError as exc:
         raise UserError(str(exc)) from None
     deg = np.degrees(angle_from_counts(spec, s.counts))
     tgt = np.degrees(angle_from_counts(spec, s.targets))
+    print(profile_line(profile))
     print(f"firmware {'.'.join(map(str, s.firmware))}, protocol {info.protocol}, {info.n_hinges} hinges, "
           f"loop {info.loop_rate_hz} Hz, watchdog {info.watchdog_ms} ms")
     print(f"state    {P.State(s.state).name}")
@@ -40,5 +44,8 @@ def run(args) -> int:
     print("angles   " + " ".join(f"{a:7.1f}" for a in deg) + "  deg")
     print("targets  " + " ".join(f"{a:7.1f}" for a in tgt) + "  deg")
     print("counts   " + " ".join(f"{c:7d}" for c in s.counts))
+    other = [k for k, (a, b) in enumerate(zip(held, profile.gains)) if a != P.Gains.from_pid(b)]
+    print(f"gains    {'as' if not other else 'NOT as'} {profile.label}'s ({profile.gains_from})"
+          + (f" on hinges {other}" if other else ""))
     print(f"device time {s.time_us / 1e6:.3f} s, bad frames received {s.rx_bad_frames}")
     return 0

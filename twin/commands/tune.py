@@ -1,4 +1,5 @@
-"""`vrscroll tune`: robust PID gains per hinge on the twin; with --port, confirm them on the device."""
+"""`vrscroll tune`: robust PID gains per hinge on the twin of the device profile in use, over the parameter
+ranges its calibration left open; stored in the profile; with --port, confirmed on the device."""
 
 from __future__ import annotations
 
@@ -9,26 +10,27 @@ import math
 import numpy as np
 
 from controllers.encoder import target_counts
-from controllers.pid import PidGains
 from twin.cli import UserError
-from twin.device.spec import load_spec
+from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.evaluation.backends import BACKENDS, make_backend
 from twin.formats.gains import write_gains
+from twin.formats.profile import write_profile_gains
 from twin.hil.device_gains import push_gains
 from twin.hil.mirror import DeviceNotReady, device_step
 from twin.link.serial_link import Link, LinkError
 from twin.sim.gate import GateRefused
 from twin.sim.response import step_metrics
 from twin.sim.simulation import Twin, move_report
-from twin.tuning.tuner import TuneGoal, step_report, tune
+from twin.tuning.tuner import TuneGoal, step_report, tolerance_ranges, tune
 
 
 def add_arguments(p) -> None:
     p.add_argument("--max-overshoot-deg", type=float, default=1.0,
                    help="largest overshoot allowed on any plant, deg (default %(default)s)")
     p.add_argument("--tolerance", type=float, default=20.0,
-                   help="motor constant and gear friction +- this percent: the plants tuned for are the nominal "
-                        "and the 4 corners, the cost is the worst (default %(default)s)")
+                   help="uncalibrated device: motor constant and gear friction +- this percent: the plants tuned "
+                        "for are the nominal and the 4 corners, the cost is the worst (default %(default)s); a "
+                        "calibrated profile's intervals replace it")
     p.add_argument("--step-deg", type=float, default=30.0,
                    help="step every hinge takes from flat, deg (default %(default)s)")
     p.add_argument("--duration", type=float, default=1.0,
@@ -42,10 +44,12 @@ def add_arguments(p) -> None:
                         "local Ray; the ray extra) (default: every plant in one batch here, on --threads)")
     p.add_argument("--workers", type=int, help="with --backend: worker processes, or a local Ray's CPUs "
                                                "(default all cores)")
-    p.add_argument("--out", default="gains.json", help="gains file to write, JSON (default %(default)s)")
+    p.add_argument("--out", help="also write the gains to this file, JSON (default: into the device profile; "
+                                 "gains.json without one)")
     p.add_argument("--port", help="also push the gains to the device and run the same step on it")
     p.add_argument("--log", default="vrscroll-tune.jsonl", help="session log with --port (default %(default)s)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_device_option(p)
 
 
 def _line(label, rows):
@@ -59,45 +63,57 @@ def run(args) -> int:
         raise UserError(f"--tolerance {args.tolerance}: expected a percentage in [0, 100)")
     if args.max_overshoot_deg <= 0:
         raise UserError("--max-overshoot-deg must be positive")
-    spec = load_spec()
+    profile = profile_of(args)
+    spec = profile.spec
     step = math.radians(args.step_deg)
     if not 0 < abs(step) <= spec.hinge_limit:
         raise UserError(f"--step-deg {args.step_deg}: outside the hinge range")
+    ranges = profile.ranges() or tolerance_ranges(spec, args.tolerance / 100)
     goal = TuneGoal(max_overshoot=math.radians(args.max_overshoot_deg), tolerance=args.tolerance / 100,
-                    step=step, duration=args.duration)
-    before = PidGains.from_spec(spec)
+                    step=step, duration=args.duration, ranges=ranges)
+    before = profile.gains
+    if not args.json:
+        print(profile_line(profile))
+        print(("calibrated intervals" if profile.ranges() else f"uncalibrated, +-{args.tolerance:g} %")
+              + ": tuned over " + ", ".join(f"{p} {lo:.4g} .. {hi:.4g}" for p, (lo, hi) in ranges.items())
+              + f" ({2 ** len(ranges) + 1} plants: nominal and corners)")
     with make_backend(args.backend, args.workers) if args.backend else contextlib.nullcontext() as backend:
         result = tune(spec, goal, population=args.population, generations=args.generations, seed=args.seed,
-                      nthread=args.threads, backend=backend,
+                      nthread=args.threads, start=before, backend=backend,
                       progress=None if args.json else lambda g, c, t: print(
                           f"generation {g + 1}/{args.generations}: worst-plant cost per hinge "
                           + " ".join(f"{x * 1000:5.0f}" for x in c) + f" ms  ({t:.1f} s)", flush=True))
     rows_before, _ = step_report(spec, before, goal)
     rows_after, _ = step_report(spec, result.gains, goal)
-    meta = {"goal": {"max_overshoot_deg": args.max_overshoot_deg, "tolerance_pct": args.tolerance,
-                     "step_deg": args.step_deg, "duration_s": args.duration},
+    meta = {"device_profile": profile.label,
+            "goal": {"max_overshoot_deg": args.max_overshoot_deg, "step_deg": args.step_deg,
+                     "duration_s": args.duration,
+                     "ranges": {p: [float(lo), float(hi)] for p, (lo, hi) in ranges.items()}},
             "worst_plant_settle_s": [round(float(x), 4) for x in result.settle],
             "worst_plant_overshoot_deg": [round(math.degrees(x), 4) for x in result.overshoot],
             "worst_plant_peak_current_A": [round(float(x), 3) for x in result.peak_current],
             "simulations": result.simulations, "wall_time_s": round(result.wall_time, 2)}
-    write_gains(args.out, result.gains, meta)
-    summary = {"gains_file": args.out, "before": rows_before, "after": rows_after, **meta}
+    written = [str(write_profile_gains(profile.name, result.gains, meta))] if profile.name else []
+    if args.out or not profile.name:
+        written.append(args.out or "gains.json")
+        write_gains(written[-1], result.gains, meta)
+    summary = {"gains_files": written, "before": rows_before, "after": rows_after, **meta}
     if not args.json:
         print(f"tuned in {result.wall_time:.1f} s ({result.simulations} simulations of {args.duration} s); "
               f"nominal twin, step to {args.step_deg} deg, per hinge settle / overshoot:")
-        print(_line("spec defaults", rows_before))
+        print(_line("before", rows_before))
         print(_line("tuned", rows_after))
         print("worst plant     " + "  ".join(f"{s * 1000:6.0f} ms {math.degrees(o):5.2f} deg"
                                           for s, o in zip(result.settle, result.overshoot)))
-        print(f"gains written to {args.out}")
+        print("gains written to " + ", ".join(written))
     if args.port:
-        summary["device"] = confirm_on_device(args, spec, result.gains, step, rows_after, quiet=args.json)
+        summary["device"] = confirm_on_device(args, spec, result.gains, step, written, quiet=args.json)
     if args.json:
         print(json.dumps(summary, indent=2, default=float))
     return 0
 
 
-def confirm_on_device(args, spec, gains, step, twin_rows, quiet=False) -> list[dict]:
+def confirm_on_device(args, spec, gains, step, written, quiet=False) -> list[dict]:
     """Push the gains, run the step on the device, print its metrics next to the twin's prediction."""
     n = spec.n_hinges
     targets = np.full(n, step)
@@ -106,7 +122,7 @@ def confirm_on_device(args, spec, gains, step, twin_rows, quiet=False) -> list[d
             push_gains(link, gains, n)
             t, deg, start, res = device_step(link, spec, targets)
     except (GateRefused, DeviceNotReady) as exc:
-        raise UserError(f"{exc} (the tuned gains are on the device; {args.out} holds them)") from None
+        raise UserError(f"{exc} (the tuned gains are on the device; {', '.join(written)} holds them)") from None
     except LinkError as exc:
         raise UserError(f"link: {exc} (session log: {args.log})") from None
     twin = Twin(spec, gains)

@@ -22,7 +22,7 @@ from twin.formats.gains import read_gains
 from twin.formats.trace import read_trace
 
 RUN_KEYS = ("scenario", "start_counts", "start_target_counts", "before", "telemetry_hz", "firmware_dt_s", "changes",
-            "status", "port", "device_t0_us", "device_rows", "twin_rows")
+            "status", "port", "device_t0_us", "device_rows", "twin_rows", "device_profile")
 BEFORE_KEYS = ("state", "counts", "target_counts")
 COMPLETE = "complete"
 

@@ -17,33 +17,22 @@ telemetry at every frame:
 The firmware PID is in the loop, exactly as on the device, so what is fitted is
 the closed loop.
 
-Parameters (all fitted as log(value / spec value), bounded x1/3 .. x3):
-    no_load_speed   sets the motor constant K (spec.motor_constant) and the
-                    viscous loss (tau_stall - friction) / no_load_speed
-    gear_friction   Coulomb friction at the output
+Parameters (PARAMS; each fitted as log(value / prior), within x1/3 .. x3):
+    no_load_speed   the motor constant and the top speed at full duty
+    gear_friction   Coulomb friction at the output (gear_stiction keeps its ratio to it)
+    gear_damping    viscous loss at the output
     rotor_inertia   the armature, reflected by gear_ratio^2 (most of a hinge's inertia)
-Not fitted, and why (docs/tuning-hil-calibration.md):
-    gear_damping    no effect on motion: the spec fixes the motor by its stall torque
-                    and no-load speed, so the total viscous coefficient is
-                    (tau_stall - friction) / no_load_speed whatever the gear damping is
-                    (it only moves the split with the back-EMF: K changes to keep the
-                    datasheet's no-load speed). Only the winding current would show it,
-                    by < 1 %, less than the no-load speed's own fit error.
-    latency         the HIL run aligns each target with the device's own ACK time,
-                    which already includes it.
-    backlash        not in the twin's MJCF (spec.backlash feeds the emulator only).
+    backlash        the dead zone between gearbox output and flap, outside the loop
+Not fitted: latency (the HIL run aligns each target with the device's own ACK time,
+which already includes it).
 
-Optimiser: mujoco.minimize.least_squares (Levenberg-Marquardt with box
-bounds). Its residual is vectorised over columns, and each column is one twin
-replay, so the finite-difference Jacobian costs n_params replays. The
-finite-difference step is large (10 % in log space) on purpose: the encoder
-quantises the closed loop and the hinges stick and slip, so the residual is
-rough at small scales (with 3 % steps the fit stopped 10 % short of the truth). mujoco.sysid (MuJoCo 4.0; needs the mujoco[sysid] extra, absl) was read
-and not used: its rollouts replay recorded controls open loop through MuJoCo's
-own actuators, whereas these traces are closed loop through the firmware's PID
-on quantised counts; replaying the recorded duty open loop drifts (friction and
-gravity make the open-loop plant an integrator), so the residual needs our own
-closed-loop replay.
+Search: a cross-entropy method, then a quadratic fitted to the better half of its
+samples (the cost is rough at small scales, where a gradient method stalls: see
+`calibrate`). The quadratic's Hessian gives each parameter's 95 % interval, the
+residual's autocorrelation allowed for; a parameter the runs do not pin within
+x(1 -+ MAX_HALFWIDTH) is left at its prior and reported so, with its prior range
+(PRIOR_RANGE) as what calibration leaves open. docs/tuning-hil-calibration.md says
+why mujoco.sysid is not used.
 """
 
 from __future__ import annotations
@@ -52,13 +41,24 @@ import dataclasses
 import math
 
 import numpy as np
-from mujoco import minimize
 
 from twin.device.spec import DeviceSpec
 from twin.sim.replay import replay_targets, twin_at_start
 
-PARAMS = ("no_load_speed", "gear_friction", "rotor_inertia")
+PARAMS = ("no_load_speed", "gear_friction", "gear_damping", "rotor_inertia", "backlash")
+# the spec fields that move with a parameter, in proportion: the static friction keeps its ratio to the
+# Coulomb friction (one gearbox's friction, the emulator scales them together)
+MOVES_WITH = {"gear_friction": ("gear_stiction",)}
+# x the prior: how far a device may differ from its datasheet (an assumption: the spread of a batch of micro
+# metal gearmotors and of their assembly; the backlash 0.01 .. 0.5 deg about the spec's 0.25 deg: not 0,
+# which the MJCF makes a rigid coupling, another model layout than the batch twin's other plants). The
+# interval a parameter the runs do not show is left with.
+PRIOR_RANGE = {"no_load_speed": (0.7, 1.3), "gear_friction": (0.7, 1.6), "gear_damping": (0.7, 1.6),
+               "rotor_inertia": (0.7, 1.4), "backlash": (0.04, 2.0)}
 LOG_BOUND = math.log(3.0)
+MAX_HALFWIDTH = 0.15  # a parameter is identifiable when its 95 % interval is within x(1 -+ this) of its value
+SEARCH_STD = 0.25  # log: the cross-entropy search's first spread about the prior
+ELITE = 6  # samples per generation the next is drawn about
 DUTY_WINDOW = 0.2  # s: the duty is compared as means over windows this long
 DUTY_WEIGHT = 20.0  # deg per unit duty: a 0.01 duty error weighs as 0.2 deg (each about its noise floor)
 
@@ -91,14 +91,18 @@ def window_means(t, x, width: float = DUTY_WINDOW) -> np.ndarray:
     return np.stack([(np.bincount(bins, weights=x[:, k]) / n)[bins] for k in range(x.shape[1])], axis=1)
 
 
-def residuals(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
-    """The fit's residual for one run, per frame and hinge: the angle error (deg), then the error of the
-    duty's window mean x DUTY_WEIGHT."""
+def residual_blocks(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's residual for one run, per frame and hinge (frames, n): the angle error (deg), and the
+    error of the duty's window mean x DUTY_WEIGHT."""
     angle, duty = replay(run, plant, spec)
     dev = run["device"]
     t = dev["time_s"]
-    return np.concatenate([(angle - device_angles(run, spec)).ravel(),
-                           DUTY_WEIGHT * (window_means(t, duty) - window_means(t, dev["duty"])).ravel()])
+    return angle - device_angles(run, spec), DUTY_WEIGHT * (window_means(t, duty) - window_means(t, dev["duty"]))
+
+
+def residuals(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
+    """residual_blocks, flattened into one vector."""
+    return np.concatenate([b.ravel() for b in residual_blocks(run, plant, spec)])
 
 
 def trace_rmse(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
@@ -109,48 +113,181 @@ def trace_rmse(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
 
 
 @dataclasses.dataclass
+class Estimate:
+    """One parameter after calibration, SI (the spec field's unit)."""
+
+    value: float  # fitted, or the prior when not identifiable
+    prior: float  # the value calibration started from (the profile's or the spec's)
+    low: float  # the interval left open: the 95 % interval when fitted, the prior range when not
+    high: float
+    identifiable: bool
+    note: str  # why it is or is not fitted, in words
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclasses.dataclass
 class CalibrationResult:
     spec: DeviceSpec  # calibrated
-    values: dict  # parameter -> fitted value (SI)
-    scales: dict  # parameter -> fitted / base
+    estimates: dict  # parameter -> Estimate
+    singular_values: list  # of the cost's Hessian in log parameters, scaled to a unit diagonal
+    autocorrelation_frames: float  # residual autocorrelation time the intervals allow for, frames
     rmse_before: float  # deg, hinge angles, all training runs, frames and hinges
     rmse_after: float
     iterations: int
     evaluations: int
 
+    @property
+    def values(self) -> dict:
+        return {p: e.value for p, e in self.estimates.items()}
 
-def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, max_iter: int = 25, eps: float = 0.1,
-              verbose: bool = False) -> CalibrationResult:
-    """Least-squares fit of `params` (log-scaled, bounded x1/3..x3) to the runs' device traces (angles and duty)."""
+    @property
+    def scales(self) -> dict:
+        return {p: e.value / e.prior for p, e in self.estimates.items()}
+
+
+def autocorrelation_time(blocks) -> float:
+    """Integrated autocorrelation time, frames, of residual columns (each block (frames, channels)): per
+    channel 1 + 2 x the sum of its autocorrelation up to the lag where it first falls below 0.05, then the
+    mean over channels weighted by their energy. Frames this far apart are about independent, so a residual
+    of m values holds about m / this independent samples (what the intervals allow for)."""
+    taus, weights = [], []
+    for block in blocks:
+        for x in np.asarray(block, float).T:
+            x = x - x.mean()
+            e = float(x @ x)
+            if e <= 0:
+                continue
+            f = np.fft.rfft(x, 2 * len(x))
+            acf = np.fft.irfft(f * np.conj(f))[:len(x)] / e
+            below = np.nonzero(acf < 0.05)[0]
+            cut = int(below[0]) if len(below) else len(x)
+            taus.append(1.0 + 2.0 * float(acf[1:cut].sum()))
+            weights.append(e)
+    return float(np.average(taus, weights=weights)) if taus else 1.0
+
+
+def quadratic_fit(X: np.ndarray, c: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(c0, gradient g, Hessian H) of the quadratic c0 + g.x + x.H.x / 2 that fits costs c at points X
+    (samples, k) best in least squares: the cost's shape at the scale of the samples, its roughness
+    averaged out."""
+    k = X.shape[1]
+    pairs = [(i, j) for i in range(k) for j in range(i, k)]
+    A = np.concatenate([np.ones((len(X), 1)), X, np.stack([X[:, i] * X[:, j] * (0.5 if i == j else 1.0)
+                                                         for i, j in pairs], axis=1)], axis=1)
+    coef = np.linalg.lstsq(A, c, rcond=None)[0]
+    H = np.zeros((k, k))
+    for (i, j), h in zip(pairs, coef[1 + k:]):
+        H[i, j] = H[j, i] = h
+    return float(coef[0]), coef[1:1 + k], H
+
+
+def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int = 24, generations: int = 8,
+              seed: int = 0, max_halfwidth: float = MAX_HALFWIDTH, progress=None) -> CalibrationResult:
+    """Fit `params` (log(value / base value), within x1/3 .. x3) to the runs' device traces (angles and duty),
+    and say what the runs show.
+
+    The cost (the residual's sum of squares) is rough at small scales: the encoder quantises the closed loop
+    and the hinges stick and slip, so a gradient method stalls (Levenberg-Marquardt through
+    mujoco.minimize.least_squares stopped after 6-10 iterations with "insufficient reduction", well short of
+    the truth, on the emulator's drawn plants). So: a cross-entropy search (population x generations
+    replays), then a quadratic fitted to the costs of the samples near the best (the cost's shape at the
+    scale of the search, its roughness averaged out). Its Hessian H gives the covariance 2 s^2 H^-1, s^2 the
+    residual's variance per independent sample (its autocorrelation allowed for), and with it each
+    parameter's 95 % interval. A parameter whose interval is wider than x(1 -+ max_halfwidth), or along which
+    the quadratic does not curve up, is not shown by the runs: it is put back at its prior, the least seen
+    first, and the others re-estimated at the quadratic's minimum with it held there, until every parameter
+    left is identifiable. progress(generation, best cost) is called as the search goes.
+    """
     params = tuple(params)
-    base_vals = np.array([getattr(base, p) for p in params])
+    prior = {p: float(getattr(base, p)) for p in params}
+    k = len(params)
     count = [0]
 
     def plant(x):
-        return base.replace(**{p: float(v * math.exp(xi)) for p, v, xi in zip(params, base_vals, x)})
+        return base.replace(**{f: getattr(base, f) * math.exp(float(xi)) for p, xi in zip(params, x)
+                               for f in (p, *MOVES_WITH.get(p, ()))})
 
-    def residual(X):
-        cols = []
-        for j in range(X.shape[1]):
-            cols.append(np.concatenate([residuals(r, plant(X[:, j]), base) for r in runs]))
-            count[0] += 1
-        return np.stack(cols, axis=1)
+    def cost(x):
+        count[0] += 1
+        return float(sum((residuals(r, plant(x), base) ** 2).sum() for r in runs))
 
     def angle_rmse(p):
         return float(np.sqrt(np.mean(np.concatenate([trace_rmse(r, p, base) ** 2 for r in runs]))))
 
-    lo, hi = np.full(len(params), -LOG_BOUND), np.full(len(params), LOG_BOUND)
-    x, trace = minimize.least_squares(np.zeros(len(params)), residual, bounds=(lo, hi), eps=eps, max_iter=max_iter,
-                                      verbose=minimize.Verbosity.ITER if verbose else minimize.Verbosity.SILENT,
-                                      xtol=1e-4, gtol=1e-8)
-    x = np.asarray(x).ravel()
+    rng = np.random.default_rng(seed)
+    mean, std = np.zeros(k), np.full(k, SEARCH_STD)
+    X, C = [], []
+    best = (cost(mean), mean.copy())
+    X.append(mean.copy())
+    C.append(best[0])
+    for g in range(generations):
+        pop = np.clip(mean + std * rng.standard_normal((population, k)), -LOG_BOUND, LOG_BOUND)
+        pop[0] = best[1]
+        c = np.array([cost(x) for x in pop[1:]] + [best[0]])
+        c = np.roll(c, 1)
+        X.extend(pop[1:])
+        C.extend(c[1:])
+        order = np.argsort(c)
+        if c[order[0]] < best[0]:
+            best = (float(c[order[0]]), pop[order[0]].copy())
+        elite = pop[order[:ELITE]]
+        mean = elite.mean(axis=0)
+        std = np.maximum(0.7 * std + 0.3 * elite.std(axis=0), 0.02)
+        if progress:
+            progress(g, best[0])
+    X, C = np.array(X), np.array(C)
+    near = np.argsort(C)[:max(len(C) // 2, 3 * (1 + k + k * (k + 1) // 2))]
+    xb = best[1]
+    _, grad, H = quadratic_fit(X[near] - xb, C[near])
+    tau = autocorrelation_time([b for run in runs for b in residual_blocks(run, plant(xb), base)])
+    m = sum(len(r["device"]["time_s"]) for r in runs) * 2 * base.n_hinges
+    s2 = best[0] * tau / max(m - k, 1)
+
+    free, dropped = list(range(k)), {}
+    x, sigma = np.zeros(k), np.full(k, np.inf)
+    while free:
+        F, D = np.array(free), np.setdiff1d(np.arange(k), free)
+        x = np.zeros(k)  # the dropped ones at their prior: 0
+        # minimum of the quadratic (about xb) over the free parameters, the dropped ones held at 0
+        HFF = H[np.ix_(F, F)]
+        rhs = -(grad[F] - H[np.ix_(F, D)] @ xb[D])
+        curved = np.all(np.linalg.eigvalsh(HFF) > 0)
+        if curved:
+            x[F] = np.clip(xb[F] + np.linalg.solve(HFF, rhs), -LOG_BOUND, LOG_BOUND)
+            cov = 2.0 * s2 * np.linalg.inv(HFF)
+            sigma = np.full(k, np.inf)
+            sigma[F] = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        else:
+            x[F] = xb[F]
+            sigma = np.full(k, np.inf)
+            sigma[F] = [math.sqrt(2.0 * s2 / H[i, i]) if H[i, i] > 0 else np.inf for i in F]
+        wide = [i for i in free if not 1.96 * sigma[i] <= math.log1p(max_halfwidth)]
+        if curved and not wide:
+            break
+        i = max(wide or free, key=lambda i: sigma[i])
+        dropped[params[i]] = (f"not shown by the runs: its 95 % interval would be x{math.exp(-1.96 * sigma[i]):.2f} .. "
+                              f"x{math.exp(1.96 * sigma[i]):.2f}" if math.isfinite(sigma[i]) else
+                              "not shown by the runs: the cost does not curve up along it") + "; left at its prior"
+        free.remove(i)
+    if not free:
+        x = np.zeros(k)
     fitted = plant(x)
+    estimates = {}
+    for i, p in enumerate(params):
+        if i in free:
+            half = 1.96 * sigma[i]
+            estimates[p] = Estimate(float(getattr(fitted, p)), prior[p], prior[p] * math.exp(x[i] - half),
+                                    prior[p] * math.exp(x[i] + half), True,
+                                    f"fitted; 95 % interval x{math.exp(-half):.3f} .. x{math.exp(half):.3f}")
+        else:
+            lo, hi = PRIOR_RANGE[p]
+            estimates[p] = Estimate(prior[p], prior[p], prior[p] * lo, prior[p] * hi, False,
+                                    dropped.get(p, "not fitted") + f"; prior range x{lo:g} .. x{hi:g}")
+    norms = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    sv = np.linalg.svd(H / np.outer(norms, norms), compute_uv=False)
     return CalibrationResult(
-        spec=fitted,
-        values={p: float(getattr(fitted, p)) for p in params},
-        scales={p: float(math.exp(xi)) for p, xi in zip(params, x)},
-        rmse_before=angle_rmse(base),
-        rmse_after=angle_rmse(fitted),
-        iterations=len(trace),
-        evaluations=count[0],
-    )
+        spec=fitted, estimates=estimates, singular_values=[float(v) for v in sv], autocorrelation_frames=tau,
+        rmse_before=angle_rmse(base), rmse_after=angle_rmse(fitted), iterations=generations,
+        evaluations=count[0])

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
+from twin.device.profile import NO_PROFILE
 from twin.device.spec import DeviceSpec
 from twin.formats.gains import write_gains
 from twin.formats.run import write_run_meta
@@ -38,13 +39,14 @@ class GainsRestored(GateRefused):
 
 def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: int = 500,
             scenario_path=None, on_progress=None, settle_limit: float = 2.0, gains=None,
-            tolerance_deg: float = 5.0) -> dict:
+            tolerance_deg: float = 5.0, profile: str = NO_PROFILE) -> dict:
     """Play a scenario on the device and the twin; write out_dir/{device,twin}.csv, gains.json, run.json.
 
     gains: optional per-hinge PidGains pushed to the device first (every hinge's checked before any
     is sent); if the gate then refuses the scenario or the move to its start, the device's previous
     gains are restored and GainsRestored is raised. tolerance_deg: the device is e-stopped if it parts from the twin by
-    more on its way to the scenario's start (twin.hil.mirror). Returns run.json's content. On
+    more on its way to the scenario's start (twin.hil.mirror). profile: the device profile's name, recorded
+    in run.json. Returns run.json's content. On
     KeyboardInterrupt the device is e-stopped and both traces stay readable up to that moment.
     """
     out = Path(out_dir)
@@ -72,7 +74,8 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     meta = {"scenario": scenario.name, "start_counts": list(state.counts), "start_target_counts": list(state.targets),
             "before": {"state": P.State(prior.state).name, "counts": list(prior.counts),
                        "target_counts": list(prior.targets)},
-            "telemetry_hz": telemetry_hz, "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url}
+            "telemetry_hz": telemetry_hz, "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url,
+            "device_profile": profile}
     twin = twin_at_start(spec, gains, meta)
 
     dev_w = TraceWriter(out / "device.csv", n)

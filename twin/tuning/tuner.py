@@ -2,8 +2,9 @@
 
 Goal (the default, and the only one for now): the fastest settle time with
 overshoot under a stated limit, on the *worst* of a set of plants: the nominal
-spec and the corners of its tolerances (motor constant and gear friction each
-+-tolerance %, so 4 corners + nominal = 5 plants). Every candidate is scored
+spec and the corners of the parameter ranges it is tuned over: the intervals
+calibration left open (a device profile's), or, uncalibrated, motor constant
+and gear friction each +-tolerance % (4 corners + nominal = 5 plants). Every candidate is scored
 with the report's own metrics (twin.simulation.hinge_metrics, i.e.
 twin.response.step_metrics) over the same window as the report (the goal's
 duration), and must also pass the gate's current checks as the gate makes them
@@ -12,9 +13,12 @@ last settle_hold s within the continuous rating), so the goal is met by
 construction and tuned moves are never refused.
 
 Why a cross-entropy method per chain of hinges: the root flap is held, so the
-hinges left of it and those right of it are two independent chains (checked:
-the left chain's angles are the same to 1e-15 rad whatever the right chain's
-gains). Within a chain they are not independent: each hinge carries the flaps
+hinges left of it and those right of it are two chains that move each other only
+through the pack they share (on a stiff pack the left chain's angles are the same
+to 1e-15 rad whatever the right chain's gains; with the pack's sag, within
+0.7 deg on a 30 deg step). Each chain is ranked on its own hinges' costs, and
+every candidate is simulated with both chains together, so that coupling is in
+every score. Within a chain they are not independent: each hinge carries the flaps
 beyond it, and a hinge's overshoot changed by up to 0.6 deg with its
 neighbours' gains, so gains picked per hinge from different candidates
 misbehaved together. So one population of candidate gain sets is evaluated for
@@ -33,6 +37,7 @@ not loop shaping).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 
@@ -41,7 +46,7 @@ import numpy as np
 from controllers.encoder import target_counts
 from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec
-from twin.sim.simulation import Twin, TwinBatch, hinge_metrics, move_report
+from twin.sim.simulation import Twin, TwinBatch, hinge_metrics, move_report, per_hinge
 
 # log-space bounds of the search, per gain (duty per count, per count-s, per count/s)
 BOUNDS = {"kp": (0.003, 0.5), "ki": (0.0, 2.0), "kd": (1e-5, 0.01)}
@@ -50,25 +55,33 @@ KI_FLOOR = 1e-4  # ki is searched in log space above this; below it counts as 0
 
 @dataclasses.dataclass
 class TuneGoal:
-    """What the tuner minimises: worst-plant settle time with overshoot under max_overshoot (rad)."""
+    """What the tuner minimises: worst-plant settle time with overshoot under max_overshoot (rad), over the
+    plants `ranges` spans: {spec field: (low, high) SI}, e.g. the intervals calibration left open
+    (twin.formats.profile.Profile.ranges); empty: +-tolerance on motor constant and gear friction."""
 
     max_overshoot: float = math.radians(1.0)  # rad
-    tolerance: float = 0.20  # +- fraction on motor constant and gear friction
+    tolerance: float = 0.20  # +- fraction on motor constant and gear friction, where no ranges are given
     step: float = math.radians(30.0)  # rad, every hinge steps from flat to this
     duration: float = 1.0  # s simulated per candidate: the window of the tuner's and the report's metrics
+    ranges: dict = dataclasses.field(default_factory=dict)  # spec field -> (low, high), SI
 
 
-def plant_corners(spec: DeviceSpec, tolerance: float) -> list[DeviceSpec]:
-    """The nominal plant and the four corners: motor constant and gear friction each x (1 +- tolerance).
+def tolerance_ranges(spec: DeviceSpec, tolerance: float) -> dict:
+    """The ranges of an uncalibrated spec: motor constant and gear friction each x (1 +- tolerance).
 
-    The motor constant is derived from the no-load speed (K ~ V / (N w0)), so a
-    motor constant x (1 + t) is a no-load speed / (1 + t).
+    The motor constant is derived from the no-load speed (K ~ V / (N w0)), so a motor constant
+    x (1 + t) is a no-load speed / (1 + t).
     """
+    return {"no_load_speed": (spec.no_load_speed / (1 + tolerance), spec.no_load_speed / (1 - tolerance)),
+            "gear_friction": (spec.gear_friction * (1 - tolerance), spec.gear_friction * (1 + tolerance))}
+
+
+def plant_corners(spec: DeviceSpec, ranges: dict) -> list[DeviceSpec]:
+    """The nominal plant, then every corner of the box `ranges` spans (2^k plants for k ranges)."""
     plants = [spec]
-    for kscale in (1 - tolerance, 1 + tolerance):
-        for fscale in (1 - tolerance, 1 + tolerance):
-            plants.append(spec.replace(no_load_speed=spec.no_load_speed / kscale,
-                                       gear_friction=spec.gear_friction * fscale))
+    names = list(ranges)
+    for corner in itertools.product((0, 1), repeat=len(names)):
+        plants.append(spec.replace(**{p: float(ranges[p][c]) for p, c in zip(names, corner)}))
     return plants
 
 
@@ -121,11 +134,15 @@ class TuneResult:
 class RobustEvaluator:
     """Evaluates candidate gain sets (one PidGains per hinge each) on every plant, with TwinBatch."""
 
-    def __init__(self, spec: DeviceSpec, goal: TuneGoal, population: int, nthread: int = 0, backend=None):
-        """backend: None runs every plant here in one TwinBatch; a twin.evaluation.backends backend runs
-        each plant's batch as a task on its workers (the same numbers)."""
+    def __init__(self, spec: DeviceSpec, goal: TuneGoal, population: int, nthread: int = 0, base=None,
+                 backend=None):
+        """base: the gains whose kp, ki, kd the candidates replace (one PidGains or one per hinge; default the
+        spec's): their derivative cutoff, integral limit, deadband and hold band are kept. backend: None runs
+        every plant here in one TwinBatch; a twin.evaluation.backends backend runs each plant's batch as a
+        task on its workers (the same numbers)."""
         self.spec, self.goal, self.population = spec, goal, population
-        self.plants = plant_corners(spec, goal.tolerance)
+        self.base = per_hinge(base or PidGains.from_spec(spec), spec.n_hinges)
+        self.plants = plant_corners(spec, goal.ranges or tolerance_ranges(spec, goal.tolerance))
         self.nplant = len(self.plants)
         self.backend = backend
         if backend is None:  # simulation index = candidate * nplant + plant
@@ -137,8 +154,7 @@ class RobustEvaluator:
         """kp, ki, kd: (population, n_hinges). Returns the worst-plant cost and scores, each (population, n)."""
         s, g = self.spec, self.goal
         P, n = kp.shape
-        base = PidGains.from_spec(s)
-        candidates = [[base.replace(kp=float(kp[c, h]), ki=float(ki[c, h]), kd=float(kd[c, h])) for h in range(n)]
+        candidates = [[self.base[h].replace(kp=float(kp[c, h]), ki=float(ki[c, h]), kd=float(kd[c, h])) for h in range(n)]
                       for c in range(P)]
         target = np.full(n, g.step)
         if self.backend is None:
@@ -194,23 +210,24 @@ def chains(spec: DeviceSpec) -> list[list[int]]:
 
 
 def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, generations: int = 8,
-         elite: int = 6, seed: int = 0, nthread: int = 0, start: PidGains | None = None,
+         elite: int = 6, seed: int = 0, nthread: int = 0, start=None,
          progress=None, backend=None) -> TuneResult:
     """Cross-entropy search per chain of hinges, on the sum of the chain's worst-plant costs.
 
-    The starting gains (the spec's) are candidate 0 of the first generation, so
+    The starting gains (start: one PidGains or one per hinge; default the spec's) are candidate 0 of the
+    first generation, so
     the result is never worse than them on that sum; from then on candidate 0 is
     the best found so far. The chosen gains are simulated together once more at
     the end, and the result's numbers are that run's. backend: where the plants' batches run
     (RobustEvaluator).
     """
     goal = goal or TuneGoal()
-    start = start or PidGains.from_spec(spec)
-    rng = np.random.default_rng(seed)
     n = spec.n_hinges
+    start = per_hinge(start or PidGains.from_spec(spec), n)
+    rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
-    ev = RobustEvaluator(spec, goal, population, nthread, backend=backend)
-    mean = np.tile(_to_x(np.array(start.kp), np.array(start.ki), np.array(start.kd)), (n, 1))  # (n, 3)
+    ev = RobustEvaluator(spec, goal, population, nthread, start, backend=backend)
+    mean = _to_x(*(np.array([getattr(g, k) for g in start]) for k in ("kp", "ki", "kd")))  # (n, 3)
     std = np.tile([0.5, 1.0, 0.7], (n, 1))
     best_x, best_cost = mean.copy(), np.full(n, math.inf)
     history = []
@@ -230,8 +247,9 @@ def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, g
         if progress:
             progress(gen, best_cost, time.perf_counter() - t0)
     kp, ki, kd = _from_x(best_x)
-    cost, worst = RobustEvaluator(spec, goal, 1, nthread, backend=backend).evaluate(kp[None], ki[None], kd[None])
-    gains = [start.replace(kp=float(kp[h]), ki=float(ki[h]), kd=float(kd[h])) for h in range(n)]
+    cost, worst = RobustEvaluator(spec, goal, 1, nthread, start, backend=backend).evaluate(kp[None], ki[None],
+                                                                                          kd[None])
+    gains = [start[h].replace(kp=float(kp[h]), ki=float(ki[h]), kd=float(kd[h])) for h in range(n)]
     return TuneResult(gains, cost[0], worst["settle"][0], worst["overshoot"][0], worst["peak_current"][0],
                       generations, ev.simulations + len(cost) * ev.nplant, time.perf_counter() - t0, history)
 

@@ -1,0 +1,74 @@
+"""Calibration and tuning on a plant nobody told the twin (issue 13, "Must hold"): the emulator draws its
+plant within the issue's ranges from a seed; the drawn values stay in its log, read here only to judge."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from random_plant import drawn_plant, emulator_args
+from twin.cli import main as vrscroll
+from twin.device.spec import load_spec
+from twin.formats.run import read_run
+from twin.hil.calibration import trace_rmse
+from twin.hil.mirror import mirror
+from twin.link.serial_link import Link
+
+
+def _json(capsys, *args):
+    assert vrscroll(list(args)) == 0, capsys.readouterr().err
+    return json.loads(capsys.readouterr().out)
+
+
+def calibrate_and_tune_on_a_drawn_plant(seed, emulator, tmp_path, capsys):
+    spec = load_spec()
+    emu = emulator(*emulator_args(seed))
+    truth = drawn_plant(emu)
+    with Link(emu.port) as link:  # wake the device: from its limp boot pose to flat, allowing for its difference
+        assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
+    train, hold = tmp_path / "train", tmp_path / "hold"
+    # the calibration scenario, for the gains the device has (read from it), and a held-out one
+    for name, s in (("train", 0), ("hold", 1)):
+        assert vrscroll(["calibrate", "--scenario", str(tmp_path / f"{name}.toml"), "--port", emu.port,
+                         "--seed", str(s)]) == 0
+        assert vrscroll(["hil", str(tmp_path / f"{name}.toml"), "--port", emu.port, "--out", str(tmp_path / name),
+                         "--tolerance-deg", "30"]) == 0
+    capsys.readouterr()
+    cal = _json(capsys, "calibrate", str(train), "--holdout", str(hold), "--device", "drawn", "--json")
+    assert cal["device_profile"] == "drawn"
+    fitted = {p: e for p, e in cal["parameters"].items() if e["identifiable"]}
+    assert fitted, cal["parameters"]
+    for p, e in cal["parameters"].items():
+        if e["identifiable"]:  # within 20 % of the truth
+            assert e["value"] == pytest.approx(truth[p], rel=0.2), (p, e, truth[p])
+        else:  # left at its prior, its prior range as its interval
+            assert e["value"] == e["prior"] and e["low"] < e["value"] < e["high"] or e["low"] == 0
+    # held-out error: at least half of what can go is gone. The drawn plant's own parameters in the twin leave
+    # a floor (backlash wander, missed edges, stick-slip the twin cannot time: 0.18-0.26 deg), so halving
+    # the whole error is out of reach where the prior is already near the plant
+    h = cal["holdout"]
+    run = read_run(hold, spec)
+    floor = trace_rmse(run, spec.replace(**{k: v for k, v in truth.items() if k != "supply_voltage"}), spec)
+    floor = float(np.sqrt(np.mean(floor ** 2)))
+    before, after = h["overall_before_deg"], h["overall_after_deg"]
+    assert after <= before - 0.5 * max(before - floor, 0.0), (h, floor)
+    # tuned on the calibrated twin over its intervals, pushed to the device: the overshoot limit holds and
+    # the device settles within 15 % of the twin's prediction on every hinge
+    tuned = _json(capsys, "tune", "--population", "16", "--generations", "5", "--threads", "2",
+                  "--port", emu.port, "--log", str(tmp_path / "tune.jsonl"), "--json")
+    assert tuned["device_profile"] == "drawn"
+    for r in tuned["device"]:
+        assert r["device_overshoot_deg"] <= 1.0, tuned["device"]
+        assert r["device_settle_s"] == pytest.approx(r["twin_settle_s"], rel=0.15), tuned["device"]
+    return cal, tuned, truth, floor
+
+
+def test_calibration_and_tuning_on_a_drawn_plant(emulator, tmp_path, capsys):
+    calibrate_and_tune_on_a_drawn_plant(1, emulator, tmp_path, capsys)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [2, 3, 4])
+def test_calibration_and_tuning_on_drawn_plants(seed, emulator, tmp_path, capsys):
+    calibrate_and_tune_on_a_drawn_plant(seed, emulator, tmp_path, capsys)

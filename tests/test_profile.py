@@ -1,0 +1,164 @@
+"""Device profiles: where they live, selection and the remembered default, every command naming the one it
+used, a missing or damaged profile as a one-line error; the viewer's message where there is no display."""
+
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+
+from controllers.pid import PidGains
+from twin.cli import main as vrscroll
+from twin.device.profile import profiles_dir
+from twin.device.mjcf import load_model
+from twin.formats.gains import write_gains
+from twin.formats.profile import read_profile, select_profile, write_profile_spec
+from twin.formats.run import read_run
+from twin.hil.mirror import mirror
+from twin.hil.record import run_hil
+from twin.formats.scenario import read_scenario
+from twin.link.serial_link import Link
+from viz.viewer import TWIN_ALPHA, pair_model, run_frames
+
+ONE_STEP = """name = "one"
+duration_s = 0.6
+[[step]]
+t_s = 0.0
+angles_deg = [20, 10, 5, 5, 10, 20]
+"""
+
+
+def _run(capsys, *args):
+    rc = vrscroll(list(args))
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def test_profiles_live_in_the_folder_the_environment_names(device_profiles):
+    assert profiles_dir() == device_profiles
+    assert select_profile().label == "spec defaults"
+
+
+def test_device_selects_a_profile_and_it_is_remembered(capsys, spec):
+    rc, out, _ = _run(capsys, "device", "create", "bench")
+    assert rc == 0 and "bench" in out
+    assert "selected: spec defaults" in _run(capsys, "device", "list")[1]
+    # a profile whose device is slower: the twin of that profile settles later
+    write_profile_spec("bench", {"no_load_speed": spec.no_load_speed * 0.7}, "test: slower motor", None)
+    rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json")
+    default = json.loads(out)
+    assert default["device_profile"] == "spec defaults"
+    rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "--device", "bench")
+    bench = json.loads(out)
+    assert rc == 0 and bench["device_profile"] == "bench"
+    assert bench["hinges"][0]["settle_time_s"] > default["hinges"][0]["settle_time_s"]
+    # remembered: the next command without --device uses it too
+    rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30")
+    assert rc == 0 and out.startswith("device profile: bench (")
+    assert "* bench" in _run(capsys, "device", "list")[1]
+    assert _run(capsys, "device", "select", "none")[0] == 0
+    assert _run(capsys, "simulate", "30", "30", "30", "30", "30", "30")[1].startswith("device profile: spec defaults")
+    assert "test: slower motor" in _run(capsys, "device", "show", "bench")[1]
+
+
+def test_a_profiles_gains_are_the_twins(capsys, spec, device_profiles):
+    _run(capsys, "device", "create", "soft")
+    soft = PidGains.from_spec(spec).replace(kp=0.003, ki=0.0, kd=0.0)
+    write_gains(device_profiles / "soft" / "gains.json", [soft] * spec.n_hinges)
+    assert read_profile(device_profiles / "soft").gains == [soft] * spec.n_hinges
+    rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "--device", "soft",
+                      "--max-time", "1.0")
+    assert rc == 0
+    soft_row = json.loads(out)["hinges"][0]
+    _run(capsys, "device", "select", "none")
+    default_row = json.loads(_run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json",
+                                  "--max-time", "1.0")[1])["hinges"][0]
+    # no integral, a weak kp, no derivative: the soft profile's hinge takes longer (or never settles)
+    assert not soft_row["settle_time_s"] <= default_row["settle_time_s"] + 0.02, (soft_row, default_row)
+
+
+@pytest.mark.parametrize("damage, message", [
+    (None, "'nope' (given with --device) is not in"),
+    ("profile.json", "profile.json: not JSON"),
+    ("spec.toml", "spec.toml: [motor] gear_friction: value: expected a number"),
+    ("gains.json", "gains.json: not a vrscroll-gains/1 gains file"),
+    ("name", "profile.json: name 'other' is not the folder's, 'nope'"),
+])
+def test_a_missing_or_damaged_profile_is_a_one_line_error(capsys, device_profiles, damage, message):
+    if damage:
+        _run(capsys, "device", "create", "nope")
+        folder = device_profiles / "nope"
+        if damage == "profile.json":
+            (folder / "profile.json").write_text("{not json")
+        elif damage == "spec.toml":
+            text = (folder / "spec.toml").read_text()
+            (folder / "spec.toml").write_text(re.sub(r"(gear_friction\s*= \{ value = )[^,]*", r'\1"lots"', text))
+        elif damage == "gains.json":
+            (folder / "gains.json").write_text("{}")
+        else:
+            (folder / "profile.json").write_text(json.dumps({"format": "vrscroll-profile/1", "name": "other"}))
+    for cmd in (["simulate", "0", "0", "0", "0", "0", "0"], ["tune", "--generations", "1"], ["device", "show"]):
+        rc, out, err = _run(capsys, *cmd, "--device", "nope") if cmd[0] != "device" else _run(capsys, *cmd, "nope")
+        assert rc == 2 and len(err.splitlines()) == 1 and message in err, err
+
+
+def test_a_selected_profile_that_was_removed_is_named(capsys, device_profiles):
+    _run(capsys, "device", "create", "gone")
+    _run(capsys, "device", "select", "gone")
+    (device_profiles / "gone" / "profile.json").unlink()
+    (device_profiles / "gone" / "spec.toml").unlink()
+    (device_profiles / "gone").rmdir()
+    rc, _, err = _run(capsys, "simulate", "0", "0", "0", "0", "0", "0")
+    assert rc == 2 and len(err.splitlines()) == 1
+    assert f"'gone' (selected in {device_profiles / 'default'}) is not in" in err
+
+
+def test_every_command_that_talks_to_the_device_names_its_profile(capsys, emulator, tmp_path, spec):
+    _run(capsys, "device", "create", "emu")
+    emu = emulator()
+    (tmp_path / "s.toml").write_text(ONE_STEP)
+    run = tmp_path / "run"
+    commands = [
+        ["status", "--port", emu.port],
+        ["mirror", "--angles", "10,10,10,10,10,10", "--port", emu.port, "--log", str(tmp_path / "m.jsonl")],
+        ["hil", str(tmp_path / "s.toml"), "--port", emu.port, "--out", str(run)],
+        ["calibrate", "--scenario", str(tmp_path / "cal.toml")],
+        ["tune", "--population", "6", "--generations", "1", "--threads", "2", "--port", emu.port,
+         "--log", str(tmp_path / "t.jsonl")],
+    ]
+    for i, cmd in enumerate(commands):
+        rc, out, err = _run(capsys, *cmd, *(["--device", "emu"] if i == 0 else []))
+        assert rc == 0, (cmd, err)
+        assert out.startswith(f"device profile: emu ({profiles_dir() / 'emu'})"), (cmd, out[:200])
+    assert json.loads((run / "run.json").read_text())["device_profile"] == "emu"
+    assert "device profile emu" in (run / "report.md").read_text()
+    # tune stored its gains in the profile, and the device holds them: status says so
+    assert (profiles_dir() / "emu" / "gains.json").is_file()
+    assert "gains    as emu's" in _run(capsys, "status", "--port", emu.port)[1]
+    assert "device settle s" in out and "twin settle s" in out
+
+
+def test_view_without_a_display_is_one_line_and_the_replay_is_built(capsys, emulator, tmp_path, spec, monkeypatch):
+    emu = emulator()
+    (tmp_path / "s.toml").write_text(ONE_STEP)
+    with Link(emu.port) as link:
+        assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
+        run_hil(link, spec, read_scenario(tmp_path / "s.toml", spec), tmp_path / "run")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    rc, _, err = _run(capsys, "view", str(tmp_path / "run"))
+    assert rc == 2 and len(err.splitlines()) == 1 and "no display" in err
+    rc, out, _ = _run(capsys, "simulate", "20", "0", "0", "0", "0", "0", "--view")
+    assert rc == 0 and out.rstrip().splitlines()[-1].startswith("no display")
+    # what the window would show: two devices, the twin's translucent, replayed from the traces
+    model = pair_model(spec)
+    assert model.njnt == 2 * load_model(spec).njnt
+    twin_geoms = [i for i in range(model.ngeom) if model.body(model.geom_bodyid[i]).name.startswith("twin/")]
+    assert twin_geoms and all(model.geom_rgba[i, 3] == pytest.approx(TWIN_ALPHA) for i in twin_geoms)
+    recorded = read_run(tmp_path / "run", spec)
+    t, rows = run_frames(recorded, spec)
+    assert rows.shape == (len(t), 2 * spec.n_hinges)
+    # at the end, device and twin have both reached the step's targets (within a degree)
+    assert np.all(np.abs(np.degrees(rows[-1]) - np.tile([20, 10, 5, 5, 10, 20], 2)) < 1.0)
+    assert math.isclose(t[0], recorded["device"]["time_s"][0])

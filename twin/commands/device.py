@@ -1,0 +1,61 @@
+"""`vrscroll device`: list, show, select or create device profiles (docs/tuning-hil-calibration.md,
+"Device profiles"; the folder: docs/formats.md "Device profile")."""
+
+from __future__ import annotations
+
+import math
+
+from twin.device.profile import NO_PROFILE, default_name, profile_names, profiles_dir, set_default
+from twin.device.spec import spec_sources
+from twin.formats.profile import create_profile, select_profile, spec_source_of
+
+
+def add_arguments(p) -> None:
+    p.add_argument("action", choices=("list", "show", "select", "create"), nargs="?", default="list",
+                   help="list the profiles (default); show one (default: the selected); select one for the "
+                        "commands that follow (`select none`: the spec's defaults); create one from the spec's "
+                        "defaults")
+    p.add_argument("name", nargs="?", help="the profile's name")
+
+
+def run(args) -> int:
+    if args.action == "list":
+        chosen = default_name()
+        names = profile_names()
+        print(f"device profiles in {profiles_dir()}:" + ("" if names else " none"))
+        for n in names:
+            print(("* " if n == chosen else "  ") + n)
+        print(f"selected: {chosen or NO_PROFILE}")
+        return 0
+    if args.action in ("select", "create") and not args.name:
+        raise ValueError(f"vrscroll device {args.action} NAME: give the profile's name")
+    if args.action == "select":
+        name = None if args.name == "none" else args.name
+        if name:
+            select_profile(name)  # there, and readable
+        set_default(name)
+        print(f"selected: {name or NO_PROFILE}")
+        return 0
+    if args.action == "create":
+        print(f"created {create_profile(args.name)} (the spec's defaults; `vrscroll calibrate RUN --device "
+              f"{args.name}` calibrates it)")
+        return 0
+    profile = select_profile(args.name)
+    print(f"device profile: {profile.label}" + (f" ({profile.folder})" if profile.folder else ""))
+    print(f"gains: {profile.gains_from}")
+    for k, g in enumerate(profile.gains):
+        print(f"  hinge {k}: kp {g.kp:g} ki {g.ki:g} kd {g.kd:g}")
+    sources = spec_source_of(profile)
+    if profile.calibration:
+        print("calibration from " + ", ".join(profile.calibration["runs"]) + ":")
+        for p, e in profile.calibration["parameters"].items():
+            print(f"  {p:<14} {e['value']:.6g}  (prior {e['prior']:.6g}; interval {e['low']:.6g} .. {e['high']:.6g}; "
+                  f"{'identifiable' if e['identifiable'] else 'NOT identifiable'}): {e['note']}")
+    else:
+        print("not calibrated")
+    defaults = spec_sources()
+    changed = [f for f, s in sources.items() if s != defaults.get(f)]
+    print("spec values not the spec's defaults: " + (", ".join(
+        f"{f} = {getattr(profile.spec, f):.6g} ({sources[f]})" for f in changed) if changed else "none"))
+    print(f"hinge limit {math.degrees(profile.spec.hinge_limit):g} deg, {profile.spec.n_hinges} hinges")
+    return 0

@@ -1,0 +1,179 @@
+"""Device profile folder (docs/formats.md "Device profile"): one researcher's device, as the twin
+knows it after calibration and tuning.
+
+    profile.json   {"format": "vrscroll-profile/1", "name": NAME, "calibration": {...}}  (calibration optional)
+    spec.toml      the device's spec, a spec TOML: every value with its source ("calibrated from ...")
+    gains.json     the device's gains, a gains file (optional: the spec's gains when absent)
+
+"calibration" (written by `vrscroll calibrate --device`): {"runs": [folder, ...], "parameters":
+{name: {"value", "prior", "low", "high", "identifiable", "note"}}}, values in SI (the spec's field
+units); low..high is the interval the calibration leaves open (its 95 % interval for a fitted
+parameter, the prior range for one the runs do not show), which `vrscroll tune` tunes over.
+Where the folders live and which one is selected is twin.device.profile's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+from controllers.pid import PidGains
+from twin.device.profile import NO_PROFILE, default_name, profile_dir, profiles_dir
+from twin.device.spec import SPEC_PATH, DeviceSpec, load_spec, spec_sources
+from twin.formats.common import json_object, known_keys, number, required_keys
+from twin.formats.gains import read_gains, write_gains
+from twin.formats.spec_toml import write_spec_toml
+
+PROFILE_FORMAT = "vrscroll-profile/1"
+META, SPEC, GAINS = "profile.json", "spec.toml", "gains.json"
+PARAMETER_KEYS = ("value", "prior", "low", "high", "identifiable", "note")
+
+
+@dataclasses.dataclass
+class Profile:
+    """The device the commands simulate, gate and talk to: a profile, or the spec's defaults (name None)."""
+
+    name: str | None
+    folder: Path | None
+    spec: DeviceSpec
+    gains: list[PidGains]  # per hinge
+    gains_from: str  # where the gains came from: the profile's gains.json or the spec
+    calibration: dict | None  # profile.json's "calibration", if the profile was calibrated
+
+    @property
+    def label(self) -> str:
+        """How every report names it: the profile's name, or "spec defaults"."""
+        return self.name or NO_PROFILE
+
+    def ranges(self) -> dict:
+        """parameter -> (low, high) SI, the intervals calibration left open ({} when not calibrated)."""
+        if not self.calibration:
+            return {}
+        return {p: (e["low"], e["high"]) for p, e in self.calibration["parameters"].items()}
+
+
+def spec_defaults() -> Profile:
+    """The spec's defaults: models/vrscroll/spec.toml and its gains on every hinge."""
+    spec = load_spec()
+    return Profile(None, None, spec, [PidGains.from_spec(spec)] * spec.n_hinges, "spec", None)
+
+
+def _calibration(doc, where: str) -> dict:
+    if not isinstance(doc, dict):
+        raise ValueError(f"{where}: expected an object with runs, parameters")
+    known_keys(doc, ("runs", "parameters"), where)
+    required_keys(doc, ("runs", "parameters"), where)
+    if not isinstance(doc["runs"], list) or not all(isinstance(r, str) for r in doc["runs"]):
+        raise ValueError(f"{where}: runs: expected a list of run folders")
+    if not isinstance(doc["parameters"], dict):
+        raise ValueError(f"{where}: parameters: expected an object {{name: {{...}}}}")
+    fields = {f.name for f in dataclasses.fields(DeviceSpec)}
+    for p, e in doc["parameters"].items():
+        w = f"{where}: parameters: {p}"
+        if p not in fields:
+            raise ValueError(f"{w}: not a spec field")
+        if not isinstance(e, dict):
+            raise ValueError(f"{w}: expected an object with {', '.join(PARAMETER_KEYS)}")
+        known_keys(e, PARAMETER_KEYS, w)
+        required_keys(e, PARAMETER_KEYS, w)
+        lo, v, hi = (number(e[k], f"{w}: {k}") for k in ("low", "value", "high"))
+        number(e["prior"], f"{w}: prior")
+        if not lo <= v <= hi:
+            raise ValueError(f"{w}: value {v:g} is not within low {lo:g} .. high {hi:g}")
+        if not isinstance(e["identifiable"], bool):
+            raise ValueError(f"{w}: identifiable: expected true or false")
+    return doc
+
+
+def read_profile(folder) -> Profile:
+    """The profile in folder; ValueError naming the file and key for anything missing or wrong."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: no such device profile")
+    meta_path = folder / META
+    if not meta_path.is_file():
+        raise ValueError(f"{folder}: not a device profile (no {META})")
+    meta = json_object(meta_path)
+    if meta.get("format") != PROFILE_FORMAT:
+        raise ValueError(f"{meta_path}: not a {PROFILE_FORMAT} profile (no \"format\": \"{PROFILE_FORMAT}\")")
+    known_keys(meta, ("format", "name", "calibration"), str(meta_path))
+    if meta.get("name") != folder.name:
+        raise ValueError(f"{meta_path}: name {meta.get('name')!r} is not the folder's, {folder.name!r}")
+    calibration = _calibration(meta["calibration"], f"{meta_path}: calibration") if "calibration" in meta else None
+    if not (folder / SPEC).is_file():
+        raise ValueError(f"{folder}: device profile without its {SPEC}")
+    spec = load_spec(folder / SPEC)
+    if (folder / GAINS).is_file():
+        gains, source = read_gains(folder / GAINS, spec.n_hinges), str(folder / GAINS)
+    else:
+        gains, source = [PidGains.from_spec(spec)] * spec.n_hinges, "spec"
+    return Profile(folder.name, folder, spec, gains, source, calibration)
+
+
+def select_profile(name: str | None = None) -> Profile:
+    """The profile called name, or the selected one (twin.device.profile.default_name), or the spec's defaults.
+
+    ValueError (one line) for a profile that is not there or is damaged, naming it and where it was looked for.
+    """
+    chosen = name or default_name()
+    if chosen is None:
+        return spec_defaults()
+    folder = profile_dir(chosen)
+    if not folder.is_dir():
+        how = "given with --device" if name else f"selected in {profiles_dir() / 'default'}"
+        raise ValueError(f"device profile {chosen!r} ({how}) is not in {profiles_dir()}: `vrscroll device list` "
+                         f"shows those there are; `vrscroll calibrate RUN --device {chosen}` makes one")
+    return read_profile(folder)
+
+
+def _write_meta(folder: Path, calibration: dict | None) -> None:
+    doc = {"format": PROFILE_FORMAT, "name": folder.name, **({"calibration": calibration} if calibration else {})}
+    if calibration:
+        _calibration(calibration, str(folder / META))
+    tmp = folder / (META + ".part")
+    tmp.write_text(json.dumps(doc, indent=2) + "\n")
+    tmp.replace(folder / META)
+
+
+def write_profile_spec(name: str, values: dict, source: str, calibration: dict | None) -> Path:
+    """Create or update the profile called name: its spec.toml gets `values` (field -> SI) with `source`
+    (every other value as it was: the profile's own spec, or the spec's defaults for a new profile), and
+    profile.json the calibration. Returns the folder."""
+    folder = profile_dir(name)
+    folder.mkdir(parents=True, exist_ok=True)
+    template = folder / SPEC if (folder / SPEC).is_file() else SPEC_PATH
+    spec_tmp = folder / (SPEC + ".part")
+    write_spec_toml(spec_tmp, template, values, source,
+                    header=f"Device profile {name}: the spec of this device, written by `vrscroll calibrate` "
+                           "(docs/tuning-hil-calibration.md).")
+    load_spec(spec_tmp)  # what was written reads back, or nothing is replaced
+    spec_tmp.replace(folder / SPEC)
+    _write_meta(folder, calibration)
+    return folder
+
+
+def write_profile_gains(name: str, gains: list[PidGains], meta: dict | None = None) -> Path:
+    """Store gains as the profile's gains.json (the profile must exist). Returns the file."""
+    folder = profile_dir(name)
+    if not (folder / META).is_file():
+        raise ValueError(f"device profile {name!r} is not in {profiles_dir()}: calibrate first "
+                         f"(`vrscroll calibrate RUN --device {name}`) or `vrscroll device create {name}`")
+    write_gains(folder / GAINS, gains, meta)
+    return folder / GAINS
+
+
+def create_profile(name: str) -> Path:
+    """A new profile holding the spec's defaults (its spec.toml a copy of the spec's). ValueError if it exists."""
+    folder = profile_dir(name)
+    if folder.exists():
+        raise ValueError(f"{folder}: a device profile {name!r} exists already")
+    folder.mkdir(parents=True)
+    (folder / SPEC).write_text(Path(SPEC_PATH).read_text())
+    _write_meta(folder, None)
+    return folder
+
+
+def spec_source_of(profile: Profile) -> dict:
+    """field -> where its value came from, for the profile's spec."""
+    return spec_sources(profile.folder / SPEC) if profile.folder else spec_sources()

@@ -1,0 +1,103 @@
+"""MuJoCo's viewer for the twin: a HIL run's device and twin overlaid (`vrscroll view RUN`: the device
+solid, the twin translucent, both replayed from the run's traces), and a twin's move played in real
+time (`--view` on `vrscroll simulate` and `vrscroll demo`).
+
+The window needs a display; without one each entry point returns a one-line message instead.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import mujoco
+import mujoco.viewer
+import numpy as np
+
+from twin.device.mjcf import mjcf
+from twin.device.spec import DeviceSpec
+
+TWIN_ALPHA = 0.3  # opacity of the twin's flaps beside the device's
+TWIN_PREFIX = "twin/"
+FRAME_PERIOD = 1.0 / 60.0  # s between viewer updates
+
+
+def display_missing() -> str | None:
+    """None where a window can open; else the one-line reason it cannot."""
+    if sys.platform == "darwin" or os.name == "nt" or os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return None
+    return "no display (neither DISPLAY nor WAYLAND_DISPLAY is set): MuJoCo's viewer needs one; nothing was shown"
+
+
+def _device(spec: DeviceSpec) -> mujoco.MjSpec:
+    s = mujoco.MjSpec.from_string(mjcf(spec))
+    for key in list(s.keys):
+        s.delete(key)
+    return s
+
+
+def pair_model(spec: DeviceSpec) -> mujoco.MjModel:
+    """Two devices in one model, in the same place: the device's (joints hinge0..) and the twin's
+    (joints twin/hinge0.., every geom translucent)."""
+    device, twin = _device(spec), _device(spec)
+    device.attach(twin, prefix=TWIN_PREFIX, frame=device.worldbody.add_frame())
+    for g in device.geoms:
+        if g.name.startswith(TWIN_PREFIX) or g.parent.name.startswith(TWIN_PREFIX):
+            g.material = ""
+            g.rgba = [0.3, 0.6, 1.0, TWIN_ALPHA]
+    return device.compile()
+
+
+def hinge_qadr(model: mujoco.MjModel, n: int, prefix: str = "") -> np.ndarray:
+    """qpos addresses (2, n): each hinge's, then its gearbox output's (both shown at the hinge's angle: the
+    backlash between them is too small to see)."""
+    return np.array([[model.joint(f"{prefix}{j}{k}").qposadr[0] for k in range(n)] for j in ("hinge", "gear")])
+
+
+def run_frames(run: dict, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(t s, qpos rows (frames, 2n) rad: the device's hinges then the twin's) of a recorded run
+    (twin.formats.run.read_run), at the device's frame times: the device's encoder angles mid-count, the
+    twin's true angles interpolated to those times."""
+    dev, tw = run["device"], run["twin"]
+    if tw is None or not len(tw["time_s"]):
+        raise ValueError(f"{run['dir']}: no twin.csv to replay beside the device")
+    t = dev["time_s"]
+    device = np.radians(dev["angle_deg"]) + 0.5 * spec.rad_per_count
+    twin_deg = tw["true_angle_deg"] if "true_angle_deg" in tw else tw["angle_deg"]
+    twin = np.stack([np.interp(t, tw["time_s"], twin_deg[:, k]) for k in range(twin_deg.shape[1])], axis=1)
+    return t, np.concatenate([device, np.radians(twin)], axis=1)
+
+
+def play(model: mujoco.MjModel, qadr: np.ndarray, t: np.ndarray, rows: np.ndarray, title: str) -> str:
+    """Show rows (frames, m) of hinge angles at their times t (s) in real time, each row at the qpos
+    addresses qadr (r, m), then hold the last until the window is closed. A one-line message for where no
+    window can open."""
+    missing = display_missing()
+    if missing:
+        return missing
+    data = mujoco.MjData(model)
+    with mujoco.viewer.launch_passive(model, data) as viewer:
+        start = time.monotonic()
+        while viewer.is_running():
+            i = min(int(np.searchsorted(t, time.monotonic() - start)), len(t) - 1)
+            data.qpos[qadr] = rows[i][None]
+            mujoco.mj_forward(model, data)
+            viewer.sync()
+            time.sleep(FRAME_PERIOD)
+    return f"viewer closed ({title}, {t[-1] - t[0]:.2f} s played)"
+
+
+def view_run(run: dict, spec: DeviceSpec) -> str:
+    """A recorded HIL run replayed: the device solid, the twin translucent."""
+    model = pair_model(spec)
+    t, rows = run_frames(run, spec)
+    n = spec.n_hinges
+    qadr = np.concatenate([hinge_qadr(model, n), hinge_qadr(model, n, TWIN_PREFIX)], axis=1)
+    return play(model, qadr, t, rows, f"{run['dir']}: device solid, twin translucent")
+
+
+def play_trace(spec: DeviceSpec, trace) -> str:
+    """A twin's move (twin.sim.simulation.Trace) in real time."""
+    model = mujoco.MjModel.from_xml_string(mjcf(spec))
+    return play(model, hinge_qadr(model, spec.n_hinges), trace.time - trace.time[0], trace.angle, "the twin's move")
