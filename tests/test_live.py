@@ -378,3 +378,21 @@ def test_session_player_against_the_emulator_locks_morphs_and_redirects_every_pe
         assert r["pen"]["sent"] == r["pen"]["redirected"] > 100
         assert r["redirection"]["share_within"] > 0.5
     assert "every pen sample redirected" in capsys.readouterr().out
+
+
+def test_serve_uses_the_device_profile_and_names_it(tmp_path, capsys):
+    """`serve --device NAME`: the profile's twin, named in the welcome (and remembered as the default)."""
+    assert vrscroll(["device", "create", "bench"]) == 0
+    capsys.readouterr()
+
+    async def welcome(url):
+        async with LiveClient(url, "observer") as observer:
+            return observer.welcome
+
+    with ServiceProcess("--device", "bench", "--shape", "cylinder", stderr_path=tmp_path / "serve.err") as s:
+        assert run(welcome(s.url))["device_profile"] == "bench"
+    with ServiceProcess("--shape", "cylinder", stderr_path=tmp_path / "serve2.err") as s:  # the remembered default
+        assert run(welcome(s.url))["device_profile"] == "bench"
+    assert vrscroll(["device", "select", "none"]) == 0
+    with ServiceProcess("--shape", "cylinder", stderr_path=tmp_path / "serve3.err") as s:
+        assert run(welcome(s.url))["device_profile"] == "spec defaults"

@@ -1,6 +1,7 @@
 """`vrscroll serve`: the live service for VR applications (docs/live.md).
 
-On the loopback address by default. `--port` attaches the device (a serial port, or the
+On the loopback address by default. `--device` picks the device profile whose twin approximates,
+gates and (without a device) morphs. `--port` attaches the device (a serial port, or the
 emulator's pty); without it a lock morphs the twin alone. `--shape`/`--mesh` gives the
 first target (a client may send another). Serving beyond loopback needs `--allow-remote`
 and a token (`--token`, or the VRSCROLL_TOKEN environment variable) that every client presents.
@@ -14,7 +15,7 @@ import secrets
 import signal
 
 from twin.cli import UserError
-from twin.device.spec import load_spec
+from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.link.serial_link import LinkError
 from twin.live.messages import DEFAULT_LISTEN_PORT
 from twin.live.morph import DeviceMorpher, TwinMorpher
@@ -38,12 +39,15 @@ def add_arguments(p) -> None:
                    help="token every client must present (default $VRSCROLL_TOKEN; generated and printed when "
                    "--allow-remote is given without one)")
     p.add_argument("--log", default="vrscroll-live.jsonl", help="serial session log with --port (default %(default)s)")
+    add_device_option(p)
     p.add_argument("--tolerance-deg", type=float, default=5.0,
                    help="e-stop when a hinge parts from the twin's prediction by more (default %(default)s)")
 
 
 def run(args) -> int:
-    spec = load_spec()
+    profile = profile_of(args)
+    spec = profile.spec
+    print(profile_line(profile), flush=True)
     token = args.token
     if args.allow_remote and not token and args.host not in LOOPBACK:
         token = secrets.token_urlsafe(24)
@@ -53,9 +57,10 @@ def run(args) -> int:
         loaded = load_mesh(args.mesh)
         mesh = (loaded.vertices, loaded.faces)
     morpher = (DeviceMorpher(spec, args.port, args.log, args.tolerance_deg) if args.port
-               else TwinMorpher(spec))
+               else TwinMorpher(spec, profile.gains))
     config = ServiceConfig(spec, morpher, host=args.host, listen=args.listen, token=token,
-                           allow_remote=args.allow_remote, variant=args.variant, shape=args.shape, mesh=mesh)
+                           allow_remote=args.allow_remote, variant=args.variant, shape=args.shape, mesh=mesh,
+                           profile=profile.label)
     service = LiveService(config)
 
     host = f"[{args.host}]" if ":" in args.host else args.host  # an IPv6 address in a URL

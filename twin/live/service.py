@@ -61,7 +61,7 @@ def check_exposure(host: str, allow_remote: bool, token: str | None) -> None:
 
 @dataclasses.dataclass
 class ServiceConfig:
-    """What `vrscroll serve` starts. spec/gains: the twin's (a device profile will set them)."""
+    """What `vrscroll serve` starts. spec: the twin's, from the device profile (`profile` names it)."""
 
     spec: DeviceSpec
     morpher: object  # morph.DeviceMorpher or morph.TwinMorpher
@@ -72,6 +72,7 @@ class ServiceConfig:
     variant: str = "full"
     shape: str | None = None  # the initial target: a named shape ...
     mesh: tuple | None = None  # ... or (vertices (V, 3) m, faces (F, 3))
+    profile: str = "spec defaults"  # the device profile's name, as every report names it
 
 
 class _Client:
@@ -261,6 +262,7 @@ class LiveService:
         client.role = msg["role"]
         client.send({"type": "welcome", "protocol": PROTOCOL_VERSION, "role": client.role, "session": client.session,
                      "udp_port": self.port, "variant": self.config.variant, "device": self.morpher.name,
+                     "device_profile": self.config.profile,
                      "target": self.target, "state": self.state, "approximation_rate_hz": APPROXIMATION_RATE_HZ,
                      "max_control_bytes": MAX_CONTROL_BYTES, "max_datagram_bytes": MAX_DATAGRAM_BYTES})
 
