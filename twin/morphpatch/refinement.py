@@ -40,10 +40,10 @@ from functools import lru_cache
 import numba
 import numpy as np
 
-from twin.device.flap_collision import collides
-from twin.device.kinematics import flap_frames, hinge_axis_sign, outer_flap, pose_matrix
+from twin.device.flap_collision import collides, flap_boxes
+from twin.device.kinematics import _chain, hinge_axis_sign, outer_flap
 from twin.device.spec import DeviceSpec
-from twin.morphpatch.fields import Fields
+from twin.morphpatch.fields import Fields, _interpolate, _trilinear
 
 CLEARANCE = 0.0  # m: refined poses keep the flaps out of contact altogether (the gate refuses past 0.1 mm)
 ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
@@ -60,62 +60,85 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
 
     local: (n_flaps, M, 3) sample points in each flap's frame at its width (m); widths (m)
     stay as given; centre (3,) m: the snapped anchor, which the anchor stays within
-    `radius` of.
+    `radius` of. The whole search runs compiled (`_search`).
     """
-    chain = _chain(spec)
-    limit = spec.hinge_limit
-    rot, angles = root_pose[:3, :3].copy(), _uncurled(spec, np.asarray(angles, float))
-    anchor = _bounded(fields, root_pose[:3, 3], centre, radius)
-    state = _evaluate(fields, spec, chain, local, rot, anchor, angles, widths)
+    grid = (fields._value_grad, fields.origin, float(fields.spacing), fields.shape, fields._strides)
+    device = (flap_boxes(spec), _hinges(spec), int(spec.root_flap), float(spec.hinge_limit))
+    pose = np.ascontiguousarray(root_pose, dtype=float)
+    return _search(grid, device, np.ascontiguousarray(local, dtype=float), pose,
+                   np.asarray(angles, float).copy(), np.asarray(widths, float), np.asarray(centre, float),
+                   float(radius))
+
+
+@numba.njit(cache=True)
+def _search(grid, device, local, root_pose, angles, widths, centre, radius):
+    """Levenberg-Marquardt within the bounds (module docstring): (root pose 4x4, hinge angles)."""
+    boxes, _, _, limit = device
+    rot = root_pose[:3, :3].copy()
+    angles = _uncurled(boxes, angles)
+    anchor = _bounded(grid, root_pose[:3, 3].copy(), centre, radius)
+    cost, jtj, jtr, s_anchor, g_anchor = _evaluate(grid, device, local, rot, anchor, angles, widths)
     damping = DAMPING
     for _ in range(MAX_STEPS):
-        cost, jtj, jtr, s_anchor, g_anchor = state
         basis = _free_directions(jtr, s_anchor, g_anchor, anchor, centre, radius)
         lhs = basis.T @ jtj @ basis
         step = -basis @ np.linalg.solve(lhs + damping * np.diag(np.diag(lhs) + 1e-12), basis.T @ jtr)
         if -(2.0 * jtr @ step + step @ jtj @ step) < TOLERANCE * cost:  # the model expects no real gain
             break
-        new_rot = _rodrigues(step[3:6]) @ rot
-        new_anchor = _bounded(fields, anchor + step[:3], centre, radius)
-        new_angles = np.clip(angles + step[6:], -limit, limit)
-        trial = None if collides(spec, new_angles, CLEARANCE) else _evaluate(
-            fields, spec, chain, local, new_rot, new_anchor, new_angles, widths)
-        if trial is not None and trial[0] < cost:
-            rot, anchor, angles, state = new_rot, new_anchor, new_angles, trial
+        new_angles = np.minimum(np.maximum(angles + step[6:], -limit), limit)
+        if collides(boxes, new_angles, CLEARANCE):  # refused like a step that does not lower the sum
+            damping *= 4.0
+            continue
+        new_rot = _rodrigues(step[3:6].copy()) @ rot
+        new_anchor = _bounded(grid, anchor + step[:3], centre, radius)
+        trial = _evaluate(grid, device, local, new_rot, new_anchor, new_angles, widths)
+        if trial[0] < cost:
+            gain = cost - trial[0]
+            rot, anchor, angles = new_rot, new_anchor, new_angles
+            cost, jtj, jtr, s_anchor, g_anchor = trial
             damping *= 0.3
-            if cost - trial[0] < TOLERANCE * cost:
+            if gain < TOLERANCE * (cost + gain):
                 break
         else:
             damping *= 4.0
-    return pose_matrix(anchor, rot), angles
+    pose = np.eye(4)
+    pose[:3, :3] = rot
+    pose[:3, 3] = anchor
+    return pose, angles
 
 
-def _uncurled(spec: DeviceSpec, angles: np.ndarray) -> np.ndarray:
+@numba.njit(cache=True)
+def _uncurled(boxes, angles):
     """The angles if no flaps collide there, else the largest fraction of them (bisection) at which none do."""
-    if not collides(spec, angles, CLEARANCE):
+    if not collides(boxes, angles, CLEARANCE):
         return angles
     lo, hi = 0.0, 1.0
     for _ in range(12):
         mid = (lo + hi) / 2
-        lo, hi = (mid, hi) if not collides(spec, mid * angles, CLEARANCE) else (lo, mid)
+        if not collides(boxes, mid * angles, CLEARANCE):
+            lo = mid
+        else:
+            hi = mid
     return lo * angles
 
 
-def _free_directions(jtr: np.ndarray, s_anchor: float, g_anchor: np.ndarray, anchor: np.ndarray,
-                     centre: np.ndarray, radius: float) -> np.ndarray:
+@numba.njit(cache=True)
+def _free_directions(jtr, s_anchor, g_anchor, anchor, centre, radius):
     """Columns spanning the parameter directions a step may take: all, but where the anchor is on one of
     its bounds (as deep as it may go, or on the ball's surface) and the sum would fall by crossing it, not
     across that bound (the surface's normal, the ball's radius): the step slides along it instead."""
     n = len(jtr)
-    blocked = []
-    if s_anchor <= -ANCHOR_DEPTH + ON_LIMIT and jtr[:3] @ g_anchor > 0.0:  # the sum falls inwards
-        blocked.append(g_anchor)
+    inwards = s_anchor <= -ANCHOR_DEPTH + ON_LIMIT and jtr[:3] @ g_anchor > 0.0  # the sum falls inwards
     out = anchor - centre
-    if _distance(anchor, centre) >= radius - ON_LIMIT and jtr[:3] @ out < 0.0:  # ... or outwards
-        blocked.append(out)
-    if not blocked:
+    outwards = _distance(anchor, centre) >= radius - ON_LIMIT and jtr[:3] @ out < 0.0  # ... or outwards
+    if not (inwards or outwards):
         return np.eye(n)
-    _, sv, vt = np.linalg.svd(np.array(blocked))
+    blocked = np.zeros((int(inwards) + int(outwards), 3))
+    if inwards:
+        blocked[0] = g_anchor
+    if outwards:
+        blocked[-1] = out
+    _, sv, vt = np.linalg.svd(blocked)
     rank = int(np.sum(sv > 1e-9 * sv[0]))
     basis = np.zeros((n, n - rank))
     basis[:3, :3 - rank] = vt[rank:].T  # orthonormal, across none of the blocked directions
@@ -123,33 +146,49 @@ def _free_directions(jtr: np.ndarray, s_anchor: float, g_anchor: np.ndarray, anc
     return basis
 
 
-def _out_of_target(fields: Fields, p: np.ndarray) -> np.ndarray:
+@numba.njit(cache=True)
+def _out_of_target(grid, p):
     """p if it is no deeper in the target than ANCHOR_DEPTH, else the point at that depth that Newton's
     steps along grad S reach from it."""
+    value_grad, origin, spacing, shape, strides = grid
+    vg = np.empty(4)
     for _ in range(3):
-        s, g = fields.sdf_grad(p[None])
-        if s[0] >= -ANCHOR_DEPTH:
+        _interpolate(value_grad, origin, spacing, shape, strides, p[0], p[1], p[2], vg)
+        if vg[0] >= -ANCHOR_DEPTH:
             break
-        p = p - (s[0] + ANCHOR_DEPTH) * g[0] / max(float(g[0] @ g[0]), 1e-12)
+        g = vg[1:].copy()
+        p = p - (vg[0] + ANCHOR_DEPTH) * g / max(g @ g, 1e-12)
     return p
 
 
-def _evaluate(fields, spec, chain, local, rot, anchor, angles, widths):
+@numba.njit(cache=True)
+def _evaluate(grid, device, local, rot, anchor, angles, widths):
     """(sum of S^2 m^2, J^T J, J^T S, S and grad S at the anchor) at one state; J over (anchor, rotation,
     hinge angles)."""
-    moved, sign, inner, half = chain
-    frames = flap_frames(spec, angles, pose_matrix(anchor, rot), widths)
+    _, hinges, root_flap, _ = device
+    moved, sign, inner, half = hinges
+    pose = np.eye(4)
+    pose[:3, :3] = rot
+    pose[:3, 3] = anchor
+    frames = _chain(sign * angles, widths, root_flap, pose)
     points = _place(frames, local, anchor)
-    s, g = fields.sdf_grad(points)
+    value_grad, origin, spacing, shape, strides = grid
+    vg = _trilinear(value_grad, origin, spacing, shape, strides, points)
     # hinge h turns the flaps beyond it about axis a_h through q_h on its inner flap's outer edge
-    axes = frames[inner, :3, 1] * sign[:, None]
-    on_axis = frames[inner, :3, 3] + frames[inner, :3, 0] * (half * widths[inner])[:, None]
-    cost, jtj, jtr = _normal_equations(points, s, g, local.shape[1], moved, axes, on_axis, anchor)
-    return cost, jtj, jtr, s[-1], g[-1]
+    n_hinges = len(inner)
+    axes = np.empty((n_hinges, 3))
+    on_axis = np.empty((n_hinges, 3))
+    for h in range(n_hinges):
+        f = inner[h]
+        for i in range(3):
+            axes[h, i] = frames[f, i, 1] * sign[h]
+            on_axis[h, i] = frames[f, i, 3] + frames[f, i, 0] * half[h] * widths[f]
+    cost, jtj, jtr = _normal_equations(points, vg[:, 0], vg[:, 1:], local.shape[1], moved, axes, on_axis, anchor)
+    return cost, jtj, jtr, vg[-1, 0], vg[-1, 1:].copy()
 
 
 @lru_cache(maxsize=8)
-def _chain(spec: DeviceSpec) -> tuple:
+def _hinges(spec: DeviceSpec) -> tuple:
     """Per spec: which flaps each hinge turns (n_flaps, n_hinges), each hinge's axis sign, its inner flap,
     and the side (+-1/2 of the inner flap's width) its axis lies on."""
     outer = outer_flap(spec)
@@ -160,7 +199,7 @@ def _chain(spec: DeviceSpec) -> tuple:
             moved[o:, h] = 1.0
         else:
             moved[:o + 1, h] = 1.0
-    return moved, hinge_axis_sign(spec), np.where(beyond, outer - 1, outer + 1), np.where(beyond, 0.5, -0.5)
+    return moved, hinge_axis_sign(spec).astype(float), np.where(beyond, outer - 1, outer + 1), np.where(beyond, 0.5, -0.5)
 
 
 @numba.njit(cache=True)
@@ -228,22 +267,23 @@ def _normal_equations(points, s, g, per_flap, moved, axes, on_axis, anchor):
     return cost, jtj, jtr
 
 
-def _bounded(fields: Fields, p: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+@numba.njit(cache=True)
+def _bounded(grid, p, centre, radius):
     """p moved out of the target (to ANCHOR_DEPTH); if that is farther than `radius` from the centre (the
     snapped anchor, on the surface), pulled back just inside the ball and out of the target again, or,
     if that still leaves the ball, the farthest point out of the target towards p that does not, to 1/64
     of the way (bisection along centre -> p: only pulling a point on a convex target back into the ball
     would cut a chord through it, 2 mm deep for 20 mm on the cone)."""
-    q = _out_of_target(fields, p)
+    q = _out_of_target(grid, p)
     if _distance(q, centre) <= radius:
         return q
-    pulled = _out_of_target(fields, centre + (q - centre) * (0.999 * radius / _distance(q, centre)))
+    pulled = _out_of_target(grid, centre + (q - centre) * (0.999 * radius / _distance(q, centre)))
     if _distance(pulled, centre) <= radius:  # a step along the ball's surface leaves it by a hair
         return pulled
-    lo, hi, best = 0.0, 1.0, centre
+    lo, hi, best = 0.0, 1.0, centre.copy()
     for _ in range(6):
         mid = (lo + hi) / 2
-        q = _out_of_target(fields, centre + mid * (p - centre))
+        q = _out_of_target(grid, centre + mid * (p - centre))
         if _distance(q, centre) <= radius:
             lo, best = mid, q
         else:
@@ -251,14 +291,16 @@ def _bounded(fields: Fields, p: np.ndarray, centre: np.ndarray, radius: float) -
     return best
 
 
-def _distance(a: np.ndarray, b: np.ndarray) -> float:
+@numba.njit(cache=True)
+def _distance(a, b):
     d = a - b
-    return math.sqrt(float(d @ d))
+    return math.sqrt(d @ d)
 
 
-def _rodrigues(w: np.ndarray) -> np.ndarray:
+@numba.njit(cache=True)
+def _rodrigues(w):
     """Rotation matrix of the rotation vector w (rad)."""
-    theta = math.sqrt(float(w @ w))
+    theta = math.sqrt(w @ w)
     if theta < 1e-12:
         return np.eye(3)
     k = w / theta
