@@ -43,14 +43,15 @@ import numpy as np
 from twin.device.flap_collision import collides, flap_boxes
 from twin.device.kinematics import _chain, hinge_axis_sign, outer_flap
 from twin.device.spec import DeviceSpec
-from twin.morphpatch.fields import Fields, _interpolate, _trilinear
+from twin.morphpatch.fields import Fields, _interpolate
 
 CLEARANCE = 0.0  # m: refined poses keep the flaps out of contact altogether (the gate refuses past 0.1 mm)
 ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
 MAX_STEPS = 40  # Levenberg-Marquardt trials
 DAMPING = 1e-3  # initial damping, relative to the normal matrix's diagonal
-TOLERANCE = 3e-3  # a step that lowers the sum (or is expected to) by less than this fraction ends the search (1e-4 took
-# about twice the iterations for MSDs within a few hundredths of a mm)
+# a step that lowers the sum (or is expected to) by less than this fraction ends the search (1e-4 took about
+# twice the iterations for little more)
+TOLERANCE = 3e-3
 ANCHOR_DEPTH = 0.5e-3  # m: the anchor may sit this far inside the target, no farther (on the SDF grid)
 ON_LIMIT = 1e-5  # m: an anchor this close to a bound (its depth, the ball) is on it
 
@@ -172,9 +173,6 @@ def _evaluate(grid, device, local, rot, anchor, angles, widths):
     pose[:3, :3] = rot
     pose[:3, 3] = anchor
     frames = _chain(sign * angles, widths, root_flap, pose)
-    points = _place(frames, local, anchor)
-    value_grad, origin, spacing, shape, strides = grid
-    vg = _trilinear(value_grad, origin, spacing, shape, strides, points)
     # hinge h turns the flaps beyond it about axis a_h through q_h on its inner flap's outer edge
     n_hinges = len(inner)
     axes = np.empty((n_hinges, 3))
@@ -184,8 +182,11 @@ def _evaluate(grid, device, local, rot, anchor, angles, widths):
         for i in range(3):
             axes[h, i] = frames[f, i, 1] * sign[h]
             on_axis[h, i] = frames[f, i, 3] + frames[f, i, 0] * half[h] * widths[f]
-    cost, jtj, jtr = _normal_equations(points, vg[:, 0], vg[:, 1:], local.shape[1], moved, axes, on_axis, anchor)
-    return cost, jtj, jtr, vg[-1, 0], vg[-1, 1:].copy()
+    cost, jtj, jtr = _normal_equations(grid, frames, local, moved, axes, on_axis, anchor)
+    value_grad, origin, spacing, shape, strides = grid
+    at_anchor = np.empty(4)
+    _interpolate(value_grad, origin, spacing, shape, strides, anchor[0], anchor[1], anchor[2], at_anchor)
+    return cost, jtj, jtr, at_anchor[0], at_anchor[1:].copy()
 
 
 @lru_cache(maxsize=8)
@@ -204,43 +205,35 @@ def _hinges(spec: DeviceSpec) -> tuple:
 
 
 @numba.njit(cache=True)
-def _place(frames, local, anchor):
-    """World points (n_flaps * M + 1, 3) of the flaps' local samples (n_flaps, M, 3), the anchor last."""
-    n_flaps, m = local.shape[0], local.shape[1]
-    out = np.empty((n_flaps * m + 1, 3))
-    for f in range(n_flaps):
-        for p in range(m):
-            for i in range(3):
-                out[f * m + p, i] = (frames[f, i, 3] + frames[f, i, 0] * local[f, p, 0]
-                                     + frames[f, i, 1] * local[f, p, 1] + frames[f, i, 2] * local[f, p, 2])
-    out[n_flaps * m] = anchor
-    return out
-
-
-@numba.njit(cache=True)
-def _normal_equations(points, s, g, per_flap, moved, axes, on_axis, anchor):
-    """Sum of s^2, J^T J (12, 12) and J^T s (12,) over the flap samples (the rows before the last).
+def _normal_equations(grid, frames, local, moved, axes, on_axis, anchor):
+    """Sum of S^2, J^T J (n, n) and J^T S (n,) over the flaps' samples `local` (n_flaps, M, 3) placed by
+    their frames, S and grad S interpolated on the grid as they are placed (no arrays of points).
 
     A sample's Jacobian row is linear in w = (g, x cross g): row = M_f w, with M_f fixed per flap
     (module docstring), so the samples are summed per flap as w w^T and w s first.
     """
+    value_grad, origin, spacing, shape, strides = grid
     n_flaps, n_hinges = moved.shape
     ww = np.zeros((n_flaps, 6, 6))
     ws = np.zeros((n_flaps, 6))
     w = np.zeros(6)
+    vg = np.empty(4)
     cost = 0.0
-    for p in range(n_flaps * per_flap):
-        f = p // per_flap
-        gx, gy, gz = g[p, 0], g[p, 1], g[p, 2]
-        x, y, z = points[p, 0], points[p, 1], points[p, 2]
-        w[0], w[1], w[2] = gx, gy, gz
-        w[3], w[4], w[5] = y * gz - z * gy, z * gx - x * gz, x * gy - y * gx
-        r = s[p]
-        cost += r * r
-        for a in range(6):
-            ws[f, a] += w[a] * r
-            for b in range(a, 6):
-                ww[f, a, b] += w[a] * w[b]
+    for f in range(n_flaps):
+        for p in range(local.shape[1]):
+            lx, ly, lz = local[f, p, 0], local[f, p, 1], local[f, p, 2]
+            x = frames[f, 0, 3] + frames[f, 0, 0] * lx + frames[f, 0, 1] * ly + frames[f, 0, 2] * lz
+            y = frames[f, 1, 3] + frames[f, 1, 0] * lx + frames[f, 1, 1] * ly + frames[f, 1, 2] * lz
+            z = frames[f, 2, 3] + frames[f, 2, 0] * lx + frames[f, 2, 1] * ly + frames[f, 2, 2] * lz
+            _interpolate(value_grad, origin, spacing, shape, strides, x, y, z, vg)
+            r, gx, gy, gz = vg[0], vg[1], vg[2], vg[3]
+            w[0], w[1], w[2] = gx, gy, gz
+            w[3], w[4], w[5] = y * gz - z * gy, z * gx - x * gz, x * gy - y * gx
+            cost += r * r
+            for a in range(6):
+                ws[f, a] += w[a] * r
+                for b in range(a, 6):
+                    ww[f, a, b] += w[a] * w[b]
     n = 6 + n_hinges
     jtj = np.zeros((n, n))
     jtr = np.zeros(n)
