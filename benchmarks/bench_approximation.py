@@ -51,9 +51,9 @@ def main() -> None:
         points = points + mesh.face_normals[faces] * rng.uniform(-0.01, 0.03, (4000, 1))
         err = np.abs(fields.sdf_values(points) - exact_signed_distance(mesh, points)[0]) * 1e3
         starts = approach_starts(mesh, args.starts, seed=0)
-        approximate(fields, starts[0], spec)  # warm-up: loads compiled code
         cols = []
         for variant in VARIANTS:
+            approximate(fields, starts[0], spec, variant)  # warm-up: loads (or compiles) this variant's code
             results = [approximate(fields, s, spec, variant) for s in starts]
             times[variant] += [r.time for r in results]
             m = np.array([msd_hd(spec, mesh, r.root_pose, r.angles, r.widths) for r in results]) * 1e3

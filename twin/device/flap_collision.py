@@ -15,7 +15,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from twin.device.kinematics import flap_frames
+from twin.device.kinematics import _chain, hinge_axis_sign
 from twin.device.spec import DeviceSpec
 
 CONTACT_DEPTH = 1e-4  # m: a flap-on-flap penetration deeper than this is a collision
@@ -34,9 +34,21 @@ def flap_overlap(spec: DeviceSpec, angles, turn: float = 0.0) -> float:
     of those four): the test runs on the rectangles in the x-z plane. Pairs whose hinges
     between them turn by less than `turn` (rad, total of |angle|) in all are skipped.
     """
-    angles = np.asarray(angles, float)
-    frames = flap_frames(spec, angles)
-    half = np.array([(spec.flap_pitch - spec.flap_gap) / 2, spec.thickness / 2])
+    return overlap(flap_boxes(spec), np.asarray(angles, float), turn)
+
+
+def flap_boxes(spec: DeviceSpec) -> tuple:
+    """What `overlap` needs of a spec: the hinges' axis signs, the flaps' widths (m), the root flap and
+    the boxes' half sizes (across the row, thickness; m)."""
+    return (hinge_axis_sign(spec).astype(float), np.full(spec.n_flaps, spec.flap_pitch), int(spec.root_flap),
+            np.array([(spec.flap_pitch - spec.flap_gap) / 2, spec.thickness / 2]))
+
+
+@numba.njit(cache=True)
+def overlap(boxes, angles, turn):
+    """`flap_overlap` compiled, from `flap_boxes(spec)`: callable from compiled loops (the refinement's)."""
+    signs, widths, root_flap, half = boxes
+    frames = _chain(signs * angles, widths, root_flap, np.eye(4))
     return _deepest(frames, half, np.abs(angles), turn)
 
 
@@ -67,6 +79,8 @@ def _deepest(frames, half, turns, turn):
     return deepest
 
 
-def collides(spec: DeviceSpec, angles, depth: float = CONTACT_DEPTH) -> bool:
-    """True where two flaps at these hinge angles (rad) press into each other deeper than `depth` (m)."""
-    return flap_overlap(spec, angles, FREE_TURN) > depth
+@numba.njit(cache=True)
+def collides(boxes, angles, depth=CONTACT_DEPTH):
+    """True where two flaps at these hinge angles (rad) press into each other deeper than `depth` (m);
+    boxes: `flap_boxes(spec)`. Compiled, for the refinement's loop."""
+    return overlap(boxes, angles, FREE_TURN) > depth
