@@ -46,6 +46,20 @@ def error(code: str, message: str, source: str = "control", count: int = 1) -> d
 
 # ---- control channel ------------------------------------------------------------------
 
+
+def _typed_object(text, what: str, types) -> tuple[dict, str]:
+    """(object, its type) from one JSON message; ProtocolError("malformed" | "unknown_type") if not one."""
+    try:
+        obj = json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ProtocolError("malformed", f"{what} is not JSON: {exc}") from None
+    if not isinstance(obj, dict):
+        raise ProtocolError("malformed", f"a {what} is a JSON object with a 'type'")
+    kind = obj.get("type")
+    if kind not in types:
+        raise ProtocolError("unknown_type", f"{what} type {kind!r}; the service takes {', '.join(types)}")
+    return obj, kind
+
 def parse_control(message) -> dict:
     """A client's control message as a dict, checked against its type's schema; ProtocolError if not."""
     if isinstance(message, bytes):
@@ -53,15 +67,7 @@ def parse_control(message) -> dict:
     size = len(message.encode())
     if size > MAX_CONTROL_BYTES:
         raise ProtocolError("oversized", f"control message of {size} bytes, limit {MAX_CONTROL_BYTES}")
-    try:
-        obj = json.loads(message)
-    except json.JSONDecodeError as exc:
-        raise ProtocolError("malformed", f"not JSON: {exc}") from None
-    if not isinstance(obj, dict):
-        raise ProtocolError("malformed", "a control message is a JSON object with a 'type'")
-    kind = obj.get("type")
-    if kind not in CLIENT_TYPES:
-        raise ProtocolError("unknown_type", f"type {kind!r}; the service takes {', '.join(CLIENT_TYPES)}")
+    obj, kind = _typed_object(message, "control message", CLIENT_TYPES)
     if kind == "hello":
         if obj.get("protocol") != PROTOCOL_VERSION:
             raise ProtocolError("malformed", f"hello: 'protocol' must be {PROTOCOL_VERSION}")
@@ -134,15 +140,7 @@ def parse_datagram(data: bytes) -> Sample:
     """A pose or pen datagram; ProtocolError("oversized" | "malformed" | "unknown_type") if not one."""
     if len(data) > MAX_DATAGRAM_BYTES:
         raise ProtocolError("oversized", f"datagram of {len(data)} bytes, limit {MAX_DATAGRAM_BYTES}")
-    try:
-        obj = json.loads(data)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ProtocolError("malformed", f"datagram is not JSON: {exc}") from None
-    if not isinstance(obj, dict):
-        raise ProtocolError("malformed", "a datagram is a JSON object with a 'type'")
-    kind = obj.get("type")
-    if kind not in DATAGRAM_TYPES:
-        raise ProtocolError("unknown_type", f"datagram type {kind!r}; the service takes {', '.join(DATAGRAM_TYPES)}")
+    obj, kind = _typed_object(data, "datagram", DATAGRAM_TYPES)
     session, seq, t_s = obj.get("session"), obj.get("seq"), obj.get("t_s")
     if not isinstance(session, str):
         raise ProtocolError("malformed", f"{kind}: 'session' must be the string the welcome gave")
