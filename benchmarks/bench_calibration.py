@@ -64,10 +64,11 @@ def one(seed: int, folder: Path) -> None:
                        spec.replace(**{k: v for k, v in truth.items() if k != "supply_voltage"}), spec)
     h = cal["holdout"]
     print(f"seed {seed}: calibrated in {wall:.0f} s ({cal['replays']} replays)")
-    print(f"  {'parameter':<14} {'drawn x':>8} {'fitted x':>9} {'95 % interval x':>17}  identifiable")
+    print(f"  {'parameter':<14} {'drawn x':>8} {'fitted x':>9} {'95 % interval x':>17}  verdict")
     for p, e in cal["parameters"].items():
+        verdict = "identifiable" if e["identifiable"] else "fitted" if e["value"] != e["prior"] else "prior"
         print(f"  {p:<14} {truth[p] / e['prior']:8.3f} {e['value'] / e['prior']:9.3f} "
-              f"{e['low'] / e['prior']:8.3f}..{e['high'] / e['prior']:<7.3f}  {e['identifiable']}")
+              f"{e['low'] / e['prior']:8.3f}..{e['high'] / e['prior']:<7.3f}  {verdict}")
     print("  held-out RMSE per hinge, deg: before " + " ".join(f"{x:.3f}" for x in h["rmse_before_deg"]))
     print("                                after  " + " ".join(f"{x:.3f}" for x in h["rmse_after_deg"]))
     print("                     drawn plant (floor) " + " ".join(f"{x:.3f}" for x in floor))

@@ -11,7 +11,7 @@ from random_plant import drawn_plant, emulator_args
 from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
 from twin.formats.run import read_run
-from twin.hil.calibration import trace_rmse
+from twin.hil.calibration import PRIOR_RANGE, trace_rmse
 from twin.hil.mirror import mirror
 from twin.link.serial_link import Link
 
@@ -37,13 +37,14 @@ def calibrate_and_tune_on_a_drawn_plant(seed, emulator, tmp_path, capsys):
     capsys.readouterr()
     cal = _json(capsys, "calibrate", str(train), "--holdout", str(hold), "--device", "drawn", "--json")
     assert cal["device_profile"] == "drawn"
-    fitted = {p: e for p, e in cal["parameters"].items() if e["identifiable"]}
-    assert fitted, cal["parameters"]
+    assert any(e["value"] != e["prior"] for e in cal["parameters"].values()), cal["parameters"]
     for p, e in cal["parameters"].items():
+        assert e["low"] < e["value"] < e["high"], (p, e)
         if e["identifiable"]:  # within 20 % of the truth
             assert e["value"] == pytest.approx(truth[p], rel=0.2), (p, e, truth[p])
-        else:  # left at its prior, its prior range as its interval
-            assert e["value"] == e["prior"] and e["low"] < e["value"] < e["high"] or e["low"] == 0
+        else:  # fitted loosely (its interval wider than x(1 -+ 0.15)), or left at its prior: its prior range open
+            lo, hi = (e["prior"] * r for r in PRIOR_RANGE[p])
+            assert e["low"] <= lo * (1 + 1e-9) and e["high"] >= hi * (1 - 1e-9), (p, e)
     # held-out error: at least half of what can go is gone. The drawn plant's own parameters in the twin leave
     # a floor (backlash wander, missed edges, stick-slip the twin cannot time: 0.18-0.26 deg), so halving
     # the whole error is out of reach where the prior is already near the plant

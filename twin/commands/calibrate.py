@@ -44,7 +44,7 @@ def add_arguments(p) -> None:
     p.add_argument("--gains", help="with --scenario: a gains file instead of the device's")
     p.add_argument("--seed", type=int, default=0, help="with --scenario: which angles (default %(default)s)")
     p.add_argument("--cycles", type=int, default=2,
-                   help="with --scenario: cycles of a large move and four small steps (default %(default)s)")
+                   help="with --scenario: cycles of a large move and a slow ramp out and back (default %(default)s)")
     add_device_option(p)
 
 
@@ -107,7 +107,7 @@ def run(args) -> int:
                     progress=None if args.json else lambda g, c: print(
                         f"generation {g + 1}/{args.generations}: best cost {c:.4g}", flush=True))
     source = "calibrated from " + ", ".join(str(Path(r).resolve()) for r in args.runs) + " (vrscroll calibrate)"
-    fitted = {p: e.value for p, e in res.estimates.items() if e.identifiable}
+    fitted = {p: e.value for p, e in res.estimates.items() if e.fitted}
     written = []
     if name:
         calibration = {"runs": [str(Path(r).resolve()) for r in args.runs],

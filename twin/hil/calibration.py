@@ -28,10 +28,14 @@ which already includes it).
 
 Search: a cross-entropy method, then a quadratic fitted to the better half of its
 samples (the cost is rough at small scales, where a gradient method stalls: see
-`calibrate`). The quadratic's Hessian gives each parameter's 95 % interval, the
-residual's autocorrelation allowed for; a parameter the runs do not pin within
-x(1 -+ MAX_HALFWIDTH) is left at its prior and reported so, with its prior range
-(PRIOR_RANGE) as what calibration leaves open. docs/tuning-hil-calibration.md says
+`calibrate`). Each parameter's 95 % interval is the wider of the quadratic's
+Hessian's (the residual's autocorrelation allowed for) and a jackknife's over the
+hinges' stretches of the runs. Three verdicts: a parameter the runs show less well
+than its prior range (PRIOR_RANGE) does is left at its prior, with that range as
+what calibration leaves open; the others are fitted together, and each is
+identifiable when its interval, widened by what the ones left at their priors could
+move it, is within x(1 -+ MAX_HALFWIDTH); a fitted one that is not keeps its
+fitted value, and leaves its interval and its prior range open. docs/tuning-hil-calibration.md says
 why mujoco.sysid is not used.
 """
 
@@ -61,6 +65,7 @@ SEARCH_STD = 0.25  # log: the cross-entropy search's first spread about the prio
 ELITE = 6  # samples per generation the next is drawn about
 DUTY_WINDOW = 0.2  # s: the duty is compared as means over windows this long
 DUTY_WEIGHT = 20.0  # deg per unit duty: a 0.01 duty error weighs as 0.2 deg (each about its noise floor)
+JACKKNIFE_SEGMENTS = 3  # stretches of a run per hinge the jackknife leaves out: 18 groups for one run
 
 
 def replay(run: dict, plant: DeviceSpec, spec: DeviceSpec | None = None):
@@ -100,9 +105,12 @@ def residual_blocks(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> tuple[np.
     return angle - device_angles(run, spec), DUTY_WEIGHT * (window_means(t, duty) - window_means(t, dev["duty"]))
 
 
-def residuals(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
-    """residual_blocks, flattened into one vector."""
-    return np.concatenate([b.ravel() for b in residual_blocks(run, plant, spec)])
+def group_costs(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
+    """The fit's cost (sum of squared residuals, deg^2) for one run, split into groups: each hinge's, in
+    JACKKNIFE_SEGMENTS consecutive stretches of the run ((segments x n,)). Their sum is the run's cost; the
+    groups are what the intervals' jackknife leaves out one at a time."""
+    sq = sum(b ** 2 for b in residual_blocks(run, plant, spec))
+    return np.stack([c.sum(axis=0) for c in np.array_split(sq, JACKKNIFE_SEGMENTS)]).ravel()
 
 
 def trace_rmse(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
@@ -116,12 +124,17 @@ def trace_rmse(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
 class Estimate:
     """One parameter after calibration, SI (the spec field's unit)."""
 
-    value: float  # fitted, or the prior when not identifiable
+    value: float  # fitted, or exactly the prior when the runs do not show it
     prior: float  # the value calibration started from (the profile's or the spec's)
-    low: float  # the interval left open: the 95 % interval when fitted, the prior range when not
+    low: float  # left open: the 95 % interval when identifiable, with the prior range when not
     high: float
-    identifiable: bool
+    identifiable: bool  # fitted, and its interval within x(1 -+ MAX_HALFWIDTH)
     note: str  # why it is or is not fitted, in words
+
+    @property
+    def fitted(self) -> bool:
+        """Whether calibration moved it from its prior (a parameter left at its prior is exactly its prior)."""
+        return self.value != self.prior
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -168,19 +181,91 @@ def autocorrelation_time(blocks) -> float:
     return float(np.average(taus, weights=weights)) if taus else 1.0
 
 
-def quadratic_fit(X: np.ndarray, c: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(c0, gradient g, Hessian H) of the quadratic c0 + g.x + x.H.x / 2 that fits costs c at points X
-    (samples, k) best in least squares: the cost's shape at the scale of the samples, its roughness
-    averaged out."""
+def quadratic_fit(X: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per column of costs C (samples, groups) at points X (samples, k): the gradient g (groups, k) and
+    Hessian H (groups, k, k) of the quadratic c0 + g.x + x.H.x / 2 that fits them best in least squares: the
+    cost's shape at the scale of the samples, its roughness averaged out. The fit is linear in the costs, so
+    the sum over groups is the fit of the summed cost."""
     k = X.shape[1]
     pairs = [(i, j) for i in range(k) for j in range(i, k)]
     A = np.concatenate([np.ones((len(X), 1)), X, np.stack([X[:, i] * X[:, j] * (0.5 if i == j else 1.0)
                                                          for i, j in pairs], axis=1)], axis=1)
-    coef = np.linalg.lstsq(A, c, rcond=None)[0]
-    H = np.zeros((k, k))
-    for (i, j), h in zip(pairs, coef[1 + k:]):
-        H[i, j] = H[j, i] = h
-    return float(coef[0]), coef[1:1 + k], H
+    coef = np.linalg.lstsq(A, C, rcond=None)[0].T  # (groups, features)
+    H = np.zeros((len(coef), k, k))
+    for (i, j), h in zip(pairs, coef[:, 1 + k:].T):
+        H[:, i, j] = H[:, j, i] = h
+    return coef[:, 1:1 + k], H
+
+
+def quadratic_minimum(grad, H, xb, F, D) -> np.ndarray:
+    """The free parameters F's minimum (log) of the quadratic about xb, the dropped ones D held at 0."""
+    rhs = -(grad[F] - H[np.ix_(F, D)] @ xb[D])
+    return np.clip(xb[F] + np.linalg.lstsq(H[np.ix_(F, F)], rhs, rcond=None)[0], -LOG_BOUND, LOG_BOUND)
+
+
+def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float = MAX_HALFWIDTH):
+    """What the runs show: (x, {parameter: Estimate}), x the log(value / prior) of each parameter (0 where left
+    at its prior), from the search's per-group quadratics (quadratic_fit about xb, the best sample) and s2, the
+    residual's variance per independent sample. See `calibrate`."""
+    k, n_groups = len(params), len(grads)
+    grad, H = grads.sum(axis=0), Hs.sum(axis=0)
+    width = {i: math.log(PRIOR_RANGE[p][1] / PRIOR_RANGE[p][0]) for i, p in enumerate(params)}  # log
+    free, dropped = list(range(k)), {}
+    x, sigma = np.zeros(k), np.full(k, np.inf)
+    while free:
+        F, D = np.array(free), np.setdiff1d(np.arange(k), free)
+        x = np.zeros(k)  # the dropped ones at their prior: 0
+        x[F] = quadratic_minimum(grad, H, xb, F, D)
+        HFF = H[np.ix_(F, F)]
+        sigma = np.full(k, np.inf)
+        curved = bool(np.all(np.linalg.eigvalsh(HFF) > 0))
+        if curved:
+            # the residual's noise: 2 s^2 H^-1
+            noise = np.sqrt(np.maximum(np.diag(2.0 * s2 * np.linalg.inv(HFF)), 0.0))
+            # the jackknife: the minimum with each group's cost left out, spread about their mean
+            loo = np.array([quadratic_minimum(grad - grads[j], H - Hs[j], xb, F, D) for j in range(n_groups)])
+            jack = np.sqrt((n_groups - 1) / n_groups * ((loo - loo.mean(axis=0)) ** 2).sum(axis=0))
+            sigma[F] = np.maximum(noise, jack)
+        else:
+            x[F] = xb[F]
+            sigma[F] = [math.sqrt(2.0 * s2 / H[i, i]) if H[i, i] > 0 else np.inf for i in F]
+        # shown less well than the prior range says: back to the prior, the least shown first
+        wide = [i for i in free if 2.0 * 1.96 * sigma[i] > width[i]]
+        if curved and not wide:
+            break
+        i = max(wide or free, key=lambda i: sigma[i] / width[i])
+        dropped[params[i]] = (f"not shown by the runs: its 95 % interval would be x{math.exp(-1.96 * sigma[i]):.2f} .. "
+                              f"x{math.exp(1.96 * sigma[i]):.2f}, wider than its prior range" if math.isfinite(sigma[i])
+                              else "not shown by the runs: the cost does not curve up along it") + "; left at its prior"
+        free.remove(i)
+    if not free:
+        x = np.zeros(k)
+    # each kept parameter's interval (log, about x): its noise and jackknife, widened by how far it would move
+    # were the ones left at their priors anywhere in their prior ranges (the minimum moves by -HFF^-1 HFD dxD)
+    lo, hi = x - 1.96 * sigma, x + 1.96 * sigma
+    F, D = np.array(free, int), np.setdiff1d(np.arange(k), free)
+    if len(F) and len(D):
+        S = -np.linalg.solve(H[np.ix_(F, F)], H[np.ix_(F, D)])
+        ends = np.log([PRIOR_RANGE[params[j]] for j in D])  # (dropped, 2)
+        lo[F] += np.minimum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
+        hi[F] += np.maximum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
+    estimates = {}
+    for i, p in enumerate(params):
+        lo_p, hi_p = PRIOR_RANGE[p]
+        if i in free:
+            below, above = math.exp(lo[i] - x[i]), math.exp(hi[i] - x[i])
+            pinned = bool(max(x[i] - lo[i], hi[i] - x[i]) <= math.log1p(max_halfwidth))
+            low, high = prior[p] * math.exp(lo[i]), prior[p] * math.exp(hi[i])
+            note = f"fitted; 95 % interval x{below:.3f} .. x{above:.3f}"
+            if not pinned:  # the fit's interval need not hold the truth where model errors load onto it
+                low, high = min(low, prior[p] * lo_p), max(high, prior[p] * hi_p)
+                note += (f", wider than x(1 -+ {max_halfwidth:g}): not identifiable; the fitted value kept, its "
+                         f"prior range x{lo_p:g} .. x{hi_p:g} left open with it")
+            estimates[p] = Estimate(prior[p] * math.exp(x[i]), prior[p], low, high, pinned, note)
+        else:
+            estimates[p] = Estimate(prior[p], prior[p], prior[p] * lo_p, prior[p] * hi_p, False,
+                                    dropped.get(p, "not fitted") + f"; prior range x{lo_p:g} .. x{hi_p:g}")
+    return x, estimates
 
 
 def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int = 24, generations: int = 8,
@@ -193,12 +278,19 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int
     mujoco.minimize.least_squares stopped after 6-10 iterations with "insufficient reduction", well short of
     the truth, on the emulator's drawn plants). So: a cross-entropy search (population x generations
     replays), then a quadratic fitted to the costs of the samples near the best (the cost's shape at the
-    scale of the search, its roughness averaged out). Its Hessian H gives the covariance 2 s^2 H^-1, s^2 the
-    residual's variance per independent sample (its autocorrelation allowed for), and with it each
-    parameter's 95 % interval. A parameter whose interval is wider than x(1 -+ max_halfwidth), or along which
-    the quadratic does not curve up, is not shown by the runs: it is put back at its prior, the least seen
-    first, and the others re-estimated at the quadratic's minimum with it held there, until every parameter
-    left is identifiable. progress(generation, best cost) is called as the search goes.
+    scale of the search, its roughness averaged out). Each parameter's standard error is the larger of two:
+    the residual's noise, 2 s^2 H^-1 with H the quadratic's Hessian and s^2 the residual's variance per
+    independent sample (its autocorrelation allowed for); and a delete-one-group jackknife over each hinge's
+    stretches of the runs (group_costs): what the fit would have said without each, which also holds what
+    the noise model misses (stick-slip, missed edges, a model error one hinge or moment shows and the others
+    do not). With it, each parameter's 95 % interval. A parameter whose interval is wider than its prior
+    range, or along which the quadratic does not curve up, is not shown by the runs: it is put back at its
+    prior, the least seen first, and the others re-estimated at the quadratic's minimum with it held there.
+    Holding it there biases the others by as much as its prior may be off, so each kept parameter's interval
+    is widened by how far its minimum would move were the held ones anywhere in their prior ranges; it is
+    identifiable when that interval is within x(1 -+ max_halfwidth), and otherwise kept at its fitted value,
+    said so, with its prior range left open as well as its interval (a model error can load onto a loosely
+    shown parameter and pull its interval off the truth: backlash, on the emulator's plants). progress(generation, best cost) is called as the search goes.
     """
     params = tuple(params)
     prior = {p: float(getattr(base, p)) for p in params}
@@ -211,24 +303,23 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int
 
     def cost(x):
         count[0] += 1
-        return float(sum((residuals(r, plant(x), base) ** 2).sum() for r in runs))
+        return np.concatenate([group_costs(r, plant(x), base) for r in runs])
 
     def angle_rmse(p):
         return float(np.sqrt(np.mean(np.concatenate([trace_rmse(r, p, base) ** 2 for r in runs]))))
 
     rng = np.random.default_rng(seed)
     mean, std = np.zeros(k), np.full(k, SEARCH_STD)
-    X, C = [], []
-    best = (cost(mean), mean.copy())
-    X.append(mean.copy())
-    C.append(best[0])
+    first = cost(mean)
+    best = (float(first.sum()), mean.copy())
+    X, G = [mean.copy()], [first]
     for g in range(generations):
         pop = np.clip(mean + std * rng.standard_normal((population, k)), -LOG_BOUND, LOG_BOUND)
         pop[0] = best[1]
-        c = np.array([cost(x) for x in pop[1:]] + [best[0]])
-        c = np.roll(c, 1)
+        costs = [cost(x) for x in pop[1:]]
         X.extend(pop[1:])
-        C.extend(c[1:])
+        G.extend(costs)
+        c = np.array([best[0]] + [float(gc.sum()) for gc in costs])
         order = np.argsort(c)
         if c[order[0]] < best[0]:
             best = (float(c[order[0]]), pop[order[0]].copy())
@@ -237,54 +328,17 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int
         std = np.maximum(0.7 * std + 0.3 * elite.std(axis=0), 0.02)
         if progress:
             progress(g, best[0])
-    X, C = np.array(X), np.array(C)
-    near = np.argsort(C)[:max(len(C) // 2, 3 * (1 + k + k * (k + 1) // 2))]
+    X, G = np.array(X), np.array(G)
+    near = np.argsort(G.sum(axis=1))[:max(len(G) // 2, 3 * (1 + k + k * (k + 1) // 2))]
     xb = best[1]
-    _, grad, H = quadratic_fit(X[near] - xb, C[near])
+    grads, Hs = quadratic_fit(X[near] - xb, G[near])
     tau = autocorrelation_time([b for run in runs for b in residual_blocks(run, plant(xb), base)])
     m = sum(len(r["device"]["time_s"]) for r in runs) * 2 * base.n_hinges
     s2 = best[0] * tau / max(m - k, 1)
 
-    free, dropped = list(range(k)), {}
-    x, sigma = np.zeros(k), np.full(k, np.inf)
-    while free:
-        F, D = np.array(free), np.setdiff1d(np.arange(k), free)
-        x = np.zeros(k)  # the dropped ones at their prior: 0
-        # minimum of the quadratic (about xb) over the free parameters, the dropped ones held at 0
-        HFF = H[np.ix_(F, F)]
-        rhs = -(grad[F] - H[np.ix_(F, D)] @ xb[D])
-        curved = np.all(np.linalg.eigvalsh(HFF) > 0)
-        if curved:
-            x[F] = np.clip(xb[F] + np.linalg.solve(HFF, rhs), -LOG_BOUND, LOG_BOUND)
-            cov = 2.0 * s2 * np.linalg.inv(HFF)
-            sigma = np.full(k, np.inf)
-            sigma[F] = np.sqrt(np.maximum(np.diag(cov), 0.0))
-        else:
-            x[F] = xb[F]
-            sigma = np.full(k, np.inf)
-            sigma[F] = [math.sqrt(2.0 * s2 / H[i, i]) if H[i, i] > 0 else np.inf for i in F]
-        wide = [i for i in free if not 1.96 * sigma[i] <= math.log1p(max_halfwidth)]
-        if curved and not wide:
-            break
-        i = max(wide or free, key=lambda i: sigma[i])
-        dropped[params[i]] = (f"not shown by the runs: its 95 % interval would be x{math.exp(-1.96 * sigma[i]):.2f} .. "
-                              f"x{math.exp(1.96 * sigma[i]):.2f}" if math.isfinite(sigma[i]) else
-                              "not shown by the runs: the cost does not curve up along it") + "; left at its prior"
-        free.remove(i)
-    if not free:
-        x = np.zeros(k)
+    x, estimates = verdicts(grads, Hs, xb, s2, params, prior, max_halfwidth)
     fitted = plant(x)
-    estimates = {}
-    for i, p in enumerate(params):
-        if i in free:
-            half = 1.96 * sigma[i]
-            estimates[p] = Estimate(float(getattr(fitted, p)), prior[p], prior[p] * math.exp(x[i] - half),
-                                    prior[p] * math.exp(x[i] + half), True,
-                                    f"fitted; 95 % interval x{math.exp(-half):.3f} .. x{math.exp(half):.3f}")
-        else:
-            lo, hi = PRIOR_RANGE[p]
-            estimates[p] = Estimate(prior[p], prior[p], prior[p] * lo, prior[p] * hi, False,
-                                    dropped.get(p, "not fitted") + f"; prior range x{lo:g} .. x{hi:g}")
+    H = Hs.sum(axis=0)
     norms = np.sqrt(np.maximum(np.diag(H), 1e-300))
     sv = np.linalg.svd(H / np.outer(norms, norms), compute_uv=False)
     return CalibrationResult(
