@@ -43,7 +43,7 @@ def test_flaps_the_bound_calls_apart_are_apart_in_mujoco(spec):
     assert held > 60
 
 
-def test_a_curl_the_bound_refuses_does_touch(spec):
+def test_flaps_folded_back_to_back_touch_and_the_bound_says_so(spec):
     """Two flaps folded back onto their neighbour (convex, the boxes' backs meeting): the bound gives way
     before MuJoCo finds them touching, and refuses them once they do."""
     model = load_model(spec)

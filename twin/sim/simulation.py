@@ -397,10 +397,10 @@ class Twin:
             _LIB.mj_copyModel(self._free_model._address, m._address)
             self._free_model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
         done = _firmware_loop(
-            m._address, self._free_model._address, spreads, d._address, self.substeps, self.firmware.address, self._now_us, tick_us(s), d.sensordata,
-            d.qpos, d.qvel, d.ctrl, d.qfrc_actuator, d.qfrc_applied, h.enc, h.qadr, h.gear_dof,
-            float(s.counts_per_motor_rev), self._params, self._bus, self._target, self._counts, self._duty,
-            self._decay, self._pwm, ticks, s.settle_band, int(round(s.settle_hold / s.firmware_dt)),
+            m._address, self._free_model._address, spreads, d._address, self.substeps, self.firmware.address,
+            self._now_us, tick_us(s), d.sensordata, d.qpos, d.qvel, d.ctrl, d.qfrc_actuator, d.qfrc_applied, h.enc,
+            h.qadr, h.gear_dof, float(s.counts_per_motor_rev), self._params, self._bus, self._target, self._counts,
+            self._duty, self._decay, self._pwm, ticks, s.settle_band, int(round(s.settle_hold / s.firmware_dt)),
             stop_when_settled, *rec)
         wall = time.perf_counter() - start
         self._now_us = (self._now_us + done * tick_us(s)) & 0xFFFFFFFF
