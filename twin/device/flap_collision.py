@@ -8,6 +8,9 @@ the smallest overlap along any axis that could separate them is the depth, none 
 no contact.
 The gate (twin/sim/gate.py) counts a contact deeper than CONTACT_DEPTH; so does
 `flap_overlap` here, and tests/test_gate.py checks the two agree.
+
+`apart` is a cheaper, proven bound for the twin's loop: where it holds, no two flaps two or more
+apart touch, so MuJoCo's collision detection can be skipped for that step.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ CONTACT_DEPTH = 1e-4  # m: a flap-on-flap penetration deeper than this is a coll
 # angles| between them they cannot (measured: no collision under 208 deg in 40000 random curls), so
 # `collides` skips those pairs
 FREE_TURN = 0.8 * np.pi
+APART_CLEARANCE = 1e-6  # m: the gap `apart` asks for beyond touching (rounding, MuJoCo's own arithmetic)
 
 
 def flap_overlap(spec: DeviceSpec, angles, turn: float = 0.0) -> float:
@@ -84,3 +88,39 @@ def collides(boxes, angles, depth=CONTACT_DEPTH):
     """True where two flaps at these hinge angles (rad) press into each other deeper than `depth` (m);
     boxes: `flap_boxes(spec)`. Compiled, for the refinement's loop."""
     return overlap(boxes, angles, FREE_TURN) > depth
+
+
+def apart_spreads(spec: DeviceSpec, margin: float = 0.0) -> np.ndarray:
+    """What `apart` needs of a spec: per number g of flaps between two flaps (index g, 1 .. n_flaps - 2;
+    index 0 unused), the largest spread of the flaps' directions (rad) at which those two stay at least
+    margin + APART_CLEARANCE (m) apart.
+
+    The bound: let R be the spread (largest minus smallest direction in the x-z plane) of flaps i .. j
+    and u the direction halfway. Each flap between advances the hinge line by the pitch p along u at least
+    p cos(R/2); flap i lies behind its outer hinge along u, but for its thickness t, which reaches at most
+    t sin(R/2) ahead of it, and flap j likewise. So for R < pi the two are apart along u where
+    g p cos(R/2) - 2 t sin(R/2) >= margin + clearance, i.e. R/2 <= acos(c / hypot(g p, 2 t)) - atan2(2 t, g p).
+    """
+    c = margin + APART_CLEARANCE
+    g = np.arange(spec.n_flaps - 1, dtype=float)
+    a, b = g * spec.flap_pitch, 2.0 * spec.thickness
+    h = np.hypot(a, b)
+    spreads = 2.0 * (np.arccos(np.minimum(c / h, 1.0)) - np.arctan2(b, a))
+    spreads[0] = 0.0
+    return spreads
+
+
+@numba.njit(cache=True)
+def apart(spreads, angles) -> bool:
+    """True where no two flaps two or more apart can touch at these hinge angles (rad): a bound on the
+    spread of the flaps' directions, from `apart_spreads(spec, margin)`. Flap k + 1 points the way of flap k
+    turned by hinge k's angle (the same sense on either side of the root)."""
+    n = angles.shape[0] + 1
+    for i in range(n - 2):
+        direction = lo = hi = 0.0
+        for j in range(i + 1, n):
+            direction += angles[j - 1]
+            lo, hi = min(lo, direction), max(hi, direction)
+            if j >= i + 2 and hi - lo >= spreads[j - i - 1]:
+                return False
+    return True

@@ -158,8 +158,13 @@ def mjcf(spec: DeviceSpec | None = None, root: str = "fixed") -> str:
 <mujoco model="vrscroll">
   <compiler angle="degree" autolimits="true"/>
 
-  <!-- one physics step per firmware tick (spec [simulation] timestep) -->
-  <option timestep="{_f(s.timestep)}" integrator="implicitfast"/>
+  <!-- one physics step per firmware tick (spec [simulation] timestep). The constraint solver (Newton) starts
+       from the unconstrained acceleration, not the last step's, and solves the device as one: its few rows
+       (a backlash stop per hinge, and contacts only where flaps meet) converge in a few iterations either way,
+       and warm starts and constraint islands cost more than they save (measured: benchmarks/bench_twin.py) -->
+  <option timestep="{_f(s.timestep)}" integrator="implicitfast">
+    <flag warmstart="disable" island="disable"/>
+  </option>
 
   <default>
     <default class="vrscroll">

@@ -8,10 +8,16 @@ numba and calls MuJoCo's C API (mj_step1 / mj_step2) and the core through
 ctypes. `TwinBatch` runs many simulations in lockstep on MuJoCo's own `Batch`
 thread pool, one core per simulation, ticked by a compiled loop over them.
 Every runner steps the same physics per tick (`physics_substeps`).
+
+The single twin skips MuJoCo's collision detection for a physics step where no two flaps can touch
+(`twin.device.flap_collision.apart` on the hinge angles at the step's start): it steps a copy of the
+model with contacts disabled then, the model itself otherwise, so its results are the same to the bit
+as with collision detection always on (the batch twin's and the emulator's).
 """
 
 from __future__ import annotations
 
+import copy
 import ctypes
 import dataclasses
 import math
@@ -27,6 +33,7 @@ import numpy as np
 from controllers import core
 from controllers.encoder import angle_from_counts, counts_from_motor_angle, counts_from_motor_angles, target_counts
 from controllers.pid import PidGains
+from twin.device.flap_collision import apart, apart_spreads
 from twin.device.mjcf import load_model
 from twin.device.spec import DeviceSpec, load_spec
 from twin.sim.response import step_metrics
@@ -104,6 +111,7 @@ _LIB = ctypes.CDLL(os.path.join(os.path.dirname(mujoco.__file__), f"libmujoco.so
 _mj_step1, _mj_step2, _mj_step = _LIB.mj_step1, _LIB.mj_step2, _LIB.mj_step
 for _fn in (_mj_step1, _mj_step2, _mj_step):
     _fn.argtypes, _fn.restype = [ctypes.c_void_p, ctypes.c_void_p], None
+_LIB.mj_copyModel.argtypes, _LIB.mj_copyModel.restype = [ctypes.c_void_p, ctypes.c_void_p], ctypes.c_void_p
 _vrs_tick = core.library().vrs_tick
 _vrs_pwm = core.library().vrs_pwm
 _vrs_set_battery_mv = core.library().vrs_set_battery_mv
@@ -119,22 +127,53 @@ def _control_tick(fw, now_us, sensordata, enc_adr, cpr_motor, bus, counts, duty,
     _vrs_pwm(fw, pwm.ctypes.data)
 
 
+def contact_free_spreads(spec: DeviceSpec, model: mujoco.MjModel) -> np.ndarray:
+    """`apart`'s spreads for a model whose only colliding geoms are the spec's flap boxes, neighbours
+    excluded and no explicit pairs (the generated device); empty for any other model (a scene with
+    target shapes), where collision detection is never skipped."""
+    n = spec.n_flaps
+    flaps = np.array([model.body(f"flap{i}").id for i in range(n)])
+    geoms = np.array([model.geom(f"flap{i}_collision").id for i in range(n)])
+    colliding = np.flatnonzero(model.geom_contype | model.geom_conaffinity)
+    neighbours = {(min(a, b) << 16) + max(a, b) for a, b in zip(flaps[:-1], flaps[1:])}
+    size = [(spec.flap_pitch - spec.flap_gap) / 2, spec.depth / 2, spec.thickness / 2]
+    if (model.npair or set(model.exclude_signature) != neighbours or not np.array_equal(colliding, np.sort(geoms))
+            or np.any(model.geom_type[geoms] != mujoco.mjtGeom.mjGEOM_BOX)
+            or not np.allclose(model.geom_size[geoms], size, rtol=1e-8, atol=0)):
+        return np.zeros(0)
+    return apart_spreads(spec, float(model.geom_margin[geoms].max()))
+
+
+@numba.njit(cache=False)
+def _step_model(m, m_free, spreads, qpos, qadr, angles):
+    """The model to step from this state: m_free (contacts disabled) where the flaps are apart, else m."""
+    if spreads.shape[0] == 0:
+        return m
+    for h in range(angles.shape[0]):
+        angles[h] = qpos[qadr[h]]
+    return m_free if apart(spreads, angles) else m
+
+
 # not cacheable (it calls MuJoCo and the core through ctypes pointers): compiled once per process, in Twin()
 @numba.njit(cache=False)
-def _firmware_loop(m, d, substeps, fw, now_us, dt_us, sensordata, qpos, qvel, ctrl, qfrc, qfrc_applied, enc_adr,
-                   qadr, gear_dof, cpr_motor, params, bus, target, counts, duty, decay, pwm, max_ticks, settle_band,
-                   hold_ticks, stop_when_settled, rec_angle, rec_counts, rec_duty, rec_current, rec_torque):
+def _firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata, qpos, qvel, ctrl, qfrc,
+                   qfrc_applied, enc_adr, qadr, gear_dof, cpr_motor, params, bus, target, counts, duty, decay, pwm,
+                   max_ticks, settle_band, hold_ticks, stop_when_settled, rec_angle, rec_counts, rec_duty,
+                   rec_current, rec_torque):
     """Run firmware ticks until settled (if asked) or max_ticks; returns the ticks run.
 
+    m_free: the model with contacts disabled, stepped where `apart(spreads, hinge angles)` (no spreads: never);
     fw: the core's address; now_us: device time of the first tick (us), dt_us per tick; counts (int32),
     duty and pwm (float32) and decay (uint8) are the core's input and output buffers; params the drive
     model's (twin.sim.drive), bus[0] the bus voltage (V) the core reads, carried from tick to tick.
     """
     n = target.shape[0]
     current = np.zeros(n)
+    angles = np.zeros(n)
     in_band = 0
     for i in range(max_ticks):
-        _mj_step1(m, d)  # positions, velocities and sensors at the start of the tick
+        mi = _step_model(m, m_free, spreads, qpos, qadr, angles)
+        _mj_step1(mi, d)  # positions, velocities and sensors at the start of the tick
         _control_tick(fw, now_us + i * dt_us, sensordata, enc_adr, cpr_motor, bus, counts, duty, decay, pwm)
         bus[0] = drive(params, pwm, decay, qvel, gear_dof, ctrl, qfrc_applied, current)
         settled = True
@@ -145,11 +184,11 @@ def _firmware_loop(m, d, substeps, fw, now_us, dt_us, sensordata, qpos, qvel, ct
             rec_counts[i, h] = counts[h]
             rec_duty[i, h] = duty[h]
             rec_current[i, h] = current[h]
-        _mj_step2(m, d)
+        _mj_step2(mi, d)
         for h in range(n):
             rec_torque[i, h] = qfrc[gear_dof[h]] + qfrc_applied[gear_dof[h]]
         for _ in range(substeps - 1):  # finer physics than the firmware, drive held
-            _mj_step(m, d)
+            _mj_step(_step_model(m, m_free, spreads, qpos, qadr, angles), d)
         in_band = in_band + 1 if settled else 0
         if stop_when_settled and in_band >= hold_ticks:
             return i + 1
@@ -258,6 +297,7 @@ class Twin:
         self.spec = spec or load_spec()
         self.model = model or load_model(self.spec, root)
         self.data = mujoco.MjData(self.model)
+        self._free_model = copy.copy(self.model)  # the model with contacts disabled, refreshed every run
         self.root = root
         self.stall_detection = stall_detection
         n = self.spec.n_hinges
@@ -352,11 +392,15 @@ class Twin:
         rec = [np.zeros((ticks, n)), np.zeros((ticks, n), np.int64)] + [np.zeros((ticks, n)) for _ in range(3)]
         t0 = d.time
         start = time.perf_counter()
+        spreads = contact_free_spreads(s, m)
+        if len(spreads):  # the model may have changed since the last run (a root pose, a parameter)
+            _LIB.mj_copyModel(self._free_model._address, m._address)
+            self._free_model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
         done = _firmware_loop(
-            m._address, d._address, self.substeps, self.firmware.address, self._now_us, tick_us(s), d.sensordata,
-            d.qpos, d.qvel, d.ctrl, d.qfrc_actuator, d.qfrc_applied, h.enc, h.qadr, h.gear_dof,
-            float(s.counts_per_motor_rev), self._params, self._bus, self._target, self._counts, self._duty,
-            self._decay, self._pwm, ticks, s.settle_band, int(round(s.settle_hold / s.firmware_dt)),
+            m._address, self._free_model._address, spreads, d._address, self.substeps, self.firmware.address,
+            self._now_us, tick_us(s), d.sensordata, d.qpos, d.qvel, d.ctrl, d.qfrc_actuator, d.qfrc_applied, h.enc,
+            h.qadr, h.gear_dof, float(s.counts_per_motor_rev), self._params, self._bus, self._target, self._counts,
+            self._duty, self._decay, self._pwm, ticks, s.settle_band, int(round(s.settle_hold / s.firmware_dt)),
             stop_when_settled, *rec)
         wall = time.perf_counter() - start
         self._now_us = (self._now_us + done * tick_us(s)) & 0xFFFFFFFF
