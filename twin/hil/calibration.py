@@ -6,7 +6,8 @@ device's does; each target taking effect at the device time the device
 acknowledged it) with candidate plant parameters, and compare with the device's
 telemetry at every frame:
 
-- the hinge angles (deg; the device's encoder angle, mid-count), and
+- the hinge angles (deg; the encoder's, mid-count, on both sides: the encoder is on
+  the motor, the backlash outside the loop, and the device reports the encoder), and
 - the duty the firmware commanded, averaged over DUTY_WINDOW s and weighted by
   DUTY_WEIGHT deg per unit duty. The duty is what makes friction observable:
   where the hinge is moving fast the duty is saturated and friction hides in 2 %
@@ -46,6 +47,7 @@ import math
 
 import numpy as np
 
+from controllers.encoder import angle_from_counts
 from twin.device.spec import DeviceSpec
 from twin.sim.replay import replay_targets, twin_at_start
 
@@ -69,7 +71,9 @@ JACKKNIFE_SEGMENTS = 3  # stretches of a run per hinge the jackknife leaves out:
 
 
 def replay(run: dict, plant: DeviceSpec, spec: DeviceSpec | None = None):
-    """The twin's hinge angles (deg) and duty at the run's device frame times, with `plant` as the physics."""
+    """The twin's encoder angles (deg, mid-count, as device_angles) and duty at the run's device frame times,
+    with `plant` as the physics: the encoder, on the motor, is what the device reports, so the twin is read
+    the same way (its flap angle differs by up to half the backlash, which is outside the loop)."""
     spec = spec or plant
     t = run["device"]["time_s"]
     dt = spec.firmware_dt
@@ -77,10 +81,10 @@ def replay(run: dict, plant: DeviceSpec, spec: DeviceSpec | None = None):
     twin = twin_at_start(plant, run["gains"], run["meta"], spec)
     changes = [(c["t_s"], np.radians(c["angles_deg"])) for c in run["meta"]["changes"]]
     traces = [tr for _, tr in replay_targets(twin, changes, 0, end_tick)]
-    a = np.concatenate([tr.angle for tr in traces])
+    c = np.concatenate([tr.counts for tr in traces])
     d = np.concatenate([tr.duty for tr in traces])
-    idx = np.clip(np.rint(t / dt).astype(int), 0, max(len(a) - 1, 0))
-    return np.degrees(a[idx]), d[idx]
+    idx = np.clip(np.rint(t / dt).astype(int), 0, max(len(c) - 1, 0))
+    return np.degrees(angle_from_counts(spec, c[idx] + 0.5)), d[idx]
 
 
 def device_angles(run: dict, spec: DeviceSpec) -> np.ndarray:
