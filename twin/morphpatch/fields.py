@@ -14,9 +14,10 @@ Queries are the approximation's hot path:
 - `Fields.sdf_grad(points)`: trilinear interpolation of S and of its gradient
   (central differences on the grid), in one numba loop (`_trilinear`): 1500
   points take about 200-350 us as vectorised numpy (eight fancy-index gathers)
-  and about 40 us compiled, which is what keeps an approximation under 1 ms.
-  `Fields.gradient_sum(local, rotation, position)` is the same loop summing the
-  gradients at rigidly placed points, the pipeline's inner step.
+  and about 45 us compiled. The compiled approximation and refinement call the
+  same kernel, `_interpolate(Fields.grid, x, y, z)`, point by point as they place
+  their samples; `_gradient_sum` sums the gradients at rigidly placed points, the
+  pipeline's inner step.
   Outside the grid the value is S at the nearest grid point plus the distance to
   it (an upper bound; the grid's margin keeps the device inside in normal use).
 - `Fields.hcevf(points)`: the High-Curvature Edge Vector Field as the paper
@@ -31,7 +32,8 @@ Queries are the approximation's hot path:
   true curvature (below 41 1/m on both); at a real edge it stays in the hundreds.
   For each grid point x_g the nearest high-curvature point e* within `edge_radius` is stored;
   V(x_g) = e* - x_g, or 0 if there is none. A query point q reuses its nearest
-  grid point's target edge: V(q) = e*(round(q)) - q.
+  grid point's target edge: V(q) = e*(round(q)) - q (`_hcevf_at(Fields.edge_grid, x, y, z)`,
+  compiled).
 
 Caching: `build_fields` keeps built fields in an in-memory dict keyed by a hash of
 the mesh's vertices and faces and the build parameters, and on disk as .npz under
@@ -104,15 +106,6 @@ class Fields:
         """Signed distance (N,) m and its gradient (N, 3) at points (N, 3) m, trilinear."""
         out = _trilinear(self.grid, np.ascontiguousarray(points, dtype=np.float64))
         return out[:, 0], out[:, 1:]
-
-    def gradient_sum(self, local_points: np.ndarray, rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
-        """Sum (3,) of the interpolated gradients at rotation @ p + position for local points p (N, 3).
-
-        The approximation's inner step in one compiled call (no temporaries).
-        """
-        return _gradient_sum(self.grid, np.ascontiguousarray(local_points, dtype=np.float64),
-                             np.ascontiguousarray(rotation, dtype=np.float64),
-                             np.ascontiguousarray(position, dtype=np.float64))
 
     def sdf_values(self, points: np.ndarray) -> np.ndarray:
         """Signed distance (N,) m at points (N, 3) m."""
