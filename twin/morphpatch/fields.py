@@ -146,7 +146,7 @@ def _cell(coordinate, origin, spacing, n):
 def _interpolate(grid, x, y, z):
     """(S, dS/dx, dS/dy, dS/dz) at (x, y, z), m, trilinear on `Fields.grid`. Summed in scalars: stored
     through an array the compiler must assume may alias the grid, every partial sum went to memory and
-    back (a third of the refinement's time)."""
+    back (73 us for 1568 points where this takes 50)."""
     value_grad, origin, spacing, shape, strides = grid
     i, fx, ox = _cell(x, origin[0], spacing, shape[0])
     j, fy, oy = _cell(y, origin[1], spacing, shape[1])
