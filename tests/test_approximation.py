@@ -9,7 +9,7 @@ import pytest
 from twin import cli
 from twin.morphpatch.approximation import Approximation, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
-from twin.device.kinematics import bend, flap_frames, pose_matrix, widen
+from twin.device.kinematics import pose_matrix
 from twin.morphpatch.shapes import load_shape, shape_names
 from twin.evaluation.starts import approach_starts
 from twin.morphpatch.surface_metrics import msd_hd
@@ -116,21 +116,6 @@ def test_bad_variant_and_start(spec):
         approximate(fields, level(0, 0, 0.2), spec, "best")
     with pytest.raises(ValueError, match="6 finite numbers"):
         pose_from_mm_deg([0, 0, 1])
-
-
-def test_bend_and_widen_agree_with_flap_frames(spec):
-    rng = np.random.default_rng(0)
-    angles, widths = rng.uniform(-1, 1, spec.n_hinges), rng.uniform(0.02, 0.035, spec.n_flaps)
-    root = pose_from_mm_deg([10, 20, 30, 40, 50, 60])
-    frames = flap_frames(spec, angles, root, widths)
-    for hinge in range(spec.n_hinges):
-        changed = angles.copy()
-        changed[hinge] += 0.3
-        assert np.allclose(bend(spec, frames, widths, hinge, 0.3), flap_frames(spec, changed, root, widths))
-    for flap in range(spec.n_flaps):
-        changed = widths.copy()
-        changed[flap] += 0.004
-        assert np.allclose(widen(spec, frames, flap, 0.004), flap_frames(spec, angles, root, changed))
 
 
 def test_frames_of_a_result(spec):

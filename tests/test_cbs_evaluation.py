@@ -14,7 +14,7 @@ from twin.cli import main
 from twin.evaluation.cbs import CbsSimulator
 from twin.evaluation.lock import folder_lock
 from twin.evaluation.target_collision import collision_error, convex_parts
-from twin.evaluation.table1 import METHODS, read_records, run_evaluation, summarize, write_tables
+from twin.evaluation.table1 import METHODS, _shape_seed, read_records, run_evaluation, summarize, write_tables
 from twin.morphpatch.fields import exact_signed_distance
 from twin.morphpatch.sampling import touch_surface_points
 from twin.morphpatch.shapes import load_shape
@@ -52,6 +52,16 @@ def test_cbs_on_a_cylinder_wraps_without_going_through(spec):
     for i in (0, spec.root_flap, spec.n_flaps - 1):
         flap_depth, _ = exact_signed_distance(cyl, touch_surface_points(spec, frames[i:i + 1], result.widths[i:i + 1]))
         assert np.abs(flap_depth).min() < 1e-3, i
+
+
+def test_cbs_ends_where_the_firmware_stops_it(spec):
+    """Table 1's arch start 9: the target throws flap 2 past its range, the firmware faults and refuses the
+    next stage's targets, which ended the whole Table 1 run; the device stops where it stands, and CBS too."""
+    arch = load_shape("arch")
+    sim = CbsSimulator(spec, arch)
+    result = sim.run(approach_starts(arch, 50, seed=_shape_seed(0, "arch"))[9])
+    assert sim.twin.firmware.faults != 0  # the case this is about
+    assert np.all(np.abs(result.angles) <= spec.hinge_limit)
 
 
 def test_collision_shape_keeps_the_true_shape():

@@ -18,7 +18,7 @@ COMMANDS = {
     "model": ("twin.commands.model", "write or check the device MJCF generated from the spec"),
     "approximate": ("twin.commands.approximate", "approximate a target shape or mesh from a start pose; prints JSON"),
     "cbs": ("twin.commands.cbs", "collision-based simulation baseline in MuJoCo; prints JSON like approximate"),
-    "evaluate": ("twin.commands.evaluate", "the paper's Table 1: CBS, full and no_hcevf from the same seeded starts"),
+    "evaluate": ("twin.commands.evaluate", "the paper's Table 1: CBS, no_hcevf, full and ours (refined), same starts"),
     "sweep": ("twin.commands.sweep", "design sweeps: designs x shapes x starts x methods x plants, locally or on Ray"),
     "emulate": ("twin.commands.emulate", "run a device emulator on a pseudo-terminal (prints its port)"),
     "mirror": ("twin.commands.mirror", "gate a target on the twin, send it to the device, watch it follow"),

@@ -47,7 +47,7 @@ def flap_frames(spec: DeviceSpec, angles, root_pose=None, widths=None) -> np.nda
 
 @numba.njit(cache=True)
 def _chain(signed_angles, widths, r, root):
-    """flap_frames' loop, compiled (it is the approximation's and the refinement's inner step)."""
+    """flap_frames' loop, compiled (the approximation's, the refinement's and the collision check's inner step)."""
     n = len(widths)
     frames = np.zeros((n, 4, 4))
     for i in range(n):
@@ -69,53 +69,6 @@ def _chain(signed_angles, widths, r, root):
     out = np.empty((n, 4, 4))
     for i in range(n):
         out[i] = root @ frames[i]
-    return out
-
-
-def bend(spec: DeviceSpec, frames: np.ndarray, widths, hinge: int, delta: float) -> np.ndarray:
-    """Flap frames after adding `delta` rad to one hinge's angle, shape (n_flaps, 4, 4).
-
-    frames: the present frames (from `flap_frames`, world or device); widths: the
-    per-flap lengths they were made with, m. The flaps beyond the hinge turn
-    rigidly about its axis: the same as calling `flap_frames` with the angle
-    changed, for a fraction of the cost (the approximation's inner loop).
-    """
-    r = spec.root_flap
-    outer = hinge if hinge < r else hinge + 1  # as outer_flap(), for one hinge
-    step = 1 if outer > r else -1
-    inner = frames[outer - step]
-    point = inner[:3, 3] + inner[:3, 0] * (step * widths[outer - step] / 2)
-    axis = inner[:3, 1] * -step  # the hinge's axis s*y in the world (s as hinge_axis_sign())
-    c, s = np.cos(delta), np.sin(delta)
-    cross = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
-    turn = c * np.eye(3) + s * cross + (1.0 - c) * np.outer(axis, axis)  # Rodrigues
-    t = np.eye(4)
-    t[:3, :3] = turn
-    t[:3, 3] = point - turn @ point
-    moved = slice(outer, None) if step == 1 else slice(0, outer + 1)
-    out = frames.copy()
-    out[moved] = t @ frames[moved]
-    return out
-
-
-def widen(spec: DeviceSpec, frames: np.ndarray, flap: int, delta: float) -> np.ndarray:
-    """Flap frames after adding `delta` m to one flap's width, shape (n_flaps, 4, 4).
-
-    A flap's inner hinge stays; its centre moves delta/2 and every flap beyond it
-    delta, along its x (the root flap grows delta/2 each way). The same as calling
-    `flap_frames` with the width changed.
-    """
-    r = spec.root_flap
-    out = frames.copy()
-    x = frames[flap, :3, 0]
-    if flap == r:
-        out[r + 1:, :3, 3] += x * delta / 2
-        out[:r, :3, 3] -= x * delta / 2
-        return out
-    step = 1 if flap > r else -1
-    moved = slice(flap + 1, None) if step == 1 else slice(0, flap)
-    out[flap, :3, 3] += step * x * delta / 2
-    out[moved, :3, 3] += step * x * delta
     return out
 
 

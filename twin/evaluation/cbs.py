@@ -18,6 +18,11 @@ with the target surface is established ... without any explicit optimization":
    stops it);
 3. every flap collides again, 0.2 s of hold, and the end state is read.
 
+Where the target pushes a flap past its range (a flap that cuts into the target at the root's
+pose and comes free at no angle in range is thrown out of it once it collides), the firmware
+faults (FAULT LIMIT), brakes and refuses further targets: the device stops where it stands, and
+so does CBS (3. still follows). Before, the refusal ended the whole Table 1 run (arch, start 9).
+
 Before (issue 14): the tilted start was pressed along its normal and fixed, and all
 hinges ramped together in one direction, so the tips met a convex target first and
 held the middle off it (on the cube's flat top 14.8 mm MSD, the middle 20 mm off).
@@ -39,7 +44,7 @@ from twin.device.spec import DeviceSpec
 from twin.evaluation.target_collision import CollisionError, collision_error, convex_parts, scene_model
 from twin.morphpatch.approximation import Approximation, root_pose
 from twin.morphpatch.fields import build_fields
-from twin.sim.simulation import Twin
+from twin.sim.simulation import TargetError, Twin
 
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])  # a half turn about the device's x axis
 PROBE_STEP = math.radians(1.0)  # rad between the contact probe's angles
@@ -161,7 +166,10 @@ class CbsSimulator:
                     targets[k] = angle
             placed += [int(self._outer[k]) for k in stage]
             self._collide(placed)
-            twin.move_to(targets, max_time=MOVE_TIME)
+            try:
+                twin.move_to(targets, max_time=MOVE_TIME)
+            except TargetError:  # the firmware faulted in the last move and refuses: the device has stopped
+                break
         twin.hold(0.2)
         self.last_touching = sorted(self.touching())
         self._collide(range(spec.n_flaps))

@@ -44,12 +44,13 @@ import math
 import time
 from functools import lru_cache
 
+import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from twin.device.kinematics import bend, flap_frames, hinge_axis_sign, outer_flap, pose_matrix, widen
+from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_flap, pose_matrix
 from twin.device.spec import DeviceSpec, load_spec
-from twin.morphpatch.fields import Fields
+from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate
 from twin.morphpatch.refinement import refine
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
 from twin.morphpatch.surface_metrics import msd_hd
@@ -143,18 +144,18 @@ def as_pose(start) -> np.ndarray:
 
 @dataclasses.dataclass(frozen=True)
 class _Layouts:
-    """Precomputed samples for one spec (device frame, flat, nominal widths)."""
+    """Precomputed samples for one spec (device frame, flat, nominal widths), m."""
 
-    flat_frames: np.ndarray  # (n_flaps, 4, 4)
-    flap: object  # proxy.Layout on one flap
     root_points: np.ndarray  # (M, 3) root flap samples
     all_points: np.ndarray  # (n_flaps*M, 3) all flaps' samples
     edge_points: np.ndarray  # (n_flaps*2*K, 3) both edges of every flap
-    edges: tuple  # (layout at x = -w/2, layout at x = +w/2)
-    hinge_order: tuple  # hinges from the root outward
+    flap: object  # sampling.Layout on one flap
+    flap_points: np.ndarray  # (M, 3) one flap's samples in its frame at the pitch
+    edge_y: np.ndarray  # (K,) y of the samples along a flap's edge
+    hinge_order: np.ndarray  # hinges from the root outward
     hinge_sign: np.ndarray  # per hinge, its axis sign
     hinge_outer: np.ndarray  # per hinge, the flap it moves
-    flap_order: tuple  # flaps from the root outward
+    flap_order: np.ndarray  # flaps from the root outward
 
 
 @lru_cache(maxsize=8)
@@ -166,16 +167,16 @@ def _layouts(spec: DeviceSpec) -> _Layouts:
     r = spec.root_flap
     right, left = list(range(r, spec.n_hinges)), list(range(r - 1, -1, -1))
     return _Layouts(
-        flat_frames=flat,
-        flap=flap,
         root_points=world_points(flat, widths, flap, [r])[0],
         all_points=world_points(flat, widths, flap).reshape(-1, 3),
         edge_points=np.vstack([world_points(flat, widths, e).reshape(-1, 3) for e in edges]),
-        edges=edges,
-        hinge_order=tuple(right + left),
+        flap=flap,
+        flap_points=flap.local(spec.flap_pitch),
+        edge_y=np.ascontiguousarray(edges[0].y),
+        hinge_order=np.array(right + left),
         hinge_sign=hinge_axis_sign(spec),
         hinge_outer=outer_flap(spec),
-        flap_order=tuple(sorted(range(spec.n_flaps), key=lambda f: abs(f - r))),
+        flap_order=np.array(sorted(range(spec.n_flaps), key=lambda f: abs(f - r))),
     )
 
 
@@ -185,22 +186,23 @@ def approximate(fields: Fields, start, spec: DeviceSpec | None = None, variant: 
     start: 4x4 pose, or (position (3,) m, rotation (3, 3)); hinges start flat and
     widths at the pitch. variant: one of VARIANTS. Returns root pose, hinge angles
     (rad, inside +-spec.hinge_limit), flap widths (m) and the time taken (s).
+    Each step is one compiled call on the fields' grids (`Fields.grid`, `Fields.edge_grid`).
     """
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
     spec = load_spec() if spec is None else spec
     t0 = time.perf_counter()
     lay = _layouts(spec)
-    snapped = _snap(fields, as_pose(start))
-    pose = _align_root(fields, snapped, lay)
+    snapped = _snap(fields.grid, as_pose(start))
+    pose = _align_root(fields.grid, snapped, lay.root_points, lay.all_points)
     if variant != "no_hcevf":
-        pose = _hcevf_translation(fields, lay, pose)
-    angles = np.zeros(spec.n_hinges)
+        pose = _hcevf_translation(fields.grid, fields.edge_grid, pose, lay.edge_points)
     widths = np.full(spec.n_flaps, spec.flap_pitch)
-    frames = pose @ lay.flat_frames
-    frames = _align_hinges(fields, spec, lay, frames, angles, widths)
+    angles = _align_hinges(fields.grid, pose, lay.flap_points, widths, lay.hinge_order, lay.hinge_outer,
+                           lay.hinge_sign, spec.root_flap, spec.hinge_limit)
     if variant != "no_hcevf":
-        _scale_flaps(fields, spec, lay, frames, widths)
+        widths = _scale_flaps(fields.edge_grid, pose, angles, widths, lay.edge_y, lay.flap_order, lay.hinge_sign,
+                              spec.root_flap, WIDTH_RANGE[0] * spec.flap_pitch, WIDTH_RANGE[1] * spec.flap_pitch)
     if variant == "refined":
         local = np.stack([lay.flap.local(w) for w in widths])
         pose, angles = refine(fields, spec, local, pose, angles, widths, snapped[:3, 3])
@@ -209,113 +211,154 @@ def approximate(fields: Fields, start, spec: DeviceSpec | None = None, variant: 
 
 def root_pose(fields: Fields, start, spec: DeviceSpec) -> np.ndarray:
     """Steps 1-4 only: the start snapped onto the target and the root turned to it (4x4, m)."""
-    return _align_root(fields, _snap(fields, as_pose(start)), _layouts(spec))
+    lay = _layouts(spec)
+    return _align_root(fields.grid, _snap(fields.grid, as_pose(start)), lay.root_points, lay.all_points)
 
 
-def _hcevf_translation(fields: Fields, lay: _Layouts, pose: np.ndarray) -> np.ndarray:
-    """Step 5: the pose moved by the mean HCEVF vector's component along the root's x-y plane, re-snapped."""
-    rot, pos = pose[:3, :3], pose[:3, 3]
-    v = fields.hcevf(lay.edge_points @ rot.T + pos)
-    nonzero = np.any(v != 0.0, axis=1)
-    if not nonzero.any():
+@numba.njit(cache=True)
+def _hcevf_translation(grid, edge_grid, pose, edge_points):
+    """Step 5: the pose moved by the mean HCEVF vector's component along the root's x-y plane, re-snapped.
+    edge_points (N, 3): both edges of every flap in the device frame, flat, m."""
+    rot, pos = pose[:3, :3].copy(), pose[:3, 3].copy()
+    shift = np.zeros(3)
+    count = 0
+    for p in range(edge_points.shape[0]):
+        x, y, z = _placed(rot, pos, edge_points[p])
+        vx, vy, vz = _hcevf_at(edge_grid, x, y, z)
+        if vx != 0.0 or vy != 0.0 or vz != 0.0:
+            shift[0] += vx
+            shift[1] += vy
+            shift[2] += vz
+            count += 1
+    if count == 0:
         return pose
-    shift = v[nonzero].mean(axis=0)
-    shift -= (shift @ rot[:, 2]) * rot[:, 2]
-    return _snap(fields, pose_matrix(pos + shift, rot))
+    shift /= count
+    normal = rot[:, 2].copy()
+    shift -= (shift @ normal) * normal
+    moved = pose.copy()
+    moved[:3, 3] = pos + shift
+    return _snap(grid, moved)
 
 
-def _snap(fields: Fields, pose: np.ndarray) -> np.ndarray:
+@numba.njit(cache=True, inline="always")
+def _placed(rot, pos, p):
+    """rot @ p + pos for one point p (3,), as (x, y, z): written out (a matrix product here is a BLAS call)."""
+    return (pos[0] + rot[0, 0] * p[0] + rot[0, 1] * p[1] + rot[0, 2] * p[2],
+            pos[1] + rot[1, 0] * p[0] + rot[1, 1] * p[1] + rot[1, 2] * p[2],
+            pos[2] + rot[2, 0] * p[0] + rot[2, 1] * p[1] + rot[2, 2] * p[2])
+
+
+@numba.njit(cache=True)
+def _snap(grid, pose):
     """Move the pose along its -z until the anchor is on the surface (see module docstring)."""
-    anchor, down = pose[:3, 3], -pose[:3, 2]
-    step = min(fields.spacing, 0.002)
+    anchor, down = pose[:3, 3].copy(), -pose[:3, 2]
+    step = min(grid[2], 0.002)
     s = np.arange(-SNAP_REACH, SNAP_REACH + step / 2, step)
-    values = fields.sdf_values(anchor + s[:, None] * down)
+    values = np.empty(len(s))
+    for k in range(len(s)):
+        p = anchor + s[k] * down
+        values[k] = _interpolate(grid, p[0], p[1], p[2])[0]
     mid = len(s) // 2  # s[mid] == 0
-    inside = values <= 0.0
+    a = -1
     if values[mid] > 0.0:  # outside: first entry ahead
-        hits = np.flatnonzero(inside[mid:]) + mid
-        j = hits[0] if len(hits) else None
-        pair = None if j is None else (j - 1, j)
+        for j in range(mid, len(s)):
+            if values[j] <= 0.0:
+                a = j - 1
+                break
     else:  # inside: back out along +z to the last exit behind
-        hits = np.flatnonzero(~inside[:mid + 1])
-        j = hits[-1] if len(hits) else None
-        pair = None if j is None else (j, j + 1)
+        for j in range(mid, -1, -1):
+            if values[j] > 0.0:
+                a = j
+                break
     out = pose.copy()
-    if pair is None:  # the line misses the target: go to the closest surface point
-        p = anchor.copy()
+    if a < 0:  # the line misses the target: go to the closest surface point
+        p = anchor
         for _ in range(2):
-            value, grad = fields.sdf_grad(p[None])
-            p = p - value[0] * grad[0] / max(np.linalg.norm(grad[0]), 1e-9)
+            value, gx, gy, gz = _interpolate(grid, p[0], p[1], p[2])
+            grad = np.array([gx, gy, gz])
+            p = p - value * grad / max(math.sqrt(grad @ grad), 1e-9)
         out[:3, 3] = p
         return out
-    a, b = pair
+    b = a + 1
     t = s[a] + (s[b] - s[a]) * values[a] / (values[a] - values[b])
     out[:3, 3] = anchor + t * down
     return out
 
 
-def _rot(axis: int, angle: float) -> np.ndarray:
+@numba.njit(cache=True)
+def _rot(axis, angle):
+    """Rotation matrix (3, 3) by `angle` rad about coordinate axis 0, 1 or 2."""
     c, s = math.cos(angle), math.sin(angle)
-    i, j = [(1, 2), (2, 0), (0, 1)][axis]
+    i, j = (1, 2) if axis == 0 else ((2, 0) if axis == 1 else (0, 1))
     m = np.eye(3)
     m[i, i] = m[j, j] = c
     m[i, j], m[j, i] = -s, s
     return m
 
 
-def _align_root(fields: Fields, pose: np.ndarray, lay: _Layouts) -> np.ndarray:
+@numba.njit(cache=True)
+def _align_root(grid, pose, root_points, all_points):
     """Steps 2-4: the pose turned about y, then x, then z (about the anchor)."""
-    rot, pos = pose[:3, :3], pose[:3, 3]
+    rot, pos = pose[:3, :3].copy(), pose[:3, 3].copy()
     for _ in range(ROOT_PASSES):  # about y, root flap only
-        g = rot.T @ fields.gradient_sum(lay.root_points, rot, pos)
+        g = rot.T @ _gradient_sum(grid, root_points, rot, pos)
         rot = rot @ _rot(1, math.atan2(g[0], g[2]))
     for _ in range(ROOT_PASSES):  # about x, all flaps
-        g = rot.T @ fields.gradient_sum(lay.all_points, rot, pos)
+        g = rot.T @ _gradient_sum(grid, all_points, rot, pos)
         rot = rot @ _rot(0, math.atan2(-g[1], g[2]))
-    g = fields.sdf_grad(lay.all_points @ rot.T + pos)[1] @ rot  # about z: principal in-plane direction
-    gx, gy = g[:, 0], g[:, 1]
-    power = float(np.sum(gx * gx + gy * gy))
-    a, b = float(np.sum(gx * gx - gy * gy)), float(np.sum(2.0 * gx * gy))
-    if power > len(g) * math.sin(PRINCIPAL_MIN_TILT) ** 2 and math.hypot(a, b) > PRINCIPAL_MIN * power:
+    power = a = b = 0.0  # about z: principal in-plane direction of the gradients in the root frame
+    for p in range(all_points.shape[0]):
+        x, y, z = _placed(rot, pos, all_points[p])
+        _, wx, wy, wz = _interpolate(grid, x, y, z)
+        gx = rot[0, 0] * wx + rot[1, 0] * wy + rot[2, 0] * wz
+        gy = rot[0, 1] * wx + rot[1, 1] * wy + rot[2, 1] * wz
+        power += gx * gx + gy * gy
+        a += gx * gx - gy * gy
+        b += 2.0 * gx * gy
+    if power > all_points.shape[0] * math.sin(PRINCIPAL_MIN_TILT) ** 2 and math.hypot(a, b) > PRINCIPAL_MIN * power:
         rot = rot @ _rot(2, 0.5 * math.atan2(b, a))
-    return pose_matrix(pos, rot)
+    out = np.eye(4)
+    out[:3, :3] = rot
+    out[:3, 3] = pos
+    return out
 
 
-def _align_hinges(fields, spec, lay, frames, angles, widths) -> np.ndarray:
-    """Step 6: hinge angles from the root outward; updates `angles` in place, returns the frames."""
-    local = lay.flap.local(spec.flap_pitch)
-    limit = spec.hinge_limit
-    for h in lay.hinge_order:
-        i, sign = lay.hinge_outer[h], lay.hinge_sign[h]
+@numba.njit(cache=True)
+def _align_hinges(grid, pose, flap_points, widths, hinge_order, hinge_outer, hinge_sign, root_flap, limit):
+    """Step 6: the hinge angles (rad), from the root outward, for flaps of `widths` (m)."""
+    angles = np.zeros(len(hinge_order))
+    for h in hinge_order:
+        i, sign = hinge_outer[h], hinge_sign[h]
         for _ in range(HINGE_PASSES):
-            r = frames[i, :3, :3]
-            g = r.T @ fields.gradient_sum(local, r, frames[i, :3, 3])
+            frame = _chain(hinge_sign * angles, widths, root_flap, pose)[i]
+            r = frame[:3, :3].copy()
+            g = r.T @ _gradient_sum(grid, flap_points, r, frame[:3, 3].copy())
             new = min(max(angles[h] + sign * math.atan2(g[0], g[2]), -limit), limit)
             delta = new - angles[h]
-            frames = bend(spec, frames, widths, h, delta)
             angles[h] = new
             if abs(delta) < HINGE_TOLERANCE:
                 break
-    return frames
+    return angles
 
 
-def _scale_flaps(fields, spec, lay, frames, widths) -> np.ndarray:
-    """Step 7: HCEVF flap widths from the root outward; updates `widths` in place, returns the frames."""
-    r = spec.root_flap
-    lo, hi = (k * spec.flap_pitch for k in WIDTH_RANGE)
-    for i in lay.flap_order:
-        sides = (-1, 1) if i == r else ((1,) if i > r else (-1,))
-        rot, t = frames[i, :3, :3], frames[i, :3, 3]
+@numba.njit(cache=True)
+def _scale_flaps(edge_grid, pose, angles, widths, edge_y, flap_order, hinge_sign, root_flap, lo, hi):
+    """Step 7: HCEVF flap widths (m) from the root outward, from `widths`, kept within [lo, hi] m."""
+    widths = widths.copy()
+    for i in flap_order:
+        frame = _chain(hinge_sign * angles, widths, root_flap, pose)[i]
         total, count = 0.0, 0
-        for side in sides:
-            v = fields.hcevf(lay.edges[(side + 1) // 2].local(widths[i]) @ rot.T + t)
-            v = v[v.any(axis=1)]
-            # onto the flap's plane, then along the outward width direction: the in-plane
-            # projection does not change the component along x, so take that directly
-            total += side * float((v @ rot[:, 0]).sum())
-            count += len(v)
+        for side in (-1.0, 1.0):
+            if (i < root_flap and side > 0) or (i > root_flap and side < 0):
+                continue  # a flap samples the edge a width change moves, the root flap both
+            for y in edge_y:
+                x = frame[:3, 3] + frame[:3, 0] * (0.5 * side * widths[i]) + frame[:3, 1] * y
+                vx, vy, vz = _hcevf_at(edge_grid, x[0], x[1], x[2])
+                if vx != 0.0 or vy != 0.0 or vz != 0.0:
+                    # onto the flap's plane, then along the outward width direction: the in-plane
+                    # projection does not change the component along x, so take that directly
+                    total += side * (vx * frame[0, 0] + vy * frame[1, 0] + vz * frame[2, 0])
+                    count += 1
         if count:
-            new = min(max(widths[i] + total / count, lo), hi)
-            frames = widen(spec, frames, i, new - widths[i])
-            widths[i] = new
-    return frames
+            widths[i] = min(max(widths[i] + total / count, lo), hi)
+    return widths

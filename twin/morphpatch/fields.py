@@ -14,9 +14,10 @@ Queries are the approximation's hot path:
 - `Fields.sdf_grad(points)`: trilinear interpolation of S and of its gradient
   (central differences on the grid), in one numba loop (`_trilinear`): 1500
   points take about 200-350 us as vectorised numpy (eight fancy-index gathers)
-  and about 40 us compiled, which is what keeps an approximation under 1 ms.
-  `Fields.gradient_sum(local, rotation, position)` is the same loop summing the
-  gradients at rigidly placed points, the pipeline's inner step.
+  and about 45 us compiled. The compiled approximation and refinement call the
+  same kernel, `_interpolate(Fields.grid, x, y, z)`, point by point as they place
+  their samples; `_gradient_sum` sums the gradients at rigidly placed points, the
+  pipeline's inner step.
   Outside the grid the value is S at the nearest grid point plus the distance to
   it (an upper bound; the grid's margin keeps the device inside in normal use).
 - `Fields.hcevf(points)`: the High-Curvature Edge Vector Field as the paper
@@ -31,7 +32,8 @@ Queries are the approximation's hot path:
   true curvature (below 41 1/m on both); at a real edge it stays in the hundreds.
   For each grid point x_g the nearest high-curvature point e* within `edge_radius` is stored;
   V(x_g) = e* - x_g, or 0 if there is none. A query point q reuses its nearest
-  grid point's target edge: V(q) = e*(round(q)) - q.
+  grid point's target edge: V(q) = e*(round(q)) - q (`_hcevf_at(Fields.edge_grid, x, y, z)`,
+  compiled).
 
 Caching: `build_fields` keeps built fields in an in-memory dict keyed by a hash of
 the mesh's vertices and faces and the build parameters, and on disk as .npz under
@@ -93,23 +95,17 @@ class Fields:
         self._strides = np.array([sdf.shape[1] * sdf.shape[2], sdf.shape[2], 1])
         grad = np.stack(np.gradient(sdf, self.spacing), axis=-1)
         self._value_grad = np.ascontiguousarray(np.concatenate([sdf[..., None], grad], axis=-1).reshape(-1, 4))
-        self._edge_index = edge_index.ravel()
-        self._edges_or_nan = np.vstack([edges, np.full((1, 3), np.nan)])  # index -1 -> NaN
+        # what compiled code reads: S and grad S (`_interpolate`), and the HCEVF's target edges (`_hcevf_at`)
+        self.grid = (self._value_grad, self.origin, self.spacing, self.shape, self._strides)
+        self.edge_grid = (np.ascontiguousarray(edge_index.ravel(), dtype=np.int64),
+                          np.ascontiguousarray(edges, dtype=np.float64).reshape(-1, 3),
+                          self.origin, self.spacing, self.shape, self._strides)
 
     # ---- queries ---------------------------------------------------------------------
     def sdf_grad(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Signed distance (N,) m and its gradient (N, 3) at points (N, 3) m, trilinear."""
-        out = _trilinear(self._value_grad, self.origin, self.spacing, self.shape, self._strides,
-                         np.ascontiguousarray(points, dtype=np.float64))
+        out = _trilinear(self.grid, np.ascontiguousarray(points, dtype=np.float64))
         return out[:, 0], out[:, 1:]
-
-    def gradient_sum(self, local_points: np.ndarray, rotation: np.ndarray, position: np.ndarray) -> np.ndarray:
-        """Sum (3,) of the interpolated gradients at rotation @ p + position for local points p (N, 3).
-
-        The approximation's inner step in one compiled call (no temporaries).
-        """
-        return _gradient_sum(self._value_grad, self.origin, self.spacing, self.shape, self._strides,
-                             local_points, np.ascontiguousarray(rotation), np.ascontiguousarray(position))
 
     def sdf_values(self, points: np.ndarray) -> np.ndarray:
         """Signed distance (N,) m at points (N, 3) m."""
@@ -117,12 +113,7 @@ class Fields:
 
     def hcevf(self, points: np.ndarray) -> np.ndarray:
         """HCEVF vectors (N, 3) m at points (N, 3) m: e*(nearest grid point) - q, 0 where none."""
-        g = np.rint((points - self.origin) / self.spacing).astype(np.int64)
-        g = np.clip(g, 0, self.shape - 1)
-        target = self._edges_or_nan[self._edge_index[g @ self._strides]]
-        v = target - points
-        v[np.isnan(v[:, 0])] = 0.0
-        return v
+        return _hcevf(self.edge_grid, np.ascontiguousarray(points, dtype=np.float64))
 
     def grid_points(self) -> np.ndarray:
         """World positions of all grid points, (nx*ny*nz, 3) m, in C order."""
@@ -151,47 +142,80 @@ def _cell(coordinate, origin, spacing, n):
     return i, c - i, (g - c) ** 2
 
 
-@numba.njit(cache=True)
-def _interpolate(value_grad, origin, spacing, shape, strides, x, y, z, out):
-    """Trilinear interpolation of the 4 channels of value_grad (C-order grid) at (x, y, z) into out (4,)."""
+@numba.njit(cache=True, inline="always")
+def _interpolate(grid, x, y, z):
+    """(S, dS/dx, dS/dy, dS/dz) at (x, y, z), m, trilinear on `Fields.grid`. Summed in scalars: stored
+    through an array the compiler must assume may alias the grid, every partial sum went to memory and
+    back (73 us for 1568 points where this takes 50)."""
+    value_grad, origin, spacing, shape, strides = grid
     i, fx, ox = _cell(x, origin[0], spacing, shape[0])
     j, fy, oy = _cell(y, origin[1], spacing, shape[1])
     k, fz, oz = _cell(z, origin[2], spacing, shape[2])
     base = i * strides[0] + j * strides[1] + k * strides[2]
-    for c in range(4):
-        out[c] = 0.0
+    v = gx = gy = gz = 0.0
     for corner in range(8):
         a, b, e = (corner >> 2) & 1, (corner >> 1) & 1, corner & 1
         w = (fx if a else 1.0 - fx) * (fy if b else 1.0 - fy) * (fz if e else 1.0 - fz)
         idx = base + a * strides[0] + b * strides[1] + e * strides[2]
-        for c in range(4):
-            out[c] += w * value_grad[idx, c]
+        v += w * value_grad[idx, 0]
+        gx += w * value_grad[idx, 1]
+        gy += w * value_grad[idx, 2]
+        gz += w * value_grad[idx, 3]
     outside2 = ox + oy + oz
     if outside2 > 0.0:
-        out[0] += np.sqrt(outside2) * spacing
+        v += np.sqrt(outside2) * spacing
+    return v, gx, gy, gz
 
 
 @numba.njit(cache=True)
-def _trilinear(value_grad, origin, spacing, shape, strides, points):
+def _trilinear(grid, points):
+    """S and grad S (N, 4) at points (N, 3), m; grid: `Fields.grid`."""
     out = np.empty((points.shape[0], 4))
     for p in range(points.shape[0]):
-        _interpolate(value_grad, origin, spacing, shape, strides, points[p, 0], points[p, 1], points[p, 2], out[p])
+        out[p, 0], out[p, 1], out[p, 2], out[p, 3] = _interpolate(grid, points[p, 0], points[p, 1], points[p, 2])
     return out
 
 
 @numba.njit(cache=True)
-def _gradient_sum(value_grad, origin, spacing, shape, strides, local, rot, pos):
-    total = np.zeros(3)
-    vg = np.empty(4)
+def _gradient_sum(grid, local, rot, pos):
+    """Sum (3,) of grad S at rot @ p + pos for the points p (N, 3) of `local`; grid: `Fields.grid`."""
+    tx = ty = tz = 0.0
     for p in range(local.shape[0]):
         x = pos[0] + rot[0, 0] * local[p, 0] + rot[0, 1] * local[p, 1] + rot[0, 2] * local[p, 2]
         y = pos[1] + rot[1, 0] * local[p, 0] + rot[1, 1] * local[p, 1] + rot[1, 2] * local[p, 2]
         z = pos[2] + rot[2, 0] * local[p, 0] + rot[2, 1] * local[p, 1] + rot[2, 2] * local[p, 2]
-        _interpolate(value_grad, origin, spacing, shape, strides, x, y, z, vg)
-        total[0] += vg[1]
-        total[1] += vg[2]
-        total[2] += vg[3]
-    return total
+        _, gx, gy, gz = _interpolate(grid, x, y, z)
+        tx += gx
+        ty += gy
+        tz += gz
+    return np.array([tx, ty, tz])
+
+
+@numba.njit(cache=True, inline="always")
+def _nearest(coordinate, origin, spacing, n):
+    """Index of the grid point nearest to a coordinate, clipped into the grid."""
+    return int(min(max(np.rint((coordinate - origin) / spacing), 0.0), n - 1.0))
+
+
+@numba.njit(cache=True, inline="always")
+def _hcevf_at(edge_grid, x, y, z):
+    """The HCEVF vector (m) at (x, y, z), its nearest grid point's target edge minus the point, as (vx, vy,
+    vz); 0 where there is none. edge_grid: `Fields.edge_grid`."""
+    edge_index, edges, origin, spacing, shape, strides = edge_grid
+    flat = (_nearest(x, origin[0], spacing, shape[0]) * strides[0] + _nearest(y, origin[1], spacing, shape[1])
+            * strides[1] + _nearest(z, origin[2], spacing, shape[2]) * strides[2])
+    e = edge_index[flat]
+    if e < 0:
+        return 0.0, 0.0, 0.0
+    return edges[e, 0] - x, edges[e, 1] - y, edges[e, 2] - z
+
+
+@numba.njit(cache=True)
+def _hcevf(edge_grid, points):
+    out = np.empty((points.shape[0], 3))
+    for p in range(points.shape[0]):
+        out[p, 0], out[p, 1], out[p, 2] = _hcevf_at(edge_grid, points[p, 0], points[p, 1], points[p, 2])
+    return out
 
 
 def mesh_key(mesh: trimesh.Trimesh, **params) -> str:

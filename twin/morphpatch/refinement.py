@@ -64,10 +64,9 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
     stay as given; centre (3,) m: the snapped anchor, which the anchor stays within
     `radius` of. The whole search runs compiled (`_search`).
     """
-    grid = (fields._value_grad, fields.origin, float(fields.spacing), fields.shape, fields._strides)
     device = (flap_boxes(spec), _hinges(spec), int(spec.root_flap), float(spec.hinge_limit))
     pose = np.ascontiguousarray(root_pose, dtype=float)
-    return _search(grid, device, np.ascontiguousarray(local, dtype=float), pose,
+    return _search(fields.grid, device, np.ascontiguousarray(local, dtype=float), pose,
                    np.asarray(angles, float).copy(), np.asarray(widths, float), np.asarray(centre, float),
                    float(radius))
 
@@ -152,14 +151,12 @@ def _free_directions(jtr, s_anchor, g_anchor, anchor, centre, radius):
 def _out_of_target(grid, p):
     """p if it is no deeper in the target than ANCHOR_DEPTH, else the point at that depth that Newton's
     steps along grad S reach from it."""
-    value_grad, origin, spacing, shape, strides = grid
-    vg = np.empty(4)
     for _ in range(3):
-        _interpolate(value_grad, origin, spacing, shape, strides, p[0], p[1], p[2], vg)
-        if vg[0] >= -ANCHOR_DEPTH:
+        v, gx, gy, gz = _interpolate(grid, p[0], p[1], p[2])
+        if v >= -ANCHOR_DEPTH:
             break
-        g = vg[1:].copy()
-        p = p - (vg[0] + ANCHOR_DEPTH) * g / max(g @ g, 1e-12)
+        g = np.array([gx, gy, gz])
+        p = p - (v + ANCHOR_DEPTH) * g / max(g @ g, 1e-12)
     return p
 
 
@@ -183,10 +180,8 @@ def _evaluate(grid, device, local, rot, anchor, angles, widths):
             axes[h, i] = frames[f, i, 1] * sign[h]
             on_axis[h, i] = frames[f, i, 3] + frames[f, i, 0] * half[h] * widths[f]
     cost, jtj, jtr = _normal_equations(grid, frames, local, moved, axes, on_axis, anchor)
-    value_grad, origin, spacing, shape, strides = grid
-    at_anchor = np.empty(4)
-    _interpolate(value_grad, origin, spacing, shape, strides, anchor[0], anchor[1], anchor[2], at_anchor)
-    return cost, jtj, jtr, at_anchor[0], at_anchor[1:].copy()
+    v, gx, gy, gz = _interpolate(grid, anchor[0], anchor[1], anchor[2])
+    return cost, jtj, jtr, v, np.array([gx, gy, gz])
 
 
 @lru_cache(maxsize=8)
@@ -204,7 +199,7 @@ def _hinges(spec: DeviceSpec) -> tuple:
     return moved, hinge_axis_sign(spec).astype(float), np.where(beyond, outer - 1, outer + 1), np.where(beyond, 0.5, -0.5)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, fastmath={"reassoc", "contract"})
 def _normal_equations(grid, frames, local, moved, axes, on_axis, anchor):
     """Sum of S^2, J^T J (n, n) and J^T S (n,) over the flaps' samples `local` (n_flaps, M, 3) placed by
     their frames, S and grad S interpolated on the grid as they are placed (no arrays of points).
@@ -212,12 +207,10 @@ def _normal_equations(grid, frames, local, moved, axes, on_axis, anchor):
     A sample's Jacobian row is linear in w = (g, x cross g): row = M_f w, with M_f fixed per flap
     (module docstring), so the samples are summed per flap as w w^T and w s first.
     """
-    value_grad, origin, spacing, shape, strides = grid
     n_flaps, n_hinges = moved.shape
-    ww = np.zeros((n_flaps, 6, 6))
-    ws = np.zeros((n_flaps, 6))
-    w = np.zeros(6)
-    vg = np.empty(4)
+    ww = np.empty((n_flaps, 6, 6))
+    ws = np.empty((n_flaps, 6))
+    rows = np.empty((7, local.shape[1]))  # per sample of one flap: w, then S
     cost = 0.0
     for f in range(n_flaps):
         for p in range(local.shape[1]):
@@ -225,23 +218,27 @@ def _normal_equations(grid, frames, local, moved, axes, on_axis, anchor):
             x = frames[f, 0, 3] + frames[f, 0, 0] * lx + frames[f, 0, 1] * ly + frames[f, 0, 2] * lz
             y = frames[f, 1, 3] + frames[f, 1, 0] * lx + frames[f, 1, 1] * ly + frames[f, 1, 2] * lz
             z = frames[f, 2, 3] + frames[f, 2, 0] * lx + frames[f, 2, 1] * ly + frames[f, 2, 2] * lz
-            _interpolate(value_grad, origin, spacing, shape, strides, x, y, z, vg)
-            r, gx, gy, gz = vg[0], vg[1], vg[2], vg[3]
-            w[0], w[1], w[2] = gx, gy, gz
-            w[3], w[4], w[5] = y * gz - z * gy, z * gx - x * gz, x * gy - y * gx
-            cost += r * r
-            for a in range(6):
-                ws[f, a] += w[a] * r
-                for b in range(a, 6):
-                    ww[f, a, b] += w[a] * w[b]
+            r, gx, gy, gz = _interpolate(grid, x, y, z)
+            rows[0, p], rows[1, p], rows[2, p] = gx, gy, gz
+            rows[3, p], rows[4, p], rows[5, p] = y * gz - z * gy, z * gx - x * gz, x * gy - y * gx
+            rows[6, p] = r
+        for a in range(7):  # (w, S) summed over the flap's samples as outer products
+            for b in range(a, 7):
+                total = 0.0
+                for p in range(local.shape[1]):
+                    total += rows[a, p] * rows[b, p]
+                if b < 6:
+                    ww[f, a, b] = ww[f, b, a] = total
+                elif a < 6:
+                    ws[f, a] = total
+                else:
+                    cost += total
     n = 6 + n_hinges
     jtj = np.zeros((n, n))
     jtr = np.zeros(n)
     mf = np.zeros((n, 6))
+    mw = np.empty((n, 6))
     for f in range(n_flaps):
-        for a in range(6):
-            for b in range(a):
-                ww[f, a, b] = ww[f, b, a]
         mf[:] = 0.0
         for i in range(3):
             mf[i, i] = 1.0  # anchor: g
@@ -256,8 +253,21 @@ def _normal_equations(grid, frames, local, moved, axes, on_axis, anchor):
                 q0, q1, q2 = on_axis[h, 0], on_axis[h, 1], on_axis[h, 2]
                 mf[6 + h, 0], mf[6 + h, 1], mf[6 + h, 2] = -(a1 * q2 - a2 * q1), -(a2 * q0 - a0 * q2), -(a0 * q1 - a1 * q0)
                 mf[6 + h, 3], mf[6 + h, 4], mf[6 + h, 5] = a0, a1, a2
-        jtj += mf @ ww[f] @ mf.T
-        jtr += mf @ ws[f]
+        for i in range(n):  # J^T J += M_f ww M_f^T, J^T S += M_f ws, in loops (BLAS calls cost more here)
+            for b in range(6):
+                mw[i, b] = 0.0
+                for a in range(6):
+                    mw[i, b] += mf[i, a] * ww[f, a, b]
+            for j in range(i + 1):
+                total = 0.0
+                for b in range(6):
+                    total += mw[i, b] * mf[j, b]
+                jtj[i, j] += total
+            for a in range(6):
+                jtr[i] += mf[i, a] * ws[f, a]
+    for i in range(n):
+        for j in range(i):
+            jtj[j, i] = jtj[i, j]
     return cost, jtj, jtr
 
 
