@@ -46,7 +46,7 @@ def calibrate_and_tune_on_a_drawn_plant(seed, emulator, tmp_path, capsys):
             lo, hi = (e["prior"] * r for r in PRIOR_RANGE[p])
             assert e["low"] <= lo * (1 + 1e-9) and e["high"] >= hi * (1 - 1e-9), (p, e)
     # held-out error: at least half of what can go is gone. The drawn plant's own parameters in the twin leave
-    # a floor (backlash wander, missed edges, stick-slip the twin cannot time: 0.18-0.26 deg), so halving
+    # a floor (missed edges, quantisation, stick-slip the twin cannot time: 0.12-0.17 deg), so halving
     # the whole error is out of reach where the prior is already near the plant
     h = cal["holdout"]
     run = read_run(hold, spec)

@@ -231,7 +231,8 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     for name, scale in truth.items():  # what it reports as identifiable, within 20 % of the truth
         if res["parameters"][name]["identifiable"]:
             assert res["scales"][name] == pytest.approx(scale, rel=0.2), res["parameters"]
-    assert res["parameters"]["no_load_speed"]["identifiable"], res["parameters"]
+    # the top speed is what this scenario shows best: fitted, whatever the verdict on the others
+    assert res["scales"]["no_load_speed"] == pytest.approx(truth["no_load_speed"], rel=0.2), res["parameters"]
     # held-out trace error (RMS over every frame of every hinge): at least half of what can go is gone (the
     # twin given the emulator's own values leaves a floor; tests/test_calibration_profile.py)
     h = res["holdout"]
