@@ -31,7 +31,7 @@ def held_out_improved(holdout: dict, floor_deg: float, spec) -> bool:
     """Issue 13's held-out criterion, as the tests read it: at least half of the held-out error that can go
     is gone, or what is left is within a tenth of an encoder count of the floor. The floor (deg) is the
     held-out error of a twin given the plant's own values: missed edges, quantisation and stick-slip the
-    twin cannot time (0.12-0.17 deg) stay whatever is fitted, and where the prior is already near the plant
+    twin cannot time (0.11-0.19 deg) stay whatever is fitted, and where the prior is already near the plant
     the removable part is smaller than the held-out error's own spread from one recording to the next
     (about 0.01-0.02 deg), so halving it cannot be told from chance."""
     before, after = holdout["overall_before_deg"], holdout["overall_after_deg"]
