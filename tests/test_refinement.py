@@ -1,7 +1,8 @@
 """Ours beyond the paper (variant "refined") and the HCEVF translation along the surface, on all eight shapes.
 
 Starts: 10 per shape from the evaluation's generator with a seed the evaluation does not use
-(the committed Table 1 has the 50-start figures).
+(the committed Table 1 has the 50-start figures); issue 14's bounds also from 50 more per shape
+of a seed nothing else uses.
 """
 
 import math
@@ -21,6 +22,7 @@ from twin.sim.gate import check_move
 from twin.sim.simulation import Twin
 
 STARTS, SEED = 10, 5
+FRESH_STARTS, FRESH_SEED = 50, 13  # starts of a seed no other test, benchmark or evaluation uses
 ANCHOR_INSIDE = 1e-3  # m: no anchor ends deeper than this in the target (exact mesh)
 
 
@@ -69,19 +71,38 @@ def test_hcevf_translation_keeps_the_anchor_on_a_wave(spec):
         assert abs(exact_signed_distance(wave, result.root_pose[None, :3, 3])[0][0]) < ANCHOR_INSIDE
 
 
-def test_ours_is_well_below_full_on_every_shape(runs):
-    """Issue 14: at least 20 % lower mean MSD and 15 % lower mean HD than full on every shape, 50 % lower MSD
-    averaged over the shapes, and no start's MSD more than 0.5 mm above full's."""
+def assert_well_below_full(results):
+    """Issue 14's bounds on {shape: {variant: [measured results]}}: at least 20 % lower mean MSD and 15 % lower
+    mean HD than full on every shape, 50 % lower MSD averaged over the shapes, and no start's MSD more than
+    0.5 mm above full's."""
     drops = []
-    for name, (_, _, _, results) in runs.items():
-        full = np.array([[r.msd, r.hd] for r in results["full"]])
-        ours = np.array([[r.msd, r.hd] for r in results["refined"]])
+    for name, by_variant in results.items():
+        full = np.array([[r.msd, r.hd] for r in by_variant["full"]])
+        ours = np.array([[r.msd, r.hd] for r in by_variant["refined"]])
         msd_drop, hd_drop = 1 - ours.mean(axis=0) / full.mean(axis=0)
         assert msd_drop >= 0.2, (name, msd_drop)
         assert hd_drop >= 0.15, (name, hd_drop)
-        assert np.max(ours[:, 0] - full[:, 0]) <= 0.5e-3, name
+        worst = np.argmax(ours[:, 0] - full[:, 0])
+        assert ours[worst, 0] - full[worst, 0] <= 0.5e-3, (name, worst, ours[worst, 0], full[worst, 0])
         drops.append(msd_drop)
     assert np.mean(drops) >= 0.5
+
+
+def test_ours_is_well_below_full_on_every_shape(runs):
+    assert_well_below_full({name: results for name, (_, _, _, results) in runs.items()})
+
+
+def test_ours_is_well_below_full_from_starts_nobody_tuned_for(spec, runs):
+    """Issue 14's bounds again, from FRESH_STARTS more starts per shape of a seed nothing else uses. Before,
+    the search ended after its first small gain, often a step cut short by the anchor's ball: on the
+    benchmark's starts a torus start ended 0.81 mm above full's MSD; and plain squared distances traded the
+    torus's flap tips buried 20-40 mm in the tube (its HD) against the mean: 12 % lower HD than full there."""
+    results = {}
+    for name, (mesh, fields, _, _) in runs.items():
+        starts = approach_starts(mesh, FRESH_STARTS, seed=FRESH_SEED)
+        results[name] = {v: [approximate(fields, s, spec, v).measured(spec, mesh) for s in starts]
+                         for v in ("full", "refined")}
+    assert_well_below_full(results)
 
 
 def test_ours_keeps_the_anchor_where_the_user_brought_the_device(spec, runs):
