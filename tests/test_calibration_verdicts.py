@@ -21,9 +21,10 @@ def samples(group_cost, n_groups=18, n=120, spread=0.25, seed=0):
     return grads, Hs, xb
 
 
-def test_a_parameter_held_at_a_wrong_prior_widens_the_one_it_trades_with():
-    # friction 1.46 x its prior, barely shown; the runs see inertia + 0.8 friction (log) sharply: held at its
-    # prior, friction drags inertia 35 % off. That inertia must not be called identifiable.
+def test_a_barely_shown_parameter_does_not_make_its_partner_look_identified():
+    # friction 1.46 x its prior, barely shown; the runs see inertia + 0.8 friction (log) sharply. Held at its
+    # prior, friction would drag inertia 35 % off and make it look pinned there (the rule before): fitted with
+    # the prior's pull, friction moves partway and inertia's interval holds what the two trade.
     truth = np.log([1.0, 1.46])
 
     def cost(x, g):
@@ -33,26 +34,28 @@ def test_a_parameter_held_at_a_wrong_prior_widens_the_one_it_trades_with():
     grads, Hs, xb = samples(cost)
     _, est = verdicts(grads, Hs, xb, 0.05, PARAMS, PRIOR)
     friction, inertia = est["gear_friction"], est["rotor_inertia"]
-    assert friction.value == PRIOR["gear_friction"] and not friction.identifiable
-    assert (friction.low, friction.high) == tuple(PRIOR["gear_friction"] * r for r in PRIOR_RANGE["gear_friction"])
-    assert inertia.value / PRIOR["rotor_inertia"] > 1.3  # biased, as the runs say with friction held
-    assert not inertia.identifiable and inertia.fitted
-    assert inertia.low <= PRIOR["rotor_inertia"] <= inertia.high  # the truth stays inside what is left open
-    assert inertia.low <= PRIOR["rotor_inertia"] * PRIOR_RANGE["rotor_inertia"][0]  # and its prior range
+    assert not friction.identifiable and 1.0 < friction.value / PRIOR["gear_friction"] < 1.46
+    assert friction.low <= PRIOR["gear_friction"] * PRIOR_RANGE["gear_friction"][0]  # its prior range left open
+    assert friction.high >= PRIOR["gear_friction"] * PRIOR_RANGE["gear_friction"][1]
+    assert not inertia.identifiable and inertia.low <= PRIOR["rotor_inertia"] <= inertia.high
 
 
 def test_groups_that_disagree_widen_an_interval_the_noise_alone_would_keep_narrow():
     # each group's own minimum of inertia scattered (log sd 0.6): a model error the hinges show differently,
     # their mean uncertain by about 0.6 / sqrt(18) = 0.14. The residual's noise (s2) alone would pin it (as it
-    # does when the groups agree); the jackknife must not.
-    scatter = np.random.default_rng(1).normal(0.0, 0.6, 18)
-    for offsets, shown in ((np.full(18, 0.1), True), (scatter - scatter.mean() + 0.1, False)):
+    # does when the groups agree); the jackknife must not. Scattered by 4, the runs say nothing of it.
+    scatter = np.random.default_rng(1).normal(0.0, 1.0, 18)
+    scatter = (scatter - scatter.mean()) / scatter.std()
+    for offsets, shown in ((np.full(18, 0.1), True), (0.6 * scatter + 0.1, False), (4.0 * scatter + 0.1, None)):
         def cost(x, g):
             return 50.0 * (x[0] - offsets[g]) ** 2 + 50.0 * x[1] ** 2
 
         grads, Hs, xb = samples(cost)
         _, est = verdicts(grads, Hs, xb, 1e-6, PARAMS, PRIOR)
-        assert est["rotor_inertia"].fitted and est["rotor_inertia"].identifiable == shown, est
+        if shown is None:  # the hinges disagree far beyond what the prior allows: left at its prior
+            assert not est["rotor_inertia"].fitted and "left at its prior" in est["rotor_inertia"].note, est
+        else:
+            assert est["rotor_inertia"].fitted and est["rotor_inertia"].identifiable == shown, est
         assert est["gear_friction"].identifiable  # the groups agree on friction: it stays pinned
 
 

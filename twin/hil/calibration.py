@@ -29,14 +29,16 @@ which already includes it).
 
 Search: a cross-entropy method, then a quadratic fitted to the better half of its
 samples (the cost is rough at small scales, where a gradient method stalls: see
-`calibrate`). Each parameter's 95 % interval is the wider of the quadratic's
-Hessian's (the residual's autocorrelation allowed for) and a jackknife's over the
-hinges' stretches of the runs. Three verdicts: a parameter the runs show less well
-than its prior range (PRIOR_RANGE) does is left at its prior, with that range as
-what calibration leaves open; the others are fitted together, and each is
-identifiable when its interval, widened by what the ones left at their priors could
-move it, is within x(1 -+ MAX_HALFWIDTH); a fitted one that is not keeps its
-fitted value, and leaves its interval and its prior range open. docs/tuning-hil-calibration.md says
+`calibrate`). The parameters are the mode of the runs' likelihood (that quadratic)
+times a prior about the spec's values (log spread: half the farther end of
+PRIOR_RANGE), so a parameter the runs show little stays near its prior without
+being held there. Each one's 95 % interval is the wider of the posterior's and a
+jackknife's over the hinges' stretches of the runs. Three verdicts: identifiable
+(the interval within x(1 -+ MAX_HALFWIDTH)); fitted, not identifiable (its fitted
+value kept, its interval and prior range left open); left at its prior (the
+hinges disagree on it beyond NOT_SHOWN of the prior's spread), the others'
+intervals then widened by what it could move them within its prior range.
+docs/tuning-hil-calibration.md says
 why mujoco.sysid is not used.
 """
 
@@ -63,6 +65,7 @@ PRIOR_RANGE = {"no_load_speed": (0.7, 1.3), "gear_friction": (0.7, 1.6), "gear_d
                "rotor_inertia": (0.7, 1.4), "backlash": (0.04, 2.0)}
 LOG_BOUND = math.log(3.0)
 MAX_HALFWIDTH = 0.15  # a parameter is identifiable when its 95 % interval is within x(1 -+ this) of its value
+NOT_SHOWN = 3.0  # a parameter whose fitted spread exceeds this many times its prior's is left at its prior
 SEARCH_STD = 0.25  # log: the cross-entropy search's first spread about the prior
 ELITE = 6  # samples per generation the next is drawn about
 DUTY_WINDOW = 0.2  # s: the duty is compared as means over windows this long
@@ -201,10 +204,24 @@ def quadratic_fit(X: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return coef[:, 1:1 + k], H
 
 
-def quadratic_minimum(grad, H, xb, F, D) -> np.ndarray:
-    """The free parameters F's minimum (log) of the quadratic about xb, the dropped ones D held at 0."""
-    rhs = -(grad[F] - H[np.ix_(F, D)] @ xb[D])
-    return np.clip(xb[F] + np.linalg.lstsq(H[np.ix_(F, F)], rhs, rcond=None)[0], -LOG_BOUND, LOG_BOUND)
+def prior_spread(param: str) -> float:
+    """The prior's standard deviation of log(value / prior): half the farther end of its PRIOR_RANGE, so
+    the whole range lies within two of them."""
+    return max(abs(math.log(r)) for r in PRIOR_RANGE[param]) / 2.0
+
+
+def posterior_mode(grad, H, xb, s2: float, spread, held) -> tuple[np.ndarray, np.ndarray]:
+    """(x, covariance) of log(value / prior) that minimises the quadratic's cost / (2 s2) (the runs' negative
+    log likelihood) plus the prior's sum((x / spread)^2) / 2, the `held` ones at 0 (their prior); the
+    covariance the inverse of that sum's Hessian (0 for the held ones)."""
+    k = len(xb)
+    A, P = H / (2.0 * s2), np.diag(1.0 / np.asarray(spread) ** 2)
+    F = np.array([i for i in range(k) if i not in held], int)
+    M = (A + P)[np.ix_(F, F)]
+    x, cov = np.zeros(k), np.zeros((k, k))
+    x[F] = np.clip(np.linalg.solve(M, (A @ xb - grad / (2.0 * s2))[F]), -LOG_BOUND, LOG_BOUND)
+    cov[np.ix_(F, F)] = np.linalg.inv(M)
+    return x, cov
 
 
 def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float = MAX_HALFWIDTH):
@@ -213,50 +230,36 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
     residual's variance per independent sample. See `calibrate`."""
     k, n_groups = len(params), len(grads)
     grad, H = grads.sum(axis=0), Hs.sum(axis=0)
-    width = {i: math.log(PRIOR_RANGE[p][1] / PRIOR_RANGE[p][0]) for i, p in enumerate(params)}  # log
-    free, dropped = list(range(k)), {}
-    x, sigma = np.zeros(k), np.full(k, np.inf)
-    while free:
-        F, D = np.array(free), np.setdiff1d(np.arange(k), free)
-        x = np.zeros(k)  # the dropped ones at their prior: 0
-        x[F] = quadratic_minimum(grad, H, xb, F, D)
-        HFF = H[np.ix_(F, F)]
-        sigma = np.full(k, np.inf)
-        curved = bool(np.all(np.linalg.eigvalsh(HFF) > 0))
-        if curved:
-            # the residual's noise: 2 s^2 H^-1
-            noise = np.sqrt(np.maximum(np.diag(2.0 * s2 * np.linalg.inv(HFF)), 0.0))
-            # the jackknife: the minimum with each group's cost left out, spread about their mean
-            loo = np.array([quadratic_minimum(grad - grads[j], H - Hs[j], xb, F, D) for j in range(n_groups)])
-            jack = np.sqrt((n_groups - 1) / n_groups * ((loo - loo.mean(axis=0)) ** 2).sum(axis=0))
-            sigma[F] = np.maximum(noise, jack)
-        else:
-            x[F] = xb[F]
-            sigma[F] = [math.sqrt(2.0 * s2 / H[i, i]) if H[i, i] > 0 else np.inf for i in F]
-        # shown less well than the prior range says: back to the prior, the least shown first
-        wide = [i for i in free if 2.0 * 1.96 * sigma[i] > width[i]]
-        if curved and not wide:
+    spread = np.array([prior_spread(p) for p in params])
+    held, notes = [], {}
+    while True:
+        x, cov = posterior_mode(grad, H, xb, s2, spread, held)
+        # the jackknife: the mode with each group's cost left out, spread about their mean
+        loo = np.array([posterior_mode(grad - grads[j], H - Hs[j], xb, s2, spread, held)[0] for j in range(n_groups)])
+        jack = np.sqrt((n_groups - 1) / n_groups * ((loo - loo.mean(axis=0)) ** 2).sum(axis=0))
+        sigma = np.maximum(np.sqrt(np.maximum(np.diag(cov), 0.0)), jack)
+        weak = [i for i in range(k) if i not in held and sigma[i] > NOT_SHOWN * spread[i]]
+        if not weak:
             break
-        i = max(wide or free, key=lambda i: sigma[i] / width[i])
-        dropped[params[i]] = (f"not shown by the runs: its 95 % interval would be x{math.exp(-1.96 * sigma[i]):.2f} .. "
-                              f"x{math.exp(1.96 * sigma[i]):.2f}, wider than its prior range" if math.isfinite(sigma[i])
-                              else "not shown by the runs: the cost does not curve up along it") + "; left at its prior"
-        free.remove(i)
-    if not free:
-        x = np.zeros(k)
-    # each kept parameter's interval (log, about x): its noise and jackknife, widened by how far it would move
-    # were the ones left at their priors anywhere in their prior ranges (the minimum moves by -HFF^-1 HFD dxD)
+        i = max(weak, key=lambda i: sigma[i] / spread[i])
+        notes[params[i]] = (f"not shown by the runs: the fit's 95 % interval would be x{math.exp(-1.96 * sigma[i]):.2f} .. "
+                            f"x{math.exp(1.96 * sigma[i]):.2f}, the hinges disagreeing beyond its prior; left at its prior")
+        held.append(i)
+    # each fitted parameter's interval (log, about x), widened by how far it would move were the held ones
+    # anywhere in their prior ranges (the mode moves by -(A + P)_FF^-1 A_FD dx_D)
     lo, hi = x - 1.96 * sigma, x + 1.96 * sigma
-    F, D = np.array(free, int), np.setdiff1d(np.arange(k), free)
-    if len(F) and len(D):
-        S = -np.linalg.solve(H[np.ix_(F, F)], H[np.ix_(F, D)])
-        ends = np.log([PRIOR_RANGE[params[j]] for j in D])  # (dropped, 2)
+    F = np.array([i for i in range(k) if i not in held], int)
+    if held and len(F):
+        A = H / (2.0 * s2)
+        M = (A + np.diag(1.0 / spread ** 2))[np.ix_(F, F)]
+        S = -np.linalg.solve(M, A[np.ix_(F, held)])
+        ends = np.log([PRIOR_RANGE[params[j]] for j in held])  # (held, 2)
         lo[F] += np.minimum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
         hi[F] += np.maximum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
     estimates = {}
     for i, p in enumerate(params):
         lo_p, hi_p = PRIOR_RANGE[p]
-        if i in free:
+        if i in F:
             below, above = math.exp(lo[i] - x[i]), math.exp(hi[i] - x[i])
             pinned = bool(max(x[i] - lo[i], hi[i] - x[i]) <= math.log1p(max_halfwidth))
             low, high = prior[p] * math.exp(lo[i]), prior[p] * math.exp(hi[i])
@@ -268,7 +271,7 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
             estimates[p] = Estimate(prior[p] * math.exp(x[i]), prior[p], low, high, pinned, note)
         else:
             estimates[p] = Estimate(prior[p], prior[p], prior[p] * lo_p, prior[p] * hi_p, False,
-                                    dropped.get(p, "not fitted") + f"; prior range x{lo_p:g} .. x{hi_p:g}")
+                                    notes[p] + f"; prior range x{lo_p:g} .. x{hi_p:g}")
     return x, estimates
 
 
@@ -282,19 +285,19 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int
     mujoco.minimize.least_squares stopped after 6-10 iterations with "insufficient reduction", well short of
     the truth, on the emulator's drawn plants). So: a cross-entropy search (population x generations
     replays), then a quadratic fitted to the costs of the samples near the best (the cost's shape at the
-    scale of the search, its roughness averaged out). Each parameter's standard error is the larger of two:
-    the residual's noise, 2 s^2 H^-1 with H the quadratic's Hessian and s^2 the residual's variance per
-    independent sample (its autocorrelation allowed for); and a delete-one-group jackknife over each hinge's
-    stretches of the runs (group_costs): what the fit would have said without each, which also holds what
-    the noise model misses (stick-slip, missed edges, a model error one hinge or moment shows and the others
-    do not). With it, each parameter's 95 % interval. A parameter whose interval is wider than its prior
-    range, or along which the quadratic does not curve up, is not shown by the runs: it is put back at its
-    prior, the least seen first, and the others re-estimated at the quadratic's minimum with it held there.
-    Holding it there biases the others by as much as its prior may be off, so each kept parameter's interval
-    is widened by how far its minimum would move were the held ones anywhere in their prior ranges; it is
-    identifiable when that interval is within x(1 -+ max_halfwidth), and otherwise kept at its fitted value,
-    said so, with its prior range left open as well as its interval (a model error can load onto a loosely
-    shown parameter and pull its interval off the truth: backlash, on the emulator's plants). progress(generation, best cost) is called as the search goes.
+    scale of the search, its roughness averaged out). The estimate is that quadratic's likelihood's mode with
+    a prior about the spec's values (`posterior_mode`): a parameter the runs barely show stays near its
+    prior, the others take what the runs say, and none is held at a prior that may be off (held there, it
+    drags the ones it trades with: on the emulator's seed 1, friction drawn x1.46 and held at x1.0 pulled
+    rotor inertia 20-24 % off). Each parameter's standard error is the larger of the posterior's and a
+    delete-one-group jackknife's over each hinge's stretches of the runs (group_costs), which holds what the
+    noise model misses (stick-slip, missed edges, a model error the hinges show differently). A parameter
+    on which the groups disagree beyond NOT_SHOWN times its prior's spread is left at its prior, and each
+    other's interval widened by how far it would move were that one anywhere in its prior range. A fitted
+    parameter is identifiable when its interval is within x(1 -+ max_halfwidth); otherwise it keeps its
+    fitted value, said so, with its prior range left open as well as its interval (a model error can load
+    onto a loosely shown parameter and pull its interval off the truth: backlash, on the emulator's plants).
+    progress(generation, best cost) is called as the search goes.
     """
     params = tuple(params)
     prior = {p: float(getattr(base, p)) for p in params}
