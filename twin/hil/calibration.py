@@ -38,8 +38,7 @@ jackknife's over the hinges' stretches of the runs. Three verdicts: identifiable
 value kept, its interval and prior range left open); left at its prior (the
 hinges disagree on it beyond NOT_SHOWN of the prior's spread), the others'
 intervals then widened by what it could move them within its prior range.
-docs/tuning-hil-calibration.md says
-why mujoco.sysid is not used.
+docs/tuning-hil-calibration.md says why mujoco.sysid is not used.
 """
 
 from __future__ import annotations
@@ -250,9 +249,7 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
     lo, hi = x - 1.96 * sigma, x + 1.96 * sigma
     F = np.array([i for i in range(k) if i not in held], int)
     if held and len(F):
-        A = H / (2.0 * s2)
-        M = (A + np.diag(1.0 / spread ** 2))[np.ix_(F, F)]
-        S = -np.linalg.solve(M, A[np.ix_(F, held)])
+        S = -cov[np.ix_(F, F)] @ H[np.ix_(F, held)] / (2.0 * s2)  # cov_FF is (A + P)_FF^-1
         ends = np.log([PRIOR_RANGE[params[j]] for j in held])  # (held, 2)
         lo[F] += np.minimum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
         hi[F] += np.maximum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
