@@ -1,6 +1,6 @@
 """Calibration on plants nobody told the twin: per-hinge held-out RMSE before and after, fitted against drawn.
 
-For each seed, the emulator draws its plant within the issue's ranges (tests/random_plant.py); the device is
+For each seed, the emulator draws its plant within its stated ranges (tests/random_plant.py); the device is
 woken to flat, the calibration scenario (seed 0, for the device's gains) and a held-out one (seed 1) are
 recorded with `vrscroll hil`, and `vrscroll calibrate` fits the first and scores the second. The drawn
 values are read from the emulator's log only to print beside the fit; the floor is the held-out error of

@@ -1,5 +1,5 @@
 """Speed of the twin: real-time factor with the full drive train (backlash, LuGre friction, pack, drivers,
-gearbox efficiency; the C firmware core in the loop) beside the previous model (issue 12's: joint friction,
+gearbox efficiency; the C firmware core in the loop) beside the previous model (the simple drive model: joint friction,
 no backlash, duty x 6 V straight to the motor; kept here only as the baseline) and raw physics in the same
 run; where a step's time goes in the closed loop itself (MuJoCo's per-stage timers, data.timer, read
 through a C clock, stage_clock.c); the batch twin's throughput.
@@ -42,10 +42,10 @@ POSITION_PARTS = ("POS_KINEMATICS", "POS_INERTIA", "POS_COLLISION", "POS_MAKE", 
 CLOCK_SOURCE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "stage_clock.c")
 
 
-# ---- the baseline: issue 12's model and loop, kept for comparison only --------------------------------------
+# ---- the baseline: the simple drive model and loop, kept for comparison only --------------------------------------
 
 def previous_model(spec) -> mujoco.MjModel:
-    """Issue 12's model: the motors on the flaps' joints, Coulomb friction as joint frictionloss (a constraint
+    """The simple drive model: the motors on the flaps' joints, Coulomb friction as joint frictionloss (a constraint
     row per hinge), viscous loss as joint damping, the gearbox's loss folded into the motor's resistance,
     MuJoCo's default solver options."""
     m = load_model(spec.replace(backlash=0.0, friction_stiffness=0.0, gear_damping=0.0))
@@ -54,7 +54,7 @@ def previous_model(spec) -> mujoco.MjModel:
     m.actuator_gainprm[:, :2] = [k * spec.rated_voltage * spec.gear_ratio / spec.stall_torque, k]
     m.dof_frictionloss[:] = spec.gear_friction
     m.dof_damping[:] = spec.gear_damping
-    m.opt.disableflags = 0  # issue 12's solver: MuJoCo's defaults (warm start, islands)
+    m.opt.disableflags = 0  # its solver: MuJoCo's defaults (warm start, islands)
     return m
 
 
@@ -74,7 +74,7 @@ def _previous_loop(m, d, fw, sensordata, qpos, ctrl, enc_adr, qadr, cpr_motor, c
 
 
 def previous_wall(twin: Twin, model: mujoco.MjModel, targets, ticks: int) -> tuple[float, mujoco.MjData]:
-    """Wall time (s) of issue 12's loop on its model for `ticks` ticks from flat, and its data after."""
+    """Wall time (s) of the simple drive model's loop on its model for `ticks` ticks from flat, and its data after."""
     s, h = twin.spec, twin.hinges
     d = mujoco.MjData(model)
     mujoco.mj_resetDataKeyframe(model, d, model.key("flat").id)
@@ -184,7 +184,7 @@ def main() -> None:
     print(f"  full drive train (backlash, LuGre friction, pack, drivers, efficiency), C core in the loop: "
           f"{full * 1e3:.2f} ms wall, {full / ticks * 1e6:.2f} us/tick -> {DURATION / full:.0f}x real time "
           f"(goal >= 200x)")
-    print(f"  previous model (issue 12: joint friction, no backlash, duty x 6 V), C core in the loop: "
+    print(f"  simple drive model (joint friction, no backlash, duty x 6 V), C core in the loop: "
           f"{prev * 1e3:.2f} ms wall, {prev / ticks * 1e6:.2f} us/tick -> {DURATION / prev:.0f}x real time")
     for label, what in (("on", "collision detection on"), ("off", "collision detection off, as the twin while apart")):
         print(f"  raw mj_step on the full model, the closed loop's drive replayed, {what}: "

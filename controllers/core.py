@@ -24,6 +24,7 @@ import numpy as np
 
 from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec
+from twin.paths import cache_dir
 
 FIRMWARE_DIR = Path(__file__).resolve().parent / "firmware"
 FIRMWARE_VERSION = (0, 2, 0)  # major, minor, patch: reported in HELLO_REPLY and STATE
@@ -83,10 +84,6 @@ def pid_gains(g: Gains) -> PidGains:
 
 # ---- building ---------------------------------------------------------------------------
 
-def cache_dir() -> Path:
-    return Path(os.environ.get("VRSCROLL_CACHE", "~/.cache/vrscroll")).expanduser() / "firmware"
-
-
 def compiler() -> str:
     """The C compiler: $CC, else cc; FirmwareBuildError naming it where it is missing."""
     name = os.environ.get("CC", "cc")
@@ -110,7 +107,7 @@ def build(flags=LIBRARY_FLAGS, extra_sources=(), name: str = "vrs_core", suffix:
         h.update(part.encode() + b"\0")
     for p in [*sorted(FIRMWARE_DIR.glob("*.h")), *sources]:
         h.update(p.name.encode() + b"\0" + p.read_bytes() + b"\0")
-    out = cache_dir() / f"{name}-{h.hexdigest()[:16]}{suffix}"
+    out = cache_dir("firmware") / f"{name}-{h.hexdigest()[:16]}{suffix}"
     if out.exists():
         return out
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,8 +1,19 @@
-import pytest
+import os
+import shutil
+import tempfile
 
-from twin.link.emulator_process import EmulatorProcess
+# The whole test run caches (firmware builds, fields, decompositions) in a folder of its own, never the
+# user's ~/.cache/vrscroll: set before the project is imported (test modules build the C core when
+# collected), inherited by every command a test starts, removed when the run ends. One folder for the run,
+# so the core and the fields are built once per run, not once per test.
+CACHE = tempfile.mkdtemp(prefix="vrscroll-test-cache-")
+os.environ["VRSCROLL_CACHE"] = CACHE
 
-from twin.device.spec import load_spec
+import pytest  # noqa: E402
+
+from twin.link.emulator_process import EmulatorProcess  # noqa: E402
+
+from twin.device.spec import load_spec  # noqa: E402
 
 
 @pytest.fixture(scope="session")
@@ -38,3 +49,7 @@ def device_profiles(tmp_path, monkeypatch):
     folder = tmp_path / "devices"
     monkeypatch.setenv("VRSCROLL_DEVICES", str(folder))
     return folder
+
+
+def pytest_sessionfinish(session, exitstatus):
+    shutil.rmtree(CACHE, ignore_errors=True)

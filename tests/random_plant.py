@@ -1,4 +1,4 @@
-"""A device plant nobody chose: the emulator draws its parameters at random within the issue's ranges.
+"""A device plant nobody chose: the emulator draws its parameters at random within its stated ranges.
 
 The drawn values are in the emulator's log only (its "start" event); the twin never sees them. Shared by
 the calibration tests and benchmarks/bench_calibration.py.
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 
-# issue 13, "Must hold": x the spec's value, or deg and ms
+# the stated ranges: x the spec's value, or deg and ms
 RANGES = {"speed-scale": "0.7,1.3", "friction-scale": "0.7,1.6", "armature-scale": "0.7,1.4",
           "damping-scale": "0.7,1.6", "backlash-deg": "0,0.5", "latency-ms": "0,3"}
 ENCODER_MISS = 0.0005  # probability per edge the encoder's counter misses it
@@ -28,7 +28,7 @@ def drawn_plant(emulator) -> dict:
 
 
 def held_out_improved(holdout: dict, floor_deg: float, spec) -> bool:
-    """Issue 13's held-out criterion, as the tests read it: at least half of the held-out error that can go
+    """The held-out criterion, as the tests read it: at least half of the held-out error that can go
     is gone, or what is left is within a tenth of an encoder count of the floor. The floor (deg) is the
     held-out error of a twin given the plant's own values: missed edges, quantisation and stick-slip the
     twin cannot time (0.11-0.19 deg) stay whatever is fitted, and where the prior is already near the plant

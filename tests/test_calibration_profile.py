@@ -1,5 +1,5 @@
-"""Calibration and tuning on a plant nobody told the twin (issue 13, "Must hold"): the emulator draws its
-plant within the issue's ranges from a seed; the drawn values stay in its log, read here only to judge."""
+"""Calibration and tuning on a plant nobody told the twin (the stated ranges): the emulator draws its
+plant within its stated ranges from a seed; the drawn values stay in its log, read here only to judge."""
 
 import json
 

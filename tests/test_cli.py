@@ -1,14 +1,10 @@
 """The command line, run as a user runs it."""
 
 import json
-import subprocess
-import sys
 
 import pytest
 
-
-def vrscroll(*args):
-    return subprocess.run([sys.executable, "-m", "twin.cli", *args], capture_output=True, text=True, timeout=120)
+from cli import vrscroll
 
 
 def test_simulate_json_and_trace(tmp_path):

@@ -12,11 +12,11 @@ from twin.device.spec import SPEC_PATH, load_spec, spec_sources
 from twin.formats.gains import read_gains, write_gains
 from twin.formats.run import read_run, write_run_meta
 from twin.formats.scenario import Scenario, read_scenario, write_scenario
-from twin.formats.spec_toml import write_spec_toml
+from twin.device.spec_toml import write_spec_toml
 from twin.formats.target import read_approximation, read_target, write_approximation
 from twin.formats.trace import TWIN_COLUMNS, TraceWriter, read_trace
 from twin.formats.trials import read_trials, write_trials
-from twin.link.protocol import GAIN_BOUNDS
+from controllers.pid import GAIN_BOUNDS
 
 SPEC = load_spec()
 N = SPEC.n_hinges

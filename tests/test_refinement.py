@@ -1,7 +1,7 @@
 """Ours beyond the paper (variant "refined") and the HCEVF translation along the surface, on all eight shapes.
 
 Starts: 10 per shape from the evaluation's generator with a seed the evaluation does not use
-(the committed Table 1 has the 50-start figures); issue 14's bounds also from 50 more per shape
+(the committed Table 1 has the 50-start figures); the refinement's bounds also from 50 more per shape
 of a seed nothing else uses.
 """
 
@@ -54,7 +54,7 @@ def test_no_anchor_ends_inside_the_target(runs):
 
 def test_hcevf_translation_keeps_the_anchor_on_a_wave(spec):
     """A sinusoidal wave (amplitude 25 mm, wavelength 80 mm: its crests and troughs are ridges) from above:
-    the paper's 3-D HCEVF move leaves the anchor inside it (the issue's wave: 8.5 mm); moved along the
+    the paper's 3-D HCEVF move leaves the anchor inside it (a wave: 8.5 mm); moved along the
     surface and re-snapped, it stays on it."""
     x = np.linspace(-0.15, 0.15, 121)
     profile = np.vstack([np.c_[x, 0.06 + 0.025 * np.sin(2 * math.pi * x / 0.08)], [[0.15, 0.0], [-0.15, 0.0]]])
@@ -72,7 +72,7 @@ def test_hcevf_translation_keeps_the_anchor_on_a_wave(spec):
 
 
 def assert_well_below_full(results):
-    """Issue 14's bounds on {shape: {variant: [measured results]}}: at least 20 % lower mean MSD and 15 % lower
+    """The refinement's bounds on {shape: {variant: [measured results]}}: at least 20 % lower mean MSD and 15 % lower
     mean HD than full on every shape, 50 % lower MSD averaged over the shapes, and no start's MSD more than
     0.5 mm above full's."""
     drops = []
@@ -93,7 +93,7 @@ def test_ours_is_well_below_full_on_every_shape(runs):
 
 
 def test_ours_is_well_below_full_from_starts_nobody_tuned_for(spec, runs):
-    """Issue 14's bounds again, from FRESH_STARTS more starts per shape of a seed nothing else uses. Before,
+    """The refinement's bounds again, from FRESH_STARTS more starts per shape of a seed nothing else uses. Before,
     the search ended after its first small gain, often a step cut short by the anchor's ball: on the
     benchmark's starts a torus start ended 0.81 mm above full's MSD; and plain squared distances traded the
     torus's flap tips buried 20-40 mm in the tube (its HD) against the mean: 12 % lower HD than full there."""

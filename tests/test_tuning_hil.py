@@ -198,7 +198,7 @@ def test_hil_command_writes_report(emulator, tmp_path, capsys):
 
 
 def test_gear_damping_shows_in_the_motion(spec):
-    """The drive train fixes the motor constant by the datasheet's no-load point (issue 13), so gear damping is
+    """The drive train fixes the motor constant by the datasheet's no-load point, so gear damping is
     a loss of its own: more of it slows the hinges (before, K followed the damping and the motion hid it)."""
     soft = PidGains.from_spec(spec).replace(kp=0.015, ki=0.05, kd=0.0003)
     traces = []

@@ -11,6 +11,8 @@ import argparse
 import importlib
 import sys
 
+from twin.errors import UserError
+
 # command name -> (module, one-line help)
 COMMANDS = {
     "demo": ("twin.commands.demo", "approximate a shape, validate and simulate the morph on the twin, write a picture"),
@@ -35,10 +37,6 @@ COMMANDS = {
 }
 
 
-class UserError(Exception):
-    """Something the user can fix; printed without a traceback."""
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="vrscroll", description="VRScroll physics twin and MorphPatch tools.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -61,8 +59,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    # run the package's module, not this __main__ copy: the commands raise twin.cli.UserError, which
-    # only the package module's main() catches
-    from twin.cli import main as package_main
-
-    sys.exit(package_main())
+    sys.exit(main())

@@ -17,7 +17,7 @@ import numpy as np
 
 from twin.device.spec import load_spec
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
-from twin.cli import UserError
+from twin.errors import UserError
 from twin.formats.target import write_approximation
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names, shape_table

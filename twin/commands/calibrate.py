@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.cli import UserError
+from twin.errors import UserError
 from twin.commands.profile_option import add_device_option, profile_line
 from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
@@ -18,7 +18,7 @@ from twin.formats.gains import read_gains
 from twin.formats.profile import select_profile, spec_defaults, write_profile_spec
 from twin.formats.run import read_run
 from twin.formats.scenario import write_scenario
-from twin.formats.spec_toml import write_spec_toml
+from twin.device.spec_toml import write_spec_toml
 from twin.hil.calibration import calibrate, trace_rmse
 from twin.hil.calibration_scenario import calibration_scenario
 from twin.hil.device_gains import device_gains

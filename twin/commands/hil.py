@@ -5,7 +5,7 @@ from __future__ import annotations
 import datetime
 from pathlib import Path
 
-from twin.cli import UserError
+from twin.errors import UserError
 from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.formats.gains import read_gains
 from twin.formats.run import read_run

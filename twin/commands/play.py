@@ -17,7 +17,7 @@ from pathlib import Path
 
 from websockets.exceptions import WebSocketException
 
-from twin.cli import UserError
+from twin.errors import UserError
 from twin.device.spec import load_spec
 from twin.link.emulator_process import EmulatorProcess
 from twin.live.player import play

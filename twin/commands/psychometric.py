@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.cli import UserError
+from twin.errors import UserError
 from twin.perception.thresholds import detection_rule, paper_fits
 from twin.formats.trials import read_trials, write_trials
 from twin.perception.psychometric import FIT_METHOD, analyse, simulate_trials, threshold

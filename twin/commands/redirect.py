@@ -18,7 +18,7 @@ import numpy as np
 
 from twin.device.spec import load_spec
 from twin.morphpatch.approximation import Approximation
-from twin.cli import UserError
+from twin.errors import UserError
 from twin.formats.pen import read_pen_samples, write_redirected
 from twin.formats.target import read_approximation
 from twin.morphpatch.fields import build_fields

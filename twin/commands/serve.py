@@ -14,7 +14,7 @@ import os
 import secrets
 import signal
 
-from twin.cli import UserError
+from twin.errors import UserError
 from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.link.serial_link import LinkError
 from twin.live.messages import DEFAULT_LISTEN_PORT

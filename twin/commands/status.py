@@ -6,7 +6,7 @@ import numpy as np
 
 from controllers.encoder import angle_from_counts
 from twin.link import protocol as P
-from twin.cli import UserError
+from twin.errors import UserError
 from twin.link.serial_link import Link, LinkError
 from twin.hil.mirror import faults_text
 from twin.commands.profile_option import add_device_option, profile_line, profile_of

@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from controllers.encoder import target_counts
-from twin.cli import UserError
+from twin.errors import UserError
 from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.evaluation.backends import BACKENDS, make_backend
 from twin.formats.gains import write_gains

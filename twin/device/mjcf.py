@@ -13,7 +13,8 @@ import math
 import mujoco
 
 from twin.device.kinematics import hinge_axis_sign
-from twin.device.spec import MODELS_DIR, DeviceSpec, load_spec
+from twin.device.spec import DeviceSpec, load_spec
+from twin.paths import MODELS_DIR
 
 ROTOR_MASS = 1e-9  # kg: a body with a joint needs some; negligible beside the device's 0.228 kg
 ROTOR_INERTIA = 1e-12  # kg*m^2: negligible beside the reflected rotor inertia (armature, ~1e-4)

@@ -1,7 +1,7 @@
 """The device spec: every physical and firmware constant, read from models/vrscroll/spec.toml.
 
 All fields are SI (m, kg, rad, s, V, A, N*m); the file is read (its rpm and degrees converted)
-by twin.formats.spec_toml, the one home of the spec TOML format. Derived quantities (motor constant, counts per output
+by twin.device.spec_toml, the one home of the spec TOML format. Derived quantities (motor constant, counts per output
 revolution, gearbox efficiency, flap mass) are properties so they can never disagree with their inputs.
 """
 
@@ -11,9 +11,9 @@ import dataclasses
 import math
 from pathlib import Path
 
-from twin.formats.spec_toml import read_spec_toml
+from twin.device.spec_toml import read_spec_toml
+from twin.paths import MODELS_DIR
 
-MODELS_DIR = Path(__file__).resolve().parents[2] / "models"
 SPEC_PATH = MODELS_DIR / "vrscroll" / "spec.toml"
 
 
@@ -140,7 +140,7 @@ class DeviceSpec:
 
 
 def load_spec(path: str | Path = SPEC_PATH) -> DeviceSpec:
-    """Read a spec TOML (twin.formats.spec_toml); every DeviceSpec field must be there exactly once."""
+    """Read a spec TOML (twin.device.spec_toml); every DeviceSpec field must be there exactly once."""
     return DeviceSpec(**read_spec_toml(path, _NAMES)[0])
 
 

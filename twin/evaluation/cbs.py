@@ -23,7 +23,7 @@ pose and comes free at no angle in range is thrown out of it once it collides), 
 faults (FAULT LIMIT), brakes and refuses further targets: the device stops where it stands, and
 so does CBS (3. still follows). Before, the refusal ended the whole Table 1 run (arch, start 9).
 
-Before (issue 14): the tilted start was pressed along its normal and fixed, and all
+Before: the tilted start was pressed along its normal and fixed, and all
 hinges ramped together in one direction, so the tips met a convex target first and
 held the middle off it (on the cube's flat top 14.8 mm MSD, the middle 20 mm off).
 The result is reported in the approximation's convention (touch-surface normal

@@ -27,7 +27,8 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
-from twin.device.spec import MODELS_DIR, load_spec
+from twin.device.spec import load_spec
+from twin.paths import MODELS_DIR
 from twin.evaluation.cbs import CbsSimulator
 from twin.evaluation.starts import approach_starts
 from twin.morphpatch.approximation import approximate

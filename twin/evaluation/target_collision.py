@@ -15,7 +15,8 @@ import mujoco
 import numpy as np
 import trimesh
 
-from twin.morphpatch.fields import cache_dir, exact_signed_distance, load_npz, mesh_key, save_npz
+from twin.morphpatch.fields import exact_signed_distance, load_npz, mesh_key, save_npz
+from twin.paths import cache_dir
 from twin.device.mjcf import mjcf
 from twin.device.spec import DeviceSpec
 

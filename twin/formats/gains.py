@@ -4,7 +4,7 @@
      "hinges": [{"hinge": k, "kp", "ki", "kd", "derivative_cutoff_hz", "integral_limit",
                  "deadband_duty", "hold_band_counts"}, ...], "meta": {...}}
 
-Every value is checked against the bounds the firmware takes (`twin.link.protocol.GAIN_BOUNDS`,
+Every value is checked against the bounds the firmware takes (`controllers.pid.GAIN_BOUNDS`,
 docs/protocol.md "Gain bounds"), so a gains file that reads is one the device accepts.
 """
 
@@ -14,8 +14,8 @@ import json
 from pathlib import Path
 
 from controllers.pid import PidGains
-from twin.formats.common import json_object, known_keys, number, required_keys
-from twin.link.protocol import GAIN_BOUNDS
+from twin.checks import json_object, known_keys, number, required_keys
+from controllers.pid import GAIN_BOUNDS
 
 GAINS_FORMAT = "vrscroll-gains/1"
 # file key -> PidGains field

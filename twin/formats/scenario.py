@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.device.spec import DeviceSpec
-from twin.formats.common import hinge_angles, known_keys, number
+from twin.checks import hinge_angles, known_keys, number
 from twin.formats.target import read_target
 
 SCENARIO_KEYS = ("name", "start_deg", "duration_s", "step")

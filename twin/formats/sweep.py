@@ -33,8 +33,8 @@ import tomlkit
 
 from twin.device.design import FIELDS, INTEGER_FIELDS, design_spec
 from twin.device.spec import SPEC_PATH, load_spec
-from twin.formats.common import known_keys, number
-from twin.formats.spec_toml import spec_units, value_in_si
+from twin.checks import known_keys, number
+from twin.device.spec_toml import spec_units, value_in_si
 
 TOP_KEYS = ("spec", "shapes", "starts", "seed", "methods", "design", "plants")
 PLANT_KEYS = ("draws", "seed", "tolerance_pct")

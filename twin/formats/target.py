@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from twin.device.kinematics import pose_matrix
 from twin.device.spec import DeviceSpec
-from twin.formats.common import hinge_angles, json_object, known_keys, number, numbers, required_keys
+from twin.checks import hinge_angles, json_object, known_keys, number, numbers, required_keys
 
 APPROXIMATION_KEYS = ("root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm")
 OPTIONAL_KEYS = ("variant", "target", "start_mm_deg", "msd_mm", "hd_mm", "time_ms",
@@ -34,28 +34,35 @@ def read_target(path, spec: DeviceSpec) -> np.ndarray:
 
 
 def read_approximation(path, spec: DeviceSpec) -> dict:
-    """An approximation result, checked and in SI: root_pose (4x4, m), angles (rad), widths (m),
-    time (s), variant (default "full"), msd/hd (m or None), target (its name, or None)."""
+    """An approximation result file, checked and in SI (see `approximation_fields`)."""
     path = Path(path)
-    doc = json_object(path)
-    known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, str(path))
-    required_keys(doc, APPROXIMATION_KEYS, f"{path}: not an approximation result (vrscroll approximate --json)")
-    angles = hinge_angles(doc["angles_deg"], spec.n_hinges, spec.hinge_limit, f"{path}: angles_deg")
-    position = numbers(doc["root_position_mm"], f"{path}: root_position_mm", 3) / 1e3
-    quat = numbers(doc["root_quat_wxyz"], f"{path}: root_quat_wxyz", 4)
+    return approximation_fields(json_object(path), spec, str(path))
+
+
+def approximation_fields(doc: dict, spec: DeviceSpec, where: str) -> dict:
+    """An approximation result (a file's object, or a live message's), checked and in SI: root_pose (4x4, m),
+    angles (rad), widths (m), time (s), variant (default "full"), msd/hd (m or None), target (its name, or
+    None). ValueError naming `where` and the key."""
+    if not isinstance(doc, dict):
+        raise ValueError(f"{where}: expected an approximation result {{...}}, got {type(doc).__name__}")
+    known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, where)
+    required_keys(doc, APPROXIMATION_KEYS, f"{where}: not an approximation result (vrscroll approximate --json)")
+    angles = hinge_angles(doc["angles_deg"], spec.n_hinges, spec.hinge_limit, f"{where}: angles_deg")
+    position = numbers(doc["root_position_mm"], f"{where}: root_position_mm", 3) / 1e3
+    quat = numbers(doc["root_quat_wxyz"], f"{where}: root_quat_wxyz", 4)
     if np.linalg.norm(quat) < 1e-6:
-        raise ValueError(f"{path}: root_quat_wxyz is zero")
-    widths = numbers(doc["widths_mm"], f"{path}: widths_mm", spec.n_flaps) / 1e3
+        raise ValueError(f"{where}: root_quat_wxyz is zero")
+    widths = numbers(doc["widths_mm"], f"{where}: widths_mm", spec.n_flaps) / 1e3
     if np.any(widths <= 0):
-        raise ValueError(f"{path}: widths_mm: flap {int(np.argmax(widths <= 0))} has a width <= 0")
-    measure = {k: (None if doc.get(f"{k}_mm") is None else number(doc[f"{k}_mm"], f"{path}: {k}_mm") / 1e3)
+        raise ValueError(f"{where}: widths_mm: flap {int(np.argmax(widths <= 0))} has a width <= 0")
+    measure = {k: (None if doc.get(f"{k}_mm") is None else number(doc[f"{k}_mm"], f"{where}: {k}_mm") / 1e3)
                for k in ("msd", "hd")}
     target = doc.get("target")
     if target is not None and not isinstance(target, str):
-        raise ValueError(f"{path}: target: expected a shape name or mesh path, got {target!r}")
+        raise ValueError(f"{where}: target: expected a shape name or mesh path, got {target!r}")
     return {"root_pose": pose_matrix(position, Rotation.from_quat(quat, scalar_first=True).as_matrix()),
             "angles": angles, "widths": widths, "variant": str(doc.get("variant", "full")),
-            "time": number(doc.get("time_ms", 0.0), f"{path}: time_ms") / 1e3, **measure, "target": target}
+            "time": number(doc.get("time_ms", 0.0), f"{where}: time_ms") / 1e3, **measure, "target": target}
 
 
 def write_approximation(path, doc: dict) -> None:

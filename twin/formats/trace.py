@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.formats.common import number
+from twin.checks import number
 
 TRACE_COLUMNS = ("target_deg", "angle_deg", "counts", "duty", "current_A")
 TWIN_COLUMNS = ("true_angle_deg", "target_counts", "torque_Nm")

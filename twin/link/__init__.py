@@ -2,7 +2,6 @@
 the link (requests, acknowledgements, heartbeat, telemetry, session log), and the emulator that
 stands in for a device on a pseudo-terminal.
 
-May import `twin.device`, `twin.formats` (the host checks gains with the gains file's
-check), `controllers` and `twin.sim` (the emulator drives its own plant);
-never the approximation or the HIL runs.
+May import `twin.sim` (the emulator drives its own plant) and the layers below it (README
+"Layout"); never the approximation or the HIL runs.
 """

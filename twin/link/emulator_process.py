@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import json
-import os
-from pathlib import Path
 import signal
 import subprocess
-import sys
+from pathlib import Path
 
-_ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from twin.paths import cli_command, cli_env
 
 
 class EmulatorProcess:
@@ -18,8 +16,8 @@ class EmulatorProcess:
     def __init__(self, log, *args: str):
         self.log = Path(log)
         self._stderr = open(self.log.with_suffix(".stderr"), "w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "twin.cli", "emulate", "--log", str(self.log), *args],
-                                     stdout=subprocess.PIPE, stderr=self._stderr, text=True, cwd=_ROOT)
+        self.proc = subprocess.Popen(cli_command("emulate", "--log", str(self.log), *args),
+                                     stdout=subprocess.PIPE, stderr=self._stderr, text=True, env=cli_env())
         line = self.proc.stdout.readline().strip()  # the pty path, printed once the device is running
         if not line.startswith("/dev/"):
             self.stop()

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from controllers.core import FIRMWARE_DIR, config_from_spec
-from controllers.pid import PidGains
+from controllers.pid import GAIN_BOUNDS, PidGains
 from twin.device.spec import DeviceSpec, load_spec
 from twin.link import protocol as P
 
@@ -51,7 +51,7 @@ def header(spec: DeviceSpec | None = None) -> str:
     out += ["", "/* fault bits */"]
     out += [f"#define VRS_FAULT_{f.name} 0x{f.value:02X}" for f in P.Fault if f.value]
     out += ["", "/* gains SET_GAINS accepts, SI, inclusive */"]
-    for name, (lo, hi) in P.GAIN_BOUNDS.items():
+    for name, (lo, hi) in GAIN_BOUNDS.items():
         fmt = str if isinstance(lo, int) else _float
         out += [f"#define VRS_BOUND_{name.upper()}_MIN {fmt(lo)}", f"#define VRS_BOUND_{name.upper()}_MAX {fmt(hi)}"]
     out += ["", "/* the device (models/vrscroll/spec.toml): config and default gains, for the sketch */"]

@@ -29,19 +29,6 @@ GAIN_SCALE = 10_000_000  # kp, ki, kd on the wire as int32 gain * 1e7
 CUTOFF_SCALE = 10  # derivative cutoff on the wire as uint16 Hz * 10
 BROADCAST = 0xFF  # "every hinge" in SET_GAINS
 
-# The gains the firmware accepts in SET_GAINS, in SI units, inclusive (docs/protocol.md, "Gain
-# bounds"). The device refuses anything outside them with NACK BAD_VALUE; the host checks them
-# before it sends anything. The derivative cutoff stays below the Nyquist rate of the 1 kHz loop.
-GAIN_BOUNDS = {
-    "kp": (0.0, 1.0),  # duty per count
-    "ki": (0.0, 10.0),  # duty per count*s
-    "kd": (0.0, 0.05),  # duty per count/s
-    "derivative_cutoff": (1.0, 450.0),  # Hz
-    "integral_limit": (0.0, 1.0),  # duty
-    "deadband_duty": (0.0, 0.5),  # duty
-    "hold_band": (0, 50),  # counts
-}
-
 _HEADER = struct.Struct("<BBH")
 
 

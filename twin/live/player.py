@@ -122,7 +122,7 @@ async def play_shape(client: LiveClient, spec: DeviceSpec, name: str, attempts: 
             continue
         record["morphed"] = True
         record["redirection"] = outcome["redirection"]
-        approx = Approximation.from_json(locked)
+        approx = Approximation.from_json(locked, spec, "the service's locked approximation")
         points, orientations = stroke(spec, approx.root_pose, np.radians(outcome["angles_deg"]), approx.widths)
         sent = []
         async for k in _paced(len(points), PEN_HZ):

@@ -5,10 +5,9 @@ from __future__ import annotations
 import re
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
-_ROOT = Path(__file__).resolve().parents[2]
+from twin.paths import cli_command, cli_env
 
 
 class ServiceProcess:
@@ -17,8 +16,8 @@ class ServiceProcess:
     def __init__(self, *args: str, stderr_path=None, timeout: float = 120.0):
         self.stderr_path = Path(stderr_path) if stderr_path else None
         self._stderr = open(self.stderr_path, "w") if self.stderr_path else subprocess.DEVNULL
-        self.proc = subprocess.Popen([sys.executable, "-m", "twin.cli", "serve", "--listen", "0", *args],
-                                     stdout=subprocess.PIPE, stderr=self._stderr, text=True, cwd=_ROOT)
+        self.proc = subprocess.Popen(cli_command("serve", "--listen", "0", *args),
+                                     stdout=subprocess.PIPE, stderr=self._stderr, text=True, env=cli_env())
         self.banner = ""
         for line in self.proc.stdout:  # a token line may come first; the banner names the URL
             self.banner += line

@@ -50,6 +50,7 @@ from scipy.spatial.transform import Rotation
 
 from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_flap, pose_matrix
 from twin.device.spec import DeviceSpec, load_spec
+from twin.formats.target import APPROXIMATION_KEYS, OPTIONAL_KEYS, approximation_fields
 from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate
 from twin.morphpatch.refinement import refine
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
@@ -103,24 +104,12 @@ class Approximation:
 
 
     @classmethod
-    def from_json(cls, d: dict) -> "Approximation":
-        """The inverse of `to_json` (e.g. a file written by `vrscroll approximate --json`)."""
-        try:
-            position = np.asarray(d["root_position_mm"], float) / 1e3
-            quat = np.asarray(d["root_quat_wxyz"], float)
-            angles = np.radians(np.asarray(d["angles_deg"], float))
-            widths = np.asarray(d["widths_mm"], float) / 1e3
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"not an approximation result (needs root_position_mm, root_quat_wxyz, angles_deg, "
-                             f"widths_mm): {exc}") from None
-        if position.shape != (3,) or quat.shape != (4,) or not np.all(np.isfinite(np.r_[position, quat, angles, widths])):
-            raise ValueError("approximation result: root_position_mm needs 3 and root_quat_wxyz 4 finite numbers")
-        if np.linalg.norm(quat) < 1e-6 or np.any(widths <= 0):
-            raise ValueError("approximation result: zero quaternion or non-positive flap width")
-        rotation = Rotation.from_quat(quat, scalar_first=True).as_matrix()
-        mm = (lambda v: None if v is None else v / 1e3)
-        return cls(pose_matrix(position, rotation), angles, widths, d.get("time_ms", 0.0) / 1e3,
-                   d.get("variant", "full"), mm(d.get("msd_mm")), mm(d.get("hd_mm")))
+    def from_json(cls, d: dict, spec: DeviceSpec | None = None, where: str = "approximation result") -> "Approximation":
+        """The inverse of `to_json`, checked by the approximation JSON's one reader (twin.formats.target);
+        keys other than the result's (a live message's type, seq, ...) are ignored."""
+        keys = APPROXIMATION_KEYS + OPTIONAL_KEYS
+        f = approximation_fields({k: v for k, v in d.items() if k in keys}, spec or load_spec(), where)
+        return cls(f["root_pose"], f["angles"], f["widths"], f["time"], f["variant"], f["msd"], f["hd"])
 
 
 def pose_from_mm_deg(values) -> np.ndarray:

@@ -59,6 +59,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from twin.device.spec import load_spec
+from twin.paths import cache_dir
 
 GRID_SPACING = 0.003  # m, default spacing of the SDF grid
 MARGIN = 0.1  # m, grid padding around the mesh's bounding box (the device's half length)
@@ -227,11 +228,6 @@ def mesh_key(mesh: trimesh.Trimesh, **params) -> str:
     return h.hexdigest()
 
 
-def cache_dir(kind: str = "fields") -> Path:
-    """Where cached arrays of one kind live: $VRSCROLL_CACHE/<kind> (default ~/.cache/vrscroll/<kind>)."""
-    return Path(os.environ.get("VRSCROLL_CACHE", Path.home() / ".cache" / "vrscroll")) / kind
-
-
 def save_npz(path: Path, arrays: dict) -> None:
     """Write arrays to path atomically; concurrent writers (worker processes) each use their own temp file."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -273,7 +269,7 @@ def build_fields(mesh: trimesh.Trimesh, spacing: float = GRID_SPACING, margin: f
     key = mesh_key(mesh, spacing=spacing, margin=margin, min_curvature=min_curvature, edge_radius=edge_radius)
     if key in _MEMORY:
         return _MEMORY[key]
-    path = cache_dir() / f"{key}.npz"
+    path = cache_dir("fields") / f"{key}.npz"
     arrays = load_npz(path, FIELD_ARRAYS) if disk_cache else None
     if arrays is not None:
         fields = Fields._from_arrays(arrays)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from twin.device.spec import MODELS_DIR
+from twin.paths import MODELS_DIR
 
 SHAPES_PATH = MODELS_DIR / "shapes" / "shapes.toml"
 

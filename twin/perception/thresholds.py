@@ -10,7 +10,7 @@ import dataclasses
 import math
 import tomllib
 
-from twin.device.spec import MODELS_DIR
+from twin.paths import MODELS_DIR
 
 PERCEPTION_PATH = MODELS_DIR / "perception" / "perception.toml"
 

@@ -5,7 +5,7 @@
 
 Values are converted to SI on reading (deg -> rad, rpm -> rad/s; every other unit is SI already)
 and back on writing. The writer edits a template with tomlkit, so the file keeps its comments,
-layout and every other value's source. Imports only twin.formats.common from the project:
+layout and every other value's source. Imports only twin.checks from the project:
 twin.device.spec reads the spec through this module.
 """
 
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import tomlkit
 
-from twin.formats.common import known_keys, number, required_keys
+from twin.checks import known_keys, number, required_keys
 
 _RPM = 2.0 * math.pi / 60.0
 TO_SI = {"deg": math.radians, "rpm": lambda v: v * _RPM}
