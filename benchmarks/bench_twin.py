@@ -31,9 +31,12 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 
 from controllers import core  # noqa: E402
+from controllers.core import start_core  # noqa: E402
 from controllers.encoder import counts_from_motor_angle, target_counts  # noqa: E402
 from twin.device.mjcf import load_model  # noqa: E402
-from twin.sim.simulation import Twin, TwinBatch, _mj_step, _mj_step1, _mj_step2, _vrs_tick, start_core  # noqa: E402
+from twin.sim.batch import TwinBatch  # noqa: E402
+from twin.sim.kernels import mj_step, mj_step1, mj_step2, vrs_tick  # noqa: E402
+from twin.sim.twin import Twin  # noqa: E402
 
 MORPH_DEG = [60.0, -45.0, 20.0, 30.0, 90.0, -100.0]  # all six hinges move
 DURATION = 2.0  # s
@@ -62,14 +65,14 @@ def previous_model(spec) -> mujoco.MjModel:
 def _previous_loop(m, d, fw, sensordata, qpos, ctrl, enc_adr, qadr, cpr_motor, cap, counts, duty, decay,
                    max_ticks, rec_angle):
     for i in range(max_ticks):
-        _mj_step1(m, d)
+        mj_step1(m, d)
         for h in range(counts.shape[0]):
             counts[h] = counts_from_motor_angle(sensordata[enc_adr[h]], cpr_motor)
-        _vrs_tick(fw, i * 1000, counts.ctypes.data, 0, duty.ctypes.data, decay.ctypes.data)
+        vrs_tick(fw, i * 1000, counts.ctypes.data, 0, duty.ctypes.data, decay.ctypes.data)
         for h in range(counts.shape[0]):
             ctrl[h] = duty[h] * cap
             rec_angle[i, h] = qpos[qadr[h]]
-        _mj_step2(m, d)
+        mj_step2(m, d)
     return max_ticks
 
 
@@ -127,7 +130,7 @@ def _open_loop(m, d, ctrl_buf, applied_buf, ctrl, applied):
     for i in range(ctrl.shape[0]):
         ctrl_buf[:] = ctrl[i]
         applied_buf[:] = applied[i]
-        _mj_step(m, d)
+        mj_step(m, d)
 
 
 def replay_wall(model: mujoco.MjModel, ctrl, applied, repeats: int) -> tuple[list, np.ndarray]:

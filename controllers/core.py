@@ -276,3 +276,55 @@ class Core:
     @property
     def telemetry_dropped(self) -> int:
         return self.lib.vrs_get_telemetry_dropped(self.address)
+
+
+# ---- the core's lifecycle on the host: the twin's, the batch twin's and the emulator's ----------------
+
+def tick_us(spec: DeviceSpec) -> int:
+    """One firmware tick in device time, us."""
+    return round(spec.firmware_dt * 1e6)
+
+
+def per_hinge(gains, n: int) -> list[PidGains]:
+    """n PidGains from one (for every hinge) or a sequence of n."""
+    gains = [gains] * n if isinstance(gains, PidGains) else list(gains)
+    if len(gains) != n:
+        raise ValueError(f"expected gains for {n} hinges, got {len(gains)}")
+    return gains
+
+
+def start_core(spec: DeviceSpec, gains: list[PidGains], counts, stall_detection: bool = False) -> Core:
+    """The twin's firmware core, ACTIVE and holding `counts`: the device's config with the watchdog off
+    (no host talks to the twin) and, unless asked for, stall detection off (the twin is also driven into
+    contact on purpose: the CBS baseline, the gate's runs).
+
+    ValueError naming the hinge for gains outside the firmware's bounds.
+    """
+    cfg = config_from_spec(spec)
+    cfg.watchdog_ms = 0
+    if not stall_detection:
+        cfg.stall_duty = math.inf  # no |duty| reaches it
+    fw = Core(cfg, [PidGains.from_spec(spec)] * spec.n_hinges, counts)
+    set_core_gains(fw, gains)
+    fw.set_targets(counts, 0)
+    return fw
+
+
+def set_core_gains(fw: Core, gains: list[PidGains]) -> None:
+    """Each hinge's gains into the core, as SET_GAINS would; ValueError naming the first hinge it refuses."""
+    for k, g in enumerate(gains):
+        if fw.set_gains(k, g):
+            raise ValueError(f"hinge {k}: the firmware refuses gains outside its bounds (docs/protocol.md): {g}")
+
+
+def pid_memory(fw: Core) -> np.recarray:
+    """A live view of the core's PID memory per hinge: fields prev (counts), rate (counts/s), integral (duty)."""
+    mem = (PidState * fw.n).from_address(fw.lib.vrs_pid_memory(fw.address))
+    mem.owner = fw  # the view keeps the core's memory alive
+    return np.ctypeslib.as_array(mem).view(np.recarray)
+
+
+def core_state_bytes(fw: Core) -> np.ndarray:
+    """A copy of a core's state (a vrs_core holds no pointers: its copy is a core)."""
+    return np.ctypeslib.as_array((ctypes.c_uint8 * library().vrs_core_size()).from_address(fw.address)).copy()
+

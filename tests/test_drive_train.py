@@ -15,10 +15,10 @@ from twin.formats.scenario import Scenario
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
 from twin.link.faults import FaultOptions
-from twin.link.plant import Plant, PlantOptions, PlantRanges, as_twin, draw_plant
+from twin.sim.plant import Plant, PlantOptions, PlantRanges, as_twin, draw_plant
 from twin.sim.gate import GateRefused, check_move, check_scenario, enforce
-from twin.sim.response import step_metrics
-from twin.sim.simulation import Twin, move_report
+from twin.sim.response import move_report, step_metrics
+from twin.sim.twin import Twin
 
 ZIGZAG_DEG = [90.0, -90.0, 90.0, -90.0, 90.0, -90.0]  # 90 deg on every hinge, the row free of itself
 

@@ -6,7 +6,9 @@ import numpy as np
 
 from twin.device.flap_collision import APART_CLEARANCE, apart, apart_spreads
 from twin.device.mjcf import load_model, mjcf
-from twin.sim.simulation import Hinges, Twin, TwinBatch, contact_free_spreads, place_hinges
+from twin.sim.batch import TwinBatch
+from twin.sim.hinges import Hinges, contact_free_spreads, place_hinges
+from twin.sim.twin import Twin
 
 
 def flap_distances(spec, model, data, hinges, angles) -> float:

@@ -9,7 +9,7 @@ import pytest
 from controllers.pid import PidGains
 from twin.device.flap_collision import CONTACT_DEPTH, flap_overlap
 from twin.sim.gate import GateRefused, check_move, enforce, flap_contacts
-from twin.sim.simulation import Twin
+from twin.sim.twin import Twin
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,7 @@ from controllers import core
 from controllers.pid import PidGains
 from twin.device.mjcf import load_model
 from twin.sim.drive import drive, drive_params
-from twin.sim.simulation import Hinges
+from twin.sim.hinges import Hinges
 
 COAST, BRAKE = 0, 1
 

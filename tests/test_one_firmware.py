@@ -9,8 +9,10 @@ from controllers.pid import PidGains
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions
 from twin.link.faults import FaultOptions
-from twin.link.plant import as_twin
-from twin.sim.simulation import TargetError, Twin, TwinBatch
+from twin.sim.plant import as_twin
+from twin.sim.batch import TwinBatch
+from twin.sim.targets import TargetError
+from twin.sim.twin import Twin
 
 MOVE_DEG = [60.0, -45.0, 20.0, 30.0, 90.0, -100.0]  # every hinge moves
 

@@ -19,7 +19,7 @@ from twin.morphpatch.fields import build_fields, exact_signed_distance
 from twin.morphpatch.refinement import ANCHOR_RADIUS
 from twin.morphpatch.shapes import load_shape, shape_names, sweep_solid
 from twin.sim.gate import check_move
-from twin.sim.simulation import Twin
+from twin.sim.twin import Twin
 
 STARTS, SEED = 10, 5
 FRESH_STARTS, FRESH_SEED = 50, 13  # starts of a seed no other test, benchmark or evaluation uses

@@ -6,7 +6,10 @@ import math
 import numpy as np
 import pytest
 
-from twin.sim.simulation import TargetError, Twin, TwinBatch, move_report
+from twin.sim.batch import TwinBatch
+from twin.sim.response import move_report
+from twin.sim.targets import TargetError
+from twin.sim.twin import Twin
 
 TARGETS_DEG = [60.0, -45.0, 0.0, 30.0, 90.0, -100.0]
 

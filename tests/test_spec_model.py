@@ -6,11 +6,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from twin.device.kinematics import flap_frames
 from twin.cli import main
+from twin.device.kinematics import flap_frames
 from twin.device.mjcf import MJCF_PATH, SCENE_PATH, load_model, mjcf, scene_mjcf
 from twin.device.spec import SPEC_PATH, load_spec, spec_sources
-from twin.sim.simulation import Twin
+from twin.sim.twin import Twin
 
 
 def test_every_constant_has_a_source():

@@ -24,7 +24,7 @@ from twin.formats.sweep import read_records, read_sweep
 from twin.morphpatch.approximation import approximate
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import load_shape, shape_names
-from twin.sim.simulation import Twin
+from twin.sim.twin import Twin
 from twin.tuning.tuner import RobustEvaluator, TuneGoal
 
 ROOT = Path(__file__).resolve().parent.parent

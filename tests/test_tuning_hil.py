@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from random_plant import held_out_improved
 
 from controllers.encoder import target_counts
 from controllers.pid import PidGains
-from random_plant import held_out_improved
 from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
 from twin.formats.gains import read_gains, write_gains
@@ -29,9 +29,10 @@ from twin.hil.mirror import device_step, mirror
 from twin.hil.record import run_hil
 from twin.link import protocol as P
 from twin.link.serial_link import Link
+from twin.sim.batch import TwinBatch
 from twin.sim.gate import check_move
-from twin.sim.response import step_metrics
-from twin.sim.simulation import Twin, TwinBatch, move_report
+from twin.sim.response import move_report, step_metrics
+from twin.sim.twin import Twin
 from twin.tuning.tuner import TuneGoal, chains, step_report, tune
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -11,6 +11,7 @@ import argparse
 import importlib
 import sys
 
+from twin.commands.options import refuse_renamed
 from twin.errors import UserError
 
 # command name -> (module, one-line help)
@@ -47,6 +48,7 @@ def main(argv=None) -> int:
         p.set_defaults(_module=module)
         if name == chosen:  # only the command being run is imported: fast start, and one broken command breaks only itself
             importlib.import_module(module).add_arguments(p)
+            refuse_renamed(p)
     args = parser.parse_args(argv)
     try:
         return importlib.import_module(args._module).run(args) or 0

@@ -98,6 +98,6 @@ def view_run(run: dict, spec: DeviceSpec) -> str:
 
 
 def play_trace(spec: DeviceSpec, trace) -> str:
-    """A twin's move (twin.sim.simulation.Trace) in real time."""
+    """A twin's move (twin.sim.trace.Trace) in real time."""
     model = mujoco.MjModel.from_xml_string(mjcf(spec))
     return play(model, hinge_qadr(model, spec.n_hinges), trace.time - trace.time[0], trace.angle, "the twin's move")

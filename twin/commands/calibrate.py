@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.errors import UserError
-from twin.commands.profile_option import add_device_option, profile_line
+from twin.commands.options import add_device_option, profile_line
 from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
 from twin.formats.gains import read_gains

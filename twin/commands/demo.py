@@ -12,15 +12,15 @@ import math
 
 import numpy as np
 
-from twin.commands.profile_option import add_device_option, profile_line, profile_of
+from twin.commands.options import add_device_option, profile_line, profile_of
+from twin.device.kinematics import flap_frames
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
-from twin.sim.gate import check_move, redirection_check
-from twin.device.kinematics import flap_frames
 from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import load_shape, shape_names, shape_table
-from twin.sim.simulation import move_report
 from twin.morphpatch.surface_metrics import msd_hd
+from twin.sim.gate import check_move, redirection_check
+from twin.sim.response import move_report
 from viz.scene import render_approximation
 from viz.viewer import play_trace
 

@@ -10,7 +10,7 @@ import signal
 from twin.device.spec import DeviceSpec, load_spec
 from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
 from twin.link.faults import FaultOptions
-from twin.link.plant import PlantRanges, as_twin
+from twin.sim.plant import PlantRanges, as_twin
 from twin.link.pty_device import open_pty, serve
 
 RANGED = {  # PlantRanges field (its option is --field-name) -> what it is

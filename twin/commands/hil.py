@@ -6,7 +6,7 @@ import datetime
 from pathlib import Path
 
 from twin.errors import UserError
-from twin.commands.profile_option import add_device_option, profile_line, profile_of
+from twin.commands.options import add_device_option, profile_line, profile_of
 from twin.formats.gains import read_gains
 from twin.formats.run import read_run
 from twin.formats.scenario import read_scenario

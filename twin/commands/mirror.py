@@ -10,7 +10,7 @@ from twin.errors import UserError
 from twin.sim.gate import GateRefused
 from twin.link.serial_link import Link, LinkError
 from twin.hil.mirror import DeviceNotReady, mirror
-from twin.commands.profile_option import add_device_option, profile_line, profile_of
+from twin.commands.options import add_device_option, profile_line, profile_of
 from twin.checks import hinge_angles
 from twin.formats.target import read_target
 

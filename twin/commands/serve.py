@@ -15,7 +15,7 @@ import secrets
 import signal
 
 from twin.errors import UserError
-from twin.commands.profile_option import add_device_option, profile_line, profile_of
+from twin.commands.options import add_device_option, profile_line, profile_of
 from twin.link.serial_link import LinkError
 from twin.live.messages import DEFAULT_LISTEN_PORT
 from twin.live.morph import DeviceMorpher, TwinMorpher

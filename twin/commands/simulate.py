@@ -6,8 +6,9 @@ import json
 import math
 import sys
 
-from twin.commands.profile_option import add_device_option, profile_line, profile_of
-from twin.sim.simulation import Twin, move_report
+from twin.commands.options import add_device_option, profile_line, profile_of
+from twin.sim.response import move_report
+from twin.sim.twin import Twin
 from viz.viewer import play_trace
 
 

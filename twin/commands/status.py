@@ -9,7 +9,7 @@ from twin.link import protocol as P
 from twin.errors import UserError
 from twin.link.serial_link import Link, LinkError
 from twin.hil.mirror import faults_text
-from twin.commands.profile_option import add_device_option, profile_line, profile_of
+from twin.commands.options import add_device_option, profile_line, profile_of
 
 
 def add_arguments(p) -> None:

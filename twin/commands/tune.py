@@ -10,8 +10,8 @@ import math
 import numpy as np
 
 from controllers.encoder import target_counts
+from twin.commands.options import add_device_option, profile_line, profile_of
 from twin.errors import UserError
-from twin.commands.profile_option import add_device_option, profile_line, profile_of
 from twin.evaluation.backends import BACKENDS, make_backend
 from twin.formats.gains import write_gains
 from twin.formats.profile import write_profile_gains
@@ -19,8 +19,8 @@ from twin.hil.device_gains import push_gains
 from twin.hil.mirror import DeviceNotReady, device_step
 from twin.link.serial_link import Link, LinkError
 from twin.sim.gate import GateRefused
-from twin.sim.response import step_metrics
-from twin.sim.simulation import Twin, move_report
+from twin.sim.response import move_report, step_metrics
+from twin.sim.twin import Twin
 from twin.tuning.tuner import TuneGoal, step_report, tolerance_ranges, tune
 
 

@@ -44,7 +44,8 @@ from twin.device.spec import DeviceSpec
 from twin.evaluation.target_collision import CollisionError, collision_error, convex_parts, scene_model
 from twin.morphpatch.approximation import Approximation, root_pose
 from twin.morphpatch.fields import build_fields
-from twin.sim.simulation import TargetError, Twin
+from twin.sim.targets import TargetError
+from twin.sim.twin import Twin
 
 FLIP = np.diag([1.0, -1.0, -1.0, 1.0])  # a half turn about the device's x axis
 PROBE_STEP = math.radians(1.0)  # rad between the contact probe's angles

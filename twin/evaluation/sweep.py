@@ -31,7 +31,7 @@ from twin.formats.sweep import RecordLog, Sweep, read_records
 from twin.morphpatch.approximation import approximate
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import load_shape
-from twin.sim.simulation import Twin
+from twin.sim.twin import Twin
 
 RECORDS = "records.jsonl"
 _TARGETS: dict = {}  # per worker process: (shape, starts, seed) -> (mesh, fields, starts)

@@ -28,7 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from twin.device.spec import load_spec
-from twin.paths import MODELS_DIR
+from twin.evaluation.backends import LocalBackend
 from twin.evaluation.cbs import CbsSimulator
 from twin.evaluation.starts import approach_starts
 from twin.morphpatch.approximation import approximate
@@ -36,9 +36,10 @@ from twin.morphpatch.fields import build_fields, exact_signed_distance
 from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import load_shape
 from twin.morphpatch.surface_metrics import msd_hd
+from twin.paths import MODELS_DIR
 from twin.sim.gate import check_move
-from twin.sim.simulation import Twin, move_report
-from twin.evaluation.backends import LocalBackend
+from twin.sim.response import move_report
+from twin.sim.twin import Twin
 
 METHODS = ("cbs", "no_hcevf", "full", "refined")
 PAPER_TABLE = MODELS_DIR / "shapes" / "paper_table1.csv"

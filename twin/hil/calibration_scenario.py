@@ -23,7 +23,7 @@ import numpy as np
 from twin.device.spec import DeviceSpec
 from twin.formats.scenario import Scenario
 from twin.sim.gate import check_move
-from twin.sim.simulation import Twin
+from twin.sim.twin import Twin
 
 LARGE = (math.radians(20.0), math.radians(50.0))  # rad, range of the large moves' end angles (either sign)
 RAMP = math.radians(8.0)  # rad, how far each ramp goes

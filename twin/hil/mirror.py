@@ -17,12 +17,12 @@ import time
 import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
+from twin.device.spec import DeviceSpec
 from twin.hil.device_gains import device_gains
 from twin.link import protocol as P
-from twin.sim.gate import GateRefused, GateReport, check_move, enforce
 from twin.link.serial_link import Link
-from twin.sim.simulation import Twin
-from twin.device.spec import DeviceSpec
+from twin.sim.gate import GateRefused, GateReport, check_move, enforce
+from twin.sim.twin import Twin
 
 
 class DeviceNotReady(RuntimeError):

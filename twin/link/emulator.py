@@ -6,7 +6,7 @@ answers with. The firmware is the device's own C core (controllers.core): the
 host's bytes go into its parser (`vrs_rx`), every reply and telemetry frame
 comes from it (`vrs_tx`), every duty the plant gets comes from its control tick
 (`vrs_tick`: supervisor, watchdog, PID). Python keeps only the plant
-(twin.link.plant), the injected faults (twin.link.faults) and the command log;
+(twin.sim.plant), the injected faults (twin.link.faults) and the command log;
 `twin.link.pty_device` serves it on a pseudo-terminal in real time
 (`vrscroll emulate`). The log is JSON lines, written as things happen: every
 command the firmware receives, its refusals and faults, read back from its
@@ -23,12 +23,12 @@ import random
 import numpy as np
 
 from controllers import core
+from controllers.core import tick_us
 from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec, load_spec
 from twin.link import protocol as P
 from twin.link.faults import FaultOptions, Faults
-from twin.link.plant import Plant, PlantOptions, PlantRanges, draw_plant
-from twin.sim.simulation import tick_us
+from twin.sim.plant import Plant, PlantOptions, PlantRanges, draw_plant
 
 BACKLOG = 4096  # bytes out of the firmware but not yet taken by the host: it is not asked for more beyond this
 

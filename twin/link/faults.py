@@ -11,7 +11,7 @@ import collections
 import dataclasses
 import random
 
-from twin.link.plant import Plant
+from twin.sim.plant import Plant
 
 FRAME_END = b"\x00"  # every frame on the wire ends with this byte (COBS)
 

@@ -31,7 +31,7 @@ from twin.link import protocol as P
 from twin.link.serial_link import Link, LinkError
 from twin.live.messages import PROGRESS_HZ
 from twin.sim.gate import GateRefused, check_move
-from twin.sim.simulation import Twin
+from twin.sim.twin import Twin
 
 SETTLE_LIMIT = 2.0  # s a morph may take (the gate's settle check and mirror's watch)
 

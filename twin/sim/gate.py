@@ -36,7 +36,8 @@ from twin.device.flap_collision import CONTACT_DEPTH
 from twin.device.spec import DeviceSpec
 from twin.formats.scenario import Scenario
 from twin.sim.replay import replay_targets
-from twin.sim.simulation import Trace, Twin, join_traces
+from twin.sim.trace import Trace, join_traces
+from twin.sim.twin import Twin
 
 
 @dataclasses.dataclass(frozen=True)

@@ -12,7 +12,7 @@ import numpy as np
 
 from controllers.encoder import angle_from_counts
 from twin.device.spec import DeviceSpec
-from twin.sim.simulation import Twin
+from twin.sim.twin import Twin
 
 REST = 1.0  # s the twin spends on each leg of the device's history before a run
 

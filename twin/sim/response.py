@@ -1,4 +1,4 @@
-"""Step-response metrics that read simulated and measured traces alike.
+"""Step-response metrics that read simulated and measured traces alike, and the twin's move report.
 
 Inputs are plain arrays: time (s) and a signal in any unit; outputs are in the
 signal's unit (or s, or percent). NaN means "not defined for this trace" (no
@@ -8,8 +8,12 @@ step, never settled), never a made-up number.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
+
+from twin.device.spec import DeviceSpec
+from twin.sim.trace import Trace
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,3 +63,37 @@ def step_metrics(t, y, target: float, band: float, tail: float = 0.1) -> StepMet
         steady_state_error=target - final,
         itae=float(np.sum(t * np.abs(err) * dt)),
     )
+
+
+def hinge_metrics(spec: DeviceSpec, time_s, target_counts: float, counts, target: float, angle):
+    """One hinge's step from time_s[0]: (metrics in counts, settle band in counts; metrics in rad).
+
+    The one definition of settle time (from the counts, the firmware's settle
+    band) and overshoot (from the true angle) that reports and the tuner share.
+    """
+    return (step_metrics(time_s, counts, target_counts, spec.settle_band, tail=spec.settle_hold),
+            step_metrics(time_s, angle, target, spec.settle_band * spec.rad_per_count, tail=spec.settle_hold))
+
+
+def move_report(spec: DeviceSpec, trace: Trace) -> list[dict]:
+    """Per hinge: settle time (s), overshoot (deg), steady-state error (deg and counts), peak current (A).
+
+    Settling uses the firmware's settle band in encoder counts; the step starts
+    at the trace's first tick.
+    """
+    rows = []
+    for k in range(trace.angle.shape[1]):
+        in_counts, in_angle = hinge_metrics(spec, trace.time, float(trace.target_counts[0, k]), trace.counts[:, k],
+                                            float(trace.target[0, k]), trace.angle[:, k])
+        rows.append({
+            "hinge": k,
+            "target_deg": round(math.degrees(trace.target[0, k]), 3),
+            "final_deg": round(math.degrees(trace.angle[-1, k]), 3),
+            "settle_time_s": round(in_counts.settle_time, 4),
+            "overshoot_deg": round(math.degrees(in_angle.overshoot), 3),
+            "steady_state_error_deg": round(math.degrees(in_angle.steady_state_error), 3),
+            "steady_state_error_counts": round(in_counts.steady_state_error, 2),
+            "peak_current_A": round(float(np.max(np.abs(trace.current[:, k]))), 3),
+        })
+    return rows
+

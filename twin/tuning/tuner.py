@@ -43,10 +43,13 @@ import time
 
 import numpy as np
 
+from controllers.core import per_hinge
 from controllers.encoder import target_counts
 from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec
-from twin.sim.simulation import Twin, TwinBatch, hinge_metrics, move_report, per_hinge
+from twin.sim.batch import TwinBatch
+from twin.sim.response import hinge_metrics, move_report
+from twin.sim.twin import Twin
 
 # log-space bounds of the search, per gain (duty per count, per count-s, per count/s)
 BOUNDS = {"kp": (0.003, 0.5), "ki": (0.0, 2.0), "kd": (1e-5, 0.01)}

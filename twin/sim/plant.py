@@ -24,7 +24,7 @@ from controllers.encoder import counts_from_motor_angles
 from twin.device.mjcf import load_model
 from twin.device.spec import DeviceSpec
 from twin.sim.drive import drive, drive_params
-from twin.sim.simulation import Hinges, physics_substeps
+from twin.sim.hinges import Hinges, physics_substeps
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,0 +1,130 @@
+"""The options the commands share, declared once so that every command speaks one dialect:
+
+- `--serial PORT`: the device's serial port (or a pyserial URL); `--listen PORT` is only ever a network port;
+- `--json FILE`: write the command's result as JSON to FILE, `-` for standard output (then instead of the
+  human-readable report);
+- units in option names (`--tolerance-deg`, `--tolerance-pct`, `--sigma-mm`); lists are comma-separated
+  (`--shapes cube,cylinder`, `--angles 0,10,...`);
+- `--device NAME`: the device profile, remembered as the default;
+- `--shape S | --mesh FILE` and `--start X,Y,Z,ROLL,PITCH,YAW`: the target and the anchor's start.
+
+An old spelling (`--port`, `--tolerance`, `--json` without a file) is refused with a message naming the new.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from twin.device.profile import set_default
+from twin.formats.profile import Profile, select_profile
+
+# old spelling -> new, refused wherever the new one is an option of the command
+RENAMED = {"--port": "--serial", "--tolerance": "--tolerance-pct"}
+
+
+class _Renamed(argparse.Action):
+    """An old spelling: a usage error naming the new one."""
+
+    def __init__(self, option_strings, dest, new: str, **kw):
+        super().__init__(option_strings, dest, nargs="?", help=argparse.SUPPRESS, **kw)
+        self.new = new
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error(f"{option_string} is now {self.new} (see `vrscroll {parser.prog.split()[-1]} --help`)")
+
+
+def refuse_renamed(p: argparse.ArgumentParser) -> None:
+    """Add each old spelling whose new one `p` has, as an option that refuses itself naming the new."""
+    have = set(p._option_string_actions)
+    for old, new in RENAMED.items():
+        if new in have and old not in have:
+            p.add_argument(old, action=_Renamed, new=new, dest=f"_renamed{old}")
+
+
+class _JsonFile(argparse.Action):
+    """--json FILE; a bare --json (the old flag) is refused naming `--json -`."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        if values is None:
+            parser.error("--json now takes a file: --json FILE writes it there, --json - prints it on standard output")
+        setattr(namespace, self.dest, values)
+
+
+def add_json(p, what: str) -> None:
+    """--json FILE|-: `what` (e.g. "the report") as JSON."""
+    p.add_argument("--json", metavar="FILE", nargs="?", action=_JsonFile,
+                   help=f"write {what} as JSON to FILE; - prints it on standard output instead of the report")
+
+
+def json_to_stdout(args) -> bool:
+    """Whether the JSON replaces the human-readable report on standard output (--json -)."""
+    return getattr(args, "json", None) == "-"
+
+
+def write_json(dest: str | None, doc) -> None:
+    """The result as JSON to `dest` (a file, or - for standard output); nothing when dest is None."""
+    if dest is None:
+        return
+    text = json.dumps(doc, indent=2) + "\n"
+    if dest == "-":
+        sys.stdout.write(text)
+    else:
+        Path(dest).write_text(text)
+
+
+def add_serial(p, required: bool, what: str = "the device") -> None:
+    p.add_argument("--serial", metavar="PORT", required=required,
+                   help=f"{what}: a serial port (/dev/tty*, the pty `vrscroll emulate` prints) or a pyserial URL")
+
+
+def add_tolerance_deg(p, default: float = 5.0) -> None:
+    p.add_argument("--tolerance-deg", type=float, default=default, metavar="DEG",
+                   help="e-stop when a hinge parts from the twin's prediction by more than this, deg (default %(default)s)")
+
+
+def comma_list(choices=None):
+    """An argparse type: a comma-separated list, each item one of `choices` when given."""
+    def parse(text: str) -> list[str]:
+        items = [t.strip() for t in text.split(",") if t.strip()]
+        if not items:
+            raise argparse.ArgumentTypeError("expected a comma-separated list")
+        bad = [t for t in items if choices is not None and t not in choices]
+        if bad:
+            raise argparse.ArgumentTypeError(f"{bad[0]!r} is not one of {', '.join(choices)}")
+        return items
+    return parse
+
+
+def add_target(p, shapes, required: bool, role: str = "the target", start: bool = True) -> None:
+    """--shape S | --mesh FILE (and --start): `role` says what the target is for this command."""
+    target = p.add_mutually_exclusive_group(required=required)
+    target.add_argument("--shape", choices=shapes, help=f"{role}: one of the evaluation shapes")
+    target.add_argument("--mesh", metavar="FILE", help=f"{role}: a watertight mesh file in metres (STL, OBJ, PLY, GLB, ...)")
+    if start:
+        p.add_argument("--start", metavar="X,Y,Z,ROLL,PITCH,YAW",
+                       help="the anchor's start in the target's frame: x, y, z in mm, then roll, pitch, yaw in deg "
+                            "(R = Rz(yaw) Ry(pitch) Rx(roll)); default: the shape's start, or 40 mm above a mesh")
+
+
+def add_device_option(p) -> None:
+    p.add_argument("--device", metavar="NAME",
+                   help="device profile to use, and to remember as the default (`vrscroll device list`); "
+                        "default: the one selected last, else the spec's defaults")
+
+
+def profile_of(args) -> Profile:
+    """The profile args.device names (then remembered as the default), or the selected one, or the spec's
+    defaults. ValueError (one line) for a profile that is not there or is damaged."""
+    profile = select_profile(args.device)
+    if args.device:
+        set_default(args.device)
+    return profile
+
+
+def profile_line(profile: Profile) -> str:
+    """The line every report starts with."""
+    where = f" ({profile.folder})" if profile.folder else " (models/vrscroll/spec.toml)"
+    return f"device profile: {profile.label}{where}"

@@ -1,0 +1,139 @@
+"""The batch twin: many simulations in lockstep on MuJoCo's own `Batch` thread pool, one firmware core
+per simulation, ticked by a compiled loop over them (twin.sim.kernels)."""
+
+from __future__ import annotations
+
+import ctypes
+import time
+
+import mujoco
+import numpy as np
+from mujoco.batch import Batch
+
+from controllers import core
+from controllers.core import core_state_bytes, per_hinge, set_core_gains, start_core, tick_us
+from controllers.encoder import counts_from_motor_angles, target_counts
+from controllers.pid import PidGains
+from twin.device.mjcf import load_model
+from twin.device.spec import DeviceSpec, load_spec
+from twin.sim.drive import V_PACK, drive_params
+from twin.sim.hinges import Hinges, physics_substeps, place_hinges
+from twin.sim.targets import TargetError, check_targets
+
+
+class TwinBatch:
+    """nsim twins in lockstep on MuJoCo's `Batch` thread pool, one firmware core per simulation.
+
+    specs: one plant spec per simulation (e.g. perturbed friction or motor
+    constant for robust tuning); they must share the device's layout. gains: one
+    PidGains for all, or per simulation a sequence of one PidGains per hinge.
+    """
+
+    def __init__(self, nsim: int, spec: DeviceSpec | None = None, gains=None, specs=None, nthread: int = 0):
+        self.spec = spec or load_spec()
+        self.nsim = nsim
+        n = self.spec.n_hinges
+        model = load_model(self.spec)
+        self.batch = Batch(model, nsim, nthread=nthread, persistent=True)
+        self._models = None
+        if specs is not None:
+            if len(specs) != nsim:
+                raise ValueError(f"expected {nsim} plant specs, got {len(specs)}")
+            self._models = [load_model(p) for p in specs]
+            self.batch.set_models(self._models)
+        self.hinges = Hinges(model, n)
+        self.substeps = physics_substeps(self.spec, model)
+        self.sensordata = self.batch.bind("sensordata")
+        self.qpos = self.batch.bind("qpos")
+        self.qvel = self.batch.bind("qvel")
+        self.ctrl = self.batch.bind("ctrl")
+        self.qfrc_applied = self.batch.bind("qfrc_applied")
+        self._counts = np.zeros((nsim, n), np.int32)  # the cores' input and output buffers
+        self._duty = np.zeros((nsim, n), np.float32)
+        self._decay = np.zeros((nsim, n), np.uint8)
+        self._pwm = np.zeros((nsim, n), np.float32)
+        self._params = np.stack([drive_params(p) for p in (specs or [self.spec] * nsim)])
+        self._bus = np.zeros(nsim)  # V, per simulation
+        self.gains = self._per_simulation(gains or PidGains.from_spec(self.spec))
+        self.reset()
+
+    def set_gains(self, gains) -> None:
+        """One PidGains for every simulation and hinge, or per simulation a sequence of n, as SET_GAINS would.
+
+        ValueError naming the simulation and hinge for gains outside the firmware's bounds (nothing changes then).
+        """
+        gains = self._per_simulation(gains)
+        scratch = start_core(self.spec, self.gains[0], np.zeros(self.spec.n_hinges, np.int32))
+        for i, g in enumerate(gains):
+            try:
+                set_core_gains(scratch, g)
+            except ValueError as exc:
+                raise ValueError(f"simulation {i}: {exc}") from None
+        lib, base, size = core.library(), self._cores.ctypes.data, self._cores.shape[1]
+        for i, g in enumerate(gains):
+            table = core.gains_struct(g)  # held until the calls return
+            for k in range(len(g)):
+                lib.vrs_set_gains(base + i * size, k, ctypes.addressof(table[k]))
+        self.gains = gains
+
+    def _per_simulation(self, gains) -> list[list[PidGains]]:
+        if isinstance(gains, PidGains):
+            gains = [gains] * self.nsim
+        if len(gains) != self.nsim:
+            raise ValueError(f"expected gains for {self.nsim} simulations, got {len(gains)}")
+        return [per_hinge(g, self.spec.n_hinges) for g in gains]
+
+    def reset(self, angles=None) -> None:
+        """All simulations back to flat (or to angles, rad, shape (nsim, n_hinges)); their firmware restarted."""
+        self.batch.reset(keyframe=0, stage=mujoco.mjtStage.mjSTAGE_NONE.value)
+        if angles is not None:
+            for q, a in zip(self.qpos, np.broadcast_to(angles, (self.nsim, self.spec.n_hinges))):
+                place_hinges(q, self.hinges, a)
+        self.batch.forward()
+        self._bus[:] = self._params[:, V_PACK]
+        counts = self._counts_now()
+        size = core.library().vrs_core_size()
+        self._cores = np.zeros((self.nsim, size), np.uint8)  # one vrs_core per simulation, contiguous
+        for i in range(self.nsim):
+            self._cores[i] = core_state_bytes(start_core(self.spec, self.gains[i], counts[i]))
+        self._now_us = 0
+
+    def _counts_now(self) -> np.ndarray:
+        return counts_from_motor_angles(self.sensordata[:, self.hinges.enc], self.spec.counts_per_motor_rev)
+
+    def run(self, targets, duration: float) -> dict:
+        """Run every simulation to its targets (rad, (nsim, n_hinges)) for `duration` s.
+
+        Returns arrays (ticks, nsim, n_hinges): 'angle' (rad), 'counts', 'duty',
+        'current' (A); 'time' (s), 'wall_time' (s). TargetError if a firmware refuses its targets.
+        """
+        from twin.sim import kernels  # compiled on first use, not on import
+
+        s = self.spec
+        n = s.n_hinges
+        targets = np.broadcast_to(np.asarray(targets, float), (self.nsim, n))
+        for row in targets:
+            check_targets(s, row)
+        tgt = target_counts(s, targets).astype(np.int32)
+        lib, base, size = core.library(), self._cores.ctypes.data, self._cores.shape[1]
+        for i in range(self.nsim):
+            refused = lib.vrs_set_targets(base + i * size, tgt[i].ctypes.data, self._now_us)
+            if refused:
+                raise TargetError(f"simulation {i}: the firmware refused the targets (NACK reason {refused})")
+        ticks = int(round(duration / s.firmware_dt))
+        out = {k: np.zeros((ticks, self.nsim, n)) for k in ("angle", "duty", "current")}
+        out["counts"] = np.zeros((ticks, self.nsim, n), np.int64)
+        vel_stage = mujoco.mjtStage.mjSTAGE_VEL.value
+        dt_us = tick_us(s)
+        start = time.perf_counter()
+        for i in range(ticks):
+            kernels.batch_tick(i, base, size, self._now_us, self.sensordata, self.qpos, self.qvel, self.ctrl,
+                               self.qfrc_applied, self.hinges.enc, self.hinges.qadr, self.hinges.gear_dof,
+                               float(s.counts_per_motor_rev), self._params, self._bus, self._counts, self._duty,
+                               self._decay, self._pwm, out["angle"], out["counts"], out["duty"], out["current"])
+            self.batch.step(nstep=self.substeps, stage=vel_stage)
+            self._now_us = (self._now_us + dt_us) & 0xFFFFFFFF
+        out["wall_time"] = time.perf_counter() - start
+        out["time"] = np.arange(ticks) * s.firmware_dt
+        return out
+
