@@ -53,12 +53,12 @@ def one(seed: int, folder: Path) -> None:
         with Link(emu.port) as link:
             assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
         for name, s in (("train", 0), ("hold", 1)):
-            quiet("calibrate", "--scenario", str(folder / f"{name}.toml"), "--port", emu.port, "--seed", str(s))
-            quiet("hil", str(folder / f"{name}.toml"), "--port", emu.port, "--out", str(folder / name),
+            quiet("scenario", str(folder / f"{name}.toml"), "--serial", emu.port, "--seed", str(s))
+            quiet("hil", str(folder / f"{name}.toml"), "--serial", emu.port, "--out", str(folder / name),
                   "--tolerance-deg", "30")
     t0 = time.perf_counter()
     cal = json.loads(quiet("calibrate", str(folder / "train"), "--holdout", str(folder / "hold"),
-                           "--out", str(folder / "cal.toml"), "--json"))
+                           "--out", str(folder / "cal.toml"), "--json", "-"))
     wall = time.perf_counter() - t0
     floor = trace_rmse(read_run(folder / "hold", spec),
                        spec.replace(**{k: v for k, v in truth.items() if k != "supply_voltage"}), spec)

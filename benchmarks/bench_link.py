@@ -7,7 +7,7 @@
    emulator's real-time overruns.
 
     .venv/bin/python benchmarks/bench_link.py --seconds 60
-    .venv/bin/python benchmarks/bench_link.py --port /dev/ttyACM0   # a real device
+    .venv/bin/python benchmarks/bench_link.py --serial /dev/ttyACM0   # a real device
 """
 
 from __future__ import annotations
@@ -60,15 +60,15 @@ def telemetry(link: Link, rate: int, seconds: float) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--port", help="a device or pty to use instead of starting the emulator")
+    p.add_argument("--serial", help="a device or pty to use instead of starting the emulator")
     p.add_argument("--seconds", type=float, default=60.0, help="telemetry run length, s (default %(default)s)")
     p.add_argument("--requests", type=int, default=2000, help="round trips per phase (default %(default)s)")
     p.add_argument("--rate", type=int, default=500, help="telemetry rate, Hz (default %(default)s)")
     p.add_argument("--log", help="session log (off by default: it measures the link, not the disk)")
     args = p.parse_args(argv)
     tmp = tempfile.TemporaryDirectory()
-    emu = None if args.port else EmulatorProcess(Path(tmp.name) / "emulator.jsonl")
-    port = args.port or emu.port
+    emu = None if args.serial else EmulatorProcess(Path(tmp.name) / "emulator.jsonl")
+    port = args.serial or emu.port
     out = {"port": port}
     try:
         with Link(port, log_path=args.log) as link:

@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_live.py [--seconds 10] [--shape cylinder] [--variant full]
 
-Starts an emulator and `vrscroll serve --port` on it (each its own process), then, as one
+Starts an emulator and `vrscroll serve --serial` on it (each its own process), then, as one
 client (twin/live/client.py):
 
 1. poses at 90 Hz for --seconds, the device hovering over the shape's start (±10 mm at 0.5 Hz,
@@ -130,7 +130,7 @@ def main() -> None:
     args = p.parse_args()
     print(load())
     with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl") as emu, \
-            ServiceProcess("--port", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
+            ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err") as service:
         print(service.banner.strip())
         asyncio.run(bench(service.url, args.shape, args.seconds))

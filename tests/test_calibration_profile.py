@@ -29,12 +29,12 @@ def calibrate_and_tune_on_a_drawn_plant(seed, emulator, tmp_path, capsys):
     train, hold = tmp_path / "train", tmp_path / "hold"
     # the calibration scenario, for the gains the device has (read from it), and a held-out one
     for name, s in (("train", 0), ("hold", 1)):
-        assert vrscroll(["calibrate", "--scenario", str(tmp_path / f"{name}.toml"), "--port", emu.port,
+        assert vrscroll(["scenario", str(tmp_path / f"{name}.toml"), "--serial", emu.port,
                          "--seed", str(s)]) == 0
-        assert vrscroll(["hil", str(tmp_path / f"{name}.toml"), "--port", emu.port, "--out", str(tmp_path / name),
+        assert vrscroll(["hil", str(tmp_path / f"{name}.toml"), "--serial", emu.port, "--out", str(tmp_path / name),
                          "--tolerance-deg", "30"]) == 0
     capsys.readouterr()
-    cal = _json(capsys, "calibrate", str(train), "--holdout", str(hold), "--device", "drawn", "--json")
+    cal = _json(capsys, "calibrate", str(train), "--holdout", str(hold), "--device", "drawn", "--json", "-")
     assert cal["device_profile"] == "drawn"
     assert any(e["value"] != e["prior"] for e in cal["parameters"].values()), cal["parameters"]
     for p, e in cal["parameters"].items():
@@ -53,7 +53,7 @@ def calibrate_and_tune_on_a_drawn_plant(seed, emulator, tmp_path, capsys):
     # tuned on the calibrated twin over its intervals, pushed to the device: the overshoot limit holds and
     # the device settles within 15 % of the twin's prediction on every hinge
     tuned = _json(capsys, "tune", "--population", "16", "--generations", "5", "--threads", "2",
-                  "--port", emu.port, "--log", str(tmp_path / "tune.jsonl"), "--json")
+                  "--serial", emu.port, "--log", str(tmp_path / "tune.jsonl"), "--json", "-")
     assert tuned["device_profile"] == "drawn"
     for r in tuned["device"]:
         assert r["device_overshoot_deg"] <= 1.0, tuned["device"]

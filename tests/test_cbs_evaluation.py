@@ -1,5 +1,6 @@
 """CBS with real MuJoCo contact, the start generator and the evaluation runner."""
 
+import json
 import math
 import subprocess
 import sys
@@ -14,6 +15,7 @@ from twin.cli import main
 from twin.evaluation.cbs import CbsSimulator
 from twin.evaluation.lock import folder_lock
 from twin.evaluation.target_collision import collision_error, convex_parts
+from twin.formats.records import RecordLog
 from twin.evaluation.table1 import METHODS, _shape_seed, read_records, run_evaluation, summarize, write_tables
 from twin.morphpatch.fields import exact_signed_distance
 from twin.morphpatch.sampling import touch_surface_points
@@ -156,3 +158,19 @@ def test_a_second_evaluate_into_one_folder_is_refused(tmp_path, capsys):
         holder.stdout.close()
     with folder_lock(out, "test"):
         pass
+
+
+def test_results_resume_past_a_cut_line_and_count_each_start_once(tmp_path):
+    """A write cut short (a full disk) left half a line; a start was recorded twice, another only in part:
+    Table 1 counts each complete start once, and the next record starts on a line of its own."""
+    log = tmp_path / "results.jsonl"
+    rows = [{"shape": "cube", "start": s, "method": m, "msd_mm": 1.0} for s in (0, 1) for m in METHODS]
+    rows += [rows[0]] + [{"shape": "cube", "start": 2, "method": METHODS[0], "msd_mm": 9.0}]  # repeated, partial
+    log.write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"shape": "cube", "sta')
+    records = read_records(log)
+    assert sorted({(r["start"], r["method"]) for r in records}) == sorted((s, m) for s in (0, 1) for m in METHODS)
+    assert len(records) == 2 * len(METHODS)  # start 0 once, start 2 not yet complete
+    with RecordLog(log) as f:
+        f.write({"shape": "cube", "start": 2, "method": METHODS[-1], "msd_mm": 2.0})
+    lines = log.read_text().splitlines()
+    assert all(json.loads(line) for line in lines)  # the cut line went, nothing was appended onto it

@@ -8,7 +8,8 @@ from cli import vrscroll
 
 
 def test_simulate_json_and_trace(tmp_path):
-    out = vrscroll("simulate", "60", "-45", "0", "30", "90", "-100", "--json", "--trace", str(tmp_path / "t.csv"))
+    out = vrscroll("simulate", "60", "-45", "0", "30", "90", "-100", "--json", "-",
+                   "--trace", str(tmp_path / "t.csv"))
     assert out.returncode == 0, out.stderr
     report = json.loads(out.stdout)
     assert report["settled"] and len(report["hinges"]) == 6
@@ -50,3 +51,47 @@ def test_user_error_is_one_line_under_python_dash_m():
     r = vrscroll("approximate", "--shape", "cube", "--start", "1,2")
     assert r.returncode == 2
     assert "Traceback" not in r.stderr and "expected six finite numbers" in r.stderr
+
+
+@pytest.mark.parametrize("argv, new", [
+    (["status", "--port", "/dev/null"], "--serial"),
+    (["mirror", "--angles", "0,0,0,0,0,0", "--port", "/dev/null"], "--serial"),
+    (["serve", "--port", "/dev/null"], "--serial"),
+    (["tune", "--tolerance", "10"], "--tolerance-pct"),
+    (["calibrate", "--scenario", "cal.toml"], "vrscroll scenario"),
+    (["simulate", "1", "0", "0", "0", "0", "0", "--json"], "--json -"),
+])
+def test_old_spellings_are_refused_naming_the_new(argv, new):
+    r = vrscroll(*argv)
+    assert r.returncode == 2 and new in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_json_goes_to_a_file_or_to_standard_output(tmp_path):
+    to_file = tmp_path / "r.json"
+    r = vrscroll("simulate", "5", "0", "0", "0", "0", "-5", "--json", str(to_file))
+    assert r.returncode == 0 and "device profile:" in r.stdout  # the report, and the JSON beside it
+    in_file = json.loads(to_file.read_text())
+    r = vrscroll("simulate", "5", "0", "0", "0", "0", "-5", "--json", "-")
+    on_stdout = json.loads(r.stdout)  # nothing but the JSON
+    assert in_file["hinges"] == on_stdout["hinges"]
+
+
+def test_lists_are_comma_separated():
+    r = vrscroll("evaluate", "--shapes", "cube,teapot", "--starts", "2")
+    assert r.returncode == 2 and "'teapot' is not one of" in r.stderr
+
+
+@pytest.mark.parametrize("start, words", [("1e155,0,0,0,0,0", "at most 100 m"),  # exited 139 once
+                                          ("0,0,50,0,1e300,0", "within +-360 deg")])
+def test_a_start_beyond_reach_is_refused_before_any_compiled_code(start, words):
+    r = vrscroll("approximate", "--shape", "cube", f"--start={start}")
+    assert r.returncode == 2 and words in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["evaluate", "--starts", "1000000000"], "--starts 1000000000: from 2"),  # 9.1 GB in 30 s once
+    (["psychometric", "trials.csv", "--bootstrap", "100000000"], "--bootstrap 100000000: from 0 to 100,000"),
+])
+def test_sizes_a_user_gives_are_bounded_before_any_work(argv, words, tmp_path):
+    r = vrscroll(*argv, cwd=tmp_path)
+    assert r.returncode == 2 and words in r.stderr and "Traceback" not in r.stderr, r.stderr

@@ -307,3 +307,19 @@ def test_trials_round_trip(tmp_path):
     (tmp_path / "bad.csv").write_text("condition_mm,natural,confidence\n1,yes,3\n2,no,3\ninf,yes,2\n")
     with pytest.raises(ValueError, match=r"bad.csv:4: condition 'inf' is not a number"):
         read_trials(tmp_path / "bad.csv")
+
+
+@pytest.mark.parametrize("line, words", [
+    ('name = "../../../x"', "not a plain name"), ('name = "/etc/evil"', "not a plain name"),
+    ("duration_s = 1e9", "at most 600 s")])
+def test_a_scenario_cannot_place_its_run_anywhere_or_last_forever(tmp_path, spec, line, words):
+    path = tmp_path / "s.toml"
+    path.write_text(line + '\n[[step]]\nt_s = 0.0\nangles_deg = [1, 1, 1, 1, 1, 1]\n')
+    with pytest.raises(ValueError, match=words):
+        read_scenario(path, spec)
+
+
+def test_a_scenario_named_by_an_odd_file_name_gets_a_plain_one(tmp_path, spec):
+    path = tmp_path / "my steps (v2).toml"
+    path.write_text('[[step]]\nt_s = 0.0\nangles_deg = [1, 1, 1, 1, 1, 1]\n')
+    assert read_scenario(path, spec).name == "my-steps-v2"

@@ -76,11 +76,11 @@ def test_cli_mirror_and_status(emulator, tmp_path, capsys):
     log = str(tmp_path / "cli.jsonl")
     target = tmp_path / "target.json"
     target.write_text(json.dumps({"angles_deg": SAFE_DEG}))
-    assert vrscroll(["mirror", str(target), "--port", emu.port, "--log", log]) == 0
+    assert vrscroll(["mirror", str(target), "--serial", emu.port, "--log", log]) == 0
     assert "mirror: settled" in capsys.readouterr().out
-    assert vrscroll(["mirror", "--angles=130,0,0,0,0,0", "--port", emu.port, "--log", log]) == 2
+    assert vrscroll(["mirror", "--angles=130,0,0,0,0,0", "--serial", emu.port, "--log", log]) == 2
     assert "range 130.000 deg over limit 112.500 deg (hinge 0)" in capsys.readouterr().err
-    assert vrscroll(["status", "--port", emu.port]) == 0
+    assert vrscroll(["status", "--serial", emu.port]) == 0
     out = capsys.readouterr().out
     assert f"firmware {'.'.join(map(str, FIRMWARE_VERSION))}" in out and "angles" in out and "faults" in out
 
@@ -206,7 +206,7 @@ def test_a_device_that_stops_answering_times_out(emulator):
 def test_override_is_logged_and_the_device_limit_still_holds(emulator, tmp_path, capsys):
     emu = emulator()
     log = tmp_path / "override.jsonl"
-    rc = vrscroll(["mirror", "--angles=130,0,0,0,0,0", "--port", emu.port, "--log", str(log), "--override"])
+    rc = vrscroll(["mirror", "--angles=130,0,0,0,0,0", "--serial", emu.port, "--log", str(log), "--override"])
     assert rc == 2
     assert "device refused SET_TARGETS: OUT_OF_RANGE (detail 0)" in capsys.readouterr().err
     events = session_log(log)
@@ -218,7 +218,7 @@ def test_override_is_logged_and_the_device_limit_still_holds(emulator, tmp_path,
 def test_mirror_override_refuses_angles_that_are_no_angles(emulator, tmp_path, capsys, angles):
     """Once a struct.error traceback: --override skipped the gate's range check and the count overflowed."""
     emu = emulator()
-    rc = vrscroll(["mirror", f"--angles={angles}", "--port", emu.port, "--log", str(tmp_path / "l.jsonl"),
+    rc = vrscroll(["mirror", f"--angles={angles}", "--serial", emu.port, "--log", str(tmp_path / "l.jsonl"),
                    "--override"])
     assert rc == 2
     err = capsys.readouterr().err
@@ -234,3 +234,45 @@ def test_a_second_host_on_the_same_port_is_refused_at_open(emulator):
         assert first.get_state().state in (P.State.IDLE, P.State.ACTIVE)  # the first session goes on undisturbed
     with Link(emu.port) as again:  # and once it closed, the port is free
         assert again.get_state()
+
+
+@pytest.mark.parametrize("mid", [0x00, 0x7E])
+def test_an_unknown_message_id_is_refused_and_the_logging_emulator_lives_on(emulator, mid):
+    import struct
+
+    emu = emulator()
+    payload = struct.pack("<BBH", P.PROTOCOL_VERSION, mid, 7)
+    frame = P.cobs_encode(payload + struct.pack("<H", P.crc16(payload))) + b"\x00"
+    with Link(emu.port) as link:
+        link.write_raw(frame)
+        time.sleep(0.2)
+        assert link.get_state().state is not None  # still answering
+    assert emu.proc.poll() is None
+    assert any(e.get("msg") == f"0x{mid:02X}" for e in emu.events("nack"))
+
+
+@pytest.mark.parametrize("option", [["--watchdog-ms", "-1"], ["--watchdog-ms", "70000"], ["--speed-scale", "0"],
+                                    ["--corrupt", "5"], ["--drop-after", "-1"], ["--backlash-deg", "1e9"],
+                                    ["--latency-ms", "nan"]])
+def test_emulator_options_out_of_range_are_refused(option, capsys):
+    assert vrscroll(["emulate", *option]) == 2
+    err = capsys.readouterr().err
+    assert option[0] in err and "Traceback" not in err
+
+
+def test_a_looped_back_line_is_named_not_taken_for_a_device(capsys):
+    """The host's own HELLO echoed with its sequence number is not a HELLO_REPLY (it once ended in an
+    AttributeError on every command)."""
+    with pytest.raises(LinkTimeout, match="looped-back"):
+        Link("loop://", timeout=0.05, retries=1).open()
+    assert vrscroll(["status", "--serial", "loop://"]) == 2
+    err = capsys.readouterr().err
+    assert "looped-back" in err and "Traceback" not in err
+
+
+def test_a_reply_for_another_command_is_not_taken():
+    ack_for_hello = P.Ack(acked=int(P.MsgId.ESTOP), time_us=0)
+    assert not P.answers(P.MsgId.HELLO, ack_for_hello) and not P.answers(P.MsgId.SET_TARGETS, ack_for_hello)
+    assert P.answers(P.MsgId.ESTOP, ack_for_hello)
+    assert P.answers(P.MsgId.HELLO, P.NackMsg(acked=int(P.MsgId.HELLO), reason=1, detail=0))
+    assert not P.answers(P.MsgId.HELLO, P.Ack(acked=int(P.MsgId.HELLO), time_us=0))  # HELLO wants its data

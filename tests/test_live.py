@@ -5,6 +5,9 @@ is needed. The C# client's test is tests/test_live_unity.py.
 
 import asyncio
 import json
+import os
+import signal
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -77,7 +80,12 @@ def test_bad_control_messages_are_named(message, code):
     (b'{"type": "pose"}', "malformed", "session"), (b'{"type": "wave", "session": "s"}', "unknown_type", "wave"),
     (sample_datagram("pose", "s", 1, [0, 0, float("nan")], [1, 0, 0, 0]), "malformed", "position_mm"),
     (sample_datagram("pen", "s", 1, [0, 0, 0], [0, 0, 0, 0]), "malformed", "zero quaternion"),
-    (sample_datagram("pose", "s", -1, [0, 0, 0], [1, 0, 0, 0]), "malformed", "seq")])
+    (sample_datagram("pose", "s", -1, [0, 0, 0], [1, 0, 0, 0]), "malformed", "seq"),
+    # huge but finite: refused before any compiled code sees them (a segmentation fault of the worker once)
+    (sample_datagram("pose", "s", 1, [1e300, 1e300, 1e300], [1, 0, 0, 0]), "malformed", "position_mm"),
+    (sample_datagram("pose", "s", 1, [0, 0, 0], [1e300, 1e300, 0, 0]), "malformed", "quat_wxyz"),
+    (sample_datagram("pen", "s", 1, [0, 0, 0], [1, 0, 0, 0], device_position_mm=[0, 0, 2e5],
+                     device_quat_wxyz=[1, 0, 0, 0]), "malformed", "device_position_mm")])
 def test_bad_datagrams_are_named(data, code, words):
     with pytest.raises(ProtocolError) as exc:
         parse_datagram(data)
@@ -118,7 +126,7 @@ def test_bad_command_lines_are_one_line_errors(capsys):
     assert vrscroll(["play", "--url", "nonsense", "--shapes", "cube"]) == 2
     assert vrscroll(["serve", "--host", "10.1.2.3"]) == 2  # refused before anything is bound
     err = capsys.readouterr().err
-    assert "unknown teapot" in err and "nonsense" in err and "--allow-remote" in err
+    assert "'teapot' is not one of" in err and "nonsense" in err and "--allow-remote" in err
 
 
 # ---- the service -----------------------------------------------------------------------------
@@ -307,7 +315,7 @@ def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twi
 
 def test_a_pose_never_moves_the_device_and_a_controller_leaving_mid_morph_leaves_it_holding(emulator, tmp_path):
     emu = emulator()
-    with ServiceProcess("--shape", "cylinder", "--port", emu.port, "--log", str(tmp_path / "session.jsonl"),
+    with ServiceProcess("--shape", "cylinder", "--serial", emu.port, "--log", str(tmp_path / "session.jsonl"),
                         stderr_path=tmp_path / "serve.err") as service:
         async def session():
             async with LiveClient(service.url, "observer") as observer:
@@ -344,7 +352,7 @@ def test_a_pose_never_moves_the_device_and_a_controller_leaving_mid_morph_leaves
 
 def test_a_device_that_goes_away_is_reported_and_the_service_stays(emulator, tmp_path):
     emu = emulator()
-    with ServiceProcess("--shape", "cylinder", "--port", emu.port, "--log", str(tmp_path / "session.jsonl"),
+    with ServiceProcess("--shape", "cylinder", "--serial", emu.port, "--log", str(tmp_path / "session.jsonl"),
                         stderr_path=tmp_path / "serve.err") as service:
         async def session():
             async with LiveClient(service.url) as client:
@@ -396,3 +404,36 @@ def test_serve_uses_the_device_profile_and_names_it(tmp_path, capsys):
     assert vrscroll(["device", "select", "none"]) == 0
     with ServiceProcess("--shape", "cylinder", stderr_path=tmp_path / "serve3.err") as s:
         assert run(welcome(s.url))["device_profile"] == "spec defaults"
+
+
+def _workers(pid: int) -> list[int]:
+    """The approximation workers of the service pid: its children started by multiprocessing's spawn (not
+    multiprocessing's resource tracker), from /proc."""
+    out = []
+    for proc in Path("/proc").glob("[0-9]*"):
+        try:
+            parent = int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            cmdline = (proc / "cmdline").read_bytes()
+        except (OSError, IndexError, ValueError):
+            continue
+        if parent == pid and b"spawn_main" in cmdline:
+            out.append(int(proc.name))
+    return out
+
+
+def test_a_worker_that_dies_is_restarted_and_the_client_served(tmp_path):
+    """The approximation worker killed (as a crash of compiled code would): the pose that was in flight gets an
+    error, the next ones their approximations, with the target the service had."""
+    with ServiceProcess("--shape", "cylinder", stderr_path=tmp_path / "serve.err") as service:
+        async def session():
+            async with LiveClient(service.url) as client:
+                await first_approximation(client)
+                workers = _workers(service.pid)
+                assert len(workers) == 1
+                os.kill(workers[0], signal.SIGKILL)
+                await asyncio.sleep(0.5)
+                again = await first_approximation(client, timeout=60)
+                assert again["msd_estimate_mm"] < 5.0  # on the cylinder again: the restarted worker has its target
+
+        run(session())
+        assert "approximation worker died" in (tmp_path / "serve.err").read_text()

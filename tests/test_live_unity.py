@@ -36,7 +36,7 @@ def scripted_session(tmp_path_factory):
 
 def test_the_csharp_transport_plays_a_session_against_the_service(scripted_session, emulator, tmp_path):
     emu = emulator()
-    with ServiceProcess("--port", emu.port, "--log", str(tmp_path / "session.jsonl"),
+    with ServiceProcess("--serial", emu.port, "--log", str(tmp_path / "session.jsonl"),
                         stderr_path=tmp_path / "serve.err") as service:
         run = subprocess.run(["mono", str(scripted_session), service.url, "cylinder"], capture_output=True,
                              text=True, timeout=120)

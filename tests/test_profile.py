@@ -46,10 +46,10 @@ def test_device_selects_a_profile_and_it_is_remembered(capsys, spec):
     assert "selected: spec defaults" in _run(capsys, "device", "list")[1]
     # a profile whose device is slower: the twin of that profile settles later
     write_profile_spec("bench", {"no_load_speed": spec.no_load_speed * 0.7}, "test: slower motor", None)
-    rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json")
+    rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-")
     default = json.loads(out)
     assert default["device_profile"] == "spec defaults"
-    rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "--device", "bench")
+    rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-", "--device", "bench")
     bench = json.loads(out)
     assert rc == 0 and bench["device_profile"] == "bench"
     assert bench["hinges"][0]["settle_time_s"] > default["hinges"][0]["settle_time_s"]
@@ -67,12 +67,12 @@ def test_a_profiles_gains_are_the_twins(capsys, spec, device_profiles):
     soft = PidGains.from_spec(spec).replace(kp=0.003, ki=0.0, kd=0.0)
     write_gains(device_profiles / "soft" / "gains.json", [soft] * spec.n_hinges)
     assert read_profile(device_profiles / "soft").gains == [soft] * spec.n_hinges
-    rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "--device", "soft",
+    rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-", "--device", "soft",
                       "--max-time", "1.0")
     assert rc == 0
     soft_row = json.loads(out)["hinges"][0]
     _run(capsys, "device", "select", "none")
-    default_row = json.loads(_run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json",
+    default_row = json.loads(_run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-",
                                   "--max-time", "1.0")[1])["hinges"][0]
     # no integral, a weak kp, no derivative: the soft profile's hinge takes longer (or never settles)
     assert not soft_row["settle_time_s"] <= default_row["settle_time_s"] + 0.02, (soft_row, default_row)
@@ -120,11 +120,11 @@ def test_every_command_that_talks_to_the_device_names_its_profile(capsys, emulat
     (tmp_path / "s.toml").write_text(ONE_STEP)
     run = tmp_path / "run"
     commands = [
-        ["status", "--port", emu.port],
-        ["mirror", "--angles", "10,10,10,10,10,10", "--port", emu.port, "--log", str(tmp_path / "m.jsonl")],
-        ["hil", str(tmp_path / "s.toml"), "--port", emu.port, "--out", str(run)],
-        ["calibrate", "--scenario", str(tmp_path / "cal.toml")],
-        ["tune", "--population", "6", "--generations", "1", "--threads", "2", "--port", emu.port,
+        ["status", "--serial", emu.port],
+        ["mirror", "--angles", "10,10,10,10,10,10", "--serial", emu.port, "--log", str(tmp_path / "m.jsonl")],
+        ["hil", str(tmp_path / "s.toml"), "--serial", emu.port, "--out", str(run)],
+        ["scenario", str(tmp_path / "cal.toml")],
+        ["tune", "--population", "6", "--generations", "1", "--threads", "2", "--serial", emu.port,
          "--log", str(tmp_path / "t.jsonl")],
     ]
     for i, cmd in enumerate(commands):
@@ -135,7 +135,7 @@ def test_every_command_that_talks_to_the_device_names_its_profile(capsys, emulat
     assert "device profile emu" in (run / "report.md").read_text()
     # tune stored its gains in the profile, and the device holds them: status says so
     assert (profiles_dir() / "emu" / "gains.json").is_file()
-    assert "gains    as emu's" in _run(capsys, "status", "--port", emu.port)[1]
+    assert "gains    as emu's" in _run(capsys, "status", "--serial", emu.port)[1]
     assert "device settle s" in out and "twin settle s" in out
 
 

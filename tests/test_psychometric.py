@@ -145,7 +145,7 @@ def test_command_line_end_to_end(tmp_path, capsys):
     assert result["paper"]["dt_printed_deg"] == 64.87
     assert (out / "psychometric.png").stat().st_size > 10_000
 
-    assert main(["psychometric", str(data), "--json", "--bootstrap", "0"]) == 0
+    assert main(["psychometric", str(data), "--json", "-", "--bootstrap", "0"]) == 0
     assert json.loads(capsys.readouterr().out)["surfaces"][0]["bootstrap"] is None
 
     assert main(["psychometric", str(data), "--compare-paper", "curved convex"]) == 2

@@ -244,3 +244,16 @@ def test_the_ray_backend_without_ray_names_the_extra(monkeypatch):
 def test_an_unknown_backend_is_refused():
     with pytest.raises(ValueError, match="unknown backend 'spark'; choose from local, ray"):
         make_backend("spark")
+
+
+@pytest.mark.parametrize("text, words", [
+    ("starts = 1000000000", "starts: expected a whole number from 1 to 1,000"),
+    ("[design]\nhinge_limit = { from = 90, to = 110, count = 1000000000 }", "count: expected a whole number"),
+    ("[plants]\ndraws = 1000000000000\ntolerance_pct = { gear_friction = 10 }", "draws: expected a whole number"),
+    ("starts = 1000\n[design]\nhinge_limit = { from = 90, to = 110, count = 1000 }", "at most 1,000,000 runs"),
+])
+def test_a_sweep_that_asks_for_too_much_is_refused_before_anything_is_built(tmp_path, text, words):
+    path = tmp_path / "big.toml"
+    path.write_text(text + "\n")
+    with pytest.raises(ValueError, match=words):
+        _read(path)

@@ -112,7 +112,7 @@ def test_tune_command_writes_a_gains_file(tmp_path, capsys):
     assert vrscroll(["tune", "--population", "8", "--generations", "2", "--threads", "2", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "spec defaults" in text and "tuned" in text and out.exists()
-    assert vrscroll(["tune", "--tolerance", "150"]) == 2
+    assert vrscroll(["tune", "--tolerance-pct", "150"]) == 2
 
 
 def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device(emulator, tmp_path, capsys):
@@ -120,7 +120,7 @@ def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device
     emu = emulator()
     out, log = tmp_path / "g.json", tmp_path / "tune.jsonl"
     assert vrscroll(["tune", "--population", "8", "--generations", "2", "--threads", "2", "--out", str(out),
-                     "--port", emu.port, "--log", str(log)]) == 0
+                     "--serial", emu.port, "--log", str(log)]) == 0
     text = capsys.readouterr().out
     gains = read_gains(out, spec.n_hinges)
     # the device got every hinge's tuned gains, and holds them
@@ -163,7 +163,7 @@ def test_hil_interrupted_half_way_keeps_both_traces(emulator, tmp_path):
     scen = tmp_path / "steps.toml"
     scen.write_text(SCENARIO.format(duration=3.0, t1=1.0, t2=2.0))
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "twin.cli", "hil", str(scen), "--port", emu.port, "--out", str(out)],
+    proc = subprocess.Popen([sys.executable, "-m", "twin.cli", "hil", str(scen), "--serial", emu.port, "--out", str(out)],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     # kill it once it has played half of the 3 s scenario
     deadline = time.monotonic() + 30
@@ -190,7 +190,7 @@ def test_hil_command_writes_report(emulator, tmp_path, capsys):
     scen = tmp_path / "s.toml"
     scen.write_text(SCENARIO.format(duration=1.2, t1=0.4, t2=0.8))
     out = tmp_path / "run"
-    assert vrscroll(["hil", str(scen), "--port", emu.port, "--out", str(out)]) == 0
+    assert vrscroll(["hil", str(scen), "--serial", emu.port, "--out", str(out)]) == 0
     report = (out / "report.md").read_text()
     assert "| hinge | RMSE deg" in report and "![hinge 5](hinge5.png)" in report
     assert all((out / f"hinge{k}.png").stat().st_size > 1000 for k in range(6))
@@ -228,7 +228,7 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
         run_hil(link, spec, read_scenario(tmp_path / "a.toml", spec), train, gains=[soft] * 6)
         run_hil(link, spec, read_scenario(tmp_path / "b.toml", spec), hold, gains=[soft] * 6)
     capsys.readouterr()
-    assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--out", str(cal), "--json"]) == 0
+    assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--out", str(cal), "--json", "-"]) == 0
     res = json.loads(capsys.readouterr().out)
     for name, scale in truth.items():  # what it reports as identifiable, within 20 % of the truth
         if res["parameters"][name]["identifiable"]:
@@ -287,7 +287,7 @@ def test_hil_refuses_a_bad_gains_file_before_anything_is_sent(emulator, spec, tm
     before = _device_gains(emu.port)
     (tmp_path / "s.toml").write_text(ONE_STEP)
     gains = _gains_file(tmp_path / "g.json", spec, **change)
-    rc = vrscroll(["hil", str(tmp_path / "s.toml"), "--port", emu.port, "--gains", str(gains),
+    rc = vrscroll(["hil", str(tmp_path / "s.toml"), "--serial", emu.port, "--gains", str(gains),
                    "--out", str(tmp_path / "run")])
     assert rc == 2
     err = capsys.readouterr().err
@@ -304,7 +304,7 @@ def test_hil_restores_the_devices_gains_when_the_gate_refuses(emulator, spec, tm
     (tmp_path / "s.toml").write_text(ONE_STEP)
     weak = {f"h{k}": {"kp": 0.001, "ki": 0.0, "kd": 0.0, "deadband_duty": 0.0} for k in range(6)}
     gains = _gains_file(tmp_path / "g.json", spec, **weak)
-    rc = vrscroll(["hil", str(tmp_path / "s.toml"), "--port", emu.port, "--gains", str(gains),
+    rc = vrscroll(["hil", str(tmp_path / "s.toml"), "--serial", emu.port, "--gains", str(gains),
                    "--out", str(tmp_path / "run")])
     assert rc == 2
     err = capsys.readouterr().err

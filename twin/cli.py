@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 
 from twin.commands.options import refuse_renamed
@@ -26,8 +27,9 @@ COMMANDS = {
     "emulate": ("twin.commands.emulate", "run a device emulator on a pseudo-terminal (prints its port)"),
     "mirror": ("twin.commands.mirror", "gate a target on the twin, send it to the device, watch it follow"),
     "status": ("twin.commands.status", "the device's firmware version, state, faults and hinge angles"),
-    "tune": ("twin.commands.tune", "tune PID gains per hinge on the twin (robust to tolerances); --port confirms"),
+    "tune": ("twin.commands.tune", "tune PID gains per hinge on the twin (robust to tolerances); --serial confirms"),
     "hil": ("twin.commands.hil", "play a scenario on the device and the twin; traces, metrics, plots, report"),
+    "scenario": ("twin.commands.scenario", "write the calibration scenario for the device's gains, to record with hil"),
     "calibrate": ("twin.commands.calibrate", "fit the twin's motor and gearbox parameters to recorded HIL runs"),
     "redirect": ("twin.commands.redirect", "pen redirection field of an approximation; redirect pen samples (CSV)"),
     "psychometric": ("twin.commands.psychometric", "psychometric fit of redirection trials: CDT and DT with CIs, plot"),
@@ -36,6 +38,10 @@ COMMANDS = {
     "device": ("twin.commands.device", "list, show, select or create device profiles (calibrated spec and gains)"),
     "view": ("twin.commands.view", "replay a HIL run's device and twin side by side in MuJoCo's viewer"),
 }
+
+
+def _terminated(signum, frame):
+    raise KeyboardInterrupt
 
 
 def main(argv=None) -> int:
@@ -49,7 +55,11 @@ def main(argv=None) -> int:
         if name == chosen:  # only the command being run is imported: fast start, and one broken command breaks only itself
             importlib.import_module(module).add_arguments(p)
             refuse_renamed(p)
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a usage error (2, already printed): the status, as for any command
+        return exc.code
+    signal.signal(signal.SIGTERM, _terminated)  # SIGTERM as Ctrl-C: a session with the device e-stops it
     try:
         return importlib.import_module(args._module).run(args) or 0
     except (UserError, ValueError, FileNotFoundError, OSError) as exc:

@@ -15,10 +15,11 @@ import json
 
 import numpy as np
 
+from twin.commands.options import add_json, add_target
 from twin.device.spec import load_spec
-from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.errors import UserError
 from twin.formats.target import write_approximation
+from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names, shape_table
 from viz.scene import render_approximation
@@ -32,14 +33,10 @@ def add_arguments(p) -> None:
 
 
 def add_target_arguments(p) -> None:
-    """--shape/--mesh, --start, --png, --json: shared with `vrscroll cbs`."""
-    target = p.add_mutually_exclusive_group(required=True)
-    target.add_argument("--shape", choices=shape_names(), help="one of the evaluation shapes")
-    target.add_argument("--mesh", metavar="FILE", help="a watertight mesh file in metres (STL, OBJ, PLY, GLB, ...)")
-    p.add_argument("--start", metavar="X,Y,Z,ROLL,PITCH,YAW",
-                   help="anchor start, mm and deg (default: the shape's start, or 40 mm above a mesh file)")
+    """--shape/--mesh, --start, --png, --json: shared with `vrscroll cbs`. The result's JSON is always printed."""
+    add_target(p, shape_names(), required=True)
     p.add_argument("--png", metavar="FILE", help="also write an off-screen picture of the device on the target")
-    p.add_argument("--json", metavar="FILE", help="also write the JSON to this file")
+    add_json(p, "the result (it is printed on standard output in any case)")
 
 
 def _parse_start(text: str) -> list[float]:
@@ -70,7 +67,7 @@ def write_result(args, name, start, result, mesh, spec, extra: dict | None = Non
     out = {"target": name, "start_mm_deg": start, **result.to_json(), **(extra or {})}
     text = json.dumps(out, indent=2)
     print(text)
-    if args.json:
+    if args.json not in (None, "-"):
         write_approximation(args.json, out)
     if args.png:
         render_approximation(spec, mesh, result.frames(spec), result.widths, args.png,

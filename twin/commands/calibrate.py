@@ -1,28 +1,21 @@
 """`vrscroll calibrate RUN... --holdout RUN`: fit the twin's plant to recorded HIL runs, say what the runs
-show and what they do not; `vrscroll calibrate --scenario FILE`: write the scenario to record them with
-(docs/tuning-hil-calibration.md)."""
+show and what they do not (docs/tuning-hil-calibration.md; `vrscroll scenario` writes the scenario to record)."""
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from twin.errors import UserError
-from twin.commands.options import add_device_option, profile_line
+from twin.commands.options import add_device_option, add_json, add_refused, json_to_stdout, write_json
 from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
-from twin.formats.gains import read_gains
+from twin.device.spec_toml import write_spec_toml
+from twin.errors import UserError
 from twin.formats.profile import select_profile, spec_defaults, write_profile_spec
 from twin.formats.run import read_run
-from twin.formats.scenario import write_scenario
-from twin.device.spec_toml import write_spec_toml
 from twin.hil.calibration import calibrate, trace_rmse
-from twin.hil.calibration_scenario import calibration_scenario
-from twin.hil.device_gains import device_gains
-from twin.link.serial_link import Link, LinkError
 
 
 def add_arguments(p) -> None:
@@ -33,18 +26,11 @@ def add_arguments(p) -> None:
     p.add_argument("--generations", type=int, default=8,
                    help="cross-entropy generations of the search (default %(default)s)")
     p.add_argument("--population", type=int, default=24, help="twin replays per generation (default %(default)s)")
-    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_json(p, "the result")
     p.add_argument("--incomplete", action="store_true",
                    help="also fit runs that did not complete (killed or interrupted while recorded): what they "
                         "recorded is used, and each is named (default: such a run is refused)")
-    p.add_argument("--scenario", metavar="FILE",
-                   help="instead of fitting: write the calibration scenario (TOML) for the gains the device has "
-                        "(--port reads them; --gains FILE; default: the profile's), to record with `vrscroll hil`")
-    p.add_argument("--port", help="with --scenario: read the device's gains from it")
-    p.add_argument("--gains", help="with --scenario: a gains file instead of the device's")
-    p.add_argument("--seed", type=int, default=0, help="with --scenario: which angles (default %(default)s)")
-    p.add_argument("--cycles", type=int, default=2,
-                   help="with --scenario: cycles of a large move and a slow ramp out and back (default %(default)s)")
+    add_refused(p, "--scenario", "`vrscroll scenario FILE`")
     add_device_option(p)
 
 
@@ -55,39 +41,11 @@ def _profile(args):
     return select_profile(args.device), False
 
 
-def write_calibration_scenario(args, profile) -> int:
-    spec = profile.spec
-    if args.gains:
-        gains = read_gains(args.gains, spec.n_hinges)
-    elif args.port:
-        try:
-            with Link(args.port) as link:
-                gains = device_gains(link, spec.n_hinges)
-        except LinkError as exc:
-            raise UserError(f"link: {exc}") from None
-    else:
-        gains = profile.gains
-    if args.cycles < 1:
-        raise UserError("--cycles must be at least 1")
-    scenario = calibration_scenario(spec, gains, seed=args.seed, cycles=args.cycles,
-                                    name=f"calibration-{args.seed}")
-    write_scenario(args.scenario, scenario)
-    print(f"calibration scenario written to {args.scenario}: {len(scenario.times)} steps, {scenario.duration:.2f} s "
-          f"(timed for the gains of {args.gains or args.port or profile.gains_from}); record it with "
-          f"`vrscroll hil {args.scenario} --port PORT`")
-    return 0
-
-
 def run(args) -> int:
     profile, new = _profile(args)
     name = args.device or profile.name
-    if args.scenario:
-        if args.runs:
-            raise UserError("--scenario writes the calibration scenario; give the RUN folders without it")
-        print(profile_line(profile))
-        return write_calibration_scenario(args, profile)
     if not args.runs:
-        raise UserError("give the HIL run folders to fit to (or --scenario FILE to write the scenario to record)")
+        raise UserError("give the HIL run folders to fit to (`vrscroll scenario FILE` writes the scenario to record)")
     spec = profile.spec
     try:
         runs = [read_run(r, spec, incomplete=args.incomplete) for r in args.runs]
@@ -104,7 +62,7 @@ def run(args) -> int:
         if "before" not in r["meta"]:
             raise UserError(f"{r['dir']}: recorded without the device's state before the run; record it again")
     res = calibrate(runs, spec, population=args.population, generations=args.generations,
-                    progress=None if args.json else lambda g, c: print(
+                    progress=None if json_to_stdout(args) else lambda g, c: print(
                         f"generation {g + 1}/{args.generations}: best cost {c:.4g}", flush=True))
     source = "calibrated from " + ", ".join(str(Path(r).resolve()) for r in args.runs) + " (vrscroll calibrate)"
     fitted = {p: e.value for p, e in res.estimates.items() if e.fitted}
@@ -135,8 +93,8 @@ def run(args) -> int:
                           "rmse_after_deg": after.round(4).tolist(),
                           "overall_before_deg": round(float(np.sqrt(np.mean(before ** 2))), 4),
                           "overall_after_deg": round(float(np.sqrt(np.mean(after ** 2))), 4)}
-    if args.json:
-        print(json.dumps(out, indent=2))
+    write_json(args.json, out)
+    if json_to_stdout(args):
         return 0
     print(f"device profile: {out['device_profile']} (prior: {out['prior']})")
     print(f"fitted in {res.iterations} generations ({res.evaluations} twin replays); x prior value, 95 % interval:")

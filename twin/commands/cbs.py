@@ -8,9 +8,9 @@ shape is from the mesh.
 
 from __future__ import annotations
 
+from twin.commands.approximate import add_target_arguments, target_and_start, write_result
 from twin.device.spec import load_spec
 from twin.evaluation.cbs import CbsSimulator
-from twin.commands.approximate import add_target_arguments, target_and_start, write_result
 
 
 def add_arguments(p) -> None:

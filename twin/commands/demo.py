@@ -7,12 +7,9 @@ a refusal), report all, write a picture.
 
 from __future__ import annotations
 
-import json
-import math
-
 import numpy as np
 
-from twin.commands.options import add_device_option, profile_line, profile_of
+from twin.commands.options import add_device_option, add_json, profile_line, profile_of, write_json
 from twin.device.kinematics import flap_frames
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
@@ -30,7 +27,7 @@ def add_arguments(p) -> None:
     p.add_argument("--variant", choices=VARIANTS, default="full",
                    help="approximation: the paper's full, no_hcevf, or ours, refined (default full)")
     p.add_argument("--png", default="demo.png", help="picture to write (default demo.png)")
-    p.add_argument("--json", metavar="FILE", help="also write the report as JSON")
+    add_json(p, "the report")
     p.add_argument("--strict", action="store_true",
                    help="refuse (exit 1) when the pen redirection goes beyond the perception thresholds")
     p.add_argument("--view", action="store_true", help="play the morph in MuJoCo's viewer, in real time")
@@ -89,7 +86,5 @@ def run(args) -> int:
                   "msd_after_morph_mm": round(end_msd * 1e3, 3), "hd_after_morph_mm": round(end_hd * 1e3, 3)},
         "png": args.png,
     }
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(report, f, indent=2, default=lambda o: None if isinstance(o, float) and math.isnan(o) else o)
+    write_json(args.json, report)
     return 0 if gate.passed else 1

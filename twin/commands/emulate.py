@@ -4,14 +4,15 @@ twin/link/pty_device.py); prints the pty's path and runs until SIGINT/SIGTERM.""
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 
 from twin.device.spec import DeviceSpec, load_spec
 from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
 from twin.link.faults import FaultOptions
-from twin.sim.plant import PlantRanges, as_twin
 from twin.link.pty_device import open_pty, serve
+from twin.sim.plant import PlantRanges, as_twin
 
 RANGED = {  # PlantRanges field (its option is --field-name) -> what it is
     "speed_scale": "no-load speed x, i.e. motor constant / x",
@@ -30,7 +31,7 @@ def _flag(field: str) -> str:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     ranges = PlantRanges()
     p.add_argument("--log", help="JSON-lines log of every command received, and of the plant drawn (appended)")
-    p.add_argument("--port-file", help="also write the pty path to this file")
+    p.add_argument("--serial-file", help="also write the pty path (the device's --serial) to this file")
     for field, what in RANGED.items():
         lo, hi = getattr(ranges, field)
         p.add_argument(_flag(field), metavar="X or LOW,HIGH",
@@ -63,14 +64,26 @@ def _range(flag: str, text: str | None, default: tuple[float, float]) -> tuple[f
     return (parts[0], parts[-1])
 
 
+MAX_PACK_V = 20.0  # V: beyond any pack the DRV8833 (10.8 V max) could be run from
+
+
 def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
     """The emulator's options from the command line; ValueError naming the option that is wrong."""
     if args.jam_hinge is not None and not 0 <= args.jam_hinge < spec.n_hinges:
         raise ValueError(f"--jam-hinge {args.jam_hinge}: no such hinge")
     if not 0.0 <= args.encoder_miss <= 1.0:
         raise ValueError(f"--encoder-miss {args.encoder_miss}: a probability, 0 to 1")
-    if args.pack_voltage is not None and not args.pack_voltage > 0:
-        raise ValueError(f"--pack-voltage {args.pack_voltage}: must be positive")
+    if not 0.0 <= args.corrupt <= 1.0:
+        raise ValueError(f"--corrupt {args.corrupt}: a probability, 0 to 1")
+    if args.pack_voltage is not None and not 0 < args.pack_voltage <= MAX_PACK_V:
+        raise ValueError(f"--pack-voltage {args.pack_voltage}: a pack's voltage, above 0 and at most {MAX_PACK_V} V")
+    if args.watchdog_ms is not None and not 0 <= args.watchdog_ms <= 65535:
+        raise ValueError(f"--watchdog-ms {args.watchdog_ms}: 0 (off) to 65535 ms, what the firmware's config holds")
+    for flag, value in (("--jam-after", args.jam_after), ("--drop-after", args.drop_after)):
+        if value is not None and not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{flag} {value}: a time in s, finite and not negative")
+    if args.seed < 0:
+        raise ValueError(f"--seed {args.seed}: not negative")
     default = PlantRanges()
     if args.ideal:
         twin = as_twin(spec)
@@ -96,10 +109,10 @@ def run(args) -> int:
     stop = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(True))
-    if args.port_file:
-        with open(args.port_file + ".part", "w") as f:
+    if args.serial_file:
+        with open(args.serial_file + ".part", "w") as f:
             f.write(path + "\n")
-        os.replace(args.port_file + ".part", args.port_file)
+        os.replace(args.serial_file + ".part", args.serial_file)
     print(path, flush=True)
     try:
         overruns = serve(emu, master, lambda: bool(stop))

@@ -1,12 +1,12 @@
-"""`vrscroll hil SCENARIO --port PORT`: one scenario on the device and on the twin, compared (docs/tuning-hil-calibration.md)."""
+"""`vrscroll hil SCENARIO --serial PORT`: one scenario on the device and on the twin, compared (docs/tuning-hil-calibration.md)."""
 
 from __future__ import annotations
 
 import datetime
 from pathlib import Path
 
+from twin.commands.options import add_device_option, add_serial, add_tolerance_deg, profile_line, profile_of
 from twin.errors import UserError
-from twin.commands.options import add_device_option, profile_line, profile_of
 from twin.formats.gains import read_gains
 from twin.formats.run import read_run
 from twin.formats.scenario import read_scenario
@@ -20,15 +20,13 @@ from viz.hil_report import write_report
 
 def add_arguments(p) -> None:
     p.add_argument("scenario", help="scenario file, TOML or JSON (docs/tuning-hil-calibration.md)")
-    p.add_argument("--port", required=True, help="serial port or pyserial URL of the device")
+    add_serial(p, required=True)
     p.add_argument("--out", help="run folder (default hil-<scenario>-<time>)")
     p.add_argument("--telemetry-hz", type=int, default=500, help="telemetry rate (default %(default)s)")
     p.add_argument("--gains", help="gains file (vrscroll tune --out) to push to the device before the run "
                    "(default: the device profile's gains, if it holds any)")
     p.add_argument("--log", help="session log, JSON lines (default <out>/session.jsonl)")
-    p.add_argument("--tolerance-deg", type=float, default=5.0,
-                   help="e-stop when, on its way to the scenario's start, the device parts from the twin by more "
-                        "(an uncalibrated device may need more; default %(default)s)")
+    add_tolerance_deg(p)
     add_device_option(p)
 
 
@@ -50,7 +48,7 @@ def run(args) -> int:
             print(f"t={t:6.2f} s of {scenario.duration:.2f} s", flush=True)
 
     try:
-        with Link(args.port, log_path=log) as link:
+        with Link(args.serial, log_path=log, hinges=spec.n_hinges) as link:
             meta = run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz,
                            scenario_path=args.scenario, on_progress=progress, gains=gains,
                            tolerance_deg=args.tolerance_deg, profile=profile.label)

@@ -1,4 +1,4 @@
-"""`vrscroll mirror TARGET.json --port PORT`: gate a target on the twin, send it, watch the device follow."""
+"""`vrscroll mirror TARGET.json --serial PORT`: gate a target on the twin, send it, watch the device follow."""
 
 from __future__ import annotations
 
@@ -6,22 +6,21 @@ import math
 
 import numpy as np
 
-from twin.errors import UserError
-from twin.sim.gate import GateRefused
-from twin.link.serial_link import Link, LinkError
-from twin.hil.mirror import DeviceNotReady, mirror
-from twin.commands.options import add_device_option, profile_line, profile_of
 from twin.checks import hinge_angles
+from twin.commands.options import add_device_option, add_serial, add_tolerance_deg, profile_line, profile_of
+from twin.errors import UserError
 from twin.formats.target import read_target
+from twin.hil.mirror import DeviceNotReady, mirror
+from twin.link.serial_link import Link, LinkError
+from twin.sim.gate import GateRefused
 
 
 def add_arguments(p) -> None:
     p.add_argument("target", nargs="?", help='JSON file with {"angles_deg": [one per hinge]}')
     p.add_argument("--angles", help="hinge targets in degrees, comma-separated, instead of TARGET.json "
                    "(write --angles=-30,0,... when the first is negative)")
-    p.add_argument("--port", required=True, help="serial port or pyserial URL (a /dev/tty*, a pty, socket://...)")
-    p.add_argument("--tolerance-deg", type=float, default=5.0,
-                   help="e-stop when a hinge parts from the twin's prediction by more (default %(default)s)")
+    add_serial(p, required=True)
+    add_tolerance_deg(p)
     p.add_argument("--settle-limit", type=float, default=2.0, help="s the move may take (default %(default)s)")
     p.add_argument("--telemetry-hz", type=int, default=500, help="telemetry rate (default %(default)s)")
     p.add_argument("--log", default="vrscroll-session.jsonl", help="session log, JSON lines (default %(default)s)")
@@ -65,7 +64,7 @@ def run(args) -> int:
                   + f"  deg   largest deviation {dev.max():4.1f} deg (hinge {int(dev.argmax())})", flush=True)
 
     try:
-        with Link(args.port, log_path=args.log) as link:
+        with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
             if args.override:
                 print("gate override requested: a failed check will be logged and the move sent anyway")
             result = mirror(link, spec, targets, tolerance_deg=args.tolerance_deg, settle_limit=args.settle_limit,

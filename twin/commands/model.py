@@ -3,8 +3,8 @@ or check the committed ones are current."""
 
 from __future__ import annotations
 
-from twin.errors import UserError
 from twin.device.mjcf import MJCF_PATH, SCENE_PATH, generated_files, write_mjcf
+from twin.errors import UserError
 from twin.link.firmware_header import HEADER_PATH, header, write_header
 
 

@@ -41,7 +41,12 @@ def refuse_renamed(p: argparse.ArgumentParser) -> None:
     have = set(p._option_string_actions)
     for old, new in RENAMED.items():
         if new in have and old not in have:
-            p.add_argument(old, action=_Renamed, new=new, dest=f"_renamed{old}")
+            add_refused(p, old, new)
+
+
+def add_refused(p, old: str, new: str) -> None:
+    """An option `old` that is refused with a message naming `new` (an option, or a command)."""
+    p.add_argument(old, action=_Renamed, new=new, dest=f"_refused{old}")
 
 
 class _JsonFile(argparse.Action):
@@ -82,7 +87,8 @@ def add_serial(p, required: bool, what: str = "the device") -> None:
 
 def add_tolerance_deg(p, default: float = 5.0) -> None:
     p.add_argument("--tolerance-deg", type=float, default=default, metavar="DEG",
-                   help="e-stop when a hinge parts from the twin's prediction by more than this, deg (default %(default)s)")
+                   help="e-stop when a hinge parts from the twin's prediction by more than this, deg "
+                        "(default %(default)s)")
 
 
 def comma_list(choices=None):
@@ -102,7 +108,8 @@ def add_target(p, shapes, required: bool, role: str = "the target", start: bool 
     """--shape S | --mesh FILE (and --start): `role` says what the target is for this command."""
     target = p.add_mutually_exclusive_group(required=required)
     target.add_argument("--shape", choices=shapes, help=f"{role}: one of the evaluation shapes")
-    target.add_argument("--mesh", metavar="FILE", help=f"{role}: a watertight mesh file in metres (STL, OBJ, PLY, GLB, ...)")
+    target.add_argument("--mesh", metavar="FILE",
+                        help=f"{role}: a watertight mesh file in metres (STL, OBJ, PLY, GLB, ...)")
     if start:
         p.add_argument("--start", metavar="X,Y,Z,ROLL,PITCH,YAW",
                        help="the anchor's start in the target's frame: x, y, z in mm, then roll, pitch, yaw in deg "

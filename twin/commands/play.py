@@ -2,7 +2,7 @@
 
 With `--url` it plays against a running `vrscroll serve`. Without it, it starts its own:
 an emulated device (`vrscroll emulate`'s emulator on a pseudo-terminal) and `vrscroll serve
---port` on it, on a free loopback port (`--no-device`: the service morphs the twin alone).
+--serial` on it, on a free loopback port (`--no-device`: the service morphs the twin alone).
 The sessions are described in twin/live/player.py and docs/live.md. Exit status 0 when
 every shape locked, morphed and had every pen sample redirected; 1 otherwise.
 """
@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import tempfile
 from pathlib import Path
 
 from websockets.exceptions import WebSocketException
 
-from twin.errors import UserError
+from twin.commands.options import add_json, comma_list, write_json
 from twin.device.spec import load_spec
+from twin.errors import UserError
 from twin.link.emulator_process import EmulatorProcess
 from twin.live.player import play
 from twin.live.process import ServiceProcess
@@ -31,11 +31,11 @@ def add_arguments(p) -> None:
     p.add_argument("--token", help="the service's token, if it needs one")
     p.add_argument("--no-device", action="store_true", help="without --url: the service morphs the twin alone")
     p.add_argument("--variant", choices=VARIANTS, default="full", help="without --url: approximation variant")
-    p.add_argument("--shapes", default=",".join(shape_names()),
+    p.add_argument("--shapes", type=comma_list(shape_names()), default=shape_names(), metavar="S1,S2,...",
                    help="comma-separated shapes (default all eight evaluation shapes)")
     p.add_argument("--attempts", type=int, default=4, help="approaches per shape until one morphs (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed of the starts after each shape's own (default 0)")
-    p.add_argument("--json", metavar="FILE", help="write every session's record as JSON")
+    add_json(p, "every session's record")
 
 
 def _line(r: dict) -> str:
@@ -57,7 +57,7 @@ def _play(args, spec, shapes) -> list[dict]:
             serve_args = ["--variant", args.variant]
             if not args.no_device:
                 emulator = stack.enter_context(EmulatorProcess(tmp / "emulator.jsonl"))
-                serve_args += ["--port", emulator.port, "--log", str(tmp / "session.jsonl")]
+                serve_args += ["--serial", emulator.port, "--log", str(tmp / "session.jsonl")]
                 print(f"emulator on {emulator.port}", flush=True)
             service = stack.enter_context(ServiceProcess(*serve_args, stderr_path=tmp / "serve.stderr"))
             url = service.url
@@ -67,7 +67,7 @@ def _play(args, spec, shapes) -> list[dict]:
 
 
 def run(args) -> int:
-    shapes = [s for s in args.shapes.split(",") if s]
+    shapes = args.shapes
     unknown = [s for s in shapes if s not in shape_names()]
     if unknown or not shapes:
         raise UserError(f"--shapes: unknown {', '.join(unknown) or '(none given)'}; known: {', '.join(shape_names())}")
@@ -77,8 +77,7 @@ def run(args) -> int:
         records = _play(args, load_spec(), shapes)
     except (RuntimeError, OSError, WebSocketException) as exc:  # LiveError, a process that did not start, a bad URL
         raise UserError(str(exc)) from None
-    if args.json:
-        Path(args.json).write_text(json.dumps(records, indent=2) + "\n")
+    write_json(args.json, records)
     ok = all(r["morphed"] and r["pen"]["redirected"] == r["pen"]["sent"] for r in records)
     print(f"{sum(r['morphed'] for r in records)}/{len(records)} shapes morphed; "
           + ("every pen sample redirected" if ok else "NOT every shape morphed with every pen sample redirected"))

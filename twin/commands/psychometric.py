@@ -15,11 +15,15 @@ from pathlib import Path
 
 import numpy as np
 
+from twin.commands.options import add_json, json_to_stdout, write_json
 from twin.errors import UserError
-from twin.perception.thresholds import detection_rule, paper_fits
 from twin.formats.trials import read_trials, write_trials
 from twin.perception.psychometric import FIT_METHOD, analyse, simulate_trials, threshold
+from twin.perception.thresholds import detection_rule, paper_fits
 from viz.charts import psychometric_curves
+
+
+MAX_BOOTSTRAP = 100_000  # resamples: CIs stable to well below a percent; each holds the trials in memory
 
 
 def add_arguments(p) -> None:
@@ -30,7 +34,7 @@ def add_arguments(p) -> None:
                    help="bootstrap resamples for the threshold CIs (default 2000; 0: none)")
     p.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (and of --example) (default 0)")
     p.add_argument("--level-ci", type=float, default=0.95, metavar="P", help="confidence level of the CIs (default 0.95)")
-    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    add_json(p, "the result")
     p.add_argument("--compare-paper", choices=surfaces, metavar="SURFACE",
                    help=f"overlay the paper's printed curve for SURFACE ({', '.join(surfaces)})")
     p.add_argument("--example", choices=surfaces, metavar="SURFACE",
@@ -96,8 +100,8 @@ def run(args) -> int:
     if args.example:
         write_example(path, args.example, args.seed)
         return 0
-    if args.bootstrap < 0:
-        raise UserError("--bootstrap must be 0 or more")
+    if not 0 <= args.bootstrap <= MAX_BOOTSTRAP:
+        raise UserError(f"--bootstrap {args.bootstrap}: from 0 to {MAX_BOOTSTRAP:,} resamples")
     if not 0 < args.level_ci < 1:
         raise UserError("--level-ci must be between 0 and 1, e.g. 0.95")
     trials = read_trials(path)
@@ -110,7 +114,9 @@ def run(args) -> int:
               "surfaces": analyse(trials, rule, args.bootstrap, args.seed, args.level_ci),
               **({"paper": paper} if paper else {})}
     text = json.dumps(result, indent=2)
-    print(text if args.json else _text(result))
+    write_json(args.json, result)
+    if not json_to_stdout(args):
+        print(_text(result))
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
@@ -118,6 +124,6 @@ def run(args) -> int:
         psychometric_curves(result["surfaces"], trials.unit, out / "psychometric.png",
                             paper and {"label": f"paper ({paper['surface']})",
                                        "a": paper[f"a_per_{trials.unit}"], "b": paper["b"]})
-        if not args.json:
+        if not json_to_stdout(args):
             print(f"\nwrote {out / 'fit.json'}, {out / 'psychometric.png'}")
     return 0

@@ -11,16 +11,16 @@ the surface is over a threshold (the samples are still written).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
+from twin.commands.options import add_json, add_target, write_json
 from twin.device.spec import load_spec
-from twin.morphpatch.approximation import Approximation
 from twin.errors import UserError
 from twin.formats.pen import read_pen_samples, write_redirected
 from twin.formats.target import read_approximation
+from twin.morphpatch.approximation import Approximation
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.redirection import PADDING, SIGMA, build_field, redirect, threshold_summary, within_samples
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
@@ -30,15 +30,13 @@ from viz.scene import render_redirection
 def add_arguments(p) -> None:
     p.add_argument("approximation", metavar="APPROX.json", help="an approximation result (vrscroll approximate --json)")
     p.add_argument("pens", metavar="PENS.csv", nargs="?", help="pen samples to redirect (see docs/redirection-perception.md)")
-    target = p.add_mutually_exclusive_group()
-    target.add_argument("--shape", choices=shape_names(), help="the target shape (default: the one in APPROX.json)")
-    target.add_argument("--mesh", metavar="FILE", help="the target mesh, metres (default: the one in APPROX.json)")
+    add_target(p, shape_names(), required=False, role="the target (default: the one APPROX.json names)", start=False)
     p.add_argument("--out", metavar="FILE", help="redirected samples (default PENS_redirected.csv)")
     p.add_argument("--sigma-mm", type=float, default=SIGMA * 1e3, help=f"Gaussian blur, mm (default {SIGMA * 1e3:g})")
     p.add_argument("--padding-mm", type=float, default=PADDING * 1e3,
                    help=f"field beyond the device's edges, mm (default {PADDING * 1e3:g})")
     p.add_argument("--png", metavar="FILE", help="picture of the offsets over the device")
-    p.add_argument("--json", metavar="FILE", help="also write the summary as JSON")
+    add_json(p, "the summary")
     p.add_argument("--strict", action="store_true", help="exit 1 if any of the surface is over a threshold")
 
 
@@ -83,8 +81,7 @@ def run(args) -> int:
         render_redirection(mesh, field, args.png, title=f"{name}: pen redirection, blur {args.sigma_mm:g} mm")
         summary["png"] = args.png
         print(f"picture: {args.png}")
-    if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+    write_json(args.json, summary)
     over = summary["share_within"] < 1.0
     if over:
         print(f"warning: {1 - summary['share_within']:.1%} of the touch surface is redirected beyond the perception "

@@ -1,7 +1,7 @@
 """`vrscroll serve`: the live service for VR applications (docs/live.md).
 
 On the loopback address by default. `--device` picks the device profile whose twin approximates,
-gates and (without a device) morphs. `--port` attaches the device (a serial port, or the
+gates and (without a device) morphs. `--serial` attaches the device (a serial port, or the
 emulator's pty); without it a lock morphs the twin alone. `--shape`/`--mesh` gives the
 first target (a client may send another). Serving beyond loopback needs `--allow-remote`
 and a token (`--token`, or the VRSCROLL_TOKEN environment variable) that every client presents.
@@ -14,8 +14,8 @@ import os
 import secrets
 import signal
 
+from twin.commands.options import add_device_option, add_serial, add_target, add_tolerance_deg, profile_line, profile_of
 from twin.errors import UserError
-from twin.commands.options import add_device_option, profile_line, profile_of
 from twin.link.serial_link import LinkError
 from twin.live.messages import DEFAULT_LISTEN_PORT
 from twin.live.morph import DeviceMorpher, TwinMorpher
@@ -25,11 +25,8 @@ from twin.morphpatch.shapes import load_mesh, shape_names
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--port", help="the device: serial port or pyserial URL (e.g. the pty `vrscroll emulate` prints); "
-                   "without it a lock morphs the twin alone")
-    target = p.add_mutually_exclusive_group()
-    target.add_argument("--shape", choices=shape_names(), help="first target: one of the evaluation shapes")
-    target.add_argument("--mesh", metavar="FILE", help="first target: a watertight mesh file in metres")
+    add_serial(p, required=False, what="the device (without it a lock morphs the twin alone)")
+    add_target(p, shape_names(), required=False, role="the first target", start=False)
     p.add_argument("--variant", choices=VARIANTS, default="full", help="approximation variant (default full)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default the loopback 127.0.0.1)")
     p.add_argument("--listen", type=int, default=DEFAULT_LISTEN_PORT,
@@ -38,10 +35,9 @@ def add_arguments(p) -> None:
     p.add_argument("--token", default=os.environ.get("VRSCROLL_TOKEN"),
                    help="token every client must present (default $VRSCROLL_TOKEN; generated and printed when "
                    "--allow-remote is given without one)")
-    p.add_argument("--log", default="vrscroll-live.jsonl", help="serial session log with --port (default %(default)s)")
+    p.add_argument("--log", default="vrscroll-live.jsonl", help="serial session log with --serial (default %(default)s)")
     add_device_option(p)
-    p.add_argument("--tolerance-deg", type=float, default=5.0,
-                   help="e-stop when a hinge parts from the twin's prediction by more (default %(default)s)")
+    add_tolerance_deg(p)
 
 
 def run(args) -> int:
@@ -56,7 +52,7 @@ def run(args) -> int:
     if args.mesh:
         loaded = load_mesh(args.mesh)
         mesh = (loaded.vertices, loaded.faces)
-    morpher = (DeviceMorpher(spec, args.port, args.log, args.tolerance_deg) if args.port
+    morpher = (DeviceMorpher(spec, args.serial, args.log, args.tolerance_deg) if args.serial
                else TwinMorpher(spec, profile.gains))
     config = ServiceConfig(spec, morpher, host=args.host, listen=args.listen, token=token,
                            allow_remote=args.allow_remote, variant=args.variant, shape=args.shape, mesh=mesh,

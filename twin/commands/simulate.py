@@ -2,11 +2,10 @@
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 
-from twin.commands.options import add_device_option, profile_line, profile_of
+from twin.commands.options import add_device_option, add_json, json_to_stdout, profile_line, profile_of, write_json
 from twin.sim.response import move_report
 from twin.sim.twin import Twin
 from viz.viewer import play_trace
@@ -18,7 +17,7 @@ def add_arguments(p) -> None:
     p.add_argument("--max-time", type=float, default=3.0, help="longest the move may take, s (default 3)")
     p.add_argument("--hold", action="store_true", help="run the full --max-time instead of stopping once settled")
     p.add_argument("--trace", metavar="CSV", help="write the firmware-rate trace to this CSV file")
-    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    add_json(p, "the report")
     p.add_argument("--view", action="store_true", help="then play the move in MuJoCo's viewer, in real time")
     add_device_option(p)
 
@@ -42,8 +41,8 @@ def run(args) -> int:
     if args.trace:
         trace.write_csv(args.trace, twin.spec)
         summary["trace_csv"] = args.trace
-    if args.json:
-        print(json.dumps(summary, indent=2))
+    write_json(args.json, summary)
+    if json_to_stdout(args):
         if args.view:
             print(play_trace(twin.spec, trace), file=sys.stderr)
         return 0

@@ -1,19 +1,19 @@
-"""`vrscroll status --port PORT`: the device's firmware version, state, faults and hinge angles."""
+"""`vrscroll status --serial PORT`: the device's firmware version, state, faults and hinge angles."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from controllers.encoder import angle_from_counts
-from twin.link import protocol as P
+from twin.commands.options import add_device_option, add_serial, profile_line, profile_of
 from twin.errors import UserError
-from twin.link.serial_link import Link, LinkError
 from twin.hil.mirror import faults_text
-from twin.commands.options import add_device_option, profile_line, profile_of
+from twin.link import protocol as P
+from twin.link.serial_link import Link, LinkError
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--port", required=True, help="serial port or pyserial URL")
+    add_serial(p, required=True)
     p.add_argument("--clear-fault", action="store_true", help="clear an ESTOP or FAULT first")
     p.add_argument("--estop", action="store_true", help="e-stop the device first")
     p.add_argument("--log", help="session log, JSON lines")
@@ -24,7 +24,7 @@ def run(args) -> int:
     profile = profile_of(args)
     spec = profile.spec
     try:
-        with Link(args.port, log_path=args.log) as link:
+        with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
             if args.estop:
                 link.estop()
             if args.clear_fault:

@@ -1,16 +1,23 @@
 """`vrscroll tune`: robust PID gains per hinge on the twin of the device profile in use, over the parameter
-ranges its calibration left open; stored in the profile; with --port, confirmed on the device."""
+ranges its calibration left open; stored in the profile; with --serial, confirmed on the device."""
 
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 
 import numpy as np
 
 from controllers.encoder import target_counts
-from twin.commands.options import add_device_option, profile_line, profile_of
+from twin.commands.options import (
+    add_device_option,
+    add_json,
+    add_serial,
+    json_to_stdout,
+    profile_line,
+    profile_of,
+    write_json,
+)
 from twin.errors import UserError
 from twin.evaluation.backends import BACKENDS, make_backend
 from twin.formats.gains import write_gains
@@ -27,7 +34,7 @@ from twin.tuning.tuner import TuneGoal, step_report, tolerance_ranges, tune
 def add_arguments(p) -> None:
     p.add_argument("--max-overshoot-deg", type=float, default=1.0,
                    help="largest overshoot allowed on any plant, deg (default %(default)s)")
-    p.add_argument("--tolerance", type=float, default=20.0,
+    p.add_argument("--tolerance-pct", type=float, default=20.0, metavar="PCT",
                    help="uncalibrated device: motor constant and gear friction +- this percent: the plants tuned "
                         "for are the nominal and the 4 corners, the cost is the worst (default %(default)s); a "
                         "calibrated profile's intervals replace it")
@@ -46,9 +53,9 @@ def add_arguments(p) -> None:
                                                "(default all cores)")
     p.add_argument("--out", help="also write the gains to this file, JSON (default: into the device profile; "
                                  "gains.json without one)")
-    p.add_argument("--port", help="also push the gains to the device and run the same step on it")
-    p.add_argument("--log", default="vrscroll-tune.jsonl", help="session log with --port (default %(default)s)")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_serial(p, required=False, what="also push the gains to this device and run the same step on it")
+    p.add_argument("--log", default="vrscroll-tune.jsonl", help="session log with --serial (default %(default)s)")
+    add_json(p, "the summary")
     add_device_option(p)
 
 
@@ -59,8 +66,8 @@ def _line(label, rows):
 
 
 def run(args) -> int:
-    if not 0 <= args.tolerance < 100:
-        raise UserError(f"--tolerance {args.tolerance}: expected a percentage in [0, 100)")
+    if not 0 <= args.tolerance_pct < 100:
+        raise UserError(f"--tolerance-pct {args.tolerance_pct}: expected a percentage in [0, 100)")
     if args.max_overshoot_deg <= 0:
         raise UserError("--max-overshoot-deg must be positive")
     profile = profile_of(args)
@@ -68,19 +75,20 @@ def run(args) -> int:
     step = math.radians(args.step_deg)
     if not 0 < abs(step) <= spec.hinge_limit:
         raise UserError(f"--step-deg {args.step_deg}: outside the hinge range")
-    ranges = profile.ranges() or tolerance_ranges(spec, args.tolerance / 100)
-    goal = TuneGoal(max_overshoot=math.radians(args.max_overshoot_deg), tolerance=args.tolerance / 100,
+    ranges = profile.ranges() or tolerance_ranges(spec, args.tolerance_pct / 100)
+    goal = TuneGoal(max_overshoot=math.radians(args.max_overshoot_deg), tolerance=args.tolerance_pct / 100,
                     step=step, duration=args.duration, ranges=ranges)
     before = profile.gains
-    if not args.json:
+    quiet = json_to_stdout(args)
+    if not quiet:
         print(profile_line(profile))
-        print(("calibrated intervals" if profile.ranges() else f"uncalibrated, +-{args.tolerance:g} %")
+        print(("calibrated intervals" if profile.ranges() else f"uncalibrated, +-{args.tolerance_pct:g} %")
               + ": tuned over " + ", ".join(f"{p} {lo:.4g} .. {hi:.4g}" for p, (lo, hi) in ranges.items())
               + f" ({2 ** len(ranges) + 1} plants: nominal and corners)")
     with make_backend(args.backend, args.workers) if args.backend else contextlib.nullcontext() as backend:
         result = tune(spec, goal, population=args.population, generations=args.generations, seed=args.seed,
                       nthread=args.threads, start=before, backend=backend,
-                      progress=None if args.json else lambda g, c, t: print(
+                      progress=None if quiet else lambda g, c, t: print(
                           f"generation {g + 1}/{args.generations}: worst-plant cost per hinge "
                           + " ".join(f"{x * 1000:5.0f}" for x in c) + f" ms  ({t:.1f} s)", flush=True))
     rows_before, _ = step_report(spec, before, goal)
@@ -98,7 +106,7 @@ def run(args) -> int:
         written.append(args.out or "gains.json")
         write_gains(written[-1], result.gains, meta)
     summary = {"gains_files": written, "before": rows_before, "after": rows_after, **meta}
-    if not args.json:
+    if not quiet:
         print(f"tuned in {result.wall_time:.1f} s ({result.simulations} simulations of {args.duration} s); "
               f"nominal twin, step to {args.step_deg} deg, per hinge settle / overshoot:")
         print(_line("before", rows_before))
@@ -106,10 +114,9 @@ def run(args) -> int:
         print("worst plant     " + "  ".join(f"{s * 1000:6.0f} ms {math.degrees(o):5.2f} deg"
                                           for s, o in zip(result.settle, result.overshoot)))
         print("gains written to " + ", ".join(written))
-    if args.port:
-        summary["device"] = confirm_on_device(args, spec, result.gains, step, written, quiet=args.json)
-    if args.json:
-        print(json.dumps(summary, indent=2, default=float))
+    if args.serial:
+        summary["device"] = confirm_on_device(args, spec, result.gains, step, written, quiet=quiet)
+    write_json(args.json, summary)
     return 0
 
 
@@ -118,7 +125,7 @@ def confirm_on_device(args, spec, gains, step, written, quiet=False) -> list[dic
     n = spec.n_hinges
     targets = np.full(n, step)
     try:
-        with Link(args.port, log_path=args.log) as link:
+        with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
             push_gains(link, gains, n)
             t, deg, start, res = device_step(link, spec, targets)
     except (GateRefused, DeviceNotReady) as exc:
@@ -138,7 +145,7 @@ def confirm_on_device(args, spec, gains, step, written, quiet=False) -> list[dic
                      "device_overshoot_deg": round(m.overshoot, 3) if m else float("nan"),
                      "twin_settle_s": pred[k]["settle_time_s"], "twin_overshoot_deg": pred[k]["overshoot_deg"]})
     if not quiet:
-        print(f"device at {args.port}: {res.message}")
+        print(f"device at {args.serial}: {res.message}")
         print(f"{'hinge':>5} {'device settle s':>15} {'twin settle s':>13} {'device over deg':>15} "
               f"{'twin over deg':>13}")
         for r in rows:

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from twin.errors import UserError
 from twin.commands.options import add_device_option, profile_line, profile_of
+from twin.errors import UserError
 from twin.formats.run import read_run
 from viz.viewer import display_missing, view_run
 

@@ -27,7 +27,8 @@ from twin.device.spec import DeviceSpec, load_spec
 from twin.evaluation.cbs import CbsSimulator
 from twin.evaluation.starts import approach_starts
 from twin.evaluation.table1 import _shape_seed, twin_outcome
-from twin.formats.sweep import RecordLog, Sweep, read_records
+from twin.formats.records import RecordLog
+from twin.formats.sweep import Sweep, read_records
 from twin.morphpatch.approximation import approximate
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import load_shape

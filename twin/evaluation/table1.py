@@ -31,6 +31,7 @@ from twin.device.spec import load_spec
 from twin.evaluation.backends import LocalBackend
 from twin.evaluation.cbs import CbsSimulator
 from twin.evaluation.starts import approach_starts
+from twin.formats.records import RecordLog, read_jsonl
 from twin.morphpatch.approximation import approximate
 from twin.morphpatch.fields import build_fields, exact_signed_distance
 from twin.morphpatch.redirection import build_field, threshold_summary
@@ -124,11 +125,10 @@ def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: 
         return records
 
     bar = tqdm(total=len(tasks), desc="evaluate", unit="start", disable=not progress)
-    with open(log, "a") as f, LocalBackend(workers) if backend is None else contextlib.nullcontext(backend) as pool:
+    with RecordLog(log) as f, LocalBackend(workers) if backend is None else contextlib.nullcontext(backend) as pool:
         for _, batch in pool.map(evaluate_start, tasks):
             for r in batch:
-                f.write(json.dumps(r) + "\n")
-            f.flush()
+                f.write(r)
             records.extend(batch)
             bar.update(1)
     bar.close()
@@ -136,19 +136,16 @@ def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: 
 
 
 def read_records(path) -> list[dict]:
-    """Records of a results.jsonl; a line cut short by an interruption is skipped."""
-    path = Path(path)
-    if not path.exists():
-        return []
-    records = []
-    for line in path.read_text().splitlines():
-        try:
-            records.append(json.loads(line))
-        except json.JSONDecodeError:
-            continue
-    # a start counts once all its methods are there (the last written is the last method)
-    complete = {(r["shape"], r["start"]) for r in records if r["method"] == METHODS[-1]}
-    return [r for r in records if (r["shape"], r["start"]) in complete]
+    """Records of a results.jsonl: each (shape, start, method) once (the first written), and only the starts
+    whose every method is there; a start cut short is computed again."""
+    first = {}
+    for r in read_jsonl(path):
+        key = (r.get("shape"), r.get("start"), r.get("method"))
+        first.setdefault(key, r)
+    by_start = {}
+    for (shape, start, method), r in first.items():
+        by_start.setdefault((shape, start), {})[method] = r
+    return [r for methods in by_start.values() if set(METHODS) <= set(methods) for r in methods.values()]
 
 
 def paper_table() -> dict[tuple[str, str], dict]:

@@ -15,10 +15,10 @@ import mujoco
 import numpy as np
 import trimesh
 
-from twin.morphpatch.fields import exact_signed_distance, load_npz, mesh_key, save_npz
-from twin.paths import cache_dir
 from twin.device.mjcf import mjcf
 from twin.device.spec import DeviceSpec
+from twin.morphpatch.fields import exact_signed_distance, load_npz, mesh_key, save_npz
+from twin.paths import cache_dir
 
 COACD_THRESHOLD = 0.03  # CoACD concavity threshold (fraction of the mesh's size): smaller = more, tighter parts
 

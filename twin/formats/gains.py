@@ -13,9 +13,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from controllers.pid import PidGains
+from controllers.pid import GAIN_BOUNDS, PidGains
 from twin.checks import json_object, known_keys, number, required_keys
-from controllers.pid import GAIN_BOUNDS
 
 GAINS_FORMAT = "vrscroll-gains/1"
 # file key -> PidGains field

@@ -19,11 +19,11 @@ import json
 from pathlib import Path
 
 from controllers.pid import PidGains
+from twin.checks import json_object, known_keys, number, required_keys
 from twin.device.profile import NO_PROFILE, default_name, profile_dir, profiles_dir
 from twin.device.spec import SPEC_PATH, DeviceSpec, load_spec, spec_sources
-from twin.checks import json_object, known_keys, number, required_keys
-from twin.formats.gains import read_gains, write_gains
 from twin.device.spec_toml import write_spec_toml
+from twin.formats.gains import read_gains, write_gains
 
 PROFILE_FORMAT = "vrscroll-profile/1"
 META, SPEC, GAINS = "profile.json", "spec.toml", "gains.json"

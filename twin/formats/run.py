@@ -16,8 +16,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from twin.device.spec import DeviceSpec
 from twin.checks import hinge_angles, json_object, known_keys, number, required_keys
+from twin.device.spec import DeviceSpec
 from twin.formats.gains import read_gains
 from twin.formats.trace import read_trace
 

@@ -18,16 +18,20 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import tomllib
 from pathlib import Path
 
 import numpy as np
 
-from twin.device.spec import DeviceSpec
 from twin.checks import hinge_angles, known_keys, number
+from twin.device.spec import DeviceSpec
 from twin.formats.target import read_target
 
 SCENARIO_KEYS = ("name", "start_deg", "duration_s", "step")
+MAX_DURATION_S = 600.0  # a HIL run records both sides at 1 kHz in memory: ten minutes is ~60 MB of traces
+MAX_STEPS = 10_000
+NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")  # a scenario's name becomes part of a folder's name
 STEP_KEYS = ("t_s", "angles_deg", "file")
 
 
@@ -63,6 +67,8 @@ def read_scenario(path, spec: DeviceSpec) -> Scenario:
         raise ValueError(f"{path}: no [[step]] entries")
     if not isinstance(steps, list) or not all(isinstance(s, dict) for s in steps):
         raise ValueError(f"{path}: step: expected a list of [[step]] tables, got {steps!r}")
+    if len(steps) > MAX_STEPS:
+        raise ValueError(f"{path}: {len(steps)} steps; at most {MAX_STEPS}")
 
     times, targets = [], []
     for i, entry in enumerate(steps):
@@ -86,9 +92,12 @@ def read_scenario(path, spec: DeviceSpec) -> Scenario:
     duration = number(doc.get("duration_s", times[-1] + 1.0), f"{path}: duration_s")
     if duration <= times[-1]:
         raise ValueError(f"{path}: duration_s {duration} ends before the last step at {times[-1]} s")
-    name = doc.get("name", path.stem)
-    if not isinstance(name, str):
-        raise ValueError(f"{path}: name: expected a string, got {name!r}")
+    if duration > MAX_DURATION_S:
+        raise ValueError(f"{path}: duration_s {duration:g} s; a HIL run is at most {MAX_DURATION_S:g} s")
+    name = doc.get("name", re.sub(r"[^A-Za-z0-9_.-]+", "-", path.stem).strip(".-")[:64] or "scenario")
+    if not isinstance(name, str) or not NAME.fullmatch(name) or ".." in name:
+        raise ValueError(f"{path}: name: {name!r} is not a plain name (letters, digits, '_', '.', '-'; at most 64; "
+                         "it becomes part of the run folder's name)")
     return Scenario(name, start, times, targets, duration)
 
 

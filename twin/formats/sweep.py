@@ -24,21 +24,26 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-import json
+import math
 import tomllib
 from pathlib import Path
 
 import numpy as np
 import tomlkit
 
+from twin.checks import known_keys, number
 from twin.device.design import FIELDS, INTEGER_FIELDS, design_spec
 from twin.device.spec import SPEC_PATH, load_spec
-from twin.checks import known_keys, number
 from twin.device.spec_toml import spec_units, value_in_si
+from twin.formats.records import read_jsonl
 
 TOP_KEYS = ("spec", "shapes", "starts", "seed", "methods", "design", "plants")
 PLANT_KEYS = ("draws", "seed", "tolerance_pct")
 RANGE_KEYS = ("from", "to", "count")
+# sizes a sweep file may ask for, checked before anything is built (a count of 10^9 once filled 19.5 GB):
+MAX_COUNT = 1000  # values in a range, starts per shape, plant draws
+MAX_DESIGNS = 10_000  # the product of the design axes
+MAX_RUNS = 1_000_000  # designs x shapes x starts x methods x plants
 
 
 @dataclasses.dataclass
@@ -83,7 +88,7 @@ def read_sweep(path, shapes: list[str], methods: list[str]) -> Sweep:
     chosen_shapes = _names(doc, "shapes", shapes, path, shapes)
     chosen_methods = _names(doc, "methods", methods, path, ["refined"])
     starts = _whole(doc.get("starts", 3), f"{path}: starts", 1)
-    seed = _whole(doc.get("seed", 0), f"{path}: seed", 0)
+    seed = _whole(doc.get("seed", 0), f"{path}: seed", 0, 2 ** 32 - 1)
 
     design = doc.get("design", {})
     if not isinstance(design, dict):
@@ -94,6 +99,9 @@ def read_sweep(path, shapes: list[str], methods: list[str]) -> Sweep:
         if key not in FIELDS:
             raise ValueError(f"{where}: not a spec key (the spec's are: {', '.join(FIELDS)})")
         axes[key] = _values(given, where)
+    n_designs = math.prod(len(v) for v in axes.values())
+    if n_designs > MAX_DESIGNS:
+        raise ValueError(f"{path}: [design] makes {n_designs:,} designs; at most {MAX_DESIGNS:,}")
     designs = []
     for combo in itertools.product(*axes.values()):
         given = dict(zip(axes, combo))
@@ -123,8 +131,11 @@ def read_sweep(path, shapes: list[str], methods: list[str]) -> Sweep:
             raise ValueError(f"{where}: {pct!r} is not a percentage in [0, 100)")
     if draws and not tolerance:
         raise ValueError(f"{path}: [plants] draws = {draws} needs tolerance_pct (which values vary, by how much)")
+    runs = n_designs * len(chosen_shapes) * starts * len(chosen_methods) * (draws + 1)
+    if runs > MAX_RUNS:
+        raise ValueError(f"{path}: {runs:,} runs (designs x shapes x starts x methods x plants); at most {MAX_RUNS:,}")
     return Sweep(spec_path, designs, {k: units[k] for k in axes}, chosen_shapes, starts, seed, chosen_methods,
-                 draws, _whole(plants.get("seed", 0), f"{path}: [plants] seed", 0),
+                 draws, _whole(plants.get("seed", 0), f"{path}: [plants] seed", 0, 2 ** 32 - 1),
                  {k: float(v) for k, v in tolerance.items()})
 
 
@@ -140,9 +151,9 @@ def _names(doc, key, allowed, path, default) -> list[str]:
     return names
 
 
-def _whole(value, where: str, least: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < least:
-        raise ValueError(f"{where}: expected a whole number of at least {least}, got {value!r}")
+def _whole(value, where: str, least: int, most: int = MAX_COUNT) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not least <= value <= most:
+        raise ValueError(f"{where}: expected a whole number from {least} to {most:,}, got {value!r}")
     return value
 
 
@@ -179,46 +190,11 @@ def write_sweep(path, shapes: list[str], starts: int, seed: int, methods: list[s
     Path(path).write_text(tomlkit.dumps(doc))
 
 
-class RecordLog:
-    """The sweep's records file, opened to append: a line an interruption cut short is removed first, so
-    the next record starts on a line of its own."""
-
-    def __init__(self, path):
-        self.path = Path(path)
-        if self.path.exists():
-            data = self.path.read_bytes()
-            if data and not data.endswith(b"\n"):
-                with open(self.path, "r+b") as f:
-                    f.truncate(data.rfind(b"\n") + 1)
-        self._f = open(self.path, "a")
-
-    def write(self, record: dict) -> None:
-        """Append one record and flush it to the file."""
-        self._f.write(json.dumps(record, allow_nan=False) + "\n")
-        self._f.flush()
-
-    def close(self) -> None:
-        self._f.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-
 def read_records(path) -> dict[str, dict]:
     """key -> record of a records file; a line cut short or not a record is skipped, a repeated key read once."""
-    path = Path(path)
     out = {}
-    if not path.exists():
-        return out
-    for line in path.read_text().splitlines():
-        try:
-            record = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if isinstance(record, dict) and isinstance(record.get("key"), str):
+    for record in read_jsonl(path):
+        if isinstance(record.get("key"), str):
             out.setdefault(record["key"], record)
     return out
 

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from twin.checks import hinge_angles, json_object, known_keys, number, numbers, required_keys
 from twin.device.kinematics import pose_matrix
 from twin.device.spec import DeviceSpec
-from twin.checks import hinge_angles, json_object, known_keys, number, numbers, required_keys
 
 APPROXIMATION_KEYS = ("root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm")
 OPTIONAL_KEYS = ("variant", "target", "start_mm_deg", "msd_mm", "hd_mm", "time_ms",

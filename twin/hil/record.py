@@ -137,12 +137,8 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
             if on_progress:
                 on_progress(latest)
         meta["status"] = "complete"
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # the link e-stops the device as the interrupt leaves its session
         meta["status"] = "interrupted"
-        try:
-            link.estop()
-        except Exception:
-            pass
         raise
     except Exception as exc:
         meta["status"] = f"failed: {exc}"

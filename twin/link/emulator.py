@@ -148,7 +148,7 @@ class Emulator:
             return
         for seq, msg in self._said.feed(data):
             if isinstance(msg, P.NackMsg):
-                self._log("nack", msg=P.MsgId(msg.acked).name, seq=seq, reason=P.Nack(msg.reason).name,
+                self._log("nack", msg=_name(P.MsgId, msg.acked), seq=seq, reason=_name(P.Nack, msg.reason),
                           detail=msg.detail)
 
     def _log_faults(self) -> None:
@@ -162,6 +162,11 @@ class Emulator:
                 hinge = self.firmware.fault_hinge
                 self._log("fault", fault=flag.name, hinge=None if hinge == 0xFF else hinge,
                           state=P.State(self.firmware.state).name, last_rx_t=round(self._last_rx_tick * self.dt, 6))
+
+
+def _name(kind, value: int) -> str:
+    """The enum member's name, or the number in hex for one the table does not have (a host's unknown id)."""
+    return kind(value).name if value in kind._value2member_map_ else f"0x{value:02X}"
 
 
 def _fields(msg) -> dict:

@@ -285,6 +285,19 @@ class GainsReply:
     gains: Gains
 
 
+# what answers a request: these three their data, every other command an ACK (or a NACK) naming it
+REPLY_TO = {MsgId.HELLO: MsgId.HELLO_REPLY, MsgId.GET_STATE: MsgId.STATE, MsgId.GET_GAINS: MsgId.GAINS}
+
+
+def answers(request: "MsgId", reply) -> bool:
+    """Whether `reply` (a decoded message) answers a request of id `request`: its data, or an ACK or NACK
+    naming it. Anything else with the request's sequence number (an echo of the host's own frame on a
+    looped-back line, a reply to another command) is not its answer."""
+    if isinstance(reply, (Ack, NackMsg)):
+        return reply.acked == request and (isinstance(reply, NackMsg) or request not in REPLY_TO)
+    return reply.MSG == REPLY_TO.get(request)
+
+
 @dataclasses.dataclass(frozen=True)
 class Telemetry:
     """Device -> host, streamed: one firmware tick. seq (in the header) counts telemetry frames.

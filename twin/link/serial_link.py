@@ -24,6 +24,7 @@ import time
 
 import serial
 
+from controllers.core import MAX_HINGES
 from twin.formats.gains import check_gains
 from twin.link import protocol as P
 
@@ -55,12 +56,15 @@ class Link:
     timeout: s to wait for each reply; retries: resends (with the same sequence
     number; every command is idempotent) before LinkTimeout; heartbeat: s between
     heartbeats (None: none, e.g. to test the watchdog); telemetry_callback: called
-    from the reader thread with each (seq, Telemetry) instead of queueing it.
+    from the reader thread with each (seq, Telemetry) instead of queueing it; hinges: the hinge count of
+    the spec the host uses (a device whose HELLO says otherwise is refused).
     """
 
     def __init__(self, url: str, log_path=None, baudrate: int = 921600, timeout: float = 0.1, retries: int = 3,
-                 heartbeat: float | None = 0.05, telemetry_callback=None, log_telemetry: bool = True):
+                 heartbeat: float | None = 0.05, telemetry_callback=None, log_telemetry: bool = True,
+                 hinges: int | None = None):
         self.url = url
+        self.hinges = hinges  # the hinge count the host's spec has: a device that says otherwise is refused
         self.timeout = timeout
         self.retries = retries
         self.heartbeat_interval = heartbeat
@@ -85,6 +89,8 @@ class Link:
         self.telemetry_received = 0
         self.telemetry_lost = 0  # gaps in the device's telemetry sequence numbers
         self.info: P.HelloReply | None = None
+        self.moved = False  # whether this session sent targets
+        self.echoes = 0  # frames that came back as the host sent them (a looped-back line)
 
     # ---- session ----------------------------------------------------------------------
     def open(self, hello: bool = True) -> "Link":
@@ -134,7 +140,15 @@ class Link:
     def __enter__(self) -> "Link":
         return self.open()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, exc, tb) -> None:
+        """Close; an interrupt (Ctrl-C, or SIGTERM: the CLI raises KeyboardInterrupt for both) while this session
+        had sent targets e-stops the device first, so it never keeps driving toward them unwatched."""
+        if exc_type is not None and issubclass(exc_type, KeyboardInterrupt) and self.moved:
+            try:
+                self.estop()
+                self.log("estop_on_interrupt")
+            except Exception as failed:  # the interrupt is what the caller hears about; the log says this
+                self.log("estop_on_interrupt_failed", error=str(failed))
         self.close()
 
     def log(self, event: str, **fields) -> None:
@@ -198,7 +212,7 @@ class Link:
         timeout = self.timeout if timeout is None else timeout
         retries = self.retries if retries is None else retries
         seq = self._next_seq()
-        slot = [threading.Event(), None]
+        slot = [threading.Event(), None, msg.MSG]  # answered, the answer, what it answers
         with self._pending_lock:
             self._pending[seq] = slot
         frame = P.encode(msg, seq)
@@ -211,8 +225,10 @@ class Link:
                     break
             else:
                 self.log("timeout", msg=msg.MSG.name, seq=seq)
+                echo = (" (only the host's own frames came back: a looped-back line, not a device?)"
+                        if self.echoes else "")
                 raise LinkTimeout(f"{self.url}: no reply to {msg.MSG.name} after {retries + 1} tries "
-                                  f"of {timeout * 1000:.0f} ms")
+                                  f"of {timeout * 1000:.0f} ms{echo}")
         finally:
             with self._pending_lock:
                 self._pending.pop(seq, None)
@@ -227,6 +243,11 @@ class Link:
         reply = self.request(P.Hello())
         if reply.protocol != P.PROTOCOL_VERSION:
             raise LinkError(f"{self.url}: device speaks protocol {reply.protocol}, this host {P.PROTOCOL_VERSION}")
+        if not 1 <= reply.n_hinges <= MAX_HINGES:
+            raise LinkError(f"{self.url}: the device says it has {reply.n_hinges} hinges; a device has 1 to {MAX_HINGES}")
+        if self.hinges is not None and reply.n_hinges != self.hinges:
+            raise LinkError(f"{self.url}: the device has {reply.n_hinges} hinges, the spec this host uses "
+                            f"{self.hinges}: select the device's profile (--device) or calibrate one for it")
         self.info = reply
         return reply
 
@@ -244,6 +265,7 @@ class Link:
         return self.request(P.SetGains(hinge, wire))
 
     def set_targets(self, counts) -> P.Ack:
+        self.moved = True  # from now on an interrupt e-stops (see __exit__)
         return self.request(P.SetTargets(tuple(int(c) for c in counts)))
 
     def estop(self) -> P.Ack:
@@ -315,9 +337,14 @@ class Link:
         self.log("rx", msg=msg.MSG.name, seq=seq, **_fields(msg))
         with self._pending_lock:
             slot = self._pending.get(seq)
-        if slot is not None and not slot[0].is_set():
-            slot[1] = msg
-            slot[0].set()
+        if slot is None or slot[0].is_set():
+            return
+        if not P.answers(slot[2], msg):  # right number, wrong message: not taken as the answer
+            self.echoes += msg.MSG == slot[2]
+            self.log("rx_unmatched", msg=msg.MSG.name, seq=seq, awaiting=slot[2].name)
+            return
+        slot[1] = msg
+        slot[0].set()
 
     def _heartbeat(self) -> None:
         interval = self.heartbeat_interval

@@ -17,6 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from twin.device.kinematics import pose_matrix
+from twin.morphpatch.approximation import START_REACH
 
 PROTOCOL_VERSION = 1
 DEFAULT_LISTEN_PORT = 8765  # TCP for the control channel, UDP for the datagrams (same number)
@@ -26,6 +27,8 @@ MAX_DATAGRAM_BYTES = 1200  # fits one Ethernet frame with room to spare
 APPROXIMATION_RATE_HZ = 90.0  # VR frame rate: at most this many approximations per second
 PROGRESS_HZ = 30.0  # morph progress events per second
 ERROR_INTERVAL = 0.1  # s: the same datagram error is reported at most this often (with a count)
+POSITION_LIMIT_MM = START_REACH * 1e3  # a pose or pen farther from the target's origin is refused
+QUAT_LIMIT = 1e3  # a quaternion's components, before it is normalised (no overflow in its norm)
 ROLES = ("control", "observer")
 CLIENT_TYPES = ("hello", "target", "lock", "status")
 DATAGRAM_TYPES = ("pose", "pen")
@@ -120,16 +123,22 @@ class Sample:
         return pose_matrix(self.position, Rotation.from_quat(self.quat, scalar_first=True).as_matrix())
 
 
-def _vector(obj: dict, key: str, n: int) -> np.ndarray:
+def _vector(obj: dict, key: str, n: int, limit: float) -> np.ndarray:
+    """n finite numbers, each within +-limit; ProtocolError("malformed") naming the key otherwise."""
     v = obj.get(key)
     if not (isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                                      and math.isfinite(x) for x in v)):
-        raise ProtocolError("malformed", f"{obj.get('type')}: {key!r} must be {n} finite numbers")
+                                                      and math.isfinite(x) and abs(x) <= limit for x in v)):
+        raise ProtocolError("malformed", f"{obj.get('type')}: {key!r} must be {n} finite numbers within +-{limit:g}")
     return np.array(v, float)
 
 
+def _position(obj: dict, key: str) -> np.ndarray:
+    """A position in mm, within the approximation's reach of the target's origin; m."""
+    return _vector(obj, key, 3, POSITION_LIMIT_MM) / 1e3
+
+
 def _quat(obj: dict, key: str) -> np.ndarray:
-    q = _vector(obj, key, 4)
+    q = _vector(obj, key, 4, QUAT_LIMIT)
     norm = np.linalg.norm(q)
     if norm < 1e-6:
         raise ProtocolError("malformed", f"{obj.get('type')}: {key!r} is a zero quaternion")
@@ -148,12 +157,12 @@ def parse_datagram(data: bytes) -> Sample:
         raise ProtocolError("malformed", f"{kind}: 'seq' must be an integer in [0, 2^53)")
     if t_s is not None and not (isinstance(t_s, (int, float)) and math.isfinite(t_s)):
         raise ProtocolError("malformed", f"{kind}: 't_s' must be a finite number")
-    position = _vector(obj, "position_mm", 3) / 1e3
+    position = _position(obj, "position_mm")
     quat = _quat(obj, "quat_wxyz")
     device = None
     if kind == "pen" and ("device_position_mm" in obj or "device_quat_wxyz" in obj):
         rotation = Rotation.from_quat(_quat(obj, "device_quat_wxyz"), scalar_first=True).as_matrix()
-        device = pose_matrix(_vector(obj, "device_position_mm", 3) / 1e3, rotation)
+        device = pose_matrix(_position(obj, "device_position_mm"), rotation)
     return Sample(kind, session, seq, position, quat, device, t_s)
 
 

@@ -78,7 +78,7 @@ class DeviceMorpher:
     def __init__(self, spec: DeviceSpec, port: str, log_path=None, tolerance_deg: float = 5.0):
         self.spec = spec
         self.tolerance_deg = tolerance_deg
-        self.link = _ReportingLink(port, log_path=log_path, log_telemetry=False)
+        self.link = _ReportingLink(port, log_path=log_path, log_telemetry=False, hinges=spec.n_hinges)
         self.name = f"device on {port}"
 
     def open(self) -> None:

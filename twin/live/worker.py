@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import multiprocessing
+import sys
 import time
 
 import numpy as np
@@ -76,6 +77,9 @@ class Worker:
         self.variant = variant
         self._conn = self._proc = None
         self._waiting: collections.deque[asyncio.Future] = collections.deque()
+        self._target = None  # the last target request it took, sent again to a restarted worker
+        self.restarts = 0
+        self._exitcode = None
 
     def start(self) -> None:
         context = multiprocessing.get_context("spawn")  # no copy of the service's threads and sockets
@@ -92,16 +96,26 @@ class Worker:
         except (EOFError, OSError):
             asyncio.get_running_loop().remove_reader(self._conn.fileno())
             while self._waiting:
-                self._waiting.popleft().set_exception(WorkerError("the approximation worker has gone"))
+                self._waiting.popleft().set_exception(WorkerError("the approximation worker died on this request; "
+                                                                  "it is restarted for the next"))
             return
         future = self._waiting.popleft()
         if not future.cancelled():
             future.set_result((status, value))
 
     async def call(self, *request):
-        """Send one request and await its reply; WorkerError if refused."""
-        if self._proc is None or not self._proc.is_alive():
-            raise WorkerError("the approximation worker has gone")
+        """Send one request and await its reply; WorkerError if refused. A worker that died (a crash of
+        compiled code on some input) is started again first, with the last target it took."""
+        if self._proc is None:
+            raise WorkerError("the approximation worker is not running")
+        if not self._proc.is_alive():
+            await self._restart()
+        value = await self._send(request)
+        if request[0] == "target":
+            self._target = request
+        return value
+
+    async def _send(self, request):
         future = asyncio.get_running_loop().create_future()
         self._waiting.append(future)
         self._conn.send(request)
@@ -110,16 +124,26 @@ class Worker:
             raise WorkerError(value)
         return value
 
+    async def _restart(self) -> None:
+        self.stop()
+        self.restarts += 1
+        print(f"vrscroll serve: the approximation worker died (exit {self._exitcode}); restart {self.restarts}",
+              file=sys.stderr, flush=True)
+        self.start()
+        if self._target is not None:
+            await self._send(self._target)
+
     def stop(self) -> None:
         if self._proc is None:
             return
         try:
             asyncio.get_running_loop().remove_reader(self._conn.fileno())
-        except RuntimeError:  # no loop running any more
+        except (RuntimeError, ValueError, OSError):  # no loop running any more, or the pipe already closed
             pass
         self._conn.close()
         self._proc.join(timeout=5)
         if self._proc.is_alive():
             self._proc.terminate()
             self._proc.join(timeout=5)
+        self._exitcode = self._proc.exitcode
         self._proc = None

@@ -112,23 +112,38 @@ class Approximation:
         return cls(f["root_pose"], f["angles"], f["widths"], f["time"], f["variant"], f["msd"], f["hd"])
 
 
+# m: the farthest a start may be from the target frame's origin (beyond any tracked room; the fields' grids are
+# a few cm beyond the target, and a start far outside them is clamped to the grid's edge by the snap)
+START_REACH = 100.0
+
+
 def pose_from_mm_deg(values) -> np.ndarray:
     """4x4 pose from [x_mm, y_mm, z_mm, roll_deg, pitch_deg, yaw_deg] (R = Rz(yaw) Ry(pitch) Rx(roll))."""
     values = np.asarray(values, float)
     if values.shape != (6,) or not np.all(np.isfinite(values)):
         raise ValueError(f"a start is 6 finite numbers x,y,z (mm), roll,pitch,yaw (deg); got {values.tolist()}")
+    if np.any(np.abs(values[3:]) > 360.0):
+        raise ValueError(f"a start's roll, pitch and yaw are within +-360 deg; got {values[3:].tolist()}")
     rotation = Rotation.from_euler("xyz", values[3:], degrees=True).as_matrix()
-    return pose_matrix(values[:3] / 1e3, rotation)
+    return as_pose(pose_matrix(values[:3] / 1e3, rotation))
 
 
 def as_pose(start) -> np.ndarray:
-    """A 4x4 pose from a 4x4 matrix or a (position (3,) m, rotation (3, 3)) pair."""
-    if isinstance(start, tuple):
-        return pose_matrix(*start)
-    pose = np.asarray(start, float)
+    """A 4x4 pose from a 4x4 matrix or a (position (3,) m, rotation (3, 3)) pair, checked before any compiled
+    step sees it: finite, a rotation (orthonormal, det +1, to 1e-6), the anchor within START_REACH of the
+    target frame's origin. ValueError naming what is wrong."""
+    pose = pose_matrix(*start) if isinstance(start, tuple) else np.array(start, float)
     if pose.shape != (4, 4):
         raise ValueError(f"a start pose is a 4x4 matrix or (position, rotation); got shape {pose.shape}")
-    return pose.copy()
+    if not np.all(np.isfinite(pose)):
+        raise ValueError("a start pose must be finite numbers")
+    distance = float(np.linalg.norm(pose[:3, 3]))
+    if distance > START_REACH:
+        raise ValueError(f"the start is {distance:.3g} m from the target's origin; at most {START_REACH:g} m")
+    rotation = pose[:3, :3]
+    if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6) or np.linalg.det(rotation) < 0:
+        raise ValueError("a start pose's rotation must be orthonormal with determinant +1")
+    return pose
 
 
 @dataclasses.dataclass(frozen=True)

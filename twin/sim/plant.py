@@ -55,8 +55,16 @@ class PlantRanges:
     def __post_init__(self):
         for f in dataclasses.fields(self):
             lo, hi = getattr(self, f.name)
-            if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi or lo < 0:
-                raise ValueError(f"{f.name}: range {lo}..{hi} must be finite, low <= high, not negative")
+            low, high = RANGE_LIMITS[f.name]
+            if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi or lo < low or hi > high:
+                raise ValueError(f"{f.name}: range {lo:g}..{hi:g} must be finite, low <= high, within "
+                                 f"{low:g}..{high:g}")
+
+
+# what a drawn parameter may be at all: a plant the twin's model still simulates (a scale of 0 divides by
+# zero; a backlash of degrees is a broken gearbox, not a tolerance; latency beyond 100 ms is no USB link)
+RANGE_LIMITS = {"speed_scale": (0.1, 10.0), "friction_scale": (0.0, 10.0), "damping_scale": (0.0, 10.0),
+                "armature_scale": (0.1, 10.0), "backlash_deg": (0.0, 5.0), "latency_ms": (0.0, 100.0)}
 
 
 def draw_plant(ranges: PlantRanges, rng: random.Random, encoder_miss: float = 0.0,

@@ -1,0 +1,49 @@
+"""`vrscroll scenario FILE`: write the calibration scenario (TOML) for the gains the device has, to record
+with `vrscroll hil` and fit with `vrscroll calibrate` (docs/tuning-hil-calibration.md)."""
+
+from __future__ import annotations
+
+from twin.commands.options import add_device_option, add_serial, profile_line, profile_of
+from twin.errors import UserError
+from twin.formats.gains import read_gains
+from twin.formats.scenario import write_scenario
+from twin.hil.calibration_scenario import calibration_scenario
+from twin.hil.device_gains import device_gains
+from twin.link.serial_link import Link, LinkError
+
+
+def add_arguments(p) -> None:
+    p.add_argument("scenario", metavar="FILE", help="the scenario file to write (TOML)")
+    add_serial(p, required=False, what="read the gains from this device")
+    p.add_argument("--gains", metavar="FILE", help="a gains file instead of the device's (default: the profile's)")
+    p.add_argument("--seed", type=int, default=0, help="which angles (default %(default)s)")
+    p.add_argument("--cycles", type=int, default=2,
+                   help="cycles of a large move and a slow ramp out and back (default %(default)s)")
+    add_device_option(p)
+
+
+def run(args) -> int:
+    profile = profile_of(args)
+    print(profile_line(profile))
+    spec = profile.spec
+    if args.gains and args.serial:
+        raise UserError("give --gains FILE or --serial PORT, not both")
+    if args.gains:
+        gains = read_gains(args.gains, spec.n_hinges)
+    elif args.serial:
+        try:
+            with Link(args.serial, hinges=spec.n_hinges) as link:
+                gains = device_gains(link, spec.n_hinges)
+        except LinkError as exc:
+            raise UserError(f"link: {exc}") from None
+    else:
+        gains = profile.gains
+    if args.cycles < 1:
+        raise UserError("--cycles must be at least 1")
+    scenario = calibration_scenario(spec, gains, seed=args.seed, cycles=args.cycles,
+                                    name=f"calibration-{args.seed}")
+    write_scenario(args.scenario, scenario)
+    print(f"calibration scenario written to {args.scenario}: {len(scenario.times)} steps, {scenario.duration:.2f} s "
+          f"(timed for the gains of {args.gains or args.serial or profile.gains_from}); record it with "
+          f"`vrscroll hil {args.scenario} --serial PORT`")
+    return 0
