@@ -23,14 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from controllers.pid import PidGains
-from twin.device.spec import DeviceSpec
+from twin.device.spec import MAX_HINGES, DeviceSpec
 from twin.paths import cache_dir
 
 FIRMWARE_DIR = Path(__file__).resolve().parent / "firmware"
 FIRMWARE_VERSION = (0, 2, 0)  # major, minor, patch: reported in HELLO_REPLY and STATE
 WARNINGS = ("-std=c99", "-Wall", "-Wextra", "-Werror")
 LIBRARY_FLAGS = (*WARNINGS, "-O2", "-shared", "-fPIC")
-MAX_HINGES = 8  # VRS_MAX_HINGES in vrs_core.h
 TX_CHUNK = 4096  # VRS_TX_CAP: everything queued fits in one read
 
 

@@ -95,3 +95,22 @@ def test_a_start_beyond_reach_is_refused_before_any_compiled_code(start, words):
 def test_sizes_a_user_gives_are_bounded_before_any_work(argv, words, tmp_path):
     r = vrscroll(*argv, cwd=tmp_path)
     assert r.returncode == 2 and words in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def test_calibrate_and_serve_refuse_what_cannot_work(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    r = vrscroll("calibrate", str(run), "--generations", "-1", "--population", "0")
+    assert r.returncode == 2 and "--generations -1" in r.stderr
+    r = vrscroll("calibrate", str(run), "--holdout", str(run))
+    assert r.returncode == 2 and "one of the runs fitted to" in r.stderr
+    r = vrscroll("serve", "--listen", "70000")
+    assert r.returncode == 2 and "--listen 70000" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_picture_or_file_into_a_folder_is_refused(tmp_path):
+    """--png DIR once said it wrote a picture and wrote nothing."""
+    r = vrscroll("approximate", "--shape", "cube", "--png", str(tmp_path))
+    assert r.returncode == 2 and "is a folder" in r.stderr
+    r = vrscroll("simulate", "1", "0", "0", "0", "0", "0", "--trace", str(tmp_path / "nowhere" / "t.csv"))
+    assert r.returncode == 2 and "does not exist" in r.stderr

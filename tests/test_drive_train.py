@@ -177,7 +177,7 @@ def test_the_gate_refuses_a_reversal_30_ms_after_a_step_naming_the_current_and_t
 
 
 @pytest.mark.parametrize("option, value, message", [
-    ("--speed-scale", "1.3,0.7", "--speed-scale: range 1.3..0.7 must be finite, low <= high, not negative"),
+    ("--speed-scale", "1.3,0.7", "--speed-scale: range 1.3..0.7 must be finite, low <= high, within 0.1..10"),
     ("--backlash-deg", "abc", "--backlash-deg abc: expected a number or LOW,HIGH"),
     ("--latency-ms", "1,2,3", "--latency-ms 1,2,3: expected a number or LOW,HIGH"),
     ("--encoder-miss", "2", "--encoder-miss 2.0: a probability, 0 to 1"),

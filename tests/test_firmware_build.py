@@ -7,6 +7,7 @@ import subprocess
 import pytest
 
 from controllers import core
+from twin.device.spec import MAX_HINGES
 from twin.link.firmware_header import HEADER_PATH, header
 
 # what the ESP32-S3 build would complain about: any double, any float narrowed without a cast
@@ -62,3 +63,9 @@ def test_compiler_errors_are_reported(tmp_path, monkeypatch):
     bad.write_text("int f(void) { return; }\n")
     with pytest.raises(core.FirmwareBuildError, match="could not build the firmware core"):
         core.build(extra_sources=[bad])
+
+
+def test_the_hinge_limit_is_the_cores():
+    """The host's MAX_HINGES (twin.device.spec) is the C core's VRS_MAX_HINGES."""
+    header = (core.FIRMWARE_DIR / "vrs_core.h").read_text()
+    assert int(re.search(r"#define VRS_MAX_HINGES (\d+)", header).group(1)) == MAX_HINGES

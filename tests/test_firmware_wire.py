@@ -174,3 +174,22 @@ def test_the_corpus_under_address_and_undefined_behaviour_sanitizers(tmp_path):
         files[-1].write_bytes(bytes(rng.randrange(256) for _ in range(rng.randrange(1, 5000))))
     r = subprocess.run([str(driver), *map(str, files)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-4000:]
+
+
+@pytest.mark.parametrize("size", [512, 513])
+def test_a_payload_over_512_bytes_is_garbage_on_both_ends(spec, size):
+    """docs/protocol.md: at most 512 bytes of payload (513 were once taken); one over is a bad frame, counted,
+    not a message answered."""
+    import struct
+
+    body = bytes(size - 6)
+    payload = struct.pack("<BBH", P.PROTOCOL_VERSION, int(P.MsgId.GET_STATE), 9) + body
+    frame = P.cobs_encode(payload + struct.pack("<H", P.crc16(payload)))
+    c = _core(spec)
+    c.rx(b"\x00" + frame + b"\x00", 0)
+    if size > P.MAX_FRAME:
+        assert c.rx_bad_frames == 1 and c.tx() == b""
+        with pytest.raises(P.ProtocolError, match="over the 512-byte maximum"):
+            P.decode_frame(frame)
+    else:  # the right size for a frame: understood as one, refused for its length
+        assert c.rx_bad_frames == 0 and any(isinstance(m, P.NackMsg) for _, m in P.Decoder().feed(c.tx()))

@@ -276,3 +276,46 @@ def test_a_reply_for_another_command_is_not_taken():
     assert P.answers(P.MsgId.ESTOP, ack_for_hello)
     assert P.answers(P.MsgId.HELLO, P.NackMsg(acked=int(P.MsgId.HELLO), reason=1, detail=0))
     assert not P.answers(P.MsgId.HELLO, P.Ack(acked=int(P.MsgId.HELLO), time_us=0))  # HELLO wants its data
+
+
+def test_a_gains_push_interrupted_half_way_leaves_the_device_as_it_was(emulator, spec):
+    """Ctrl-C during a push once left hinge 0 with the new gains and the others with the old."""
+    from twin.hil.device_gains import device_gains, push_gains
+
+    emu = emulator()
+    with Link(emu.port) as link:
+        before = device_gains(link, spec.n_hinges)
+        new = [g.replace(kp=g.kp * 0.8) for g in before]
+        send = link.set_gains
+        calls = []
+
+        def interrupted_at_hinge_2(gains, hinge):
+            calls.append(hinge)
+            if len(calls) == 3:  # the third hinge of the push: the user presses Ctrl-C
+                raise KeyboardInterrupt
+            return send(gains, hinge=hinge)
+
+        link.set_gains = interrupted_at_hinge_2
+        with pytest.raises(KeyboardInterrupt):
+            push_gains(link, new, spec.n_hinges)
+        link.set_gains = send
+        after = device_gains(link, spec.n_hinges)
+    assert [a.kp for a in after] == pytest.approx([b.kp for b in before], rel=1e-3)
+
+
+def test_the_devices_own_configuration_wins_and_is_said(emulator, capsys, spec):
+    emu = emulator("--watchdog-ms", "400")
+    assert vrscroll(["status", "--serial", emu.port]) == 0
+    out = capsys.readouterr().out
+    assert f"the device's watchdog is 400 ms, the profile's spec says {spec.watchdog * 1e3:g} ms" in out
+    with pytest.raises(LinkError, match="the device has 6 hinges, the spec this host uses 5"):
+        Link(emu.port, hinges=5).open()
+
+
+def test_a_fifo_as_the_target_is_refused_not_waited_on(tmp_path, capsys):
+    import os
+
+    fifo = tmp_path / "target.json"
+    os.mkfifo(fifo)
+    assert vrscroll(["mirror", str(fifo), "--serial", "/dev/null"]) == 2
+    assert "not a regular file" in capsys.readouterr().err

@@ -437,3 +437,28 @@ def test_a_worker_that_dies_is_restarted_and_the_client_served(tmp_path):
 
         run(session())
         assert "approximation worker died" in (tmp_path / "serve.err").read_text()
+
+
+def test_connections_are_bounded_and_a_silent_one_is_closed(twin_service):
+    """Idle connections without hello (1,100 once exhausted the file descriptors): beyond the limit they are
+    closed at once, a silent one within the hello timeout, and a well-behaved client is still served."""
+    import websockets
+
+    from twin.live.service import HELLO_TIMEOUT, MAX_UNGREETED
+
+    async def session():
+        idle = [await websockets.connect(twin_service.url) for _ in range(MAX_UNGREETED)]
+        extra = await websockets.connect(twin_service.url)
+        with pytest.raises(websockets.ConnectionClosed) as closed:
+            await asyncio.wait_for(extra.recv(), 5)
+        assert closed.value.rcvd.code == 1013
+        for ws in idle:  # the silent ones go after HELLO_TIMEOUT
+            with pytest.raises(websockets.ConnectionClosed):
+                await asyncio.wait_for(ws.recv(), HELLO_TIMEOUT + 5)
+        async with LiveClient(twin_service.url) as client:  # the slots are free again
+            await first_approximation(client)
+            client.send_raw_datagram(b"[" * (MAX_DATAGRAM_BYTES - 1))  # nested too deeply: an error, no traceback
+            await expect_error(client, "malformed", "datagram")
+
+    run(session())
+    assert "Traceback" not in twin_service.stderr_path.read_text()

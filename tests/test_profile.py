@@ -162,3 +162,22 @@ def test_view_without_a_display_is_one_line_and_the_replay_is_built(capsys, emul
     # at the end, device and twin have both reached the step's targets (within a degree)
     assert np.all(np.abs(np.degrees(rows[-1]) - np.tile([20, 10, 5, 5, 10, 20], 2)) < 1.0)
     assert math.isclose(t[0], recorded["device"]["time_s"][0])
+
+
+@pytest.mark.parametrize("key, value", [("hinge_limit", "170"), ("settle_band", "400"), ("n_flaps", "3")])
+def test_a_profile_cannot_change_the_design_the_host_checks_against(capsys, key, value):
+    """hinge_limit = 170 once let the gate pass a 150 deg target; settle_band = 400 reported "settled" 25 deg
+    short; n_flaps = 3 crashed simulate and mirror. A profile holds plant parameters only."""
+    _run(capsys, "device", "create", "edited")
+    spec_file = profiles_dir() / "edited" / "spec.toml"
+    text = spec_file.read_text()
+    pattern = re.compile(rf"^({key}\s*=\s*\{{\s*value\s*=\s*)[^,]+", re.M)
+    assert pattern.search(text), key
+    spec_file.write_text(pattern.sub(rf"\g<1>{value}", text))
+    rc, out, err = _run(capsys, "simulate", "10", "0", "0", "0", "0", "0", "--device", "edited")
+    assert rc == 2 and key in err and "plant parameters" in err, err
+
+
+def test_none_cannot_name_a_profile(capsys):
+    rc, _, err = _run(capsys, "device", "create", "none")
+    assert rc == 2 and "reserved" in err

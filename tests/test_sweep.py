@@ -130,7 +130,7 @@ tolerance_pct = { gear_friction = 30 }
     ('shape = ["cube"]', "unknown key 'shape'"),
     ('shapes = ["cube", "pyramid"]', "shapes: unknown 'pyramid'"),
     ('methods = ["best"]', "methods: unknown 'best'"),
-    ("starts = 0", "starts: expected a whole number of at least 1, got 0"),
+    ("starts = 0", "starts: expected a whole number from 1 to 1,000, got 0"),
     ("[design]\nflaps = [5, 7]", "[design] flaps: not a spec key"),
     ("[design]\nn_flaps = [5, \"seven\"]", "[design] n_flaps[1]: expected a number, got 'seven'"),
     ("[design]\nhinge_limit = { from = 90, to = 100 }", "[design] hinge_limit: a range needs from, to and count; missing 'count'"),
@@ -250,10 +250,17 @@ def test_an_unknown_backend_is_refused():
     ("starts = 1000000000", "starts: expected a whole number from 1 to 1,000"),
     ("[design]\nhinge_limit = { from = 90, to = 110, count = 1000000000 }", "count: expected a whole number"),
     ("[plants]\ndraws = 1000000000000\ntolerance_pct = { gear_friction = 10 }", "draws: expected a whole number"),
-    ("starts = 1000\n[design]\nhinge_limit = { from = 90, to = 110, count = 1000 }", "at most 1,000,000 runs"),
+    ("starts = 1000\n[design]\nhinge_limit = { from = 90, to = 110, count = 1000 }", r"runs \(designs x shapes"),
 ])
 def test_a_sweep_that_asks_for_too_much_is_refused_before_anything_is_built(tmp_path, text, words):
     path = tmp_path / "big.toml"
     path.write_text(text + "\n")
     with pytest.raises(ValueError, match=words):
+        _read(path)
+
+
+def test_a_flap_count_the_spec_cannot_divide_by_is_refused(tmp_path):
+    path = tmp_path / "zero.toml"
+    path.write_text("[design]\nn_flaps = [0]\n")  # a ZeroDivisionError traceback once
+    with pytest.raises(ValueError, match="n_flaps = 0: a device needs at least 2 flaps"):
         _read(path)

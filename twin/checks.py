@@ -4,21 +4,33 @@ from __future__ import annotations
 
 import json
 import math
+import tomllib
 from pathlib import Path
 
 import numpy as np
 
 
 def number(value, where: str) -> float:
-    """value as a finite float; ValueError naming `where` for a word, a bool, NaN or inf."""
-    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+    """A JSON or TOML number as a finite float; ValueError naming `where` for a string (even "12": a number in
+    quotes is a mistake the file's author should see), a bool, NaN or inf."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"{where}: expected a number, got {value!r}")
+    return finite(float(value), value, where)
+
+
+def cell(text: str, where: str) -> float:
+    """A CSV cell as a finite float; ValueError naming `where` for a word, NaN or inf."""
     try:
-        x = float(value)
-    except ValueError:
-        raise ValueError(f"{where}: expected a number, got {value!r}") from None
+        x = float(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: expected a number, got {text!r}") from None
+    return finite(x, text, where)
+
+
+def finite(x: float, given, where: str) -> float:
+    """x, or ValueError naming `where` and what was given when x is NaN or infinite."""
     if not math.isfinite(x):
-        raise ValueError(f"{where}: {value!r} is not a finite number")
+        raise ValueError(f"{where}: {given!r} is not a finite number")
     return x
 
 
@@ -59,12 +71,50 @@ def required_keys(doc: dict, needed, where: str) -> None:
         raise ValueError(f"{where}: missing key {missing[0]!r}")
 
 
+# m: the farthest any position the program takes (a start, a tracked pose or pen) may be from the target's
+# origin: beyond any tracked room; farther ones are refused before compiled code sees them
+REACH_M = 100.0
+MAX_FILE_BYTES = 64 << 20  # a JSON or TOML file a reader takes (the largest the project writes is a few MB)
+
+
+def read_text(path, limit: int = MAX_FILE_BYTES) -> str:
+    """A text file's content; ValueError naming the file for one over `limit` bytes, not a regular file (a
+    folder, a FIFO: never waited on), or not UTF-8."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: not a regular file" if path.exists() else f"{path}: no such file")
+    size = path.stat().st_size
+    if size > limit:
+        raise ValueError(f"{path}: {size:,} bytes; at most {limit:,}")
+    try:
+        return path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start}); save it as UTF-8") from None
+
+
+def parse_json(text, where: str):
+    """JSON text (str or bytes) as Python values; ValueError naming `where` for bad JSON or nesting too deep."""
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{where}: not JSON ({exc})") from None
+    except RecursionError:
+        raise ValueError(f"{where}: nested too deeply to be one of this project's files") from None
+
+
+def parse_toml(text: str, where: str) -> dict:
+    """TOML text as a dict; ValueError naming `where` for bad TOML or nesting too deep."""
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ValueError(f"{where}: not TOML ({exc})") from None
+    except RecursionError:
+        raise ValueError(f"{where}: nested too deeply to be one of this project's files") from None
+
+
 def json_object(path: Path) -> dict:
     """A JSON file holding one object; ValueError naming the file if it is not JSON or not an object."""
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not JSON ({exc})") from None
+    doc = parse_json(read_text(path), str(path))
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: expected a JSON object {{...}}, got {type(doc).__name__}")
     return doc

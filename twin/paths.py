@@ -4,6 +4,7 @@ line in a subprocess. The one home of each; imports nothing from the project."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 from importlib import resources
@@ -20,6 +21,20 @@ def cache_dir(kind: str) -> Path:
     """Where cached files of one kind live: $VRSCROLL_CACHE/<kind>, default ~/.cache/vrscroll/<kind>
     (`~` expanded in both)."""
     return Path(os.environ.get("VRSCROLL_CACHE", "~/.cache/vrscroll")).expanduser() / kind
+
+
+@contextlib.contextmanager
+def replacing(path):
+    """`with replacing(path) as tmp:` write tmp (beside path, path + ".part"); it replaces path when the block
+    ends, and is removed if the block fails (a full disk, a check of what was written): path is then as it was,
+    and no .part is left behind."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def cli_command(*args: str) -> list[str]:

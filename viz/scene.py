@@ -13,9 +13,9 @@ import numpy as np
 import pyvista as pv
 import trimesh
 
-from twin.morphpatch.sampling import METRIC_SPACING, grid_layout, world_points
 from twin.device.spec import DeviceSpec
 from twin.morphpatch.redirection import within_flags
+from twin.morphpatch.sampling import METRIC_SPACING, grid_layout, world_points
 from twin.morphpatch.surface_metrics import point_distances
 from twin.perception.thresholds import load_thresholds
 

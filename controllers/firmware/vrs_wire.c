@@ -159,7 +159,7 @@ int vrs_decode(const uint8_t *frame, uint32_t len, uint8_t *msg_id, uint16_t *se
     if (len > VRS_RX_CAP)
         return VRS_DROP_COBS;
     plen = vrs_cobs_decode(frame, len, payload);
-    if (plen < 0)
+    if (plen < 0 || plen > VRS_MAX_PAYLOAD) /* over the maximum payload: garbage, as the docs say */
         return VRS_DROP_COBS;
     if (plen < 6)
         return VRS_DROP_SHORT;

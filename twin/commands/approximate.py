@@ -15,7 +15,7 @@ import json
 
 import numpy as np
 
-from twin.commands.options import add_json, add_target
+from twin.commands.options import add_json, add_target, output_file
 from twin.device.spec import load_spec
 from twin.errors import UserError
 from twin.formats.target import write_approximation
@@ -35,7 +35,8 @@ def add_arguments(p) -> None:
 def add_target_arguments(p) -> None:
     """--shape/--mesh, --start, --png, --json: shared with `vrscroll cbs`. The result's JSON is always printed."""
     add_target(p, shape_names(), required=True)
-    p.add_argument("--png", metavar="FILE", help="also write an off-screen picture of the device on the target")
+    p.add_argument("--png", metavar="FILE", type=output_file,
+                   help="also write an off-screen picture of the device on the target")
     add_json(p, "the result (it is printed on standard output in any case)")
 
 

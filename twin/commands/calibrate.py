@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.commands.options import add_device_option, add_json, add_refused, json_to_stdout, write_json
+from twin.commands.options import add_device_option, add_json, add_refused, json_to_stdout, output_file, write_json
 from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
 from twin.device.spec_toml import write_spec_toml
@@ -21,8 +21,9 @@ from twin.hil.calibration import calibrate, trace_rmse
 def add_arguments(p) -> None:
     p.add_argument("runs", nargs="*", metavar="RUN", help="HIL run folders (vrscroll hil --out) to fit to")
     p.add_argument("--holdout", metavar="RUN", help="a HIL run folder not fitted to: fit error before/after")
-    p.add_argument("--out", help="also write the calibrated spec to this TOML (without a device profile: default "
-                                 "spec.calibrated.toml)")
+    p.add_argument("--out", type=output_file,
+                   help="also write the calibrated spec to this TOML (without a device profile: default "
+                        "spec.calibrated.toml)")
     p.add_argument("--generations", type=int, default=8,
                    help="cross-entropy generations of the search (default %(default)s)")
     p.add_argument("--population", type=int, default=24, help="twin replays per generation (default %(default)s)")
@@ -32,6 +33,10 @@ def add_arguments(p) -> None:
                         "recorded is used, and each is named (default: such a run is refused)")
     add_refused(p, "--scenario", "`vrscroll scenario FILE`")
     add_device_option(p)
+
+
+MAX_GENERATIONS = 100  # cross-entropy generations: the search settles in under ten
+MAX_POPULATION = 1000  # twin replays per generation
 
 
 def _profile(args):
@@ -46,6 +51,11 @@ def run(args) -> int:
     name = args.device or profile.name
     if not args.runs:
         raise UserError("give the HIL run folders to fit to (`vrscroll scenario FILE` writes the scenario to record)")
+    if not 1 <= args.generations <= MAX_GENERATIONS or not 4 <= args.population <= MAX_POPULATION:
+        raise UserError(f"--generations {args.generations} --population {args.population}: from 1 to "
+                        f"{MAX_GENERATIONS} generations of 4 to {MAX_POPULATION} replays")
+    if args.holdout and any(Path(args.holdout).resolve() == Path(r).resolve() for r in args.runs):
+        raise UserError(f"--holdout {args.holdout} is one of the runs fitted to: hold out a run recorded apart")
     spec = profile.spec
     try:
         runs = [read_run(r, spec, incomplete=args.incomplete) for r in args.runs]

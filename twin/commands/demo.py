@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from twin.commands.options import add_device_option, add_json, profile_line, profile_of, write_json
+from twin.commands.options import add_device_option, add_json, output_file, profile_line, profile_of, write_json
 from twin.device.kinematics import flap_frames
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
@@ -26,7 +26,7 @@ def add_arguments(p) -> None:
     p.add_argument("--shape", choices=shape_names(), default="cylinder", help="target shape (default cylinder)")
     p.add_argument("--variant", choices=VARIANTS, default="full",
                    help="approximation: the paper's full, no_hcevf, or ours, refined (default full)")
-    p.add_argument("--png", default="demo.png", help="picture to write (default demo.png)")
+    p.add_argument("--png", default="demo.png", type=output_file, help="picture to write (default demo.png)")
     add_json(p, "the report")
     p.add_argument("--strict", action="store_true",
                    help="refuse (exit 1) when the pen redirection goes beyond the perception thresholds")

@@ -12,6 +12,7 @@ from twin.device.spec import DeviceSpec, load_spec
 from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
 from twin.link.faults import FaultOptions
 from twin.link.pty_device import open_pty, serve
+from twin.paths import replacing
 from twin.sim.plant import PlantRanges, as_twin
 
 RANGED = {  # PlantRanges field (its option is --field-name) -> what it is
@@ -110,9 +111,8 @@ def run(args) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(True))
     if args.serial_file:
-        with open(args.serial_file + ".part", "w") as f:
+        with replacing(args.serial_file) as tmp, open(tmp, "w") as f:
             f.write(path + "\n")
-        os.replace(args.serial_file + ".part", args.serial_file)
     print(path, flush=True)
     try:
         overruns = serve(emu, master, lambda: bool(stop))

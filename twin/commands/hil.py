@@ -5,7 +5,14 @@ from __future__ import annotations
 import datetime
 from pathlib import Path
 
-from twin.commands.options import add_device_option, add_serial, add_tolerance_deg, profile_line, profile_of
+from twin.commands.options import (
+    add_device_option,
+    add_serial,
+    add_tolerance_deg,
+    profile_line,
+    profile_of,
+    said_by_device,
+)
 from twin.errors import UserError
 from twin.formats.gains import read_gains
 from twin.formats.run import read_run
@@ -38,7 +45,16 @@ def run(args) -> int:
     gains = read_gains(args.gains, spec.n_hinges) if args.gains else \
         profile.gains if profile.gains_from != "spec" else None
     out = Path(args.out or f"hil-{scenario.name}-{datetime.datetime.now():%Y%m%d-%H%M%S}")
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _record(args, profile, spec, scenario, gains, out)
+    finally:
+        if created and not any(out.iterdir()):  # nothing recorded (a port that would not open): no empty folder
+            out.rmdir()
+
+
+def _record(args, profile, spec, scenario, gains, out: Path) -> int:
     log = args.log or str(out / "session.jsonl")
     last = [0.0]
 
@@ -49,6 +65,7 @@ def run(args) -> int:
 
     try:
         with Link(args.serial, log_path=log, hinges=spec.n_hinges) as link:
+            spec = said_by_device(spec, link)
             meta = run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz,
                            scenario_path=args.scenario, on_progress=progress, gains=gains,
                            tolerance_deg=args.tolerance_deg, profile=profile.label)

@@ -6,8 +6,15 @@ import math
 
 import numpy as np
 
-from twin.checks import hinge_angles
-from twin.commands.options import add_device_option, add_serial, add_tolerance_deg, profile_line, profile_of
+from twin.checks import cell, hinge_angles
+from twin.commands.options import (
+    add_device_option,
+    add_serial,
+    add_tolerance_deg,
+    profile_line,
+    profile_of,
+    said_by_device,
+)
 from twin.errors import UserError
 from twin.formats.target import read_target
 from twin.hil.mirror import DeviceNotReady, mirror
@@ -44,7 +51,8 @@ def read_targets(args, spec) -> np.ndarray:
     if args.angles is None:
         return read_target(args.target, spec)
     try:
-        return hinge_angles(args.angles.split(","), n, HALF_TURN, "--angles", "half a turn")
+        given = [cell(v, f"--angles[{i}]") for i, v in enumerate(args.angles.split(","))]
+        return hinge_angles(given, n, HALF_TURN, "--angles", "half a turn")
     except ValueError as exc:
         raise UserError(f"{exc} (expected {n} numbers in degrees, comma-separated)") from None
 
@@ -65,6 +73,7 @@ def run(args) -> int:
 
     try:
         with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
+            spec = said_by_device(spec, link)
             if args.override:
                 print("gate override requested: a failed check will be logged and the move sent anyway")
             result = mirror(link, spec, targets, tolerance_deg=args.tolerance_deg, settle_limit=args.settle_limit,

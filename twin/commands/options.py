@@ -20,6 +20,7 @@ from pathlib import Path
 
 from twin.device.profile import set_default
 from twin.formats.profile import Profile, select_profile
+from twin.hil.device_gains import device_spec
 
 # old spelling -> new, refused wherever the new one is an option of the command
 RENAMED = {"--port": "--serial", "--tolerance": "--tolerance-pct"}
@@ -49,6 +50,17 @@ def add_refused(p, old: str, new: str) -> None:
     p.add_argument(old, action=_Renamed, new=new, dest=f"_refused{old}")
 
 
+def output_file(text: str) -> str:
+    """An argparse type for a file the command writes: not a folder (a picture "written" into a folder once
+    wrote nothing), in a folder that exists; `-` passes (standard output, where an option takes it)."""
+    path = Path(text)
+    if text != "-" and path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a folder: give a file name in it")
+    if text != "-" and not path.resolve().parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{text}: the folder {path.parent} does not exist")
+    return text
+
+
 class _JsonFile(argparse.Action):
     """--json FILE; a bare --json (the old flag) is refused naming `--json -`."""
 
@@ -60,7 +72,7 @@ class _JsonFile(argparse.Action):
 
 def add_json(p, what: str) -> None:
     """--json FILE|-: `what` (e.g. "the report") as JSON."""
-    p.add_argument("--json", metavar="FILE", nargs="?", action=_JsonFile,
+    p.add_argument("--json", metavar="FILE", nargs="?", action=_JsonFile, type=output_file,
                    help=f"write {what} as JSON to FILE; - prints it on standard output instead of the report")
 
 
@@ -129,6 +141,15 @@ def profile_of(args) -> Profile:
     if args.device:
         set_default(args.device)
     return profile
+
+
+def said_by_device(spec, link):
+    """The spec with the device's own configuration from its HELLO (twin.hil.device_gains.device_spec), each
+    difference said on a line of its own."""
+    spec, notes = device_spec(spec, link.info)
+    for note in notes:
+        print(f"note: {note}")
+    return spec
 
 
 def profile_line(profile: Profile) -> str:

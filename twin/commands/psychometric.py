@@ -22,7 +22,6 @@ from twin.perception.psychometric import FIT_METHOD, analyse, simulate_trials, t
 from twin.perception.thresholds import detection_rule, paper_fits
 from viz.charts import psychometric_curves
 
-
 MAX_BOOTSTRAP = 100_000  # resamples: CIs stable to well below a percent; each holds the trials in memory
 
 

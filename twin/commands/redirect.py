@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.commands.options import add_json, add_target, write_json
+from twin.commands.options import add_json, add_target, output_file, write_json
 from twin.device.spec import load_spec
 from twin.errors import UserError
 from twin.formats.pen import read_pen_samples, write_redirected
@@ -31,11 +31,11 @@ def add_arguments(p) -> None:
     p.add_argument("approximation", metavar="APPROX.json", help="an approximation result (vrscroll approximate --json)")
     p.add_argument("pens", metavar="PENS.csv", nargs="?", help="pen samples to redirect (see docs/redirection-perception.md)")
     add_target(p, shape_names(), required=False, role="the target (default: the one APPROX.json names)", start=False)
-    p.add_argument("--out", metavar="FILE", help="redirected samples (default PENS_redirected.csv)")
+    p.add_argument("--out", metavar="FILE", type=output_file, help="redirected samples (default PENS_redirected.csv)")
     p.add_argument("--sigma-mm", type=float, default=SIGMA * 1e3, help=f"Gaussian blur, mm (default {SIGMA * 1e3:g})")
     p.add_argument("--padding-mm", type=float, default=PADDING * 1e3,
                    help=f"field beyond the device's edges, mm (default {PADDING * 1e3:g})")
-    p.add_argument("--png", metavar="FILE", help="picture of the offsets over the device")
+    p.add_argument("--png", metavar="FILE", type=output_file, help="picture of the offsets over the device")
     add_json(p, "the summary")
     p.add_argument("--strict", action="store_true", help="exit 1 if any of the surface is over a threshold")
 

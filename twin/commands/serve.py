@@ -41,6 +41,8 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
+    if not 0 <= args.listen <= 65535:
+        raise UserError(f"--listen {args.listen}: a port number, 0 (any free one) to 65535")
     profile = profile_of(args)
     spec = profile.spec
     print(profile_line(profile), flush=True)

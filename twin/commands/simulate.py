@@ -5,7 +5,15 @@ from __future__ import annotations
 import math
 import sys
 
-from twin.commands.options import add_device_option, add_json, json_to_stdout, profile_line, profile_of, write_json
+from twin.commands.options import (
+    add_device_option,
+    add_json,
+    json_to_stdout,
+    output_file,
+    profile_line,
+    profile_of,
+    write_json,
+)
 from twin.sim.response import move_report
 from twin.sim.twin import Twin
 from viz.viewer import play_trace
@@ -16,7 +24,7 @@ def add_arguments(p) -> None:
                    help="hinge targets in degrees, one per hinge (hinge 0 first); positive bends concave")
     p.add_argument("--max-time", type=float, default=3.0, help="longest the move may take, s (default 3)")
     p.add_argument("--hold", action="store_true", help="run the full --max-time instead of stopping once settled")
-    p.add_argument("--trace", metavar="CSV", help="write the firmware-rate trace to this CSV file")
+    p.add_argument("--trace", metavar="CSV", type=output_file, help="write the firmware-rate trace to this CSV file")
     add_json(p, "the report")
     p.add_argument("--view", action="store_true", help="then play the move in MuJoCo's viewer, in real time")
     add_device_option(p)

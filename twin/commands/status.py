@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.encoder import angle_from_counts
-from twin.commands.options import add_device_option, add_serial, profile_line, profile_of
+from twin.commands.options import add_device_option, add_serial, profile_line, profile_of, said_by_device
 from twin.errors import UserError
 from twin.hil.mirror import faults_text
 from twin.link import protocol as P
@@ -25,6 +25,7 @@ def run(args) -> int:
     spec = profile.spec
     try:
         with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
+            spec = said_by_device(spec, link)
             if args.estop:
                 link.estop()
             if args.clear_fault:

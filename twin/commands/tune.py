@@ -14,8 +14,10 @@ from twin.commands.options import (
     add_json,
     add_serial,
     json_to_stdout,
+    output_file,
     profile_line,
     profile_of,
+    said_by_device,
     write_json,
 )
 from twin.errors import UserError
@@ -51,8 +53,9 @@ def add_arguments(p) -> None:
                         "local Ray; the ray extra) (default: every plant in one batch here, on --threads)")
     p.add_argument("--workers", type=int, help="with --backend: worker processes, or a local Ray's CPUs "
                                                "(default all cores)")
-    p.add_argument("--out", help="also write the gains to this file, JSON (default: into the device profile; "
-                                 "gains.json without one)")
+    p.add_argument("--out", type=output_file,
+                   help="also write the gains to this file, JSON (default: into the device profile; gains.json "
+                        "without one)")
     add_serial(p, required=False, what="also push the gains to this device and run the same step on it")
     p.add_argument("--log", default="vrscroll-tune.jsonl", help="session log with --serial (default %(default)s)")
     add_json(p, "the summary")
@@ -101,10 +104,17 @@ def run(args) -> int:
             "worst_plant_overshoot_deg": [round(math.degrees(x), 4) for x in result.overshoot],
             "worst_plant_peak_current_A": [round(float(x), 3) for x in result.peak_current],
             "simulations": result.simulations, "wall_time_s": round(result.wall_time, 2)}
-    written = [str(write_profile_gains(profile.name, result.gains, meta))] if profile.name else []
+    written = []
     if args.out or not profile.name:
         written.append(args.out or "gains.json")
         write_gains(written[-1], result.gains, meta)
+
+    def into_profile() -> None:  # with --serial, only once the device holds them: the profile says what it has
+        if profile.name:
+            written.insert(0, str(write_profile_gains(profile.name, result.gains, meta)))
+
+    if not args.serial:
+        into_profile()
     summary = {"gains_files": written, "before": rows_before, "after": rows_after, **meta}
     if not quiet:
         print(f"tuned in {result.wall_time:.1f} s ({result.simulations} simulations of {args.duration} s); "
@@ -113,23 +123,28 @@ def run(args) -> int:
         print(_line("tuned", rows_after))
         print("worst plant     " + "  ".join(f"{s * 1000:6.0f} ms {math.degrees(o):5.2f} deg"
                                           for s, o in zip(result.settle, result.overshoot)))
-        print("gains written to " + ", ".join(written))
+        print("gains written to " + (", ".join(written) if written else
+                                     f"device profile {profile.name} once the device holds them"))
     if args.serial:
-        summary["device"] = confirm_on_device(args, spec, result.gains, step, written, quiet=quiet)
+        summary["device"] = confirm_on_device(args, spec, result.gains, step, into_profile, quiet=quiet)
+        summary["gains_files"] = written
     write_json(args.json, summary)
     return 0
 
 
-def confirm_on_device(args, spec, gains, step, written, quiet=False) -> list[dict]:
-    """Push the gains, run the step on the device, print its metrics next to the twin's prediction."""
+def confirm_on_device(args, spec, gains, step, pushed, quiet=False) -> list[dict]:
+    """Push the gains (all or nothing: twin.hil.device_gains), call pushed() once the device holds them, run the
+    step on the device, print its metrics next to the twin's prediction."""
     n = spec.n_hinges
     targets = np.full(n, step)
     try:
         with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
+            spec = said_by_device(spec, link)
             push_gains(link, gains, n)
+            pushed()
             t, deg, start, res = device_step(link, spec, targets)
     except (GateRefused, DeviceNotReady) as exc:
-        raise UserError(f"{exc} (the tuned gains are on the device; {', '.join(written)} holds them)") from None
+        raise UserError(f"{exc} (the tuned gains are on the device and in its profile)") from None
     except LinkError as exc:
         raise UserError(f"link: {exc} (session log: {args.log})") from None
     twin = Twin(spec, gains)

@@ -40,6 +40,9 @@ def design_spec(base: DeviceSpec, overrides: dict) -> DeviceSpec:
         if isinstance(value, bool) or float(value) != int(value):
             raise ValueError(f"{key} = {value!r}: expected a whole number")
         changes[key] = int(value)
+    if "n_flaps" in changes and changes["n_flaps"] < 2:  # before the spec divides by it
+        raise ValueError(f"the device cannot be built: n_flaps = {changes['n_flaps']}: a device needs at least "
+                         "2 flaps (one hinge)")
     if "n_flaps" in changes and "root_flap" not in changes:
         changes["root_flap"] = (changes["n_flaps"] - 1) // 2
     spec = dataclasses.replace(base, **changes)

@@ -13,9 +13,16 @@ import os
 import re
 from pathlib import Path
 
+from twin.paths import replacing
+
 ENV = "VRSCROLL_DEVICES"
 DEFAULT_FILE = "default"
 NO_PROFILE = "spec defaults"  # how reports name the absence of a profile
+RESERVED = ("none",)  # `vrscroll device select none` means the spec's defaults: no profile can be called that
+# the spec fields a profile may hold other values of than the spec's: the plant parameters calibration fits
+# (gear_stiction moves with gear_friction). Every other value (hinge range, settle band, flap count, limits)
+# is the device's design, the same for every device built to the spec: a profile that changes one is refused.
+PLANT_FIELDS = ("no_load_speed", "gear_friction", "gear_stiction", "gear_damping", "rotor_inertia", "backlash")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 
@@ -32,6 +39,9 @@ def check_name(name: str) -> str:
     if not isinstance(name, str) or not _NAME.fullmatch(name):
         raise ValueError(f"device profile name {name!r}: use letters, digits, '_', '.' or '-' (64 at most), "
                          "starting with a letter or digit")
+    if name.lower() in RESERVED:
+        raise ValueError(f"device profile name {name!r} is reserved (`vrscroll device select none` means the "
+                         "spec's defaults): choose another")
     return name
 
 
@@ -66,6 +76,5 @@ def set_default(name: str | None) -> None:
         return
     check_name(name)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".part")
-    tmp.write_text(name + "\n")
-    tmp.replace(path)
+    with replacing(path) as tmp:
+        tmp.write_text(name + "\n")

@@ -14,6 +14,7 @@ from pathlib import Path
 from twin.device.spec_toml import read_spec_toml
 from twin.paths import MODELS_DIR
 
+MAX_HINGES = 8  # the firmware core's VRS_MAX_HINGES (vrs_core.h): hinges one device may have
 SPEC_PATH = MODELS_DIR / "vrscroll" / "spec.toml"
 
 

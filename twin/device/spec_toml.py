@@ -12,12 +12,11 @@ twin.device.spec reads the spec through this module.
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 
 import tomlkit
 
-from twin.checks import known_keys, number, required_keys
+from twin.checks import known_keys, number, parse_toml, read_text, required_keys
 
 _RPM = 2.0 * math.pi / 60.0
 TO_SI = {"deg": math.radians, "rpm": lambda v: v * _RPM}
@@ -39,10 +38,7 @@ def read_spec_toml(path, fields) -> tuple[dict, dict]:
     number goes, NaN or inf, or an entry without its unit or source.
     """
     path = Path(path)
-    try:
-        raw = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not TOML ({exc})") from None
+    raw = parse_toml(read_text(path), str(path))
     values, sources = {}, {}
     for section, entries in raw.items():
         if not isinstance(entries, dict):
@@ -73,7 +69,7 @@ def value_in_si(value, unit: str):
 
 def spec_units(path) -> dict[str, str]:
     """DeviceSpec field -> the unit a spec TOML (one read_spec_toml accepts) gives its value in."""
-    raw = tomllib.loads(Path(path).read_text())
+    raw = parse_toml(read_text(path), str(path))
     return {FIELD.get((section, key), key): entry["unit"] for section, entries in raw.items()
             for key, entry in entries.items()}
 

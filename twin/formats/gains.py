@@ -15,6 +15,7 @@ from pathlib import Path
 
 from controllers.pid import GAIN_BOUNDS, PidGains
 from twin.checks import json_object, known_keys, number, required_keys
+from twin.paths import replacing
 
 GAINS_FORMAT = "vrscroll-gains/1"
 # file key -> PidGains field
@@ -47,10 +48,8 @@ def write_gains(path, gains: list[PidGains], meta: dict | None = None) -> None:
                                    for key, f in KEYS.items()}} for k, g in enumerate(gains)],
         **({"meta": meta} if meta else {}),
     }
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".part")
-    tmp.write_text(json.dumps(doc, indent=2) + "\n")
-    tmp.replace(path)
+    with replacing(path) as tmp:
+        tmp.write_text(json.dumps(doc, indent=2) + "\n")
 
 
 def read_gains(path, n: int | None = None) -> list[PidGains]:

@@ -9,11 +9,15 @@ applied (REDIRECTED_COLUMNS).
 from __future__ import annotations
 
 import csv
+import io
 import math
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from twin.checks import REACH_M, read_text
+from twin.paths import replacing
 
 REDIRECTED_COLUMNS = ("virtual_x_mm", "virtual_y_mm", "virtual_z_mm", "virtual_qw", "virtual_qx", "virtual_qy",
                       "virtual_qz", "offset_mm", "rotation_deg", "height_mm", "flap", "within_thresholds")
@@ -29,28 +33,34 @@ def read_pen_samples(path) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | N
     device_x_mm ... device_qz (tracked device pose); any other column is passed through.
     """
     path = Path(path)
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        header = reader.fieldnames or []
-        missing = [c for c in PEN_COLUMNS if c not in header]
-        if missing:
-            raise ValueError(f"{path}: missing column(s) {', '.join(missing)}; a pen file has "
-                             f"{','.join(PEN_COLUMNS)} (+ optional {','.join(DEVICE_COLUMNS)})")
-        has_device = all(c in header for c in DEVICE_COLUMNS)
-        if not has_device and any(c in header for c in DEVICE_COLUMNS):
-            raise ValueError(f"{path}: device pose columns must be all of {','.join(DEVICE_COLUMNS)} or none")
-        wanted = PEN_COLUMNS + (DEVICE_COLUMNS if has_device else ())
-        rows, values = {c: [] for c in header}, []
-        for line, row in enumerate(reader, start=2):
-            try:
-                numbers = [float(row[c]) for c in wanted]
-            except (TypeError, ValueError):
-                raise ValueError(f"{path}:{line}: expected numbers in {','.join(wanted)}") from None
-            if not all(math.isfinite(v) for v in numbers):
-                raise ValueError(f"{path}:{line}: non-finite value")
-            values.append(numbers)
-            for c in header:
-                rows[c].append(row[c])
+    try:
+        with io.StringIO(read_text(path), newline="") as f:
+            reader = csv.DictReader(f)
+            header = reader.fieldnames or []
+            missing = [c for c in PEN_COLUMNS if c not in header]
+            if missing:
+                raise ValueError(f"{path}: missing column(s) {', '.join(missing)}; a pen file has "
+                                 f"{','.join(PEN_COLUMNS)} (+ optional {','.join(DEVICE_COLUMNS)})")
+            has_device = all(c in header for c in DEVICE_COLUMNS)
+            if not has_device and any(c in header for c in DEVICE_COLUMNS):
+                raise ValueError(f"{path}: device pose columns must be all of {','.join(DEVICE_COLUMNS)} or none")
+            wanted = PEN_COLUMNS + (DEVICE_COLUMNS if has_device else ())
+            rows, values = {c: [] for c in header}, []
+            for line, row in enumerate(reader, start=2):
+                try:
+                    numbers = [float(row[c]) for c in wanted]
+                except (TypeError, ValueError):
+                    raise ValueError(f"{path}:{line}: expected numbers in {','.join(wanted)}") from None
+                if not all(math.isfinite(v) for v in numbers):
+                    raise ValueError(f"{path}:{line}: non-finite value")
+                if any(abs(v) > REACH_M * 1e3 for v in numbers):
+                    raise ValueError(f"{path}:{line}: a value beyond +-{REACH_M * 1e3:g} mm "
+                                     f"({REACH_M:g} m from the target)")
+                values.append(numbers)
+                for c in header:
+                    rows[c].append(row[c])
+    except csv.Error as exc:  # a field over the csv module's limit, a NUL byte
+        raise ValueError(f"{path}: not a pen CSV ({exc})") from None
     if not values:
         raise ValueError(f"{path}: no pen samples")
     v = np.array(values)
@@ -71,10 +81,8 @@ def read_pen_samples(path) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | N
 def write_redirected(path, columns: dict, redirected, within: np.ndarray) -> None:
     """Write the input columns followed by the virtual pen and the redirection applied (mm, deg);
     redirected: a twin.morphpatch.redirection.Redirected (SI)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".part")
     names = list(columns)
-    with open(tmp, "w", newline="") as f:
+    with replacing(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(names + list(REDIRECTED_COLUMNS))
         for k in range(len(redirected.position)):
@@ -82,4 +90,3 @@ def write_redirected(path, columns: dict, redirected, within: np.ndarray) -> Non
             w.writerow([columns[c][k] for c in names] + [f"{v:.4f}" for v in p] + [f"{v:.6f}" for v in q]
                        + [f"{redirected.offset[k] * 1e3:.4f}", f"{math.degrees(redirected.angle[k]):.4f}",
                           f"{redirected.height[k] * 1e3:.4f}", int(redirected.flap[k]), int(within[k])])
-    tmp.replace(path)

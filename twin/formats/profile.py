@@ -16,14 +16,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 from controllers.pid import PidGains
 from twin.checks import json_object, known_keys, number, required_keys
-from twin.device.profile import NO_PROFILE, default_name, profile_dir, profiles_dir
+from twin.device.profile import NO_PROFILE, PLANT_FIELDS, default_name, profile_dir, profiles_dir
 from twin.device.spec import SPEC_PATH, DeviceSpec, load_spec, spec_sources
 from twin.device.spec_toml import write_spec_toml
 from twin.formats.gains import read_gains, write_gains
+from twin.paths import replacing
 
 PROFILE_FORMAT = "vrscroll-profile/1"
 META, SPEC, GAINS = "profile.json", "spec.toml", "gains.json"
@@ -86,6 +88,21 @@ def _calibration(doc, where: str) -> dict:
     return doc
 
 
+def design_unchanged(spec: DeviceSpec, base: DeviceSpec, where) -> None:
+    """ValueError naming the first field a profile's spec changes that is not a plant parameter
+    (twin.device.profile.PLANT_FIELDS): the host's checks (the gate's hinge range, the settle band, the flap
+    count) are the spec's, whatever a profile says."""
+    for f in dataclasses.fields(base):
+        mine, theirs = getattr(spec, f.name), getattr(base, f.name)
+        if f.name in PLANT_FIELDS or mine == theirs:
+            continue
+        if isinstance(mine, float) and isinstance(theirs, float) and math.isclose(mine, theirs, rel_tol=1e-9):
+            continue
+        raise ValueError(f"{where}: {f.name} = {mine!r} is not the spec's {theirs!r}: a profile holds only the "
+                         f"plant parameters calibration fits ({', '.join(PLANT_FIELDS)}); the rest is the "
+                         "device's design (models/vrscroll/spec.toml)")
+
+
 def read_profile(folder) -> Profile:
     """The profile in folder; ValueError naming the file and key for anything missing or wrong."""
     folder = Path(folder)
@@ -104,6 +121,7 @@ def read_profile(folder) -> Profile:
     if not (folder / SPEC).is_file():
         raise ValueError(f"{folder}: device profile without its {SPEC}")
     spec = load_spec(folder / SPEC)
+    design_unchanged(spec, load_spec(), folder / SPEC)
     if (folder / GAINS).is_file():
         gains, source = read_gains(folder / GAINS, spec.n_hinges), str(folder / GAINS)
     else:
@@ -131,9 +149,8 @@ def _write_meta(folder: Path, calibration: dict | None) -> None:
     doc = {"format": PROFILE_FORMAT, "name": folder.name, **({"calibration": calibration} if calibration else {})}
     if calibration:
         _calibration(calibration, str(folder / META))
-    tmp = folder / (META + ".part")
-    tmp.write_text(json.dumps(doc, indent=2) + "\n")
-    tmp.replace(folder / META)
+    with replacing(folder / META) as tmp:
+        tmp.write_text(json.dumps(doc, indent=2) + "\n")
 
 
 def write_profile_spec(name: str, values: dict, source: str, calibration: dict | None) -> Path:
@@ -143,12 +160,11 @@ def write_profile_spec(name: str, values: dict, source: str, calibration: dict |
     folder = profile_dir(name)
     folder.mkdir(parents=True, exist_ok=True)
     template = folder / SPEC if (folder / SPEC).is_file() else SPEC_PATH
-    spec_tmp = folder / (SPEC + ".part")
-    write_spec_toml(spec_tmp, template, values, source,
-                    header=f"Device profile {name}: the spec of this device, written by `vrscroll calibrate` "
-                           "(docs/tuning-hil-calibration.md).")
-    load_spec(spec_tmp)  # what was written reads back, or nothing is replaced
-    spec_tmp.replace(folder / SPEC)
+    with replacing(folder / SPEC) as spec_tmp:
+        write_spec_toml(spec_tmp, template, values, source,
+                        header=f"Device profile {name}: the spec of this device, written by `vrscroll calibrate` "
+                               "(docs/tuning-hil-calibration.md).")
+        load_spec(spec_tmp)  # what was written reads back, or nothing is replaced
     _write_meta(folder, calibration)
     return folder
 

@@ -20,6 +20,7 @@ from twin.checks import hinge_angles, json_object, known_keys, number, required_
 from twin.device.spec import DeviceSpec
 from twin.formats.gains import read_gains
 from twin.formats.trace import read_trace
+from twin.paths import replacing
 
 RUN_KEYS = ("scenario", "start_counts", "start_target_counts", "before", "telemetry_hz", "firmware_dt_s", "changes",
             "status", "port", "device_t0_us", "device_rows", "twin_rows", "device_profile")
@@ -30,10 +31,8 @@ COMPLETE = "complete"
 def write_run_meta(run_dir, meta: dict) -> None:
     """Write run.json atomically (a killed run leaves the previous version whole)."""
     known_keys(meta, RUN_KEYS, f"{run_dir}/run.json")
-    path = Path(run_dir) / "run.json"
-    tmp = path.with_suffix(".json.part")
-    tmp.write_text(json.dumps(meta, indent=2) + "\n")
-    tmp.replace(path)
+    with replacing(Path(run_dir) / "run.json") as tmp:
+        tmp.write_text(json.dumps(meta, indent=2) + "\n")
 
 
 def _counts(value, n: int, where: str) -> list[int]:

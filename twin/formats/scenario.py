@@ -19,12 +19,11 @@ import dataclasses
 import json
 import math
 import re
-import tomllib
 from pathlib import Path
 
 import numpy as np
 
-from twin.checks import hinge_angles, known_keys, number
+from twin.checks import hinge_angles, known_keys, number, parse_json, parse_toml, read_text
 from twin.device.spec import DeviceSpec
 from twin.formats.target import read_target
 
@@ -53,11 +52,8 @@ class Scenario:
 def read_scenario(path, spec: DeviceSpec) -> Scenario:
     """Read a scenario; ValueError naming the file, the step and the key for anything wrong."""
     path = Path(path)
-    text = path.read_text()
-    try:
-        doc = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
-    except (json.JSONDecodeError, tomllib.TOMLDecodeError) as exc:
-        raise ValueError(f"{path}: not {'JSON' if path.suffix == '.json' else 'TOML'} ({exc})") from None
+    text = read_text(path)
+    doc = parse_json(text, str(path)) if path.suffix == ".json" else parse_toml(text, str(path))
     if not isinstance(doc, dict):
         raise ValueError(f"{path}: expected an object with \"step\" entries")
     known_keys(doc, SCENARIO_KEYS, str(path))

@@ -25,13 +25,12 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-import tomllib
 from pathlib import Path
 
 import numpy as np
 import tomlkit
 
-from twin.checks import known_keys, number
+from twin.checks import known_keys, number, parse_toml, read_text
 from twin.device.design import FIELDS, INTEGER_FIELDS, design_spec
 from twin.device.spec import SPEC_PATH, load_spec
 from twin.device.spec_toml import spec_units, value_in_si
@@ -75,10 +74,7 @@ class Sweep:
 def read_sweep(path, shapes: list[str], methods: list[str]) -> Sweep:
     """A sweep file, checked: ValueError naming the file, the key and the reason. shapes, methods: those known."""
     path = Path(path)
-    try:
-        doc = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{path}: not TOML ({exc})") from None
+    doc = parse_toml(read_text(path), str(path))
     known_keys(doc, TOP_KEYS, str(path))
     spec_path = (path.parent / doc["spec"]) if "spec" in doc else SPEC_PATH
     if not spec_path.exists():

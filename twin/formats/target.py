@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from twin.checks import hinge_angles, json_object, known_keys, number, numbers, required_keys
+from twin.checks import REACH_M, hinge_angles, json_object, known_keys, number, numbers, required_keys
 from twin.device.kinematics import pose_matrix
 from twin.device.spec import DeviceSpec
 
@@ -52,9 +52,13 @@ def approximation_fields(doc: dict, spec: DeviceSpec, where: str) -> dict:
     quat = numbers(doc["root_quat_wxyz"], f"{where}: root_quat_wxyz", 4)
     if np.linalg.norm(quat) < 1e-6:
         raise ValueError(f"{where}: root_quat_wxyz is zero")
+    if np.linalg.norm(position) > REACH_M:
+        raise ValueError(f"{where}: root_position_mm is more than {REACH_M:g} m from the target's origin")
     widths = numbers(doc["widths_mm"], f"{where}: widths_mm", spec.n_flaps) / 1e3
-    if np.any(widths <= 0):
-        raise ValueError(f"{where}: widths_mm: flap {int(np.argmax(widths <= 0))} has a width <= 0")
+    bad = (widths <= 0) | (widths > spec.length)
+    if np.any(bad):
+        raise ValueError(f"{where}: widths_mm: flap {int(np.argmax(bad))} is {widths[np.argmax(bad)] * 1e3:g} mm wide; "
+                         f"a flap is above 0 and at most the device's {spec.length * 1e3:g} mm")
     measure = {k: (None if doc.get(f"{k}_mm") is None else number(doc[f"{k}_mm"], f"{where}: {k}_mm") / 1e3)
                for k in ("msd", "hd")}
     target = doc.get("target")

@@ -16,12 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.checks import number
+from twin.checks import cell, read_text
 
 TRACE_COLUMNS = ("target_deg", "angle_deg", "counts", "duty", "current_A")
 TWIN_COLUMNS = ("true_angle_deg", "target_counts", "torque_Nm")
 _INTEGER = ("counts", "target_counts")
 _HEADER = re.compile(r"h(\d+)_(.+)")
+MAX_TRACE_BYTES = 512 << 20  # a 600 s HIL run at 1 kHz is about 210 MB
 
 
 class TraceWriter:
@@ -64,7 +65,7 @@ def read_trace(path, n: int | None = None, hinge_limit: float | None = None) -> 
     last line (an interrupted recording) is dropped; any other bad line is a ValueError naming it.
     """
     path = Path(path)
-    lines = path.read_text().splitlines()
+    lines = read_text(path, MAX_TRACE_BYTES).splitlines()
     if not lines:
         raise ValueError(f"{path}: empty (expected a header time_s,h0_target_deg,...)")
     header = lines[0].split(",")
@@ -102,7 +103,7 @@ def read_trace(path, n: int | None = None, hinge_limit: float | None = None) -> 
         try:
             if len(cells) != ncol:
                 raise ValueError(f"{len(cells)} fields, the header has {ncol}")
-            values = [number(cell, header[i]) for i, cell in enumerate(cells)]
+            values = [cell(text, header[i]) for i, text in enumerate(cells)]
         except ValueError as exc:
             if lineno == last:
                 break  # the line being written when the recording stopped

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from twin.checks import read_text
+
 ANSWERS = {"yes": True, "true": True, "1": True, "natural": True,
            "no": False, "false": False, "0": False, "unnatural": False}
 CONDITION_COLUMN = re.compile(r"condition_([a-z][a-z0-9]*)")
@@ -42,11 +44,14 @@ class Trials:
 def read_trials(path) -> Trials:
     """Read a trials CSV; ValueError naming the file and line for anything wrong. Blank and #-lines are skipped."""
     path = Path(path)
-    with open(path, newline="") as f:
-        lines = [(i, line) for i, line in enumerate(f, start=1) if line.strip() and not line.lstrip().startswith("#")]
+    lines = [(i, line) for i, line in enumerate(read_text(path).splitlines(keepends=True), start=1)
+             if line.strip() and not line.lstrip().startswith("#")]
     if not lines:
         raise ValueError(f"{path}: empty file (expected a header: condition_<unit>,natural,confidence)")
-    header_line, *rows = zip(lines, csv.reader(line for _, line in lines))
+    try:
+        header_line, *rows = zip(lines, csv.reader(line for _, line in lines))
+    except csv.Error as exc:  # a field over the csv module's limit, a NUL byte
+        raise ValueError(f"{path}: not a trials CSV ({exc})") from None
     columns = [c.strip().lower() for c in header_line[1]]
     where = f"{path}:{header_line[0][0]}"
     units = [m.group(1) for c in columns if (m := CONDITION_COLUMN.fullmatch(c))]

@@ -49,13 +49,15 @@ import math
 import numpy as np
 
 from controllers.encoder import angle_from_counts
+from twin.device.profile import PLANT_FIELDS
 from twin.device.spec import DeviceSpec
 from twin.sim.replay import replay_targets, twin_at_start
 
-PARAMS = ("no_load_speed", "gear_friction", "gear_damping", "rotor_inertia", "backlash")
 # the spec fields that move with a parameter, in proportion: the static friction keeps its ratio to the
 # Coulomb friction (one gearbox's friction, the emulator scales them together)
 MOVES_WITH = {"gear_friction": ("gear_stiction",)}
+# the plant parameters a profile may hold (twin.device.profile.PLANT_FIELDS), less those that move with another
+PARAMS = tuple(p for p in PLANT_FIELDS if not any(p in moved for moved in MOVES_WITH.values()))
 # x the prior: how far a device may differ from its datasheet (an assumption: the spread of a batch of micro
 # metal gearmotors and of their assembly; the backlash 0.01 .. 0.5 deg about the spec's 0.25 deg: not 0,
 # which the MJCF makes a rigid coupling, another model layout than the batch twin's other plants). The

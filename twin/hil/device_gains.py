@@ -1,4 +1,5 @@
-"""The device's PID gains: reading them, and pushing a new set so that it is all or nothing.
+"""What the device itself says it runs: its configuration from HELLO over the profile's spec, and its PID
+gains (reading them, and pushing a new set so that it is all or nothing).
 
 Every hinge's gains are checked against the bounds the firmware takes before any is sent; if the
 device refuses one anyway, the hinges already changed get their previous gains back.
@@ -6,9 +7,30 @@ device refuses one anyway, the hinges already changed get their previous gains b
 
 from __future__ import annotations
 
+import math
+
 from controllers.pid import PidGains
+from twin.device.spec import DeviceSpec
 from twin.formats.gains import check_gains
-from twin.link.serial_link import Link, NackError
+from twin.link.protocol import HelloReply
+from twin.link.serial_link import Link, LinkError
+
+# HELLO_REPLY field -> (spec field, to SI, what it is): the device's word wins over the profile's spec
+_HELLO = {"loop_rate_hz": ("loop_rate", 1.0, "loop rate", "Hz"), "watchdog_ms": ("watchdog", 1e-3, "watchdog", "ms"),
+          "max_telemetry_hz": ("max_telemetry_rate", 1.0, "telemetry rate limit", "Hz")}
+
+
+def device_spec(spec: DeviceSpec, info: HelloReply) -> tuple[DeviceSpec, list[str]]:
+    """The spec with the device's own configuration (HELLO_REPLY: loop rate, watchdog, telemetry limit) where
+    they disagree, and one plain line per difference: the twin then predicts the device as it is."""
+    changes, notes = {}, []
+    for key, (field, si, what, unit) in _HELLO.items():
+        theirs, ours = getattr(info, key), getattr(spec, field)
+        if not math.isclose(theirs * si, ours, rel_tol=1e-6):
+            changes[field] = theirs * si
+            notes.append(f"the device's {what} is {theirs:g} {unit}, the profile's spec says {ours / si:g} {unit}: "
+                         "the device's is used")
+    return (spec.replace(**changes) if changes else spec), notes
 
 
 def device_gains(link: Link, n: int) -> list[PidGains]:
@@ -26,7 +48,8 @@ def push_gains(link: Link, gains: list[PidGains], n: int, where: str = "gains") 
     """Send one PidGains per hinge of the device's n, all checked first; returns the gains the device held before.
 
     ValueError (nothing sent) for the wrong hinge count or a value outside the firmware's bounds;
-    NackError if the device refuses a hinge's gains, after restoring the hinges already changed.
+    NackError if the device refuses a hinge's gains, after restoring the hinges already changed; likewise an
+    interrupt (Ctrl-C, SIGTERM) or a link failure half-way restores them before it goes on up.
     """
     if len(gains) != n:
         raise ValueError(f"{where}: gains for {len(gains)} hinges, the device has {n}")
@@ -35,7 +58,10 @@ def push_gains(link: Link, gains: list[PidGains], n: int, where: str = "gains") 
     for k, g in enumerate(gains):
         try:
             link.set_gains(g, hinge=k)
-        except NackError:
-            restore_gains(link, previous[:k])
+        except (LinkError, KeyboardInterrupt):  # a NACK is a LinkError too
+            try:
+                restore_gains(link, previous[:k + 1])  # hinge k too: its SET_GAINS may have landed unanswered
+            except LinkError:
+                link.log("restore_gains_failed", hinges=k + 1)
             raise
     return previous

@@ -449,6 +449,8 @@ def encode(msg, seq: int) -> bytes:
 def decode_frame(frame: bytes) -> tuple[int, object]:
     """(seq, message) from one frame without its 0x00 delimiter; ProtocolError if it is not valid."""
     payload = cobs_decode(frame)
+    if len(payload) > MAX_FRAME:
+        raise ProtocolError(f"payload of {len(payload)} bytes is over the {MAX_FRAME}-byte maximum")
     if len(payload) < _HEADER.size + 2:
         raise ProtocolError(f"frame of {len(payload)} bytes is shorter than header and CRC")
     body, (crc,) = payload[:-2], struct.unpack("<H", payload[-2:])

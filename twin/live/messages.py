@@ -16,8 +16,8 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from twin.checks import REACH_M, parse_json
 from twin.device.kinematics import pose_matrix
-from twin.morphpatch.approximation import START_REACH
 
 PROTOCOL_VERSION = 1
 DEFAULT_LISTEN_PORT = 8765  # TCP for the control channel, UDP for the datagrams (same number)
@@ -27,7 +27,7 @@ MAX_DATAGRAM_BYTES = 1200  # fits one Ethernet frame with room to spare
 APPROXIMATION_RATE_HZ = 90.0  # VR frame rate: at most this many approximations per second
 PROGRESS_HZ = 30.0  # morph progress events per second
 ERROR_INTERVAL = 0.1  # s: the same datagram error is reported at most this often (with a count)
-POSITION_LIMIT_MM = START_REACH * 1e3  # a pose or pen farther from the target's origin is refused
+POSITION_LIMIT_MM = REACH_M * 1e3  # a pose or pen farther from the target's origin is refused
 QUAT_LIMIT = 1e3  # a quaternion's components, before it is normalised (no overflow in its norm)
 ROLES = ("control", "observer")
 CLIENT_TYPES = ("hello", "target", "lock", "status")
@@ -53,9 +53,9 @@ def error(code: str, message: str, source: str = "control", count: int = 1) -> d
 def _typed_object(text, what: str, types) -> tuple[dict, str]:
     """(object, its type) from one JSON message; ProtocolError("malformed" | "unknown_type") if not one."""
     try:
-        obj = json.loads(text)
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ProtocolError("malformed", f"{what} is not JSON: {exc}") from None
+        obj = parse_json(text, what)
+    except ValueError as exc:
+        raise ProtocolError("malformed", str(exc)) from None
     if not isinstance(obj, dict):
         raise ProtocolError("malformed", f"a {what} is a JSON object with a 'type'")
     kind = obj.get("type")

@@ -20,12 +20,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import time
 
 import numpy as np
 
 from controllers.encoder import angle_from_counts
 from twin.device.spec import DeviceSpec
+from twin.hil.device_gains import device_spec
 from twin.hil.mirror import DeviceNotReady, faults_text, mirror
 from twin.link import protocol as P
 from twin.link.serial_link import Link, LinkError
@@ -83,6 +85,9 @@ class DeviceMorpher:
 
     def open(self) -> None:
         self.link.open()
+        self.spec, notes = device_spec(self.spec, self.link.info)
+        for note in notes:
+            print(f"vrscroll serve: note: {note}", file=sys.stderr, flush=True)
 
     def morph(self, targets, emit) -> MorphOutcome:
         throttle = _Throttle(PROGRESS_HZ)

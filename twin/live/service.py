@@ -31,10 +31,22 @@ from websockets.asyncio.server import serve
 from websockets.exceptions import ConnectionClosed
 
 from twin.device.spec import DeviceSpec
-from twin.live.messages import (APPROXIMATION_RATE_HZ, DEFAULT_LISTEN_PORT, ERROR_INTERVAL, MAX_CONTROL_BYTES,
-                                MAX_DATAGRAM_BYTES, MAX_FRAME_BYTES, PROTOCOL_VERSION, ProtocolError,
-                                approximation_datagram, error, mesh_arrays, parse_control, parse_datagram,
-                                pen_datagram)
+from twin.live.messages import (
+    APPROXIMATION_RATE_HZ,
+    DEFAULT_LISTEN_PORT,
+    ERROR_INTERVAL,
+    MAX_CONTROL_BYTES,
+    MAX_DATAGRAM_BYTES,
+    MAX_FRAME_BYTES,
+    PROTOCOL_VERSION,
+    ProtocolError,
+    approximation_datagram,
+    error,
+    mesh_arrays,
+    parse_control,
+    parse_datagram,
+    pen_datagram,
+)
 from twin.live.morph import MorphOutcome
 from twin.live.worker import Worker, WorkerError
 from twin.morphpatch.redirection import redirect, within_samples
@@ -46,6 +58,10 @@ EVENT_QUEUE = 256  # events waiting for one slow client; beyond this they are dr
 PING_INTERVAL = 20.0  # s: a client that answers no ping for this long after one is dropped (its role freed)
 RATE_BURST = 2.0  # approximations the rate limit lets through back to back
 LATENCY_WINDOW = 2000  # service-side latencies kept for `status` (most recent)
+MAX_CONNECTIONS = 32  # control-channel connections at once: one controller and observers
+MAX_UNGREETED = 8  # of them, connections that have not said hello yet
+HELLO_TIMEOUT = 5.0  # s a connection may stay without hello before it is closed
+WRONG_TOKEN_DELAY = 1.0  # s before a wrong token's connection is closed: at most one guess a second per connection
 
 
 def check_exposure(host: str, allow_remote: bool, token: str | None) -> None:
@@ -146,6 +162,7 @@ class LiveService:
         self._udp = None
         self._stop = None
         self._tasks: set[asyncio.Task] = set()
+        self.clients: set[_Client] = set()  # every open control connection
 
     # ---- running ------------------------------------------------------------------------
     async def run(self, ready=None) -> None:
@@ -192,8 +209,15 @@ class LiveService:
 
     # ---- control channel ----------------------------------------------------------------
     async def _connection(self, ws) -> None:
+        ungreeted = sum(c.role is None for c in self.clients)
+        if len(self.clients) >= MAX_CONNECTIONS or ungreeted >= MAX_UNGREETED:
+            self.counts["refused_connections"] += 1
+            await ws.close(1013, f"too many connections (at most {MAX_CONNECTIONS}, {MAX_UNGREETED} before hello)")
+            return
         client = _Client(ws)
+        self.clients.add(client)
         pump = self._spawn(client.pump())
+        hello_timer = asyncio.get_running_loop().call_later(HELLO_TIMEOUT, self._no_hello, client)
         try:
             async for message in ws:
                 try:
@@ -202,14 +226,23 @@ class LiveService:
                     self.counts[exc.code] += 1
                     if exc.code == "unauthorized":  # said at once, not queued behind events, then closed
                         await ws.send(json.dumps(error(exc.code, str(exc))))
+                        await asyncio.sleep(WRONG_TOKEN_DELAY)
                         await ws.close(1008, "unauthorized")
                         return
                     client.send(error(exc.code, str(exc)))
         except ConnectionClosed:
             pass
         finally:
+            hello_timer.cancel()
             pump.cancel()
+            self.clients.discard(client)
             self._leave(client)
+
+    def _no_hello(self, client: _Client) -> None:
+        """A connection still without hello after HELLO_TIMEOUT is closed (it holds a slot)."""
+        if client.role is None:
+            self.counts["hello_timeout"] += 1
+            self._spawn(client.ws.close(1008, f"no hello within {HELLO_TIMEOUT:g} s"))
 
     def _leave(self, client: _Client) -> None:
         self.observers.discard(client)

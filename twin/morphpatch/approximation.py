@@ -48,6 +48,7 @@ import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from twin.checks import REACH_M
 from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_flap, pose_matrix
 from twin.device.spec import DeviceSpec, load_spec
 from twin.formats.target import APPROXIMATION_KEYS, OPTIONAL_KEYS, approximation_fields
@@ -112,9 +113,6 @@ class Approximation:
         return cls(f["root_pose"], f["angles"], f["widths"], f["time"], f["variant"], f["msd"], f["hd"])
 
 
-# m: the farthest a start may be from the target frame's origin (beyond any tracked room; the fields' grids are
-# a few cm beyond the target, and a start far outside them is clamped to the grid's edge by the snap)
-START_REACH = 100.0
 
 
 def pose_from_mm_deg(values) -> np.ndarray:
@@ -130,7 +128,7 @@ def pose_from_mm_deg(values) -> np.ndarray:
 
 def as_pose(start) -> np.ndarray:
     """A 4x4 pose from a 4x4 matrix or a (position (3,) m, rotation (3, 3)) pair, checked before any compiled
-    step sees it: finite, a rotation (orthonormal, det +1, to 1e-6), the anchor within START_REACH of the
+    step sees it: finite, a rotation (orthonormal, det +1, to 1e-6), the anchor within REACH_M of the
     target frame's origin. ValueError naming what is wrong."""
     pose = pose_matrix(*start) if isinstance(start, tuple) else np.array(start, float)
     if pose.shape != (4, 4):
@@ -138,8 +136,8 @@ def as_pose(start) -> np.ndarray:
     if not np.all(np.isfinite(pose)):
         raise ValueError("a start pose must be finite numbers")
     distance = float(np.linalg.norm(pose[:3, 3]))
-    if distance > START_REACH:
-        raise ValueError(f"the start is {distance:.3g} m from the target's origin; at most {START_REACH:g} m")
+    if distance > REACH_M:
+        raise ValueError(f"the start is {distance:.3g} m from the target's origin; at most {REACH_M:g} m")
     rotation = pose[:3, :3]
     if not np.allclose(rotation @ rotation.T, np.eye(3), atol=1e-6) or np.linalg.det(rotation) < 0:
         raise ValueError("a start pose's rotation must be orthonormal with determinant +1")

@@ -46,10 +46,10 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
-from twin.morphpatch.fields import Fields, exact_surface_query
 from twin.device.kinematics import flap_frames
-from twin.perception.thresholds import Thresholds, load_thresholds
 from twin.device.spec import DeviceSpec
+from twin.morphpatch.fields import Fields, exact_surface_query
+from twin.perception.thresholds import Thresholds, load_thresholds
 
 NODE_SPACING = 0.002  # m, between the redirection grid's nodes over the touch surface (as the metrics' samples)
 SIGMA = 0.005  # m, Gaussian blur of the offsets (assumption: the paper gives none; about a fifth of a flap)

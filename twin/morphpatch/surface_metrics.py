@@ -17,8 +17,8 @@ import numpy as np
 import trimesh
 
 from twin.device.kinematics import flap_frames
-from twin.morphpatch.sampling import METRIC_SPACING, touch_surface_points
 from twin.device.spec import DeviceSpec
+from twin.morphpatch.sampling import METRIC_SPACING, touch_surface_points
 
 
 def point_distances(mesh: trimesh.Trimesh, points: np.ndarray) -> np.ndarray:

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-import os
-from pathlib import Path
 
 import numpy as np
 
 from controllers.encoder import angle_from_counts
 from twin.device.spec import DeviceSpec
 from twin.formats.trace import TWIN_COLUMNS, TraceWriter
+from twin.paths import replacing
 
 
 @dataclasses.dataclass
@@ -38,16 +37,13 @@ class Trace:
     def write_csv(self, path, spec: DeviceSpec) -> None:
         """The trace as a trace CSV (twin.formats.trace, docs/formats.md): the device's columns (angle_deg the
         encoder's angle, as a device reports it) and the twin's own (true angle, target counts, torque)."""
-        path = Path(path)
-        tmp = path.with_suffix(path.suffix + ".part")
         encoder = np.degrees(angle_from_counts(spec, self.counts))
-        with TraceWriter(tmp, self.angle.shape[1], extra=TWIN_COLUMNS) as w:
+        with replacing(path) as tmp, TraceWriter(tmp, self.angle.shape[1], extra=TWIN_COLUMNS) as w:
             for i in range(len(self.time)):
                 w.write(self.time[i], target_deg=np.degrees(self.target[i]), angle_deg=encoder[i],
                         counts=self.counts[i], duty=self.duty[i], current_A=self.current[i],
                         true_angle_deg=np.degrees(self.angle[i]), target_counts=self.target_counts[i],
                         torque_Nm=self.torque[i])
-        os.replace(tmp, path)
 
 
 def join_traces(traces: list[Trace]) -> Trace:

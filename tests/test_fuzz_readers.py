@@ -1,0 +1,118 @@
+"""Every file reader, fed what a careless or hostile user might give it: it returns, or refuses with a one-line
+ValueError naming the file. Never another exception (a traceback for the user), never a hang.
+
+Inputs are drawn by hypothesis: arbitrary bytes, and text shaped like each format (valid JSON / TOML / CSV
+values of any type, any nesting, numbers huge, tiny, non-finite or written as strings)."""
+
+import json
+import math
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from twin.device.spec import load_spec
+from twin.evaluation.table1 import METHODS
+from twin.formats.gains import read_gains
+from twin.formats.pen import read_pen_samples
+from twin.formats.scenario import read_scenario
+from twin.formats.sweep import read_sweep
+from twin.formats.target import read_approximation, read_target
+from twin.formats.trace import read_trace
+from twin.formats.trials import read_trials
+from twin.morphpatch.shapes import shape_names
+
+SPEC = load_spec()
+FUZZ = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+READERS = {
+    "target.json": lambda p: read_target(p, SPEC),
+    "approx.json": lambda p: read_approximation(p, SPEC),
+    "gains.json": lambda p: read_gains(p, SPEC.n_hinges),
+    "scenario.toml": lambda p: read_scenario(p, SPEC),
+    "scenario.json": lambda p: read_scenario(p, SPEC),
+    "sweep.toml": lambda p: read_sweep(p, shape_names(), list(METHODS)),
+    "spec.toml": load_spec,
+    "trace.csv": lambda p: read_trace(p, SPEC.n_hinges, SPEC.hinge_limit),
+    "pens.csv": read_pen_samples,
+    "trials.csv": read_trials,
+}
+
+numbers = st.one_of(st.integers(-10 ** 30, 10 ** 30), st.floats(allow_nan=True, allow_infinity=True),
+                    st.sampled_from([1e308, -1e308, 1e-320, "12", "nan", True, None]))
+json_values = st.recursive(st.one_of(numbers, st.text(max_size=8)),
+                           lambda inner: st.one_of(st.lists(inner, max_size=8),
+                                                   st.dictionaries(st.text(max_size=12), inner, max_size=6)),
+                           max_leaves=30)
+KEYS = ["angles_deg", "root_position_mm", "root_quat_wxyz", "widths_mm", "variant", "kp", "ki", "kd", "hinges",
+        "name", "duration_s", "step", "t_s", "shapes", "starts", "design", "plants", "draws", "count", "value"]
+objects = st.dictionaries(st.sampled_from(KEYS), json_values, max_size=6)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)) and not isinstance(v, bool):
+        return repr(v) if math.isfinite(v) else ("nan" if v != v else ("inf" if v > 0 else "-inf"))
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml_value(x) for x in v if x is not None) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {_toml_value(x)}" for k, x in v.items() if x is not None) + "}"
+    return json.dumps(str(v))
+
+
+def _refuses_or_reads(reader, path):
+    try:
+        reader(path)
+    except ValueError as exc:
+        assert str(path) in str(exc) or path.name in str(exc), exc
+
+
+@pytest.mark.parametrize("name", READERS)
+@FUZZ
+@given(data=st.binary(max_size=300))
+def test_any_bytes(tmp_path, name, data):
+    path = tmp_path / name
+    path.write_bytes(data)
+    _refuses_or_reads(READERS[name], path)
+
+
+@pytest.mark.parametrize("name", [n for n in READERS if n.endswith((".json", ".toml"))])
+@FUZZ
+@given(doc=objects)
+def test_any_document_of_the_format(tmp_path, name, doc):
+    path = tmp_path / name
+    if name.endswith(".json"):
+        path.write_text(json.dumps(doc, allow_nan=True))
+    else:
+        path.write_text("\n".join(f"{k} = {_toml_value(v)}" for k, v in doc.items() if v is not None) + "\n")
+    _refuses_or_reads(READERS[name], path)
+
+
+@pytest.mark.parametrize("name", [n for n in READERS if n.endswith(".csv")])
+@FUZZ
+@given(rows=st.lists(st.lists(st.one_of(numbers.map(str), st.text(max_size=6)), min_size=1, max_size=12),
+                     max_size=6),
+       header=st.sampled_from(["time_s,h0_target_deg,h0_angle_deg", "x_mm,y_mm,z_mm,qw,qx,qy,qz",
+                               "condition_mm,natural,confidence", "a,b"]))
+def test_any_table_of_the_format(tmp_path, name, rows, header):
+    path = tmp_path / name
+    path.write_text(header + "\n" + "\n".join(",".join(r) for r in rows) + "\n")
+    _refuses_or_reads(READERS[name], path)
+
+
+@pytest.mark.parametrize("name", READERS)
+def test_deep_nesting_utf16_a_folder_and_a_huge_field(tmp_path, name):
+    reader = READERS[name]
+    cases = {"nested": ("[" * 5000 if name.endswith(".json") else "a = " + "[" * 5000).encode(),
+             "utf16": '{"angles_deg": [0]}'.encode("utf-16"),
+             "huge_field": b"x_mm,y\n" + b"1" * 200_000 + b",2\n"}
+    for label, data in cases.items():
+        path = tmp_path / label / name
+        path.parent.mkdir()
+        path.write_bytes(data)
+        _refuses_or_reads(reader, path)
+    folder = tmp_path / "folder" / name
+    folder.mkdir(parents=True)
+    with pytest.raises(ValueError):
+        reader(folder)
