@@ -101,7 +101,7 @@ def test_calibrate_and_serve_refuse_what_cannot_work(tmp_path):
     run = tmp_path / "run"
     run.mkdir()
     r = vrscroll("calibrate", str(run), "--generations", "-1", "--population", "0")
-    assert r.returncode == 2 and "--generations -1" in r.stderr
+    assert r.returncode == 2 and "argument --generations: -1 is not within 1 to 100" in r.stderr
     r = vrscroll("calibrate", str(run), "--holdout", str(run))
     assert r.returncode == 2 and "one of the runs fitted to" in r.stderr
     r = vrscroll("serve", "--listen", "70000")
@@ -114,3 +114,15 @@ def test_a_picture_or_file_into_a_folder_is_refused(tmp_path):
     assert r.returncode == 2 and "is a folder" in r.stderr
     r = vrscroll("simulate", "1", "0", "0", "0", "0", "0", "--trace", str(tmp_path / "nowhere" / "t.csv"))
     assert r.returncode == 2 and "does not exist" in r.stderr
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["simulate", "1", "0", "0", "0", "0", "0", "--max-time", "1e9"], "--max-time"),  # 10^12 ticks of trace
+    (["simulate", "1", "0", "0", "0", "0", "0", "--max-time", "nan"], "--max-time"),
+    (["tune", "--duration", "1e9"], "--duration"), (["tune", "--population", "0"], "--population"),
+    (["mirror", "--angles", "0,0,0,0,0,0", "--serial", "x", "--tolerance-deg", "-5"], "--tolerance-deg"),
+    (["redirect", "a.json", "--sigma-mm", "inf"], "--sigma-mm"),
+])
+def test_numbers_on_the_command_line_are_finite_and_within_their_range(argv, option):
+    r = vrscroll(*argv)
+    assert r.returncode == 2 and f"argument {option}" in r.stderr and "not within" in r.stderr, r.stderr

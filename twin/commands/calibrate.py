@@ -8,7 +8,15 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.commands.options import add_device_option, add_json, add_refused, json_to_stdout, output_file, write_json
+from twin.commands.options import (
+    add_device_option,
+    add_json,
+    add_refused,
+    json_to_stdout,
+    output_file,
+    within,
+    write_json,
+)
 from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
 from twin.device.spec_toml import write_spec_toml
@@ -24,9 +32,9 @@ def add_arguments(p) -> None:
     p.add_argument("--out", type=output_file,
                    help="also write the calibrated spec to this TOML (without a device profile: default "
                         "spec.calibrated.toml)")
-    p.add_argument("--generations", type=int, default=8,
+    p.add_argument("--generations", type=within(1, MAX_GENERATIONS, whole=True), default=8,
                    help="cross-entropy generations of the search (default %(default)s)")
-    p.add_argument("--population", type=int, default=24, help="twin replays per generation (default %(default)s)")
+    p.add_argument("--population", type=within(4, MAX_POPULATION, whole=True), default=24, help="twin replays per generation (default %(default)s)")
     add_json(p, "the result")
     p.add_argument("--incomplete", action="store_true",
                    help="also fit runs that did not complete (killed or interrupted while recorded): what they "
@@ -51,9 +59,6 @@ def run(args) -> int:
     name = args.device or profile.name
     if not args.runs:
         raise UserError("give the HIL run folders to fit to (`vrscroll scenario FILE` writes the scenario to record)")
-    if not 1 <= args.generations <= MAX_GENERATIONS or not 4 <= args.population <= MAX_POPULATION:
-        raise UserError(f"--generations {args.generations} --population {args.population}: from 1 to "
-                        f"{MAX_GENERATIONS} generations of 4 to {MAX_POPULATION} replays")
     if args.holdout and any(Path(args.holdout).resolve() == Path(r).resolve() for r in args.runs):
         raise UserError(f"--holdout {args.holdout} is one of the runs fitted to: hold out a run recorded apart")
     spec = profile.spec

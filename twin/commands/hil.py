@@ -12,6 +12,7 @@ from twin.commands.options import (
     profile_line,
     profile_of,
     said_by_device,
+    within,
 )
 from twin.errors import UserError
 from twin.formats.gains import read_gains
@@ -29,7 +30,7 @@ def add_arguments(p) -> None:
     p.add_argument("scenario", help="scenario file, TOML or JSON (docs/tuning-hil-calibration.md)")
     add_serial(p, required=True)
     p.add_argument("--out", help="run folder (default hil-<scenario>-<time>)")
-    p.add_argument("--telemetry-hz", type=int, default=500, help="telemetry rate (default %(default)s)")
+    p.add_argument("--telemetry-hz", type=within(1, 1000, "Hz", whole=True), default=500, help="telemetry rate (default %(default)s)")
     p.add_argument("--gains", help="gains file (vrscroll tune --out) to push to the device before the run "
                    "(default: the device profile's gains, if it holds any)")
     p.add_argument("--log", help="session log, JSON lines (default <out>/session.jsonl)")

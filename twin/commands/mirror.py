@@ -14,6 +14,7 @@ from twin.commands.options import (
     profile_line,
     profile_of,
     said_by_device,
+    within,
 )
 from twin.errors import UserError
 from twin.formats.target import read_target
@@ -28,8 +29,8 @@ def add_arguments(p) -> None:
                    "(write --angles=-30,0,... when the first is negative)")
     add_serial(p, required=True)
     add_tolerance_deg(p)
-    p.add_argument("--settle-limit", type=float, default=2.0, help="s the move may take (default %(default)s)")
-    p.add_argument("--telemetry-hz", type=int, default=500, help="telemetry rate (default %(default)s)")
+    p.add_argument("--settle-limit", type=within(0.1, 60, "s"), default=2.0, help="s the move may take (default %(default)s)")
+    p.add_argument("--telemetry-hz", type=within(1, 1000, "Hz", whole=True), default=500, help="telemetry rate (default %(default)s)")
     p.add_argument("--log", default="vrscroll-session.jsonl", help="session log, JSON lines (default %(default)s)")
     p.add_argument("--override", action="store_true",
                    help="send even when the gate fails a check (logged); the device's own limits still apply")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -48,6 +49,20 @@ def refuse_renamed(p: argparse.ArgumentParser) -> None:
 def add_refused(p, old: str, new: str) -> None:
     """An option `old` that is refused with a message naming `new` (an option, or a command)."""
     p.add_argument(old, action=_Renamed, new=new, dest=f"_refused{old}")
+
+
+def within(low: float, high: float, unit: str = "", whole: bool = False):
+    """An argparse type: a finite number (a whole one when `whole`) from low to high, in `unit`; anything else
+    (NaN, 1e9 s, a negative count) is a usage error naming the range."""
+    def parse(text: str):
+        try:
+            value = int(text) if whole else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a {'whole ' if whole else ''}number") from None
+        if not (math.isfinite(value) and low <= value <= high):
+            raise argparse.ArgumentTypeError(f"{text} is not within {low:g} to {high:g}{' ' + unit if unit else ''}")
+        return value
+    return parse
 
 
 def output_file(text: str) -> str:
@@ -98,7 +113,7 @@ def add_serial(p, required: bool, what: str = "the device") -> None:
 
 
 def add_tolerance_deg(p, default: float = 5.0) -> None:
-    p.add_argument("--tolerance-deg", type=float, default=default, metavar="DEG",
+    p.add_argument("--tolerance-deg", type=within(0.1, 180, "deg"), default=default, metavar="DEG",
                    help="e-stop when a hinge parts from the twin's prediction by more than this, deg "
                         "(default %(default)s)")
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from websockets.exceptions import WebSocketException
 
-from twin.commands.options import add_json, comma_list, write_json
+from twin.commands.options import add_json, comma_list, within, write_json
 from twin.device.spec import load_spec
 from twin.errors import UserError
 from twin.link.emulator_process import EmulatorProcess
@@ -33,7 +33,7 @@ def add_arguments(p) -> None:
     p.add_argument("--variant", choices=VARIANTS, default="full", help="without --url: approximation variant")
     p.add_argument("--shapes", type=comma_list(shape_names()), default=shape_names(), metavar="S1,S2,...",
                    help="comma-separated shapes (default all eight evaluation shapes)")
-    p.add_argument("--attempts", type=int, default=4, help="approaches per shape until one morphs (default 4)")
+    p.add_argument("--attempts", type=within(1, 100, whole=True), default=4, help="approaches per shape until one morphs (default 4)")
     p.add_argument("--seed", type=int, default=0, help="seed of the starts after each shape's own (default 0)")
     add_json(p, "every session's record")
 
@@ -67,12 +67,7 @@ def _play(args, spec, shapes) -> list[dict]:
 
 
 def run(args) -> int:
-    shapes = args.shapes
-    unknown = [s for s in shapes if s not in shape_names()]
-    if unknown or not shapes:
-        raise UserError(f"--shapes: unknown {', '.join(unknown) or '(none given)'}; known: {', '.join(shape_names())}")
-    if args.attempts < 1:
-        raise UserError("--attempts must be at least 1")
+    shapes = args.shapes  # checked by --shapes' own type
     try:
         records = _play(args, load_spec(), shapes)
     except (RuntimeError, OSError, WebSocketException) as exc:  # LiveError, a process that did not start, a bad URL

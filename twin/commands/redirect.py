@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.commands.options import add_json, add_target, output_file, write_json
+from twin.commands.options import add_json, add_target, output_file, within, write_json
 from twin.device.spec import load_spec
 from twin.errors import UserError
 from twin.formats.pen import read_pen_samples, write_redirected
@@ -32,8 +32,8 @@ def add_arguments(p) -> None:
     p.add_argument("pens", metavar="PENS.csv", nargs="?", help="pen samples to redirect (see docs/redirection-perception.md)")
     add_target(p, shape_names(), required=False, role="the target (default: the one APPROX.json names)", start=False)
     p.add_argument("--out", metavar="FILE", type=output_file, help="redirected samples (default PENS_redirected.csv)")
-    p.add_argument("--sigma-mm", type=float, default=SIGMA * 1e3, help=f"Gaussian blur, mm (default {SIGMA * 1e3:g})")
-    p.add_argument("--padding-mm", type=float, default=PADDING * 1e3,
+    p.add_argument("--sigma-mm", type=within(0, 100, "mm"), default=SIGMA * 1e3, help=f"Gaussian blur, mm (default {SIGMA * 1e3:g})")
+    p.add_argument("--padding-mm", type=within(0, 200, "mm"), default=PADDING * 1e3,
                    help=f"field beyond the device's edges, mm (default {PADDING * 1e3:g})")
     p.add_argument("--png", metavar="FILE", type=output_file, help="picture of the offsets over the device")
     add_json(p, "the summary")
@@ -55,8 +55,6 @@ def _load(args, spec):
 def run(args) -> int:
     spec = load_spec()
     approx, name, mesh = _load(args, spec)
-    if args.sigma_mm < 0 or args.padding_mm < 0:
-        raise UserError("--sigma-mm and --padding-mm must be >= 0")
     pens = read_pen_samples(args.pens) if args.pens else None  # bad files fail before the long part
     print(f"fields of {name} (cached after the first run) ...", flush=True)
     fields = build_fields(mesh)

@@ -3,7 +3,7 @@ with `vrscroll hil` and fit with `vrscroll calibrate` (docs/tuning-hil-calibrati
 
 from __future__ import annotations
 
-from twin.commands.options import add_device_option, add_serial, profile_line, profile_of
+from twin.commands.options import add_device_option, add_serial, profile_line, profile_of, within
 from twin.errors import UserError
 from twin.formats.gains import read_gains
 from twin.formats.scenario import write_scenario
@@ -17,7 +17,7 @@ def add_arguments(p) -> None:
     add_serial(p, required=False, what="read the gains from this device")
     p.add_argument("--gains", metavar="FILE", help="a gains file instead of the device's (default: the profile's)")
     p.add_argument("--seed", type=int, default=0, help="which angles (default %(default)s)")
-    p.add_argument("--cycles", type=int, default=2,
+    p.add_argument("--cycles", type=within(1, 100, whole=True), default=2,
                    help="cycles of a large move and a slow ramp out and back (default %(default)s)")
     add_device_option(p)
 
@@ -38,8 +38,6 @@ def run(args) -> int:
             raise UserError(f"link: {exc}") from None
     else:
         gains = profile.gains
-    if args.cycles < 1:
-        raise UserError("--cycles must be at least 1")
     scenario = calibration_scenario(spec, gains, seed=args.seed, cycles=args.cycles,
                                     name=f"calibration-{args.seed}")
     write_scenario(args.scenario, scenario)

@@ -12,6 +12,7 @@ from twin.commands.options import (
     output_file,
     profile_line,
     profile_of,
+    within,
     write_json,
 )
 from twin.sim.response import move_report
@@ -22,7 +23,7 @@ from viz.viewer import play_trace
 def add_arguments(p) -> None:
     p.add_argument("targets", nargs="+", type=float, metavar="DEG",
                    help="hinge targets in degrees, one per hinge (hinge 0 first); positive bends concave")
-    p.add_argument("--max-time", type=float, default=3.0, help="longest the move may take, s (default 3)")
+    p.add_argument("--max-time", type=within(0.01, 60, "s"), default=3.0, help="longest the move may take, s (default 3)")
     p.add_argument("--hold", action="store_true", help="run the full --max-time instead of stopping once settled")
     p.add_argument("--trace", metavar="CSV", type=output_file, help="write the firmware-rate trace to this CSV file")
     add_json(p, "the report")

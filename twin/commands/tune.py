@@ -18,6 +18,7 @@ from twin.commands.options import (
     profile_line,
     profile_of,
     said_by_device,
+    within,
     write_json,
 )
 from twin.errors import UserError
@@ -34,18 +35,18 @@ from twin.tuning.tuner import TuneGoal, step_report, tolerance_ranges, tune
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--max-overshoot-deg", type=float, default=1.0,
+    p.add_argument("--max-overshoot-deg", type=within(0.01, 90, "deg"), default=1.0,
                    help="largest overshoot allowed on any plant, deg (default %(default)s)")
-    p.add_argument("--tolerance-pct", type=float, default=20.0, metavar="PCT",
+    p.add_argument("--tolerance-pct", type=within(0, 99, "%"), default=20.0, metavar="PCT",
                    help="uncalibrated device: motor constant and gear friction +- this percent: the plants tuned "
                         "for are the nominal and the 4 corners, the cost is the worst (default %(default)s); a "
                         "calibrated profile's intervals replace it")
     p.add_argument("--step-deg", type=float, default=30.0,
                    help="step every hinge takes from flat, deg (default %(default)s)")
-    p.add_argument("--duration", type=float, default=1.0,
+    p.add_argument("--duration", type=within(0.1, 10, "s"), default=1.0,
                    help="s simulated per candidate, and the window of the reported metrics (default %(default)s)")
-    p.add_argument("--population", type=int, default=32, help="candidates per generation (default %(default)s)")
-    p.add_argument("--generations", type=int, default=8, help="cross-entropy generations (default %(default)s)")
+    p.add_argument("--population", type=within(4, 1000, whole=True), default=32, help="candidates per generation (default %(default)s)")
+    p.add_argument("--generations", type=within(1, 100, whole=True), default=8, help="cross-entropy generations (default %(default)s)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores)")
     p.add_argument("--backend", choices=BACKENDS,
@@ -69,10 +70,6 @@ def _line(label, rows):
 
 
 def run(args) -> int:
-    if not 0 <= args.tolerance_pct < 100:
-        raise UserError(f"--tolerance-pct {args.tolerance_pct}: expected a percentage in [0, 100)")
-    if args.max_overshoot_deg <= 0:
-        raise UserError("--max-overshoot-deg must be positive")
     profile = profile_of(args)
     spec = profile.spec
     step = math.radians(args.step_deg)
