@@ -24,6 +24,7 @@ import numpy as np
 
 from controllers.pid import PidGains
 from twin.device.spec import MAX_HINGES, DeviceSpec
+from twin.errors import UserError
 from twin.paths import cache_dir
 
 FIRMWARE_DIR = Path(__file__).resolve().parent / "firmware"
@@ -33,8 +34,8 @@ LIBRARY_FLAGS = (*WARNINGS, "-O2", "-shared", "-fPIC")
 TX_CHUNK = 4096  # VRS_TX_CAP: everything queued fits in one read
 
 
-class FirmwareBuildError(RuntimeError):
-    """The C core could not be compiled (no compiler, or it refused the sources)."""
+class FirmwareBuildError(UserError):
+    """The firmware could not be compiled (no compiler, or it refused the sources): a one-line CLI error."""
 
 
 class Config(ctypes.Structure):
@@ -83,13 +84,14 @@ def pid_gains(g: Gains) -> PidGains:
 
 # ---- building ---------------------------------------------------------------------------
 
-def compiler() -> str:
-    """The C compiler: $CC, else cc; FirmwareBuildError naming it where it is missing."""
-    name = os.environ.get("CC", "cc")
+def compiler(variable: str = "CC", default: str = "cc", language: str = "C", package: str = "gcc") -> str:
+    """The C compiler: $CC, else cc (or another language's, by its variable); FirmwareBuildError naming it
+    where it is missing."""
+    name = os.environ.get(variable, default)
     path = shutil.which(name)
     if path is None:
-        raise FirmwareBuildError(f"the firmware core needs a C compiler and `{name}` was not found on PATH: "
-                                 "install one (Debian/Ubuntu: apt install gcc) or set CC")
+        raise FirmwareBuildError(f"the firmware needs a {language} compiler and `{name}` was not found on PATH: "
+                                 f"install one (Debian/Ubuntu: apt install {package}) or set {variable}")
     return path
 
 
@@ -97,14 +99,13 @@ def core_sources() -> list[Path]:
     return sorted(FIRMWARE_DIR.glob("*.c"))
 
 
-def build(flags=LIBRARY_FLAGS, extra_sources=(), name: str = "vrs_core", suffix: str = ".so") -> Path:
-    """Compile the core (and extra_sources) with flags into the cache; the cached file if present."""
-    cc = compiler()
-    sources = [*core_sources(), *map(Path, extra_sources)]
+def cached_build(name: str, suffix: str, key: list[str], inputs: list[Path], make) -> Path:
+    """The cached file for `key` (compilers, flags) and `inputs` (their names and bytes), made by
+    make(tmp_path) into a temporary name first when missing; FirmwareBuildError from make passes on."""
     h = hashlib.sha256()
-    for part in (cc, *flags):
+    for part in key:
         h.update(part.encode() + b"\0")
-    for p in [*sorted(FIRMWARE_DIR.glob("*.h")), *sources]:
+    for p in inputs:
         h.update(p.name.encode() + b"\0" + p.read_bytes() + b"\0")
     out = cache_dir("firmware") / f"{name}-{h.hexdigest()[:16]}{suffix}"
     if out.exists():
@@ -113,15 +114,28 @@ def build(flags=LIBRARY_FLAGS, extra_sources=(), name: str = "vrs_core", suffix:
     fd, tmp = tempfile.mkstemp(prefix=out.name, dir=out.parent)
     os.close(fd)
     try:
-        r = subprocess.run([cc, *flags, f"-I{FIRMWARE_DIR}", "-o", tmp, *map(str, sources)],
-                           capture_output=True, text=True)
-        if r.returncode != 0:
-            raise FirmwareBuildError(f"{cc} could not build the firmware core:\n{r.stderr.strip()}")
+        make(tmp)
         os.replace(tmp, out)
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
     return out
+
+
+def run_compiler(args: list[str], what: str) -> None:
+    """Run a compiler command; FirmwareBuildError with its messages when it fails."""
+    r = subprocess.run(args, capture_output=True, text=True)
+    if r.returncode != 0:
+        raise FirmwareBuildError(f"{args[0]} could not build {what}:\n{r.stderr.strip()}")
+
+
+def build(flags=LIBRARY_FLAGS, extra_sources=(), name: str = "vrs_core", suffix: str = ".so") -> Path:
+    """Compile the core (and extra_sources) with flags into the cache; the cached file if present."""
+    cc = compiler()
+    sources = [*core_sources(), *map(Path, extra_sources)]
+    return cached_build(name, suffix, [cc, *flags], [*sorted(FIRMWARE_DIR.glob("*.h")), *sources],
+                        lambda tmp: run_compiler([cc, *flags, f"-I{FIRMWARE_DIR}", "-o", tmp, *map(str, sources)],
+                                                 "the firmware core"))
 
 
 _VP, _U8, _U16, _U32, _I32, _F = (ctypes.c_void_p, ctypes.c_uint8, ctypes.c_uint16, ctypes.c_uint32, ctypes.c_int32,
@@ -136,7 +150,8 @@ _SIGNATURES = {  # name: (argtypes, restype), as vrs_core.h declares them
     "vrs_set_gains": ([_VP, _U8, _VP], ctypes.c_int),
     "vrs_set_telemetry_rate": ([_VP, _U16], ctypes.c_int),
     "vrs_estop": ([_VP], None),
-    "vrs_clear_fault": ([_VP], None),
+    "vrs_clear_fault": ([_VP], ctypes.c_int),
+    "vrs_set_reset_reason": ([_VP, _U8], None),
     "vrs_get_state": ([_VP], _U8),
     "vrs_get_faults": ([_VP], _U16),
     "vrs_get_fault_hinge": ([_VP], _U8),
@@ -213,6 +228,13 @@ class Core:
                           self._duty.ctypes.data, self._decay.ctypes.data)
         return self._duty[:n].copy(), self._decay[:n].copy()
 
+    def run_tick(self, now_us: int, counts, current_ma, battery_mv: int) -> tuple[np.ndarray, np.ndarray]:
+        """One tick as a board runs it: the battery read, vrs_tick, the bridges' PWM (battery compensated)
+        and decay per hinge (controllers.sketch.Sketch has the same method for the whole sketch)."""
+        self.battery(battery_mv)
+        _, decay = self.tick(now_us, counts, current_ma)
+        return self.pwm(), decay
+
     def battery(self, mv: int) -> None:
         """The battery voltage now, mV, as the device's ADC reads it."""
         self.lib.vrs_set_battery_mv(self.address, max(0, min(int(mv), 0xFFFF)))
@@ -239,8 +261,13 @@ class Core:
     def estop(self) -> None:
         self.lib.vrs_estop(self.address)
 
-    def clear_fault(self) -> None:
-        self.lib.vrs_clear_fault(self.address)
+    def clear_fault(self) -> int:
+        """0, or Nack.FAULT_PERSISTS while a HARDWARE fault stands."""
+        return self.lib.vrs_clear_fault(self.address)
+
+    def set_reset_reason(self, reason: int) -> None:
+        """Why the device last started (protocol.ResetReason), as HELLO_REPLY reports it."""
+        self.lib.vrs_set_reset_reason(self.address, reason)
 
     @property
     def state(self) -> int:

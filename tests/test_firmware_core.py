@@ -65,13 +65,13 @@ def refusals(spec):
            ("target beyond -range", P.encode(P.SetTargets((-lim - 1,) + (0,) * (n - 1)), 9), P.MsgId.SET_TARGETS,
             P.Nack.OUT_OF_RANGE, 0),
            ("five targets", P.encode(P.SetTargets((1,) * 5), 9), P.MsgId.SET_TARGETS, P.Nack.BAD_LENGTH, 5),
-           ("targets body short", raw(1, 0x03, 9, bytes([6]) + b"\x01" * 20), P.MsgId.SET_TARGETS,
+           ("targets body short", raw(P.PROTOCOL_VERSION, 0x03, 9, bytes([6]) + b"\x01" * 20), P.MsgId.SET_TARGETS,
             P.Nack.BAD_LENGTH, 6),
-           ("gains body short", raw(1, 0x04, 9, b"\xff" * 19), P.MsgId.SET_GAINS, P.Nack.BAD_LENGTH, 0),
-           ("hello with a body", raw(1, 0x01, 9, b"\x01"), P.MsgId.HELLO, P.Nack.BAD_LENGTH, 0),
-           ("protocol version 2", raw(2, 0x03, 9, bytes([n]) + b"\x01" * 4 * n),
+           ("gains body short", raw(P.PROTOCOL_VERSION, 0x04, 9, b"\xff" * 19), P.MsgId.SET_GAINS, P.Nack.BAD_LENGTH, 0),
+           ("hello with a body", raw(P.PROTOCOL_VERSION, 0x01, 9, b"\x01"), P.MsgId.HELLO, P.Nack.BAD_LENGTH, 0),
+           ("another protocol version", raw(P.PROTOCOL_VERSION + 1, 0x03, 9, bytes([n]) + b"\x01" * 4 * n),
             P.MsgId.SET_TARGETS, P.Nack.BAD_VERSION, P.PROTOCOL_VERSION),
-           ("unknown id 0x55", raw(1, 0x55, 9, b""), 0x55, P.Nack.UNKNOWN_MESSAGE, 0),
+           ("unknown id 0x55", raw(P.PROTOCOL_VERSION, 0x55, 9, b""), 0x55, P.Nack.UNKNOWN_MESSAGE, 0),
            ("telemetry rate over the maximum", P.encode(P.SetTelemetryRate(501), 9), P.MsgId.SET_TELEMETRY_RATE,
             P.Nack.BAD_VALUE, 0),
            ("gains for hinge 6", P.encode(P.SetGains(n, P.Gains.from_pid(PidGains.from_spec(spec))), 9),
@@ -265,7 +265,7 @@ def test_estop_brakes_and_clear_fault_idles_at_the_present_counts(spec):
 
 def test_hello_and_state_report_the_config_and_the_tick(spec):
     c = make(spec)
-    assert ask(c, P.Hello())[1] == P.HelloReply(core.FIRMWARE_VERSION, 1, 6, 1000, 200, 500)
+    assert ask(c, P.Hello())[1] == P.HelloReply(core.FIRMWARE_VERSION, P.PROTOCOL_VERSION, 6, 1000, 200, 500)
     c.rx(b"\x01\x02\x00", 0)
     c.tick(5000, [1, 2, 3, 4, 5, 6])
     assert ask(c, P.GetState(), 2, 6000)[1] == P.StateMsg(core.FIRMWARE_VERSION, P.State.IDLE, 0, 0xFF, 6000, 1,

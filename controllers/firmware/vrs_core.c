@@ -28,10 +28,11 @@ static int gains_valid(const vrs_gains *g)
 
 /* ---- transmit queue (ring) ------------------------------------------------------------ */
 
-static int queue(vrs_core *c, const uint8_t *bytes, uint32_t n)
+/* queue n bytes whole, or nothing (0) when they would leave less than `spare` bytes free */
+static int queue(vrs_core *c, const uint8_t *bytes, uint32_t n, uint32_t spare)
 {
     uint32_t at, first;
-    if (n == 0 || c->tx_len + n > VRS_TX_CAP)
+    if (n == 0 || c->tx_len + n + spare > VRS_TX_CAP)
         return 0;
     at = (c->tx_head + c->tx_len) % VRS_TX_CAP;
     first = VRS_TX_CAP - at < n ? VRS_TX_CAP - at : n;
@@ -66,7 +67,7 @@ static void reply(vrs_core *c, uint8_t request, uint16_t seq, uint16_t request_c
     uint8_t frame_bytes[VRS_MAX_PAYLOAD + VRS_MAX_PAYLOAD / 254 + 2];
     uint32_t len = vrs_encode(id, seq, values, n, frame_bytes, sizeof frame_bytes);
     vrs_reply *r = &c->replies[c->reply_next];
-    queue(c, frame_bytes, len);
+    queue(c, frame_bytes, len, 0);
     if (!acts(request) || len == 0 || len > VRS_REPLY_CAP)
         return;
     memcpy(r->payload, frame_bytes, len);
@@ -111,12 +112,24 @@ void vrs_estop(vrs_core *c)
         fault(c, VRS_FAULT_ESTOP, 0xFF);
 }
 
-void vrs_clear_fault(vrs_core *c)
+int vrs_clear_fault(vrs_core *c)
 {
+    if (c->faults & VRS_FAULT_HARDWARE)
+        return VRS_NACK_FAULT_PERSISTS;
     c->state = VRS_STATE_IDLE;
     c->faults = 0;
     c->fault_hinge = 0xFF;
     memcpy(c->targets, c->counts, sizeof c->targets);
+    return 0;
+}
+
+void vrs_set_reset_reason(vrs_core *c, uint8_t reason) { c->reset_reason = reason; }
+
+void vrs_hardware_fault(vrs_core *c, uint8_t step, uint8_t hinge)
+{
+    if (c->setup_error == VRS_SETUP_NONE)
+        c->setup_error = step;
+    fault(c, VRS_FAULT_HARDWARE, hinge);
 }
 
 static int set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us, uint32_t *detail)
@@ -254,6 +267,8 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         out[5] = c->cfg.loop_rate_hz;
         out[6] = c->cfg.watchdog_ms;
         out[7] = c->cfg.max_telemetry_hz;
+        out[8] = c->reset_reason;
+        out[9] = c->setup_error;
         memset(c->replies, 0, sizeof c->replies);  /* a new session: its seqs start again */
         reply(c, id, seq, crc, VRS_MSG_HELLO_REPLY, out, 0);
         return;
@@ -295,8 +310,8 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         r = 0;
         break;
     case VRS_MSG_CLEAR_FAULT:
-        vrs_clear_fault(c);
-        r = 0;
+        r = vrs_clear_fault(c);
+        detail = c->faults;
         break;
     case VRS_MSG_SET_TELEMETRY_RATE:
         r = vrs_set_telemetry_rate(c, (uint16_t)v[0]);
@@ -332,7 +347,7 @@ static void frame(vrs_core *c, const uint8_t *bytes, uint32_t len)
         const vrs_reply *m = &c->replies[i];
         if (m->used && m->seq == seq && m->request_crc == crc && c->now_us - m->at_us < VRS_REPLY_KEEP_US) {
             /* a repeat: the original answer, and nothing run again */
-            queue(c, m->payload, m->len);
+            queue(c, m->payload, m->len, 0);
             return;
         }
     }
@@ -417,7 +432,7 @@ static void telemetry(vrs_core *c)
         v[4 + 3 * n + k] = (uint32_t)(int32_t)c->current_ma[k];
     }
     len = vrs_encode(VRS_MSG_TELEMETRY, c->telemetry_seq, v, n, frame_bytes, sizeof frame_bytes);
-    if (!queue(c, frame_bytes, len))
+    if (!queue(c, frame_bytes, len, VRS_TX_REPLY_RESERVE))
         c->telemetry_dropped++;
     c->telemetry_seq++;
 }
@@ -494,12 +509,15 @@ vrs_pid *vrs_pid_memory(vrs_core *c)
 void vrs_service(vrs_core *c, const vrs_hw *hw)
 {
     uint8_t buf[64];
-    int got;
+    int got, room;
     uint32_t n;
     while ((got = hw->serial_read(hw->ctx, buf, (int)sizeof buf)) > 0)
         vrs_rx(c, buf, (uint32_t)got, hw->micros(hw->ctx));
-    while ((n = vrs_tx(c, buf, sizeof buf)) > 0)
+    room = hw->serial_room(hw->ctx);
+    while (room > 0 && (n = vrs_tx(c, buf, room < (int)sizeof buf ? (uint32_t)room : sizeof buf)) > 0) {
         hw->serial_write(hw->ctx, buf, (int)n);
+        room -= (int)n;
+    }
 }
 
 void vrs_control(vrs_core *c, const vrs_hw *hw)

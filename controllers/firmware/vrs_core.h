@@ -21,7 +21,8 @@ extern "C" {
 
 #define VRS_MAX_HINGES 8
 #define VRS_RX_CAP (VRS_MAX_PAYLOAD + VRS_MAX_PAYLOAD / 254 + 2) /* longest COBS frame kept */
-#define VRS_TX_CAP 4096u        /* queued bytes for the host; telemetry is dropped beyond this */
+#define VRS_TX_CAP 4096u        /* queued bytes for the host */
+#define VRS_TX_REPLY_RESERVE 256u /* telemetry is dropped first: it may fill the queue only up to this short of full */
 #define VRS_REPLY_MEMORY 4      /* commands whose replies are kept for repeats (same seq) */
 #define VRS_REPLY_CAP 16        /* a kept reply's frame: ACK 13 bytes, NACK 11 */
 #define VRS_REPLY_KEEP_US 1000000u /* how long: the host's retries come within 0.4 s */
@@ -96,6 +97,8 @@ typedef struct vrs_core {
     uint32_t rx_bad_frames;
     uint32_t rx_good_frames;
     uint16_t battery_mv;                        /* last battery reading (vrs_set_battery_mv); 0 = not sensed */
+    uint8_t reset_reason;                       /* why the device last started (esp_reset_reason_t), for HELLO */
+    uint8_t setup_error;                        /* VRS_SETUP_*: the first set-up call that failed; 0 none */
     uint8_t rx_buf[VRS_RX_CAP];
     uint16_t rx_len;
     uint8_t rx_overflow;
@@ -135,7 +138,13 @@ int vrs_set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us);
 int vrs_set_gains(vrs_core *c, uint8_t hinge /* VRS_BROADCAST: all */, const vrs_gains *g);
 int vrs_set_telemetry_rate(vrs_core *c, uint16_t rate_hz);
 void vrs_estop(vrs_core *c);
-void vrs_clear_fault(vrs_core *c);
+int vrs_clear_fault(vrs_core *c);  /* 0, or VRS_NACK_FAULT_PERSISTS while a HARDWARE fault stands */
+
+/* The board's start, after vrs_init: why it reset (esp_reset_reason_t, reported in HELLO_REPLY), and a
+ * set-up call that failed (VRS_SETUP_*, for the hinge it was setting up, 0xFF for the board): the core
+ * goes to FAULT with VRS_FAULT_HARDWARE, which CLEAR_FAULT cannot clear; only the first failure is kept. */
+void vrs_set_reset_reason(vrs_core *c, uint8_t reason);
+void vrs_hardware_fault(vrs_core *c, uint8_t step, uint8_t hinge);
 
 /* read-only accessors */
 uint8_t vrs_get_state(const vrs_core *c);
@@ -174,12 +183,13 @@ typedef struct {
     void (*read_counts)(void *ctx, int32_t *counts);
     void (*write_drive)(void *ctx, const float *duty, const uint8_t *decay);
     int (*serial_read)(void *ctx, uint8_t *buf, int max);
-    void (*serial_write)(void *ctx, const uint8_t *buf, int n);
+    void (*serial_write)(void *ctx, const uint8_t *buf, int n);  /* never blocks: n <= serial_room() */
+    int (*serial_room)(void *ctx);                      /* bytes serial_write takes now without waiting */
     int (*read_current_ma)(void *ctx, int16_t *ma);    /* optional (NULL); 0 on success */
     int (*read_battery_mv)(void *ctx, uint16_t *mv);   /* optional (NULL); 0 on success */
 } vrs_hw;
 
-void vrs_service(vrs_core *c, const vrs_hw *hw);   /* serial in -> vrs_rx, vrs_tx -> serial out */
+void vrs_service(vrs_core *c, const vrs_hw *hw);   /* serial in -> vrs_rx, vrs_tx -> serial out, as much as there is room for */
 void vrs_control(vrs_core *c, const vrs_hw *hw);   /* one tick through hw: read, vrs_tick, write */
 
 #ifdef __cplusplus

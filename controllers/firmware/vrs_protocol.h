@@ -4,7 +4,7 @@
 #define VRS_PROTOCOL_H
 
 /* framing (docs/protocol.md) */
-#define VRS_PROTOCOL_VERSION 1
+#define VRS_PROTOCOL_VERSION 2
 #define VRS_MAX_PAYLOAD 512
 #define VRS_DUTY_SCALE 32767
 #define VRS_GAIN_SCALE 10000000
@@ -42,7 +42,7 @@
     X(GET_GAINS, "B", "") \
     X(ACK, "BI", "") \
     X(NACK, "BBB", "") \
-    X(HELLO_REPLY, "BBBBBHHH", "") \
+    X(HELLO_REPLY, "BBBBBHHHBB", "") \
     X(STATE, "BBBBHBII", "ii") \
     X(GAINS, "BiiiHHHH", "") \
     X(TELEMETRY, "IBHB", "iihh")
@@ -68,6 +68,17 @@
 #define VRS_FAULT_STALL 0x04
 #define VRS_FAULT_LIMIT 0x08
 #define VRS_FAULT_OVERCURRENT 0x10
+#define VRS_FAULT_HARDWARE 0x20
+
+/* the board's set-up steps (HELLO_REPLY setup_error) */
+#define VRS_SETUP_NONE 0
+#define VRS_SETUP_PWM_TIMER 1
+#define VRS_SETUP_PWM_OPERATOR 2
+#define VRS_SETUP_PWM_COMPARATOR 3
+#define VRS_SETUP_PWM_GENERATOR 4
+#define VRS_SETUP_ENCODER_COUNTER 5
+#define VRS_SETUP_TICK_TIMER 6
+#define VRS_SETUP_SERIAL 7
 
 /* gains SET_GAINS accepts, SI, inclusive */
 #define VRS_BOUND_KP_MIN 0.0f

@@ -48,6 +48,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--corrupt", type=float, default=0.0,
                    help="probability per frame sent of a flipped byte and of inserted garbage (default 0)")
     p.add_argument("--seed", type=int, default=0, help="random seed: the plant drawn, missed edges, corruption")
+    p.add_argument("--sketch", action="store_true",
+                   help="run the whole ESP32-S3 sketch on stand-ins for its peripherals (encoders decoded from "
+                        "quadrature edges, MCPWM through the H-bridges, USB CDC buffers), not the C core alone "
+                        "(docs/firmware.md, 'The sketch in the loop'); needs a C++ compiler")
     p.add_argument("--ideal", action="store_true",
                    help="the twin's own plant: nothing drawn, no latency (the other options still apply)")
 
@@ -83,6 +87,9 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
     for flag, value in (("--jam-after", args.jam_after), ("--drop-after", args.drop_after)):
         if value is not None and not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{flag} {value}: a time in s, finite and not negative")
+    if args.sketch and args.watchdog_ms is not None:
+        raise ValueError("--watchdog-ms: the sketch's watchdog is the spec's, compiled into its header; "
+                         "it applies to the C core alone (without --sketch)")
     if args.seed < 0:
         raise ValueError(f"--seed {args.seed}: not negative")
     default = PlantRanges()
@@ -98,7 +105,8 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
         raise ValueError(f"{_flag(field)}: {reason}") from None
     faults = FaultOptions(jam_hinge=args.jam_hinge, jam_after=args.jam_after, drop_after=args.drop_after,
                           corrupt=args.corrupt)
-    return drawn_options(ranges, faults, args.seed, args.watchdog_ms, args.encoder_miss, args.pack_voltage)
+    return drawn_options(ranges, faults, args.seed, args.watchdog_ms, args.encoder_miss, args.pack_voltage,
+                         args.sketch)
 
 
 def run(args) -> int:

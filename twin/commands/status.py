@@ -40,6 +40,9 @@ def run(args) -> int:
     print(profile_line(profile))
     print(f"firmware {'.'.join(map(str, s.firmware))}, protocol {info.protocol}, {info.n_hinges} hinges, "
           f"loop {info.loop_rate_hz} Hz, watchdog {info.watchdog_ms} ms")
+    print(f"started  {P.enum_name(P.ResetReason, info.reset_reason)}"
+          + ("" if info.setup_error == P.SetupStep.NONE else
+             f"; set-up failed at {P.enum_name(P.SetupStep, info.setup_error)} (docs/firmware.md, 'Set-up faults')"))
     print(f"state    {P.State(s.state).name}")
     print(f"faults   {faults_text(s.faults)}" + (f" (hinge {s.fault_hinge})" if s.fault_hinge != 0xFF else ""))
     print("angles   " + " ".join(f"{a:7.1f}" for a in deg) + "  deg")

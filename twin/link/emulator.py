@@ -1,4 +1,9 @@
-"""An emulated VRScroll device, software in the loop: the device's C firmware core on a MuJoCo plant.
+"""An emulated VRScroll device, software in the loop: the device's firmware on a MuJoCo plant.
+
+The firmware is the C core alone (controllers.core), or with `sketch=True` the whole ESP32-S3
+sketch on stand-ins for its peripherals (controllers.sketch): its encoders decoded from quadrature
+edges, its PWM through the H-bridges' truth table, its serial port's buffers. Both give the same
+`run_tick(now_us, counts, current_ma, battery_mv) -> (pwm, decay)`.
 
 `Emulator` is one device, driven tick by tick: `receive(bytes)` as they arrive
 from the host, `step()` once per firmware tick, `take_output()` for the bytes it
@@ -25,6 +30,7 @@ import numpy as np
 from controllers import core
 from controllers.core import tick_us
 from controllers.pid import PidGains
+from controllers.sketch import Sketch
 from twin.device.spec import DeviceSpec, load_spec
 from twin.link import protocol as P
 from twin.link.faults import FaultOptions, Faults
@@ -35,21 +41,24 @@ BACKLOG = 4096  # bytes out of the firmware but not yet taken by the host: it is
 
 @dataclasses.dataclass(frozen=True)
 class EmulatorOptions:
-    """The emulated device: its plant, its faults, its watchdog (None: the spec's), the random seed."""
+    """The emulated device: its plant, its faults, its watchdog (None: the spec's), the random seed, and
+    whether the firmware is the whole ESP32-S3 sketch on its peripherals' stand-ins (controllers.sketch)
+    or the C core alone."""
 
     plant: PlantOptions = PlantOptions()
     faults: FaultOptions = FaultOptions()
     watchdog_ms: int | None = None
     seed: int = 0
+    sketch: bool = False
 
 
 def drawn_options(ranges: PlantRanges, faults: FaultOptions, seed: int, watchdog_ms: int | None = None,
-                  encoder_miss: float = 0.0, pack_voltage: float | None = None) -> EmulatorOptions:
+                  encoder_miss: float = 0.0, pack_voltage: float | None = None, sketch: bool = False) -> EmulatorOptions:
     """An emulated device whose plant and latency are drawn within `ranges` from `seed` (the faults' latency
     replaced by the drawn one)."""
     plant, latency = draw_plant(ranges, random.Random(seed), encoder_miss, pack_voltage)
     return EmulatorOptions(plant=plant, faults=dataclasses.replace(faults, latency_ms=latency),
-                           watchdog_ms=watchdog_ms, seed=seed)
+                           watchdog_ms=watchdog_ms, seed=seed, sketch=sketch)
 
 
 class Emulator:
@@ -64,10 +73,16 @@ class Emulator:
         self.faults = Faults(self.opt.faults, self.rng)
         self.dt = s.firmware_dt
         self.tick = 0
-        config = core.config_from_spec(s)
-        if self.opt.watchdog_ms is not None:
-            config.watchdog_ms = self.opt.watchdog_ms
-        self.firmware = core.Core(config, [PidGains.from_spec(s)] * s.n_hinges, self.plant.counts)
+        if self.opt.sketch:
+            if self.opt.watchdog_ms is not None and self.opt.watchdog_ms != round(s.watchdog * 1000):
+                raise ValueError("the sketch's watchdog is the spec's (its header's): --watchdog-ms is for the bare core")
+            self.firmware = Sketch(self.plant.counts, P.ResetReason.POWERON)
+        else:
+            config = core.config_from_spec(s)
+            if self.opt.watchdog_ms is not None:
+                config.watchdog_ms = self.opt.watchdog_ms
+            self.firmware = core.Core(config, [PidGains.from_spec(s)] * s.n_hinges, self.plant.counts)
+            self.firmware.set_reset_reason(P.ResetReason.POWERON)
         self.out = bytearray()  # bytes for the host, not yet taken
         self._heard = P.Decoder()  # reads what the firmware is given and what it answers, for the log
         self._said = P.Decoder()
@@ -109,10 +124,10 @@ class Emulator:
             self._log_rx(data)
             self.firmware.rx(data, now_us)
         sensed = np.clip(np.rint(self.plant.current * 1000), -32768, 32767)  # mA, the last tick's winding current
-        self.firmware.battery(round(self.plant.bus * 1000))  # the battery the ADC reads, from the last tick
-        _, decay = self.firmware.tick(now_us, self.plant.sense(), sensed)
+        # the battery the ADC reads is the last tick's bus voltage
+        pwm, decay = self.firmware.run_tick(now_us, self.plant.sense(), sensed, round(self.plant.bus * 1000))
         self._log_faults()
-        self.plant.actuate(self.firmware.pwm(), decay)
+        self.plant.actuate(pwm, decay)
         jammed = self.faults.jam(self.plant, self.firmware.state == P.State.ACTIVE, self.time)
         if jammed is not None:
             self._log("jam", hinge=self.opt.faults.jam_hinge, angle_deg=math.degrees(jammed))

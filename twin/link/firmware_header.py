@@ -50,6 +50,8 @@ def header(spec: DeviceSpec | None = None) -> str:
     out += [f"#define VRS_STATE_{s.name} {s.value}" for s in P.State]
     out += ["", "/* fault bits */"]
     out += [f"#define VRS_FAULT_{f.name} 0x{f.value:02X}" for f in P.Fault if f.value]
+    out += ["", "/* the board's set-up steps (HELLO_REPLY setup_error) */"]
+    out += [f"#define VRS_SETUP_{x.name} {x.value}" for x in P.SetupStep]
     out += ["", "/* gains SET_GAINS accepts, SI, inclusive */"]
     for name, (lo, hi) in GAIN_BOUNDS.items():
         fmt = str if isinstance(lo, int) else _float

@@ -22,7 +22,7 @@ import struct
 
 from controllers.pid import PidGains
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # 2: HELLO_REPLY carries the reset reason and the failed set-up step
 MAX_FRAME = 512  # bytes of decoded payload (header + body + crc); longer is garbage
 DUTY_SCALE = 32767  # duty [-1, 1] on the wire as int16 duty * 32767
 GAIN_SCALE = 10_000_000  # kp, ki, kd on the wire as int32 gain * 1e7
@@ -78,6 +78,42 @@ class Fault(enum.IntFlag):
     STALL = 0x04  # a hinge did not move under high duty (jammed)
     LIMIT = 0x08  # a hinge passed its range
     OVERCURRENT = 0x10  # a winding current over the limit
+    HARDWARE = 0x20  # a peripheral's set-up failed at boot (HELLO_REPLY's setup_error names it); persists
+
+
+class ResetReason(enum.IntEnum):
+    """Why the device last started: esp_reset_reason_t (ESP-IDF 5.x, components/esp_system/include/esp_system.h)."""
+
+    UNKNOWN = 0
+    POWERON = 1
+    EXT = 2  # the reset pin
+    SW = 3  # esp_restart()
+    PANIC = 4  # an exception or abort
+    INT_WDT = 5  # the interrupt watchdog
+    TASK_WDT = 6  # the task watchdog: loop() held too long
+    WDT = 7  # another watchdog
+    DEEPSLEEP = 8
+    BROWNOUT = 9  # the supply sagged below the brown-out level
+    SDIO = 10
+
+
+class SetupStep(enum.IntEnum):
+    """The board's set-up call that failed (HELLO_REPLY setup_error; 0: none). The sketch reports the first
+    failure with the hinge it was setting up as the HARDWARE fault's hinge."""
+
+    NONE = 0
+    PWM_TIMER = 1  # mcpwm_new_timer / enable / start
+    PWM_OPERATOR = 2  # mcpwm_new_operator / connect_timer
+    PWM_COMPARATOR = 3  # mcpwm_new_comparator
+    PWM_GENERATOR = 4  # mcpwm_new_generator / its actions
+    ENCODER_COUNTER = 5  # pcnt_new_unit / channels / actions / glitch filter / watch points / start
+    TICK_TIMER = 6  # timerBegin
+    SERIAL = 7  # Serial's receive buffer
+
+
+def enum_name(kind, value: int) -> str:
+    """The member's name, or the number for a value the table does not have (a newer device's)."""
+    return kind(value).name if value in kind._value2member_map_ else str(value)
 
 
 class ProtocolError(ValueError):
@@ -261,6 +297,8 @@ class HelloReply:
     loop_rate_hz: int
     watchdog_ms: int
     max_telemetry_hz: int
+    reset_reason: int = ResetReason.UNKNOWN  # ResetReason: why the device last started
+    setup_error: int = SetupStep.NONE  # SetupStep: the first set-up call that failed at boot
 
 
 @dataclasses.dataclass(frozen=True)
@@ -374,7 +412,8 @@ LAYOUTS = {
     MsgId.ACK: Layout(Ack, (("acked", "B"), ("time_us", "I"))),
     MsgId.NACK: Layout(NackMsg, (("acked", "B"), ("reason", "B"), ("detail", "B"))),
     MsgId.HELLO_REPLY: Layout(HelloReply, (("firmware", "3B"), ("protocol", "B"), ("n_hinges", "B"),
-                                           ("loop_rate_hz", "H"), ("watchdog_ms", "H"), ("max_telemetry_hz", "H"))),
+                                           ("loop_rate_hz", "H"), ("watchdog_ms", "H"), ("max_telemetry_hz", "H"),
+                                           ("reset_reason", "B"), ("setup_error", "B"))),
     MsgId.STATE: Layout(StateMsg, (("firmware", "3B"), ("state", "B"), ("faults", "H"), ("fault_hinge", "B"),
                                    ("time_us", "I"), ("rx_bad_frames", "I")),
                         (("counts", "i"), ("targets", "i"))),

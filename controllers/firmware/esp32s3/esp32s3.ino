@@ -1,53 +1,82 @@
-/* VRScroll firmware for the ESP32-S3 (Arduino core 3.x): the hardware-access struct of the
- * portable core (controllers/firmware/vrs_core.h) and nothing else. Every decision (protocol,
- * states, watchdog, faults, PID) is the core's; this file reads encoders and the battery, drives
- * six DRV8833 H-bridges, keeps the 1 kHz tick and moves serial bytes. docs/firmware.md has the
- * wiring, the build commands and the bring-up. */
+/* VRScroll firmware for the ESP32-S3 (Arduino core 3.x on ESP-IDF 5.x): the hardware-access struct of the
+ * portable core (controllers/firmware/vrs_core.h) and nothing else. Every decision (protocol, states,
+ * watchdog, faults, PID) is the core's; this file reads encoders and the battery, drives six DRV8833
+ * H-bridges through MCPWM, keeps the 1 kHz tick and moves serial bytes without ever waiting on the host.
+ * Every set-up call is checked: the first that fails is reported to the host as a HARDWARE fault naming
+ * it (VRS_SETUP_*). The host build (controllers/sketch.py) compiles this file unchanged against stand-ins
+ * for the calls it makes. docs/firmware.md has the wiring, the build commands and the bring-up. */
 #include <Arduino.h>
+#include <driver/mcpwm_prelude.h>
 #include <driver/pulse_cnt.h>
+#include <esp_system.h>
 
 #include "pins.h"
 #include "vrs_core.h"
 
-static vrs_core core;
+vrs_core core;  /* not static: the host build (controllers/sketch.py) reads its state */
 static pcnt_unit_handle_t pcnt[N_PCNT_HINGES];
 static volatile int32_t soft_counts[6];        /* hinges N_PCNT_HINGES.. : decoded in the interrupt */
 static volatile uint8_t soft_state[6];
 static volatile uint32_t ticks_due;             /* written by the timer interrupt only */
 static uint32_t ticks_done;                    /* written by loop() only */
-static int8_t drive_dir[6];                    /* which input carries the PWM: +1 IN2, -1 IN1, 0 none */
 static hw_timer_t *timer;
+static mcpwm_cmpr_handle_t compare_in1[6], compare_in2[6];
+static mcpwm_gen_handle_t gen_in1[6], gen_in2[6];
+static int8_t drive_dir[6];                    /* +1 forward, -1 reverse, 0 stopped: which generator is forced */
+static uint8_t stop_decay[6];                   /* decay while stopped (VRS_DECAY_*) */
+static uint8_t setup_step, setup_hinge = 0xFF; /* the first set-up call that failed */
 
-/* ---- encoders ----------------------------------------------------------------------------------- */
+/* remember the first failed set-up call; true if this one failed */
+static bool failed(esp_err_t err, uint8_t step, int hinge)
+{
+    if (err == ESP_OK)
+        return false;
+    if (!setup_step) {
+        setup_step = step;
+        setup_hinge = (uint8_t)hinge;
+    }
+    return true;
+}
+
+/* ---- encoders: one sign convention, A leading B counts up (pins.h) ------------------------------ */
 
 static void pcnt_setup(int k)
 {
     pcnt_unit_config_t unit = {};
     unit.low_limit = -32768;
     unit.high_limit = 32767;
-    unit.flags.accum_count = 1;  /* the driver extends the 16-bit counter on overflow */
-    pcnt_new_unit(&unit, &pcnt[k]);
+    unit.flags.accum_count = 1;  /* the driver extends the 16-bit counter at the watch points on the limits */
+    if (failed(pcnt_new_unit(&unit, &pcnt[k]), VRS_SETUP_ENCODER_COUNTER, k))
+        return;
     pcnt_glitch_filter_config_t filter = {.max_glitch_ns = 1000};
-    pcnt_unit_set_glitch_filter(pcnt[k], &filter);
-    pcnt_chan_config_t a = {.edge_gpio_num = PIN_ENC_A[k], .level_gpio_num = PIN_ENC_B[k]};
-    pcnt_chan_config_t b = {.edge_gpio_num = PIN_ENC_B[k], .level_gpio_num = PIN_ENC_A[k]};
-    pcnt_channel_handle_t ca, cb;
-    pcnt_new_channel(pcnt[k], &a, &ca);
-    pcnt_new_channel(pcnt[k], &b, &cb);
-    /* x4 quadrature: every edge of A and of B counts, its sign from the other channel's level */
-    pcnt_channel_set_edge_action(ca, PCNT_CHANNEL_EDGE_ACTION_DECREASE, PCNT_CHANNEL_EDGE_ACTION_INCREASE);
-    pcnt_channel_set_level_action(ca, PCNT_CHANNEL_LEVEL_ACTION_KEEP, PCNT_CHANNEL_LEVEL_ACTION_INVERSE);
-    pcnt_channel_set_edge_action(cb, PCNT_CHANNEL_EDGE_ACTION_INCREASE, PCNT_CHANNEL_EDGE_ACTION_DECREASE);
-    pcnt_channel_set_level_action(cb, PCNT_CHANNEL_LEVEL_ACTION_KEEP, PCNT_CHANNEL_LEVEL_ACTION_INVERSE);
-    pcnt_unit_add_watch_point(pcnt[k], unit.low_limit);
-    pcnt_unit_add_watch_point(pcnt[k], unit.high_limit);
-    pcnt_unit_enable(pcnt[k]);
-    pcnt_unit_clear_count(pcnt[k]);
-    pcnt_unit_start(pcnt[k]);
+    pcnt_chan_config_t a = {}, b = {};
+    a.edge_gpio_num = PIN_ENC_A[k];
+    a.level_gpio_num = PIN_ENC_B[k];
+    b.edge_gpio_num = PIN_ENC_B[k];
+    b.level_gpio_num = PIN_ENC_A[k];
+    pcnt_channel_handle_t ca = NULL, cb = NULL;
+    /* x4 quadrature: A's edges count up when rising with B low, B's when rising with A high */
+    if (failed(pcnt_unit_set_glitch_filter(pcnt[k], &filter), VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_new_channel(pcnt[k], &a, &ca), VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_new_channel(pcnt[k], &b, &cb), VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_channel_set_edge_action(ca, PCNT_CHANNEL_EDGE_ACTION_INCREASE, PCNT_CHANNEL_EDGE_ACTION_DECREASE),
+                  VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_channel_set_level_action(ca, PCNT_CHANNEL_LEVEL_ACTION_INVERSE, PCNT_CHANNEL_LEVEL_ACTION_KEEP),
+                  VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_channel_set_edge_action(cb, PCNT_CHANNEL_EDGE_ACTION_INCREASE, PCNT_CHANNEL_EDGE_ACTION_DECREASE),
+                  VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_channel_set_level_action(cb, PCNT_CHANNEL_LEVEL_ACTION_KEEP, PCNT_CHANNEL_LEVEL_ACTION_INVERSE),
+                  VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_unit_add_watch_point(pcnt[k], unit.low_limit), VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_unit_add_watch_point(pcnt[k], unit.high_limit), VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_unit_enable(pcnt[k]), VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_unit_clear_count(pcnt[k]), VRS_SETUP_ENCODER_COUNTER, k)
+        || failed(pcnt_unit_start(pcnt[k]), VRS_SETUP_ENCODER_COUNTER, k))
+        return;
 }
 
-/* Gray-code step: +1, -1 or 0 for (previous AB, new AB) */
-static const int8_t QUAD_STEP[16] = {0, 1, -1, 0, -1, 0, 0, 1, 1, 0, 0, -1, 0, -1, 1, 0};
+/* Gray-code step for (previous AB, new AB) with AB = A << 1 | B: +1 for 00 -> 10 -> 11 -> 01 -> 00 */
+static const int8_t QUAD_STEP[16] = {0, -1, 1, 0, 1, 0, 0, -1, -1, 0, 0, 1, 0, 1, -1, 0};
 
 static void IRAM_ATTR soft_encoder(void *arg)
 {
@@ -63,7 +92,8 @@ static void read_counts(void *ctx, int32_t *counts)
     for (int k = 0; k < 6; k++) {
         if (k < N_PCNT_HINGES) {
             int c = 0;
-            pcnt_unit_get_count(pcnt[k], &c);
+            if (pcnt[k])
+                pcnt_unit_get_count(pcnt[k], &c);
             counts[k] = c;
         } else {
             counts[k] = soft_counts[k];
@@ -71,44 +101,63 @@ static void read_counts(void *ctx, int32_t *counts)
     }
 }
 
-/* ---- motors ------------------------------------------------------------------------------------- */
+/* ---- motors: MCPWM, set up once, only compare values and forced levels change in the tick ---------- */
 
-/* DRV8833: IN1 IN2 = 1 0 forward, 0 1 reverse, 1 1 brake, 0 0 coast. Slow decay (brake in the
- * off-time) keeps one input high and puts the PWM, inverted, on the other; fast decay (coast in the
- * off-time) keeps one input low and puts the PWM on the other. */
+/* One H-bridge on operator `op`: each input's generator goes low at the period's start and high at its
+ * comparator, so an input is low for `compare` ticks of the period. Forced high it stays high. */
+static void bridge_setup(int k, mcpwm_timer_handle_t tmr, int group)
+{
+    mcpwm_oper_handle_t op = NULL;
+    mcpwm_operator_config_t oc = {};
+    oc.group_id = group;
+    mcpwm_comparator_config_t cc = {};
+    cc.flags.update_cmp_on_tez = 1;
+    if (failed(mcpwm_new_operator(&oc, &op), VRS_SETUP_PWM_OPERATOR, k)
+        || failed(mcpwm_operator_connect_timer(op, tmr), VRS_SETUP_PWM_OPERATOR, k)
+        || failed(mcpwm_new_comparator(op, &cc, &compare_in1[k]), VRS_SETUP_PWM_COMPARATOR, k)
+        || failed(mcpwm_new_comparator(op, &cc, &compare_in2[k]), VRS_SETUP_PWM_COMPARATOR, k))
+        return;
+    mcpwm_gen_handle_t *gens[2] = {&gen_in1[k], &gen_in2[k]};
+    mcpwm_cmpr_handle_t cmps[2] = {compare_in1[k], compare_in2[k]};
+    const int pins[2] = {PIN_IN1[k], PIN_IN2[k]};
+    for (int i = 0; i < 2; i++) {
+        mcpwm_generator_config_t gc = {};
+        gc.gen_gpio_num = pins[i];
+        if (failed(mcpwm_new_generator(op, &gc, gens[i]), VRS_SETUP_PWM_GENERATOR, k)
+            || failed(mcpwm_generator_set_force_level(*gens[i], 1, true), VRS_SETUP_PWM_GENERATOR, k)  /* brake */
+            || failed(mcpwm_generator_set_action_on_timer_event(*gens[i],
+                          MCPWM_GEN_TIMER_EVENT_ACTION(MCPWM_TIMER_DIRECTION_UP, MCPWM_TIMER_EVENT_EMPTY,
+                                                       MCPWM_GEN_ACTION_LOW)), VRS_SETUP_PWM_GENERATOR, k)
+            || failed(mcpwm_generator_set_action_on_compare_event(*gens[i],
+                          MCPWM_GEN_COMPARE_EVENT_ACTION(MCPWM_TIMER_DIRECTION_UP, cmps[i], MCPWM_GEN_ACTION_HIGH)),
+                      VRS_SETUP_PWM_GENERATOR, k))
+            return;
+    }
+    drive_dir[k] = 0;
+    stop_decay[k] = VRS_DECAY_BRAKE;
+}
+
+/* DRV8833: IN1 IN2 = 1 0 forward, 0 1 reverse, 1 1 brake, 0 0 coast. Driving uses slow decay: one input
+ * forced high, the other low for the duty's share of each period and high (brake) for the rest. */
 static void write_drive(void *ctx, const float *pwm, const uint8_t *decay)
 {
     (void)ctx;
-    const uint32_t full = (1u << PWM_BITS) - 1;
     for (int k = 0; k < 6; k++) {
-        int8_t dir = pwm[k] > 0.0f ? 1 : (pwm[k] < 0.0f ? -1 : 0);
-        int pwm_pin = dir > 0 ? PIN_IN2[k] : PIN_IN1[k];
-        int fixed_pin = dir > 0 ? PIN_IN1[k] : PIN_IN2[k];
-        if (dir != drive_dir[k]) {
-            if (drive_dir[k] != 0)
-                ledcDetach(drive_dir[k] > 0 ? PIN_IN2[k] : PIN_IN1[k]);
-            if (dir != 0)
-                ledcAttachChannel(pwm_pin, PWM_HZ, PWM_BITS, PWM_FIRST_CHANNEL + k);
-            drive_dir[k] = dir;
-        }
-        if (dir == 0) {
-            uint8_t level = decay[k] == VRS_DECAY_BRAKE ? HIGH : LOW;
-            pinMode(PIN_IN1[k], OUTPUT);
-            pinMode(PIN_IN2[k], OUTPUT);
-            digitalWrite(PIN_IN1[k], level);
-            digitalWrite(PIN_IN2[k], level);
+        if (!gen_in1[k] || !gen_in2[k])
             continue;
+        float mag = pwm[k] < 0.0f ? -pwm[k] : pwm[k];
+        uint32_t on = (uint32_t)(mag * (float)PWM_PERIOD_TICKS + 0.5f);
+        int8_t dir = on == 0 ? 0 : (pwm[k] > 0.0f ? 1 : -1);
+        if (dir != drive_dir[k] || (dir == 0 && decay[k] != stop_decay[k])) {
+            int level1 = dir > 0 ? 1 : (dir < 0 ? -1 : (decay[k] == VRS_DECAY_BRAKE ? 1 : 0));
+            int level2 = dir < 0 ? 1 : (dir > 0 ? -1 : (decay[k] == VRS_DECAY_BRAKE ? 1 : 0));
+            mcpwm_generator_set_force_level(gen_in1[k], level1, true);
+            mcpwm_generator_set_force_level(gen_in2[k], level2, true);
+            drive_dir[k] = dir;
+            stop_decay[k] = decay[k];
         }
-        float mag = pwm[k] > 0.0f ? pwm[k] : -pwm[k];
-        uint32_t on = (uint32_t)(mag * (float)full + 0.5f);
-        pinMode(fixed_pin, OUTPUT);
-        if (decay[k] == VRS_DECAY_BRAKE) {
-            digitalWrite(fixed_pin, HIGH);
-            ledcWrite(pwm_pin, full - on);   /* low while driving, high (brake) in the off-time */
-        } else {
-            digitalWrite(fixed_pin, LOW);
-            ledcWrite(pwm_pin, on);          /* high while driving, low (coast) in the off-time */
-        }
+        if (dir != 0)
+            mcpwm_comparator_set_compare_value(dir > 0 ? compare_in2[k] : compare_in1[k], on);
     }
 }
 
@@ -120,8 +169,10 @@ static int serial_read(void *ctx, uint8_t *buf, int max)
 {
     (void)ctx;
     int n = Serial.available();
-    return n > 0 ? (int)Serial.readBytes(buf, n < max ? n : max) : 0;
+    return n > 0 ? (int)Serial.read(buf, (size_t)(n < max ? n : max)) : 0;
 }
+
+static int serial_room(void *ctx) { (void)ctx; return Serial.availableForWrite(); }
 
 static void serial_write(void *ctx, const uint8_t *buf, int n) { (void)ctx; Serial.write(buf, (size_t)n); }
 
@@ -132,19 +183,41 @@ static int read_battery_mv(void *ctx, uint16_t *mv)
     return 0;
 }
 
-static const vrs_hw hw = {NULL, micros_now, read_counts, write_drive, serial_read, serial_write,
+static const vrs_hw hw = {NULL, micros_now, read_counts, write_drive, serial_read, serial_write, serial_room,
                           NULL /* the DRV8833 reports no current */, read_battery_mv};
 
 static void IRAM_ATTR on_timer() { ticks_due++; }
 
 void setup()
 {
-    Serial.begin(921600);  /* USB CDC: the rate is ignored */
+    /* brake first: the flaps hold where they are from the first instruction after a reset */
     for (int k = 0; k < 6; k++) {
+        digitalWrite(PIN_IN1[k], HIGH);
+        digitalWrite(PIN_IN2[k], HIGH);
         pinMode(PIN_IN1[k], OUTPUT);
         pinMode(PIN_IN2[k], OUTPUT);
-        digitalWrite(PIN_IN1[k], LOW);
-        digitalWrite(PIN_IN2[k], LOW);
+    }
+    failed(Serial.setRxBufferSize(1024) ? ESP_OK : ESP_FAIL, VRS_SETUP_SERIAL, 0xFF);
+    Serial.setTxTimeoutMs(0);  /* never wait on a host that does not read; serial_room keeps writes whole */
+    Serial.begin(921600);      /* USB CDC: the rate is ignored */
+
+    mcpwm_timer_handle_t timers[2] = {NULL, NULL};
+    for (int g = 0; g < 2; g++) {
+        mcpwm_timer_config_t tc = {};
+        tc.group_id = g;
+        tc.clk_src = MCPWM_TIMER_CLK_SRC_DEFAULT;
+        tc.resolution_hz = PWM_RESOLUTION_HZ;
+        tc.count_mode = MCPWM_TIMER_COUNT_MODE_UP;
+        tc.period_ticks = PWM_PERIOD_TICKS;
+        if (failed(mcpwm_new_timer(&tc, &timers[g]), VRS_SETUP_PWM_TIMER, 0xFF))
+            continue;
+        for (int k = g * PWM_HINGES_PER_GROUP; k < (g + 1) * PWM_HINGES_PER_GROUP; k++)
+            bridge_setup(k, timers[g], g);
+        if (!failed(mcpwm_timer_enable(timers[g]), VRS_SETUP_PWM_TIMER, 0xFF))
+            failed(mcpwm_timer_start_stop(timers[g], MCPWM_TIMER_START_NO_STOP), VRS_SETUP_PWM_TIMER, 0xFF);
+    }
+
+    for (int k = 0; k < 6; k++) {
         pinMode(PIN_ENC_A[k], INPUT_PULLUP);
         pinMode(PIN_ENC_B[k], INPUT_PULLUP);
         if (k < N_PCNT_HINGES) {
@@ -170,10 +243,18 @@ void setup()
         gains[k] = g;
     read_counts(NULL, counts);  /* power on with the flaps flat: these counts are zero */
     vrs_init(&core, &cfg, gains, counts);
+    vrs_set_reset_reason(&core, (uint8_t)esp_reset_reason());
 
-    timer = timerBegin(1000000);                       /* 1 MHz timer clock */
-    timerAttachInterrupt(timer, &on_timer);
-    timerAlarm(timer, 1000000 / VRS_DEVICE_LOOP_RATE_HZ, true, 0);
+    timer = timerBegin(1000000);  /* 1 MHz timer clock */
+    if (timer == NULL) {
+        failed(ESP_FAIL, VRS_SETUP_TICK_TIMER, 0xFF);
+    } else {
+        timerAttachInterrupt(timer, &on_timer);
+        timerAlarm(timer, 1000000 / VRS_DEVICE_LOOP_RATE_HZ, true, 0);
+    }
+    if (setup_step)
+        vrs_hardware_fault(&core, setup_step, setup_hinge);
+    enableLoopWDT();  /* the task watchdog resets the board should loop() ever hold */
 }
 
 void loop()

@@ -1,14 +1,17 @@
 /* VRScroll on an ESP32-S3-DevKitC-1: every pin in one place (docs/firmware.md, "Wiring").
  * Hinge k is the hinge between flap k and flap k + 1, counted from the end with the lowest x.
- * Avoided: strapping pins 0, 3, 45, 46; USB 19, 20; flash and PSRAM 26-37. */
+ * Avoided: strapping pins 0, 3, 45, 46; USB 19, 20; flash and PSRAM 26-37.
+ * The host build (host/, controllers/sketch.py) reads these arrays as the board's wiring. */
 #ifndef VRS_PINS_H
 #define VRS_PINS_H
 
-/* quadrature encoder channels A and B, per hinge (3.3 V logic; the motor's Hall encoder runs on 3.3 V) */
+/* quadrature encoder channels A and B, per hinge (3.3 V logic; the motor's Hall encoder runs on 3.3 V).
+ * Sign convention, both decoders: A leading B (A rises while B is low) counts up. */
 static const int PIN_ENC_A[6] = {4, 6, 8, 10, 12, 14};
 static const int PIN_ENC_B[6] = {5, 7, 9, 11, 13, 15};
 
-/* DRV8833 inputs per hinge: IN1 and IN2 of one H-bridge (three DRV8833 boards, two bridges each) */
+/* DRV8833 inputs per hinge: IN1 and IN2 of one H-bridge (three DRV8833 boards, two bridges each).
+ * IN1 high with IN2 low drives forward (counts up); both high brake; both low coast. */
 static const int PIN_IN1[6] = {16, 18, 38, 40, 42, 48};
 static const int PIN_IN2[6] = {17, 21, 39, 41, 47, 2};
 
@@ -19,8 +22,11 @@ static const int PIN_IN2[6] = {17, 21, 39, 41, 47, 2};
 /* the ESP32-S3 has four PCNT units: hinges 0-3 count in hardware, 4-5 in a pin-change interrupt */
 #define N_PCNT_HINGES 4
 
-#define PWM_HZ 20000       /* above hearing */
-#define PWM_BITS 11        /* 80 MHz / 20 kHz = 4000 steps: 11 bits fit */
-#define PWM_FIRST_CHANNEL 0 /* LEDC channels 0-5, one per hinge, routed to IN1 or IN2 by direction */
+/* PWM: MCPWM, whose two groups of three operators with two generators each drive six H-bridges with no
+ * pin ever re-routed (LEDC has 8 channels on the S3, too few for 12 inputs). Timer clock 10 MHz (the
+ * group's 160 MHz PLL clock / 2 / 8), 500 ticks a period: 20 kHz, above hearing, 500 duty steps. */
+#define PWM_RESOLUTION_HZ 10000000
+#define PWM_PERIOD_TICKS 500
+#define PWM_HINGES_PER_GROUP 3
 
 #endif

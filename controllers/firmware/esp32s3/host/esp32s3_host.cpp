@@ -1,0 +1,747 @@
+/* Host stand-ins for the ESP32-S3 peripherals the sketch uses, and the plant's side of the board.
+ *
+ * Each stand-in keeps the behaviour and the limits that Espressif documents, and refuses what the
+ * driver refuses with the same error (sources named per section). Time is virtual: the host advances
+ * it (host_advance), the timer alarm fires the sketch's interrupt, loop() runs after it. The plant
+ * (controllers/sketch.py) sets each motor's encoder position (host_set_encoder: every quadrature edge
+ * between the old count and the new one, so PCNT units and pin interrupts see real edges), the
+ * battery's voltage at the ADC pin, and reads each H-bridge's drive over the last window
+ * (host_bridge: the DRV8833 truth table over the PWM period, averaged over time).
+ * Units: us, mV, counts. Not modelled: silicon timing (every call takes no time), electrical noise
+ * (edges are clean, so the glitch filter only has its bounds checked), the USB link's own timing. */
+#include <string.h>
+
+#include "Arduino.h"
+#include "driver/mcpwm_prelude.h"
+#include "driver/pulse_cnt.h"
+#include "esp_system.h"
+
+extern void setup(void);
+extern void loop(void);
+
+#define N_GPIO 49          /* GPIO0-48 on the ESP32-S3 */
+#define N_MOTORS 8
+#define APB_HZ 80000000u   /* APB clock, Hz (ESP32-S3 TRM, "Clock") */
+
+static uint64_t now_us;
+static esp_reset_reason_t reset_reason = ESP_RST_POWERON;
+
+unsigned long micros(void) { return (unsigned long)(uint32_t)now_us; }  /* 32 bits, wrapping, as on the S3 */
+
+/* ---- GPIO (esp32-hal-gpio.c): levels, outputs, interrupts ---------------------------------------- */
+
+struct host_mcpwm_gen;
+struct pin_state {
+    uint8_t mode;            /* 0 unconfigured (input, high impedance) */
+    uint8_t out;             /* level written by digitalWrite */
+    uint8_t in;              /* level the outside world drives (encoder pins) */
+    struct host_mcpwm_gen *gen;  /* routed to an MCPWM generator */
+    void (*isr)(void *);
+    void *isr_arg;
+    int isr_mode;
+};
+static pin_state pins[N_GPIO];
+
+static void integrate(void);
+static void pcnt_edge(int pin, int level);
+
+void pinMode(uint8_t pin, uint8_t mode)
+{
+    if (pin >= N_GPIO)
+        return;
+    integrate();
+    pins[pin].mode = mode;
+    pins[pin].gen = NULL;  /* Arduino 3.x's peripheral manager detaches the pin from any peripheral */
+}
+
+void digitalWrite(uint8_t pin, uint8_t val)
+{
+    if (pin >= N_GPIO)
+        return;
+    integrate();
+    pins[pin].out = val ? 1 : 0;  /* latched even before pinMode(OUTPUT), as the output register is */
+}
+
+int digitalRead(uint8_t pin)
+{
+    if (pin >= N_GPIO)
+        return 0;
+    return pins[pin].mode == OUTPUT ? pins[pin].out : pins[pin].in;
+}
+
+void attachInterruptArg(uint8_t pin, void (*handler)(void *), void *arg, int mode)
+{
+    if (pin >= N_GPIO)
+        return;
+    pins[pin].isr = handler;
+    pins[pin].isr_arg = arg;
+    pins[pin].isr_mode = mode;
+}
+
+/* the outside world drives an input pin: PCNT counts the edge, then the pin's interrupt runs */
+static void drive_input(int pin, int level)
+{
+    if (pins[pin].in == level)
+        return;
+    pins[pin].in = (uint8_t)level;
+    pcnt_edge(pin, level);
+    pin_state *p = &pins[pin];
+    if (p->isr && (p->isr_mode == CHANGE || (p->isr_mode == RISING && level) || (p->isr_mode == FALLING && !level)))
+        p->isr(p->isr_arg);
+}
+
+/* ---- PCNT (ESP-IDF 5.x pulse_cnt.c; ESP32-S3 TRM "Pulse Count Controller") -----------------------
+ * Four units (SOC_PCNT_UNITS_PER_GROUP), two channels each; limits within the 16-bit signed counter,
+ * low < 0 < high; the glitch filter at most 1023 APB cycles (12787 ns); channels and the filter only
+ * while the unit is in its init state; a watch point within the limits, each once. At a limit the
+ * counter returns to 0; with accum_count and a watch point on that limit the driver adds the limit to
+ * its accumulator, so pcnt_unit_get_count goes on; without them the count is lost. */
+
+struct host_pcnt_channel {
+    int used, edge_gpio, level_gpio;
+    pcnt_channel_edge_action_t pos, neg;
+    pcnt_channel_level_action_t high, low;
+};
+struct host_pcnt_unit {
+    int used, low, high, accum_on, state;  /* state: 0 init, 1 enabled, 2 running */
+    int count, accum, watch[4], n_watch;
+    host_pcnt_channel chan[2];
+};
+static host_pcnt_unit pcnt_units[4];
+
+esp_err_t pcnt_new_unit(const pcnt_unit_config_t *config, pcnt_unit_handle_t *ret_unit)
+{
+    if (!config || !ret_unit || !(config->low_limit < 0 && config->high_limit > 0 && config->low_limit >= -32768
+                                  && config->high_limit <= 32767))
+        return ESP_ERR_INVALID_ARG;
+    for (int i = 0; i < 4; i++)
+        if (!pcnt_units[i].used) {
+            memset(&pcnt_units[i], 0, sizeof pcnt_units[i]);
+            pcnt_units[i].used = 1;
+            pcnt_units[i].low = config->low_limit;
+            pcnt_units[i].high = config->high_limit;
+            pcnt_units[i].accum_on = config->flags.accum_count;
+            *ret_unit = &pcnt_units[i];
+            return ESP_OK;
+        }
+    return ESP_ERR_NOT_FOUND;
+}
+
+esp_err_t pcnt_unit_set_glitch_filter(pcnt_unit_handle_t unit, const pcnt_glitch_filter_config_t *config)
+{
+    if (!unit)
+        return ESP_ERR_INVALID_ARG;
+    if (unit->state != 0)
+        return ESP_ERR_INVALID_STATE;
+    if (config && (uint64_t)config->max_glitch_ns * APB_HZ / 1000000000u > 1023u)
+        return ESP_ERR_INVALID_ARG;
+    return ESP_OK;
+}
+
+esp_err_t pcnt_new_channel(pcnt_unit_handle_t unit, const pcnt_chan_config_t *config, pcnt_channel_handle_t *ret_chan)
+{
+    if (!unit || !config || !ret_chan)
+        return ESP_ERR_INVALID_ARG;
+    if (unit->state != 0)
+        return ESP_ERR_INVALID_STATE;
+    for (int i = 0; i < 2; i++)
+        if (!unit->chan[i].used) {
+            host_pcnt_channel *c = &unit->chan[i];
+            memset(c, 0, sizeof *c);
+            c->used = 1;
+            c->edge_gpio = config->edge_gpio_num;
+            c->level_gpio = config->level_gpio_num;
+            *ret_chan = c;
+            return ESP_OK;
+        }
+    return ESP_ERR_NOT_FOUND;
+}
+
+esp_err_t pcnt_channel_set_edge_action(pcnt_channel_handle_t chan, pcnt_channel_edge_action_t pos_act,
+                                       pcnt_channel_edge_action_t neg_act)
+{
+    if (!chan)
+        return ESP_ERR_INVALID_ARG;
+    chan->pos = pos_act;
+    chan->neg = neg_act;
+    return ESP_OK;
+}
+
+esp_err_t pcnt_channel_set_level_action(pcnt_channel_handle_t chan, pcnt_channel_level_action_t high_act,
+                                        pcnt_channel_level_action_t low_act)
+{
+    if (!chan)
+        return ESP_ERR_INVALID_ARG;
+    chan->high = high_act;
+    chan->low = low_act;
+    return ESP_OK;
+}
+
+esp_err_t pcnt_unit_add_watch_point(pcnt_unit_handle_t unit, int watch_point)
+{
+    if (!unit || watch_point < unit->low || watch_point > unit->high)
+        return ESP_ERR_INVALID_ARG;
+    for (int i = 0; i < unit->n_watch; i++)
+        if (unit->watch[i] == watch_point)
+            return ESP_ERR_INVALID_STATE;
+    if (unit->n_watch == 4)
+        return ESP_ERR_NOT_FOUND;
+    unit->watch[unit->n_watch++] = watch_point;
+    return ESP_OK;
+}
+
+esp_err_t pcnt_unit_enable(pcnt_unit_handle_t unit)
+{
+    if (!unit)
+        return ESP_ERR_INVALID_ARG;
+    if (unit->state != 0)
+        return ESP_ERR_INVALID_STATE;
+    unit->state = 1;
+    return ESP_OK;
+}
+
+esp_err_t pcnt_unit_clear_count(pcnt_unit_handle_t unit)
+{
+    if (!unit)
+        return ESP_ERR_INVALID_ARG;
+    unit->count = unit->accum = 0;
+    return ESP_OK;
+}
+
+esp_err_t pcnt_unit_start(pcnt_unit_handle_t unit)
+{
+    if (!unit)
+        return ESP_ERR_INVALID_ARG;
+    if (unit->state != 1)
+        return ESP_ERR_INVALID_STATE;
+    unit->state = 2;
+    return ESP_OK;
+}
+
+static int watched(const host_pcnt_unit *u, int value)
+{
+    for (int i = 0; i < u->n_watch; i++)
+        if (u->watch[i] == value)
+            return 1;
+    return 0;
+}
+
+static uint64_t sampled_at[4096];   /* when the sketch read unit 0: its control tick's sampling instants */
+static uint32_t n_sampled;
+
+esp_err_t pcnt_unit_get_count(pcnt_unit_handle_t unit, int *value)
+{
+    if (!unit || !value)
+        return ESP_ERR_INVALID_ARG;
+    if (unit == &pcnt_units[0])
+        sampled_at[n_sampled++ % 4096u] = now_us;
+    *value = unit->count + (unit->accum_on ? unit->accum : 0);
+    return ESP_OK;
+}
+
+static void pcnt_edge(int pin, int level)
+{
+    for (int u = 0; u < 4; u++) {
+        host_pcnt_unit *unit = &pcnt_units[u];
+        if (!unit->used || unit->state != 2)
+            continue;
+        for (int i = 0; i < 2; i++) {
+            host_pcnt_channel *c = &unit->chan[i];
+            if (!c->used || c->edge_gpio != pin)
+                continue;
+            pcnt_channel_edge_action_t act = level ? c->pos : c->neg;
+            pcnt_channel_level_action_t lv = digitalRead((uint8_t)c->level_gpio) ? c->high : c->low;
+            if (act == PCNT_CHANNEL_EDGE_ACTION_HOLD || lv == PCNT_CHANNEL_LEVEL_ACTION_HOLD)
+                continue;
+            int step = act == PCNT_CHANNEL_EDGE_ACTION_INCREASE ? 1 : -1;
+            unit->count += lv == PCNT_CHANNEL_LEVEL_ACTION_INVERSE ? -step : step;
+            if (unit->count == unit->high || unit->count == unit->low) {
+                if (unit->accum_on && watched(unit, unit->count))
+                    unit->accum += unit->count;
+                unit->count = 0;
+            }
+        }
+    }
+}
+
+/* ---- MCPWM (ESP-IDF 5.x mcpwm_timer.c, mcpwm_com.c, mcpwm_oper.c, mcpwm_cmpr.c, mcpwm_gen.c) -------
+ * Two groups, each with three timers, three operators, two comparators and two generators per
+ * operator. The group clock is the 160 MHz PLL divided by the group prescale (default 2, at most 256),
+ * shared by the group's timers; a timer's prescale is at most 256 (mcpwm_set_prescale, else
+ * ESP_ERR_INVALID_STATE); its period (up counting) 1 to 65535 ticks (peak_ticks < MCPWM_LL_MAX_COUNT_VALUE,
+ * else ESP_ERR_INVALID_ARG); a compare value at most the peak. An operator works only with a timer of
+ * its own group. A generator here follows the sketch's action pair or a forced level. */
+
+#define MCPWM_SRC_HZ 160000000u
+struct host_mcpwm_timer { int used, group, state; uint32_t period; };  /* state: 0 init, 1 enabled, 2 running */
+struct host_mcpwm_oper { int used, group; host_mcpwm_timer *timer; int n_cmpr, n_gen; };
+struct host_mcpwm_cmpr { int used; host_mcpwm_oper *oper; uint32_t value; };
+struct host_mcpwm_gen {
+    int used, gpio, force;  /* force: -1 none, 0 low, 1 high */
+    host_mcpwm_oper *oper;
+    mcpwm_generator_action_t on_empty, on_compare;
+    host_mcpwm_cmpr *cmpr;
+};
+static struct {
+    uint32_t prescale;  /* 0: not set */
+    host_mcpwm_timer timers[3];
+    host_mcpwm_oper opers[3];
+} mcpwm_groups[2];
+static host_mcpwm_cmpr mcpwm_cmprs[2][6];
+static host_mcpwm_gen mcpwm_gens[2][6];
+
+esp_err_t mcpwm_new_timer(const mcpwm_timer_config_t *config, mcpwm_timer_handle_t *ret_timer)
+{
+    if (!config || !ret_timer || config->group_id < 0 || config->group_id >= 2)
+        return ESP_ERR_INVALID_ARG;
+    uint32_t peak = config->count_mode == MCPWM_TIMER_COUNT_MODE_UP_DOWN ? config->period_ticks / 2 : config->period_ticks;
+    if (!(peak > 0 && peak < 65536u) || config->resolution_hz == 0)
+        return ESP_ERR_INVALID_ARG;
+    int g = config->group_id;
+    uint32_t group_prescale = mcpwm_groups[g].prescale ? mcpwm_groups[g].prescale : 2;
+    uint32_t module = MCPWM_SRC_HZ / group_prescale / config->resolution_hz;
+    if (!(module >= 1 && module <= 256)) {
+        if (mcpwm_groups[g].prescale)
+            return ESP_ERR_INVALID_STATE;  /* the group's prescale is taken: "group prescale conflict" */
+        for (group_prescale = 1; group_prescale <= 256; group_prescale++) {
+            module = MCPWM_SRC_HZ / group_prescale / config->resolution_hz;
+            if (module >= 1 && module <= 256)
+                break;
+        }
+        if (group_prescale > 256)
+            return ESP_ERR_INVALID_STATE;  /* "group clock cannot match the resolution" */
+    }
+    for (int i = 0; i < 3; i++) {
+        host_mcpwm_timer *t = &mcpwm_groups[g].timers[i];
+        if (!t->used) {
+            mcpwm_groups[g].prescale = group_prescale;
+            t->used = 1;
+            t->group = g;
+            t->state = 0;
+            t->period = peak;
+            *ret_timer = t;
+            return ESP_OK;
+        }
+    }
+    return ESP_ERR_NOT_FOUND;
+}
+
+esp_err_t mcpwm_timer_enable(mcpwm_timer_handle_t timer)
+{
+    if (!timer)
+        return ESP_ERR_INVALID_ARG;
+    if (timer->state != 0)
+        return ESP_ERR_INVALID_STATE;
+    timer->state = 1;
+    return ESP_OK;
+}
+
+esp_err_t mcpwm_timer_start_stop(mcpwm_timer_handle_t timer, mcpwm_timer_start_stop_cmd_t command)
+{
+    if (!timer)
+        return ESP_ERR_INVALID_ARG;
+    if (timer->state == 0)
+        return ESP_ERR_INVALID_STATE;
+    integrate();
+    timer->state = command == MCPWM_TIMER_START_NO_STOP ? 2 : 1;
+    return ESP_OK;
+}
+
+esp_err_t mcpwm_new_operator(const mcpwm_operator_config_t *config, mcpwm_oper_handle_t *ret_oper)
+{
+    if (!config || !ret_oper || config->group_id < 0 || config->group_id >= 2)
+        return ESP_ERR_INVALID_ARG;
+    for (int i = 0; i < 3; i++) {
+        host_mcpwm_oper *o = &mcpwm_groups[config->group_id].opers[i];
+        if (!o->used) {
+            memset(o, 0, sizeof *o);
+            o->used = 1;
+            o->group = config->group_id;
+            *ret_oper = o;
+            return ESP_OK;
+        }
+    }
+    return ESP_ERR_NOT_FOUND;
+}
+
+esp_err_t mcpwm_operator_connect_timer(mcpwm_oper_handle_t oper, mcpwm_timer_handle_t timer)
+{
+    if (!oper || !timer || oper->group != timer->group)
+        return ESP_ERR_INVALID_ARG;
+    oper->timer = timer;
+    return ESP_OK;
+}
+
+esp_err_t mcpwm_new_comparator(mcpwm_oper_handle_t oper, const mcpwm_comparator_config_t *config,
+                               mcpwm_cmpr_handle_t *ret_cmpr)
+{
+    if (!oper || !config || !ret_cmpr)
+        return ESP_ERR_INVALID_ARG;
+    if (oper->n_cmpr == 2)
+        return ESP_ERR_NOT_FOUND;
+    host_mcpwm_oper *base = mcpwm_groups[oper->group].opers;
+    host_mcpwm_cmpr *c = &mcpwm_cmprs[oper->group][(oper - base) * 2 + oper->n_cmpr++];
+    c->used = 1;
+    c->oper = oper;
+    c->value = 0;
+    *ret_cmpr = c;
+    return ESP_OK;
+}
+
+esp_err_t mcpwm_comparator_set_compare_value(mcpwm_cmpr_handle_t cmpr, uint32_t cmp_ticks)
+{
+    if (!cmpr)
+        return ESP_ERR_INVALID_ARG;
+    if (!cmpr->oper->timer)
+        return ESP_ERR_INVALID_STATE;  /* "timer and operator are not connected" */
+    if (cmp_ticks > cmpr->oper->timer->period)
+        return ESP_ERR_INVALID_ARG;
+    integrate();
+    cmpr->value = cmp_ticks;
+    return ESP_OK;
+}
+
+esp_err_t mcpwm_new_generator(mcpwm_oper_handle_t oper, const mcpwm_generator_config_t *config,
+                              mcpwm_gen_handle_t *ret_gen)
+{
+    if (!oper || !config || !ret_gen || config->gen_gpio_num < 0 || config->gen_gpio_num >= N_GPIO)
+        return ESP_ERR_INVALID_ARG;
+    if (oper->n_gen == 2)
+        return ESP_ERR_NOT_FOUND;
+    host_mcpwm_oper *base = mcpwm_groups[oper->group].opers;
+    host_mcpwm_gen *g = &mcpwm_gens[oper->group][(oper - base) * 2 + oper->n_gen++];
+    integrate();
+    memset(g, 0, sizeof *g);
+    g->used = 1;
+    g->oper = oper;
+    g->gpio = config->gen_gpio_num;
+    g->force = -1;
+    pins[g->gpio].gen = g;
+    pins[g->gpio].mode = OUTPUT;
+    *ret_gen = g;
+    return ESP_OK;
+}
+
+esp_err_t mcpwm_generator_set_force_level(mcpwm_gen_handle_t gen, int level, bool hold_on)
+{
+    if (!gen || level < -1 || level > 1 || (level == -1 && !hold_on))
+        return ESP_ERR_INVALID_ARG;
+    integrate();
+    gen->force = level;
+    return ESP_OK;
+}
+
+esp_err_t mcpwm_generator_set_action_on_timer_event(mcpwm_gen_handle_t gen, mcpwm_gen_timer_event_action_t ev)
+{
+    if (!gen || ev.event != MCPWM_TIMER_EVENT_EMPTY || ev.direction != MCPWM_TIMER_DIRECTION_UP)
+        return ESP_ERR_INVALID_ARG;  /* up counting: the period starts at EMPTY; FULL is its end */
+    integrate();
+    gen->on_empty = ev.action;
+    return ESP_OK;
+}
+
+esp_err_t mcpwm_generator_set_action_on_compare_event(mcpwm_gen_handle_t gen, mcpwm_gen_compare_event_action_t ev)
+{
+    if (!gen || !ev.comparator || ev.comparator->oper != gen->oper || ev.direction != MCPWM_TIMER_DIRECTION_UP)
+        return ESP_ERR_INVALID_ARG;
+    integrate();
+    gen->on_compare = ev.action;
+    gen->cmpr = ev.comparator;
+    return ESP_OK;
+}
+
+/* The share of one PWM period a pin is high, as the interval [lo, hi) of the period. */
+static void high_interval(int pin, double *lo, double *hi)
+{
+    const pin_state *p = &pins[pin];
+    *lo = 0.0;
+    *hi = 0.0;
+    if (p->gen) {
+        const host_mcpwm_gen *g = p->gen;
+        const host_mcpwm_timer *t = g->oper->timer;
+        if (g->force >= 0) {
+            *hi = g->force ? 1.0 : 0.0;
+            return;
+        }
+        if (!t || t->state != 2 || !g->cmpr)
+            return;  /* no timer running: the generator holds its reset level, low */
+        double c = (double)(g->cmpr->value < t->period ? g->cmpr->value : t->period) / (double)t->period;
+        if (g->on_empty == MCPWM_GEN_ACTION_LOW && g->on_compare == MCPWM_GEN_ACTION_HIGH) {
+            *lo = c;
+            *hi = 1.0;
+        } else if (g->on_empty == MCPWM_GEN_ACTION_HIGH && g->on_compare == MCPWM_GEN_ACTION_LOW) {
+            *hi = c;
+        }
+        return;
+    }
+    if (p->mode == OUTPUT)
+        *hi = p->out ? 1.0 : 0.0;  /* an input or an unset pin: the DRV8833's pull-down holds INx low */
+}
+
+/* ---- the H-bridges (TI DRV8833 datasheet, table "H-bridge logic"): time in each state per motor ---- */
+
+struct motor_wiring { int used, in1, in2, enc_a, enc_b; int64_t position; };
+static motor_wiring motors[N_MOTORS];
+static double bridge_time[N_MOTORS][4];  /* us forward (IN1 1 IN2 0), reverse (0 1), brake (1 1), coast (0 0) */
+static uint64_t integrated_to;
+
+static void integrate(void)
+{
+    double dt = (double)(now_us - integrated_to);
+    integrated_to = now_us;
+    if (dt <= 0.0)
+        return;
+    for (int k = 0; k < N_MOTORS; k++) {
+        if (!motors[k].used)
+            continue;
+        double a0, a1, b0, b1;
+        high_interval(motors[k].in1, &a0, &a1);
+        high_interval(motors[k].in2, &b0, &b1);
+        double lo = a0 > b0 ? a0 : b0, hi = a1 < b1 ? a1 : b1;
+        double both = hi > lo ? hi - lo : 0.0, h1 = a1 - a0, h2 = b1 - b0;
+        bridge_time[k][0] += dt * (h1 - both);
+        bridge_time[k][1] += dt * (h2 - both);
+        bridge_time[k][2] += dt * both;
+        bridge_time[k][3] += dt * (1.0 - h1 - h2 + both);
+    }
+}
+
+/* ---- timer (esp32-hal-timer.c on the GPTimer driver: resolution = 80 MHz APB / a prescale of 2 to 65535) */
+
+struct host_hw_timer { int used; uint32_t hz; void (*isr)(void); uint64_t period_us, next_us; int armed; };
+static host_hw_timer hw_timers[4];
+
+hw_timer_t *timerBegin(uint32_t frequency)
+{
+    if (frequency == 0 || APB_HZ / frequency < 2 || APB_HZ / frequency > 65535)
+        return NULL;
+    for (int i = 0; i < 4; i++)
+        if (!hw_timers[i].used) {
+            memset(&hw_timers[i], 0, sizeof hw_timers[i]);
+            hw_timers[i].used = 1;
+            hw_timers[i].hz = frequency;
+            return &hw_timers[i];
+        }
+    return NULL;
+}
+
+void timerAttachInterrupt(hw_timer_t *timer, void (*userFunc)(void))
+{
+    if (timer)
+        timer->isr = userFunc;
+}
+
+void timerAlarm(hw_timer_t *timer, uint64_t alarm_value, bool autoreload, uint64_t reload_count)
+{
+    (void)reload_count;
+    if (!timer || alarm_value == 0)
+        return;
+    timer->period_us = alarm_value * 1000000u / timer->hz;
+    timer->next_us = now_us + timer->period_us;
+    timer->armed = autoreload ? 2 : 1;
+}
+
+/* ---- ADC (esp32-hal-adc.c analogReadMilliVolts, calibrated; ESP32-S3 datasheet: ADC1 on GPIO1-10, with
+ * 11 dB (12 dB) attenuation it measures 0 to about 3100 mV) ------------------------------------------ */
+
+static uint32_t pin_mv[N_GPIO];
+void analogSetPinAttenuation(uint8_t pin, adc_attenuation_t attenuation) { (void)pin; (void)attenuation; }
+uint32_t analogReadMilliVolts(uint8_t pin)
+{
+    if (pin < 1 || pin > 20)
+        return 0;  /* not an ADC pin */
+    return pin_mv[pin] < 3100u ? pin_mv[pin] : 3100u;
+}
+
+/* ---- HWCDC (cores/esp32/HWCDC.cpp): the USB Serial/JTAG port. Receive buffer 256 bytes unless
+ * setRxBufferSize; transmit ring 256 bytes; write() waits up to tx_timeout_ms (100 ms unless
+ * setTxTimeoutMs) for room while the host is connected, then gives up on the rest. ---------------- */
+
+#define CDC_TX_CAP 256u
+#define CDC_MAX_RX 65536u
+static uint8_t cdc_rx[CDC_MAX_RX], cdc_tx[CDC_TX_CAP];
+static size_t cdc_rx_cap = 256, cdc_rx_len, cdc_tx_len;
+static uint32_t cdc_tx_timeout_ms = 100;
+static uint64_t cdc_blocked_us;  /* time writes spent waiting */
+
+HWCDC Serial;
+size_t HWCDC::setRxBufferSize(size_t size)
+{
+    if (size == 0 || size > CDC_MAX_RX)
+        return 0;
+    cdc_rx_cap = size;
+    return size;
+}
+void HWCDC::setTxTimeoutMs(uint32_t timeout) { cdc_tx_timeout_ms = timeout; }
+void HWCDC::begin(unsigned long baud) { (void)baud; }
+int HWCDC::available(void) { return (int)cdc_rx_len; }
+size_t HWCDC::read(uint8_t *buffer, size_t size)
+{
+    size_t n = size < cdc_rx_len ? size : cdc_rx_len;
+    memcpy(buffer, cdc_rx, n);
+    memmove(cdc_rx, cdc_rx + n, cdc_rx_len - n);
+    cdc_rx_len -= n;
+    return n;
+}
+int HWCDC::availableForWrite(void) { return (int)(CDC_TX_CAP - cdc_tx_len); }
+size_t HWCDC::write(const uint8_t *buffer, size_t size)
+{
+    size_t room = CDC_TX_CAP - cdc_tx_len, n = size < room ? size : room;
+    memcpy(cdc_tx + cdc_tx_len, buffer, n);
+    cdc_tx_len += n;
+    if (n < size && cdc_tx_timeout_ms) {  /* the host reads nothing while the write waits */
+        now_us += (uint64_t)cdc_tx_timeout_ms * 1000u;
+        cdc_blocked_us += (uint64_t)cdc_tx_timeout_ms * 1000u;
+    }
+    return n;
+}
+
+/* ---- reset reason, task watchdog (esp32-hal-misc.c enableLoopWDT: loopTask on the TWDT, reset in
+ * every pass of loop(); CONFIG_ESP_TASK_WDT_TIMEOUT_S = 5 in Arduino's build) ----------------------- */
+
+esp_reset_reason_t esp_reset_reason(void) { return reset_reason; }
+static int loop_wdt;
+static int wdt_expired;
+void enableLoopWDT(void) { loop_wdt = 1; }
+#define TWDT_TIMEOUT_US 5000000u
+
+/* ---- the plant's side (controllers/sketch.py) -------------------------------------------------------- */
+
+extern "C" {
+
+/* Motor k's wiring: its bridge inputs and encoder outputs (GPIO numbers), its shaft at `position` counts. */
+void host_connect_motor(int k, int in1, int in2, int enc_a, int enc_b, int64_t position)
+{
+    static const uint8_t AB[4][2] = {{0, 0}, {1, 0}, {1, 1}, {0, 1}};  /* A leads B as the count rises */
+    motor_wiring *m = &motors[k];
+    m->used = 1;
+    m->in1 = in1;
+    m->in2 = in2;
+    m->enc_a = enc_a;
+    m->enc_b = enc_b;
+    m->position = position;
+    int phase = (int)(((position % 4) + 4) % 4);
+    if (enc_a >= 0)
+        pins[enc_a].in = AB[phase][0];
+    if (enc_b >= 0)
+        pins[enc_b].in = AB[phase][1];
+}
+
+/* Turn motor k's shaft to `position` counts: every quadrature edge on the way, in order. */
+void host_set_encoder(int k, int64_t position)
+{
+    static const uint8_t AB[4][2] = {{0, 0}, {1, 0}, {1, 1}, {0, 1}};
+    motor_wiring *m = &motors[k];
+    while (m->position != position) {
+        m->position += position > m->position ? 1 : -1;
+        int phase = (int)(((m->position % 4) + 4) % 4);
+        if (m->enc_a >= 0 && pins[m->enc_a].in != AB[phase][0])
+            drive_input(m->enc_a, AB[phase][0]);
+        if (m->enc_b >= 0 && pins[m->enc_b].in != AB[phase][1])
+            drive_input(m->enc_b, AB[phase][1]);
+    }
+}
+
+void host_set_pin_mv(int pin, uint32_t mv)
+{
+    if (pin >= 0 && pin < N_GPIO)
+        pin_mv[pin] = mv;
+}
+
+/* Start the board: the reset reason it will report, then setup() at the present time. */
+void host_boot(int reason, uint64_t at_us)
+{
+    now_us = integrated_to = at_us;
+    reset_reason = (esp_reset_reason_t)reason;
+    setup();
+}
+
+/* Run the board for `us` microseconds: the timer's interrupts when due, loop() after each (and once
+ * more per interrupt that fired while it was busy), the task watchdog. Returns 1 once the watchdog fired. */
+int host_advance(uint32_t us)
+{
+    uint64_t end = now_us + us;
+    while (now_us < end && !wdt_expired) {
+        int fired = 0;
+        uint64_t next = end;
+        for (int i = 0; i < 4; i++) {
+            host_hw_timer *t = &hw_timers[i];
+            while (t->used && t->armed && t->isr && t->next_us <= now_us) {
+                t->isr();
+                fired++;
+                t->next_us += t->period_us;
+                if (t->armed == 1)
+                    t->armed = 0;
+            }
+        }
+        uint64_t before = now_us;
+        for (int i = 0; i < (fired ? fired : 1); i++)
+            loop();
+        if (loop_wdt && now_us - before > TWDT_TIMEOUT_US)
+            wdt_expired = 1;
+        for (int i = 0; i < 4; i++)
+            if (hw_timers[i].used && hw_timers[i].armed && hw_timers[i].next_us < next)
+                next = hw_timers[i].next_us;
+        if (now_us < next) {
+            integrate();
+            now_us = next;
+        }
+    }
+    integrate();
+    return wdt_expired;
+}
+
+/* Motor k's bridge over the time since the last call: pwm in [-1, 1] (forward minus reverse share),
+ * and whether any of it was braking or driving (1) rather than all coasting (0). */
+void host_bridge(int k, float *pwm, uint8_t *decay, double *shares)
+{
+    integrate();
+    double *t = bridge_time[k], total = t[0] + t[1] + t[2] + t[3];
+    if (total <= 0.0) {
+        *pwm = 0.0f;
+        *decay = 0;
+        return;
+    }
+    *pwm = (float)((t[0] - t[1]) / total);
+    *decay = (uint8_t)(t[3] < total * 0.5 ? 1 : 0);
+    for (int i = 0; i < 4; i++) {
+        if (shares)
+            shares[i] = t[i] / total;
+        t[i] = 0.0;
+    }
+}
+
+/* Bytes from the host into the receive buffer; returns how many fit. */
+uint32_t host_rx(const uint8_t *data, uint32_t n)
+{
+    uint32_t room = (uint32_t)(cdc_rx_cap - cdc_rx_len), take = n < room ? n : room;
+    memcpy(cdc_rx + cdc_rx_len, data, take);
+    cdc_rx_len += take;
+    return take;
+}
+
+/* Bytes the host reads from the transmit ring; returns how many. */
+uint32_t host_tx(uint8_t *out, uint32_t max)
+{
+    uint32_t n = (uint32_t)(cdc_tx_len < max ? cdc_tx_len : max);
+    memcpy(out, cdc_tx, n);
+    memmove(cdc_tx, cdc_tx + n, cdc_tx_len - n);
+    cdc_tx_len -= n;
+    return n;
+}
+
+uint64_t host_now_us(void) { return now_us; }
+uint64_t host_blocked_us(void) { return cdc_blocked_us; }
+
+/* The last `max` control-tick sampling instants (us), oldest first; returns how many. */
+uint32_t host_sample_times(uint64_t *out, uint32_t max)
+{
+    uint32_t n = n_sampled < 4096u ? n_sampled : 4096u;
+    if (n > max)
+        n = max;
+    for (uint32_t i = 0; i < n; i++)
+        out[i] = sampled_at[(n_sampled - n + i) % 4096u];
+    return n;
+}
+
+}  /* extern "C" */
