@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers import core
-from controllers.core import FIRMWARE_DIR, FirmwareBuildError
+from controllers.core import FIRMWARE_DIR
 
 SKETCH_DIR = FIRMWARE_DIR / "esp32s3"
 HOST_DIR = SKETCH_DIR / "host"
@@ -218,5 +218,3 @@ class Sketch:
     def telemetry_dropped(self) -> int:
         return self.lib.vrs_get_telemetry_dropped(self._core)
 
-
-__all__ = ["Sketch", "Wiring", "build", "wiring", "FirmwareBuildError"]

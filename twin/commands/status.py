@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.encoder import angle_from_counts
-from twin.commands.options import add_device_option, add_serial, profile_line, profile_of, said_by_device
+from twin.commands.options import (
+    add_device_option,
+    add_serial,
+    profile_line,
+    profile_of,
+    said_by_device,
+)
 from twin.errors import UserError
 from twin.hil.mirror import faults_text
 from twin.link import protocol as P

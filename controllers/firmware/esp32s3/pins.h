@@ -25,8 +25,12 @@ static const int PIN_IN2[6] = {17, 21, 39, 41, 47, 2};
 /* PWM: MCPWM, whose two groups of three operators with two generators each drive six H-bridges with no
  * pin ever re-routed (LEDC has 8 channels on the S3, too few for 12 inputs). Timer clock 10 MHz (the
  * group's 160 MHz PLL clock / 2 / 8), 500 ticks a period: 20 kHz, above hearing, 500 duty steps. */
+#ifndef PWM_RESOLUTION_HZ /* overridable for the host build's tests (controllers.sketch.build(defines)) */
 #define PWM_RESOLUTION_HZ 10000000
+#endif
+#ifndef PWM_PERIOD_TICKS
 #define PWM_PERIOD_TICKS 500
+#endif
 #define PWM_HINGES_PER_GROUP 3
 
 #endif

@@ -1,0 +1,132 @@
+"""The ESP32-S3 sketch in the loop (controllers.sketch): compiled on this host against stand-ins for its
+peripherals, run on the emulator's plant. It agrees with the bare core and the twin; each defect the sketch
+once had, put back, makes one of these fail."""
+
+import ctypes
+
+import numpy as np
+import pytest
+
+from controllers import sketch
+from controllers.encoder import target_counts
+from tests.cli import vrscroll
+from twin.link import protocol as P
+from twin.link.emulator import Emulator, EmulatorOptions
+from twin.sim.plant import as_twin
+from twin.sim.twin import Twin
+
+TARGETS = np.radians([30, -25, 20, -20, 25, -30])  # every hinge, both directions
+
+
+def frames(board, *msgs) -> list:
+    """One tick (the encoders read), then msgs (seq 1, 2, ...) to a Sketch and one more: what it answered."""
+    board.run_tick(0, board._positions, None, 8000)
+    for i, m in enumerate(msgs):
+        board.rx(P.encode(m, i + 1))
+    board.run_tick(0, board._positions, None, 8000)
+    return [m for _, m in P.Decoder().feed(board.tx())]
+
+
+def emulated(spec, use_sketch: bool, ticks: int = 1000, heartbeat_every: int = 50, read: bool = True):
+    """An emulator of the twin's own plant moved to TARGETS: (counts per tick (ticks, n), the emulator)."""
+    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), sketch=use_sketch))
+    emu.receive(P.encode(P.SetTargets(tuple(int(c) for c in target_counts(spec, TARGETS))), 1))
+    rec = []
+    for i in range(ticks):
+        if i % heartbeat_every == 0:
+            emu.receive(P.encode(P.Heartbeat(), 2 + i))
+        emu.step()
+        if read:
+            emu.take_output()
+        rec.append(emu.counts.copy())
+    return np.array(rec), emu
+
+
+def test_the_sketch_the_core_and_the_twin_agree_over_a_move(spec):
+    """A 1 s move of every hinge, both directions, the same gains: within a few counts of each other."""
+    bare, _ = emulated(spec, False)
+    whole, emu = emulated(spec, True)
+    twin = Twin(spec).move_to(TARGETS, max_time=1.0, stop_when_settled=False).counts
+    assert emu.firmware.state == P.State.ACTIVE and emu.firmware.faults == 0
+    assert np.abs(whole[-1] - target_counts(spec, TARGETS)).max() <= 2  # it arrived
+    assert np.abs(whole - bare).max() <= 4  # the sketch starts its first tick one tick later
+    assert np.abs(bare[1:] - twin[:-1]).max() <= 2
+
+
+def test_both_encoder_decoders_count_the_same_way():
+    """Hinges 0-3 count in PCNT units, 4-5 in a pin-change interrupt: one wiring, one sign (A leading B up)."""
+    board = sketch.Sketch(np.zeros(6))
+    for k, step in ((3, 40), (4, 40), (0, -25), (5, -25)):
+        board.lib.host_set_encoder(k, step)
+        board._positions[k] = step
+    state = frames(board, P.GetState())[0]
+    assert state.counts == (-25, 0, 0, 40, 40, -25)
+
+
+def test_the_pcnt_stand_in_keeps_counting_past_its_16_bit_limit():
+    """accum_count with watch points on the limits: the count goes on past 32767, as the driver extends it."""
+    board = sketch.Sketch(np.zeros(6))
+    board.lib.host_set_encoder(0, 40000)
+    board._positions[0] = 40000
+    assert frames(board, P.GetState())[0].counts[0] == 40000
+
+
+def test_the_board_brakes_from_its_first_instruction_and_says_why_it_started(spec):
+    """A reset mid-morph: the bridges brake (not coast, which lets the flaps fold) before the first tick, and
+    HELLO_REPLY names the reset."""
+    _, emu = emulated(spec, True, ticks=150)
+    board = emu.firmware
+    board.reset(P.ResetReason.BROWNOUT)
+    shares = np.zeros(4)
+    board.lib.host_advance(100)  # 0.1 ms: setup() has run, the first tick has not
+    for k in range(6):
+        board.lib.host_bridge(k, ctypes.byref(board._pwm), ctypes.byref(board._decay), shares.ctypes.data)
+        assert shares[2] == pytest.approx(1.0), f"hinge {k}: forward, reverse, brake, coast shares {shares}"
+    hello = frames(board, P.Hello())[0]
+    assert hello.reset_reason == P.ResetReason.BROWNOUT and hello.setup_error == P.SetupStep.NONE
+    for _ in range(50):
+        emu.step()
+    assert emu.firmware.state == P.State.IDLE and np.all(emu.firmware.run_tick(0, emu.counts, None, 8000)[0] == 0)
+
+
+def test_a_pwm_the_timer_cannot_make_is_a_named_hardware_fault():
+    """A period the MCPWM timer refuses (over 65535 ticks): the device says which set-up step failed, faults, and
+    CLEAR_FAULT cannot clear it."""
+    board = sketch.Sketch(np.zeros(6), defines=("PWM_PERIOD_TICKS=70000",))
+    hello, state = frames(board, P.Hello(), P.GetState())
+    assert hello.setup_error == P.SetupStep.PWM_TIMER
+    assert state.state == P.State.FAULT and state.faults & P.Fault.HARDWARE
+    nack = frames(board, P.ClearFault())[0]
+    assert isinstance(nack, P.NackMsg) and nack.reason == P.Nack.FAULT_PERSISTS
+    nack = frames(board, P.SetTargets((10,) * 6))[0]
+    assert isinstance(nack, P.NackMsg) and nack.reason == P.Nack.BAD_STATE
+
+
+def test_a_host_that_stops_reading_costs_telemetry_not_ticks(spec):
+    """Heartbeats keep coming but nothing is read for 1 s at 500 Hz telemetry: the tick period stays within
+    +-0.5 ms, no serial write waits, telemetry is dropped, and the watchdog (fed by the heartbeats) stays quiet."""
+    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), sketch=True))
+    emu.receive(P.encode(P.SetTelemetryRate(500), 1))
+    for i in range(1000):
+        if i % 50 == 0:
+            emu.receive(P.encode(P.Heartbeat(), 2 + i))
+        emu.step()  # nothing taken: the emulator stops draining the board once its backlog is full
+    board = emu.firmware
+    period = np.diff(board.sample_times()[-900:])
+    assert np.abs(period - sketch.TICK_US).max() <= 500, np.unique(period)
+    assert board.blocked_us == 0
+    assert board.telemetry_dropped > 0 and board.faults == 0
+
+
+def test_the_host_build_names_a_missing_cxx_compiler(monkeypatch, tmp_path):
+    monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
+    monkeypatch.setenv("CXX", "no-such-cxx")
+    with pytest.raises(sketch.core.FirmwareBuildError, match="needs a C\\+\\+ compiler and `no-such-cxx`"):
+        sketch.build()
+
+
+def test_status_against_the_sketch_on_a_pty(emulator):
+    dev = emulator("--sketch", "--ideal")
+    r = vrscroll("status", "--serial", dev.port)
+    assert r.returncode == 0, r.stderr
+    assert "started  POWERON" in r.stdout and "faults   none" in r.stdout
