@@ -48,7 +48,7 @@ def quiet(*args) -> str:
 def one(seed: int, folder: Path) -> None:
     spec = load_spec()
     folder.mkdir(parents=True, exist_ok=True)
-    with EmulatorProcess(folder / "emulator.jsonl", *emulator_args(seed)) as emu:
+    with EmulatorProcess(folder / "emulator.jsonl", "--zeroed", *emulator_args(seed)) as emu:
         truth = drawn_plant(emu)
         with Link(emu.port) as link:
             assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from controllers.encoder import target_counts  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
 from twin.link import protocol as P  # noqa: E402
-from twin.link.emulator import Emulator  # noqa: E402
+from twin.link.emulator import Emulator, EmulatorOptions  # noqa: E402
 from twin.link.pty_device import open_pty, serve  # noqa: E402
 from twin.link.serial_link import Link  # noqa: E402
 
@@ -39,7 +39,7 @@ MOVES_DEG = ([30.0, -20.0, 45.0, 10.0, -60.0, 80.0], [-30.0, 20.0, -45.0, -10.0,
 def device(ticks: int, conn) -> None:
     """The emulated device for `ticks` ticks; sends its pty path, then its tick stamps (s) and overruns."""
     master, slave, path = open_pty()
-    emu = Emulator(load_spec())
+    emu = Emulator(load_spec(), EmulatorOptions(zeroed=True))
     stamps = np.zeros(ticks)
     done = [0]
 

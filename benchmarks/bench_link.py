@@ -67,7 +67,7 @@ def main(argv=None) -> int:
     p.add_argument("--log", help="session log (off by default: it measures the link, not the disk)")
     args = p.parse_args(argv)
     tmp = tempfile.TemporaryDirectory()
-    emu = None if args.serial else EmulatorProcess(Path(tmp.name) / "emulator.jsonl")
+    emu = None if args.serial else EmulatorProcess(Path(tmp.name) / "emulator.jsonl", "--zeroed")
     port = args.serial or emu.port
     out = {"port": port}
     try:

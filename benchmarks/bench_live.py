@@ -129,7 +129,7 @@ def main() -> None:
     p.add_argument("--variant", default="full")
     args = p.parse_args()
     print(load())
-    with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl") as emu, \
+    with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed") as emu, \
             ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err") as service:
         print(service.banner.strip())

@@ -45,7 +45,9 @@ class Config(ctypes.Structure):
                 ("max_telemetry_hz", ctypes.c_uint16), ("limit_counts", ctypes.c_int32),
                 ("limit_margin_counts", ctypes.c_int32), ("stall_duty", ctypes.c_float),
                 ("stall_counts", ctypes.c_int32), ("stall_ms", ctypes.c_uint16), ("overcurrent_ma", ctypes.c_int16),
-                ("drive_cap_mv", ctypes.c_uint16), ("fw_version", ctypes.c_uint8 * 3)]
+                ("drive_cap_mv", ctypes.c_uint16), ("fw_version", ctypes.c_uint8 * 3),
+                ("stall_current_ma", ctypes.c_uint16), ("continuous_current_ma", ctypes.c_uint16),
+                ("overload_ms", ctypes.c_uint16), ("host_away_hold_ms", ctypes.c_uint16)]
 
 
 class Gains(ctypes.Structure):
@@ -68,7 +70,10 @@ def config_from_spec(spec: DeviceSpec) -> Config:
                   limit_counts=math.floor(spec.hinge_limit / spec.rad_per_count),
                   limit_margin_counts=spec.limit_margin, stall_duty=spec.stall_duty, stall_counts=spec.stall_counts,
                   stall_ms=round(spec.stall_time * 1000), overcurrent_ma=round(spec.overcurrent * 1000),
-                  drive_cap_mv=round(spec.drive_cap * 1000), fw_version=(ctypes.c_uint8 * 3)(*FIRMWARE_VERSION))
+                  drive_cap_mv=round(spec.drive_cap * 1000), fw_version=(ctypes.c_uint8 * 3)(*FIRMWARE_VERSION),
+                  stall_current_ma=round(spec.stall_current * 1000),
+                  continuous_current_ma=round(spec.continuous_current * 1000),
+                  overload_ms=round(spec.overload_time * 1000), host_away_hold_ms=round(spec.host_away_hold * 1000))
 
 
 def gains_struct(gains) -> ctypes.Array:
@@ -152,6 +157,10 @@ _SIGNATURES = {  # name: (argtypes, restype), as vrs_core.h declares them
     "vrs_estop": ([_VP], None),
     "vrs_clear_fault": ([_VP], ctypes.c_int),
     "vrs_set_reset_reason": ([_VP, _U8], None),
+    "vrs_confirm_zero": ([_VP], ctypes.c_int),
+    "vrs_mark_zero_confirmed": ([_VP], None),
+    "vrs_get_heat": ([_VP, _VP], None),
+    "vrs_get_derated": ([_VP], _U8),
     "vrs_get_state": ([_VP], _U8),
     "vrs_get_faults": ([_VP], _U16),
     "vrs_get_fault_hinge": ([_VP], _U8),
@@ -265,6 +274,26 @@ class Core:
         """0, or Nack.FAULT_PERSISTS while a HARDWARE fault stands."""
         return self.lib.vrs_clear_fault(self.address)
 
+    def confirm_zero(self) -> int:
+        """CONFIRM_ZERO: the present counts become zero; 0, or Nack.BAD_STATE outside IDLE."""
+        return self.lib.vrs_confirm_zero(self.address)
+
+    def mark_zero_confirmed(self) -> None:
+        """Accept the present zero as it is (the twin's counts are true from the start)."""
+        self.lib.vrs_mark_zero_confirmed(self.address)
+
+    @property
+    def heat(self) -> np.ndarray:
+        """Each hinge's I2t estimate as a share of the budget (1: derating)."""
+        out = np.zeros(MAX_HINGES, np.float32)
+        self.lib.vrs_get_heat(self.address, out.ctypes.data)
+        return out[:self.n].astype(float)
+
+    @property
+    def derated(self) -> int:
+        """Bit k: hinge k's duty held to the continuous rating by the I2t protection."""
+        return self.lib.vrs_get_derated(self.address)
+
     def set_reset_reason(self, reason: int) -> None:
         """Why the device last started (protocol.ResetReason), as HELLO_REPLY reports it."""
         self.lib.vrs_set_reset_reason(self.address, reason)
@@ -331,6 +360,7 @@ def start_core(spec: DeviceSpec, gains: list[PidGains], counts, stall_detection:
     if not stall_detection:
         cfg.stall_duty = math.inf  # no |duty| reaches it
     fw = Core(cfg, [PidGains.from_spec(spec)] * spec.n_hinges, counts)
+    fw.mark_zero_confirmed()  # the twin's counts are true: no one need lay it flat
     set_core_gains(fw, gains)
     fw.set_targets(counts, 0)
     return fw

@@ -105,6 +105,7 @@ _SIGNATURES = {
     "host_blocked_us": ([], _U64),
     "host_sample_times": ([_VP, _U32], _U32),
     "vrs_get_state": ([_VP], _U8),
+    "vrs_confirm_zero": ([_VP], _I32),
     "vrs_get_faults": ([_VP], ctypes.c_uint16),
     "vrs_get_fault_hinge": ([_VP], _U8),
     "vrs_get_rx_bad_frames": ([_VP], _U32),
@@ -158,6 +159,10 @@ class Sketch:
         """The board restarts (esp_reset_reason `reason`), its motors where they stand: the sketch from setup()."""
         self.resets += 1
         self._boot(self._positions, reason, int(self.lib.host_now_us()))
+
+    def confirm_zero(self) -> int:
+        """What CONFIRM_ZERO does, done on the board (a bench user at power-on); 0 or the NACK reason."""
+        return self.lib.vrs_confirm_zero(self._core)
 
     def run_tick(self, now_us: int, counts, current_ma, battery_mv: int) -> tuple[np.ndarray, np.ndarray]:
         """One tick: (pwm float32 (n,), decay uint8 (n,)) the bridges gave the motors over it. now_us is

@@ -30,11 +30,11 @@ FIXED_PLANT = ("--speed-scale", "0.95", "--friction-scale", "1.25", "--damping-s
 @pytest.fixture
 def emulator(tmp_path):
     """start(*cli_options) -> a device emulator process on a real pty (FIXED_PLANT unless the options say
-    otherwise); all are stopped after the test."""
+    otherwise), its zero confirmed at power-on; all are stopped after the test."""
     started = []
 
     def start(*args):
-        e = EmulatorProcess(tmp_path / f"emulator{len(started)}.jsonl", *FIXED_PLANT, *args)
+        e = EmulatorProcess(tmp_path / f"emulator{len(started)}.jsonl", *FIXED_PLANT, "--zeroed", *args)
         started.append(e)
         return e
 

@@ -107,7 +107,7 @@ def test_six_hinges_settle_later_on_a_low_pack_as_the_twin_predicts_for_the_emul
         report = move_report(pack, Twin(pack).move_to(targets, max_time=1.5, stop_when_settled=False))
         predicted = np.mean([r["settle_time_s"] for r in report])
         opt = EmulatorOptions(plant=dataclasses.replace(as_twin(spec), pack_voltage=volts),
-                              faults=FaultOptions(latency_ms=1.0))
+                              faults=FaultOptions(latency_ms=1.0), zeroed=True)
         measured = emulated_settle(spec, opt, targets, 1.5).mean()
         assert measured == pytest.approx(predicted, rel=0.15), volts
         got[volts] = measured

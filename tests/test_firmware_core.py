@@ -12,11 +12,16 @@ from controllers.pid import PidGains
 from twin.link import protocol as P
 
 
-def make(spec, **config) -> core.Core:
+def make(spec, zeroed: bool = True, counts=None, **config) -> core.Core:
+    """A core with the spec's config (config's fields changed), started at counts (default 0), its zero
+    confirmed there unless zeroed=False."""
     cfg = core.config_from_spec(spec)
     for k, v in config.items():
         setattr(cfg, k, v)
-    return core.Core(cfg, [PidGains.from_spec(spec)] * spec.n_hinges, [0] * spec.n_hinges)
+    c = core.Core(cfg, [PidGains.from_spec(spec)] * spec.n_hinges, counts or [0] * spec.n_hinges)
+    if zeroed:
+        c.mark_zero_confirmed()
+    return c
 
 
 def replies(c: core.Core) -> list:
@@ -138,7 +143,7 @@ def test_gains_set_on_the_wire_read_back_exactly(spec):
 # ---- the watchdog and repeated commands ---------------------------------------------------------
 
 def test_watchdog_stops_the_motors_200_ms_after_the_last_valid_frame(spec):
-    c = make(spec)
+    c = make(spec, host_away_hold_ms=0)
     c.rx(P.encode(P.SetTargets((200,) * c.n), 1), 0)
     last_frame = 150_000
     for t in range(1000, 400_001, 1000):
@@ -265,11 +270,12 @@ def test_estop_brakes_and_clear_fault_idles_at_the_present_counts(spec):
 
 def test_hello_and_state_report_the_config_and_the_tick(spec):
     c = make(spec)
-    assert ask(c, P.Hello())[1] == P.HelloReply(core.FIRMWARE_VERSION, P.PROTOCOL_VERSION, 6, 1000, 200, 500)
+    assert ask(c, P.Hello())[1] == P.HelloReply(core.FIRMWARE_VERSION, P.PROTOCOL_VERSION, 6, 1000, 200, 500,
+                                                  zero_confirmed=1)
     c.rx(b"\x01\x02\x00", 0)
     c.tick(5000, [1, 2, 3, 4, 5, 6])
     assert ask(c, P.GetState(), 2, 6000)[1] == P.StateMsg(core.FIRMWARE_VERSION, P.State.IDLE, 0, 0xFF, 6000, 1,
-                                                          (1, 2, 3, 4, 5, 6), (0,) * 6)
+                                                          (1, 2, 3, 4, 5, 6), (0,) * 6, zero_confirmed=1)
 
 
 def test_telemetry_at_the_set_rate_with_the_counts_the_pid_used(spec):
@@ -317,3 +323,84 @@ def test_numba_calls_the_core_tick_by_address(spec):
     for k in range(500):
         want, _ = b.tick(k * 1000, [k // 10] * b.n)
     assert got == want[0] and np.array_equal(duty[:6], want)
+
+
+# ---- the zero, LIMIT's way back, I2t, the host away ---------------------------------------------------
+
+def test_after_a_start_targets_wait_for_the_zero_and_confirming_makes_the_present_counts_zero(spec):
+    c = make(spec, zeroed=False, counts=[40, -7, 0, 0, 0, 300], watchdog_ms=0)
+    c.tick(1000, [40, -7, 0, 0, 0, 300])
+    assert ask(c, P.Hello())[1].zero_confirmed == 0
+    nack = ask(c, P.SetTargets((0,) * c.n), 2, 1000)[1]
+    assert nack == P.NackMsg(P.MsgId.SET_TARGETS, P.Nack.ZERO_UNCONFIRMED, 0xFF) and c.state == P.State.IDLE
+    assert ask(c, P.ConfirmZero(), 3, 1000)[1] == P.Ack(P.MsgId.CONFIRM_ZERO, 1000)
+    c.tick(2000, [41, -7, 0, 0, 0, 300])  # raw counts: the zero is subtracted
+    state = ask(c, P.GetState(), 4, 2000)[1]
+    assert state.counts == (1, 0, 0, 0, 0, 0) and state.zero_confirmed == 1
+    assert ask(c, P.SetTargets((10,) * c.n), 5, 2000)[1] == P.Ack(P.MsgId.SET_TARGETS, 2000)
+    assert ask(c, P.ConfirmZero(), 6, 2000)[1] == P.NackMsg(P.MsgId.CONFIRM_ZERO, P.Nack.BAD_STATE, P.State.ACTIVE)
+
+
+def test_a_hinge_past_its_range_can_be_driven_back_but_not_further_out(spec):
+    far = limit(spec) + spec.limit_margin
+    out = [far + 40] + [0] * (spec.n_hinges - 1)  # sagged past the range while IDLE
+    back = make(spec, counts=out, watchdog_ms=0)
+    back.tick(0, out)
+    assert ask(back, P.SetTargets((limit(spec) - 10,) + (0,) * 5))[1].MSG == P.MsgId.ACK
+    for i, c0 in enumerate(range(far + 40, far - 30, -1)):  # on its way back: no LIMIT
+        back.tick(1000 * (i + 1), [c0] + [0] * 5)
+        assert back.state == P.State.ACTIVE, c0
+    back.tick(10**6, [far + 10] + [0] * 5)  # out again, past where it came back to: LIMIT
+    assert back.state == P.State.FAULT and back.faults == P.Fault.LIMIT and back.fault_hinge == 0
+    away = make(spec, counts=out, watchdog_ms=0)
+    away.tick(0, out)
+    ask(away, P.SetTargets((limit(spec) - 10,) + (0,) * 5))
+    away.tick(1000, [far + 41] + [0] * 5)  # a hinge that runs away from the range (a reversed encoder)
+    assert away.state == P.State.FAULT and away.faults == P.Fault.LIMIT
+
+
+def test_i2t_derates_a_jammed_hinge_before_its_overload_time_and_recovers(spec):
+    """Held against a jam at duty 0.45 (0.72 A, 1.8x the motor's continuous 0.4 A): the budget
+    (stall^2 - continuous^2) x overload_time lasts budget / (I^2 - continuous^2); then the duty is held to the
+    continuous rating, and released once the estimate falls to half the budget."""
+    c = make(spec, watchdog_ms=0, stall_duty=2.0)  # no STALL fault: a hand that holds the flap
+    kp = 0.45 / 100  # duty 0.45 at an error of 100 counts, all P
+    c.set_gains(P.BROADCAST, PidGains(kp, 0.0, 0.0, 50.0, 0.0, 0.0, 0))
+    ask(c, P.SetTargets((100,) + (0,) * 5))
+    i_stall, i_cont = spec.stall_current, spec.continuous_current
+    allowed = (i_stall**2 - i_cont**2) * spec.overload_time / ((0.45 * i_stall)**2 - i_cont**2)
+    derated_at = None
+    for t in range(1, 30_001):
+        duty, _ = c.tick(t * 1000, [0] * 6)
+        if derated_at is None:
+            assert duty[0] == pytest.approx(0.45)
+            derated_at = t / 1000 if c.derated & 1 else None
+        else:
+            assert duty[0] == pytest.approx(i_cont / i_stall, rel=1e-3)  # from the next tick on
+    assert derated_at == pytest.approx(allowed, abs=0.01) and c.heat[0] == pytest.approx(1.0, abs=0.01)
+    assert ask(c, P.GetState(), 2)[1].derated == 1
+    t0 = 30_001
+    for t in range(t0, t0 + 20_000):  # at the target: no current, the estimate cools
+        c.tick(t * 1000, [100, 0, 0, 0, 0, 0])
+    assert c.derated == 0 and c.heat[0] < 0.5
+
+
+def test_a_host_gone_quiet_leaves_the_targets_held_for_the_stated_time_then_released(spec):
+    hold_ms = round(spec.host_away_hold * 1000)
+    c = make(spec, stall_duty=2.0)  # flaps held short of their targets, driven, no STALL
+    ask(c, P.SetTargets((50,) * c.n))
+    for t in range(1000, 201_000 + hold_ms * 1000 + 1000, 1000):  # the watchdog at 201 ms, then the hold
+        duty, decay = c.tick(t, [40] * c.n)
+        if t <= 200_000:
+            assert c.state == P.State.ACTIVE, t
+        elif t < 201_000 + hold_ms * 1000:
+            assert c.state == P.State.HOLDING and np.all(duty > 0), t  # still holding the gated targets
+    assert c.state == P.State.FAULT and c.faults == P.Fault.WATCHDOG and np.all(duty == 0) and np.all(decay == 1)
+    back = make(spec, stall_duty=2.0)
+    ask(back, P.SetTargets((50,) * back.n))
+    for t in range(1000, 400_000, 1000):
+        back.tick(t, [40] * back.n)
+    assert back.state == P.State.HOLDING
+    back.rx(P.encode(P.Heartbeat(), 9), 400_000)  # the host is back within the hold
+    back.tick(401_000, [40] * back.n)
+    assert back.state == P.State.ACTIVE and back.faults == 0

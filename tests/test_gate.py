@@ -25,11 +25,23 @@ def test_safe_move_passes_every_check_with_numbers(spec, twin):
     r = check_move(spec, np.zeros(6), np.radians([30, 10, 0, 0, -10, -30]), twin=twin)
     assert r.passed, r.text()
     c = by_name(r)
-    assert set(c) == {"range", "collision", "settle", "peak_current", "hold_current"}
+    assert set(c) == {"range", "collision", "settle", "peak_current", "hold_current", "i2t"}
     assert c["settle"].value < 2.0 and c["peak_current"].limit == spec.driver_peak_current
+    assert 0 < c["i2t"].value < 100 and c["i2t"].unit == "%"
     assert c["hold_current"].limit == spec.continuous_current
     assert r.prediction is not None and len(r.prediction.time) > 10
     assert enforce(r) is r
+
+
+def test_the_gate_predicts_the_firmwares_i2t_derating(spec):
+    """The firmware's I2t protection runs in the twin: a motor with a small overload budget (0.02 s at stall
+    current) is derated during a fast 60 deg move, and the gate names the hinge; the same move with the
+    spec's budget passes. (A jam held at duty 0.45 is tests/test_firmware_core.py's.)"""
+    small = spec.replace(overload_time=0.02)
+    targets = np.radians([60, 0, 0, 0, 0, 0])
+    i2t = by_name(check_move(small, np.zeros(6), targets))["i2t"]
+    assert not i2t.passed and i2t.detail == "hinge 0: derated to its continuous current"
+    assert by_name(check_move(spec, np.zeros(6), targets))["i2t"].passed
 
 
 def test_out_of_range_is_refused_naming_hinge_and_limit(spec, twin):

@@ -129,8 +129,10 @@ def test_garbage_from_the_device_is_counted_and_the_link_recovers(emulator):
         assert link.telemetry_lost > 0
 
 
-def test_watchdog_stops_the_motors_when_the_host_goes_quiet(emulator, spec):
-    emu = emulator()
+def test_watchdog_holds_then_stops_the_motors_when_the_host_goes_quiet(emulator, spec):
+    """The host goes quiet: after the watchdog the device holds its targets (HOLDING) for the stated time,
+    then releases (FAULT WATCHDOG, motors off); the hold shortened to 0.3 s here."""
+    emu = emulator("--host-away-hold-ms", "300")
     with Link(emu.port) as link:
         state = link.get_state()
         link.set_telemetry_rate(500)
@@ -140,21 +142,25 @@ def test_watchdog_stops_the_motors_when_the_host_goes_quiet(emulator, spec):
         link.stop_heartbeat()
         quiet_from = time.monotonic()
         stopped = None
-        while time.monotonic() - quiet_from < 1.0:
+        held = []
+        while time.monotonic() - quiet_from < 1.5:
             _, f = link.telemetry(timeout=0.5)
+            held += [f] if f.state == P.State.HOLDING else []
             if f.faults & P.Fault.WATCHDOG:
                 stopped = f
                 break
         assert stopped is not None, "watchdog never tripped"
         assert stopped.state == P.State.FAULT and all(d == 0 for d in stopped.duty)
+        assert held and all(f.targets == held[0].targets for f in held)
         host_delay = time.monotonic() - quiet_from
         after = [f for _, f in [link.telemetry(timeout=0.5) for _ in range(50)]]
         assert all(f.state == P.State.FAULT and all(d == 0 for d in f.duty) for f in after)
-    fault = emu.events("fault")[0]
+    away, fault = emu.events("host_away")[0], emu.events("fault")[0]
     assert fault["fault"] == "WATCHDOG"
-    # device time from the last frame heard to motors off: the stated 200 ms, within one tick
-    assert 0.200 <= fault["t"] - fault["last_rx_t"] <= 0.200 + 2 * spec.firmware_dt
-    assert host_delay < 0.3
+    # device time from the last frame heard to the hold: the stated 200 ms, within one tick; then the hold
+    assert 0.200 <= away["t"] - away["last_rx_t"] <= 0.200 + 2 * spec.firmware_dt
+    assert 0.300 <= fault["t"] - away["t"] <= 0.300 + 2 * spec.firmware_dt
+    assert host_delay < 0.8
 
 
 def test_jammed_hinge_is_caught_by_the_live_comparison(emulator, spec, tmp_path):

@@ -19,7 +19,7 @@ MOVE_DEG = [60.0, -45.0, 20.0, 30.0, 90.0, -100.0]  # every hinge moves
 
 def emulated_counts(spec, targets, ticks: int) -> np.ndarray:
     """Encoder counts the emulated device reads each tick, commanded in process (no pty, no pacing)."""
-    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), faults=FaultOptions(latency_ms=0.0)))  # no latency
+    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), faults=FaultOptions(latency_ms=0.0), zeroed=True))  # no latency
     emu.receive(P.encode(P.SetTargets(tuple(int(c) for c in target_counts(spec, targets))), 1))
     out = np.zeros((ticks, spec.n_hinges), np.int64)
     for i in range(ticks):
@@ -91,7 +91,7 @@ def test_the_twins_pid_memory_is_the_cores(spec):
 def test_the_emulator_answers_with_the_cores_bytes(spec):
     """Software in the loop: a SET_TARGETS repeated with its sequence number 50 ms later gets the core's
     original ACK (the same device time), and a device -> host message sent to it gets NACK UNKNOWN_MESSAGE."""
-    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), faults=FaultOptions(latency_ms=0.0)))  # no latency
+    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), faults=FaultOptions(latency_ms=0.0), zeroed=True))  # no latency
     frame = P.encode(P.SetTargets((30, 0, 0, 0, 0, -30)), 7)
     replies = []
     for wait in (0, 50):

@@ -10,13 +10,14 @@ from controllers.pid import PidGains
 from twin.link import protocol as P
 
 MESSAGES = [
-    P.Hello(), P.Heartbeat(), P.GetState(), P.EStop(), P.ClearFault(),
+    P.Hello(), P.Heartbeat(), P.GetState(), P.EStop(), P.ClearFault(), P.ConfirmZero(),
     P.SetTargets((1, -2, 3, 2**31 - 1, -(2**31), 0)),
     P.SetGains(P.BROADCAST, P.Gains(200000, 200000, 4000, 500, 9830, 983, 2)),
     P.SetTelemetryRate(500), P.GetGains(5),
     P.Ack(P.MsgId.SET_TARGETS, 2**32 - 1), P.NackMsg(P.MsgId.SET_TARGETS, P.Nack.OUT_OF_RANGE, 3),
-    P.HelloReply((1, 2, 3), 1, 6, 1000, 200, 500),
-    P.StateMsg((0, 1, 0), P.State.ACTIVE, P.Fault.STALL | P.Fault.WATCHDOG, 2, 123456, 7, (1,) * 6, (-1,) * 6),
+    P.HelloReply((1, 2, 3), 1, 6, 1000, 200, 500, P.ResetReason.BROWNOUT, P.SetupStep.PWM_TIMER, 1),
+    P.StateMsg((0, 1, 0), P.State.HOLDING, P.Fault.STALL | P.Fault.HARDWARE, 2, 123456, 7, (1,) * 6, (-1,) * 6, 1,
+               0b100101),
     P.GainsReply(0, P.Gains(1, 2, 3, 4, 5, 6, 7)),
     P.Telemetry(999, P.State.FAULT, P.Fault.ESTOP, 255, (1, 2, 3, 4, 5, 6), (6, 5, 4, 3, 2, 1),
                 (32767, -32767, 0, 1, -1, 100), (1600, -1600, 0, 0, 5, -5)),

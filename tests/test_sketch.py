@@ -29,7 +29,7 @@ def frames(board, *msgs) -> list:
 
 def emulated(spec, use_sketch: bool, ticks: int = 1000, heartbeat_every: int = 50, read: bool = True):
     """An emulator of the twin's own plant moved to TARGETS: (counts per tick (ticks, n), the emulator)."""
-    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), sketch=use_sketch))
+    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), sketch=use_sketch, zeroed=True))
     emu.receive(P.encode(P.SetTargets(tuple(int(c) for c in target_counts(spec, TARGETS))), 1))
     rec = []
     for i in range(ticks):

@@ -57,7 +57,7 @@ uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max)
 static int acts(uint8_t id)
 {
     return id == VRS_MSG_SET_TARGETS || id == VRS_MSG_SET_GAINS || id == VRS_MSG_ESTOP || id == VRS_MSG_CLEAR_FAULT
-           || id == VRS_MSG_SET_TELEMETRY_RATE;
+           || id == VRS_MSG_SET_TELEMETRY_RATE || id == VRS_MSG_CONFIRM_ZERO;
 }
 
 /* queue a reply to the command (request id, seq, frame CRC); keep it if the command acts */
@@ -125,6 +125,32 @@ int vrs_clear_fault(vrs_core *c)
 
 void vrs_set_reset_reason(vrs_core *c, uint8_t reason) { c->reset_reason = reason; }
 
+int vrs_confirm_zero(vrs_core *c)
+{
+    uint8_t k;
+    if (c->state != VRS_STATE_IDLE)
+        return VRS_NACK_BAD_STATE;
+    for (k = 0; k < c->cfg.n_hinges; k++) {
+        c->zero[k] += c->counts[k];
+        c->counts[k] = c->targets[k] = c->pid[k].prev = c->stall_ref[k] = 0;
+    }
+    c->zero_confirmed = 1;
+    return 0;
+}
+
+void vrs_mark_zero_confirmed(vrs_core *c) { c->zero_confirmed = 1; }
+
+void vrs_get_heat(const vrs_core *c, float *share_out)
+{
+    uint8_t k;
+    float i_stall = (float)c->cfg.stall_current_ma * 1e-3f, i_cont = (float)c->cfg.continuous_current_ma * 1e-3f;
+    float budget = (i_stall * i_stall - i_cont * i_cont) * (float)c->cfg.overload_ms * 1e-3f;
+    for (k = 0; k < c->cfg.n_hinges; k++)
+        share_out[k] = budget > 0.0f ? c->heat[k] / budget : 0.0f;
+}
+
+uint8_t vrs_get_derated(const vrs_core *c) { return c->derated; }
+
 void vrs_hardware_fault(vrs_core *c, uint8_t step, uint8_t hinge)
 {
     if (c->setup_error == VRS_SETUP_NONE)
@@ -135,9 +161,14 @@ void vrs_hardware_fault(vrs_core *c, uint8_t step, uint8_t hinge)
 static int set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us, uint32_t *detail)
 {
     uint8_t k, n = c->cfg.n_hinges;
+    int32_t far = c->cfg.limit_counts + c->cfg.limit_margin_counts;
     if (c->state == VRS_STATE_ESTOP || c->state == VRS_STATE_FAULT) {
         *detail = c->state;
         return VRS_NACK_BAD_STATE;
+    }
+    if (!c->zero_confirmed) {
+        *detail = 0xFF;
+        return VRS_NACK_ZERO_UNCONFIRMED;
     }
     for (k = 0; k < n; k++)
         if (counts[k] > c->cfg.limit_counts || counts[k] < -c->cfg.limit_counts) {
@@ -145,6 +176,8 @@ static int set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us, uint
             return VRS_NACK_OUT_OF_RANGE;
         }
     memcpy(c->targets, counts, n * sizeof counts[0]);
+    if (c->state == VRS_STATE_HOLDING)
+        c->state = VRS_STATE_ACTIVE;
     if (c->state == VRS_STATE_IDLE) {
         for (k = 0; k < n; k++) {
             c->pid[k].prev = c->counts[k];
@@ -152,6 +185,8 @@ static int set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us, uint
             c->pid[k].integral = 0.0f;
             c->stall_ref[k] = c->counts[k];
             c->stall_since_us[k] = now_us;
+            /* a hinge that sagged past its range may be driven back; LIMIT only if it goes further out */
+            c->limit_out[k] = c->counts[k] > far ? c->counts[k] : (c->counts[k] < -far ? -c->counts[k] : far);
         }
         c->state = VRS_STATE_ACTIVE;
     }
@@ -200,6 +235,7 @@ int vrs_init(vrs_core *c, const vrs_config *cfg, const vrs_gains *gains, const i
         if (vrs_set_gains(c, k, &gains[k]) != 0)
             return -1;
         c->counts[k] = c->targets[k] = c->pid[k].prev = c->stall_ref[k] = counts_now[k];
+        c->limit_out[k] = cfg->limit_counts + cfg->limit_margin_counts;
     }
     c->state = VRS_STATE_IDLE;
     c->fault_hinge = 0xFF;
@@ -269,6 +305,7 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         out[7] = c->cfg.max_telemetry_hz;
         out[8] = c->reset_reason;
         out[9] = c->setup_error;
+        out[10] = c->zero_confirmed;
         memset(c->replies, 0, sizeof c->replies);  /* a new session: its seqs start again */
         reply(c, id, seq, crc, VRS_MSG_HELLO_REPLY, out, 0);
         return;
@@ -279,7 +316,9 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         put_status(c, out + 3);
         out[6] = c->now_us;
         out[7] = c->rx_bad_frames;
-        put_positions(c, out + 8);
+        out[8] = c->zero_confirmed;
+        out[9] = c->derated;
+        put_positions(c, out + 10);
         reply(c, id, seq, crc, VRS_MSG_STATE, out, nh);
         return;
     case VRS_MSG_SET_TARGETS:
@@ -313,6 +352,10 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         r = vrs_clear_fault(c);
         detail = c->faults;
         break;
+    case VRS_MSG_CONFIRM_ZERO:
+        r = vrs_confirm_zero(c);
+        detail = c->state;
+        break;
     case VRS_MSG_SET_TELEMETRY_RATE:
         r = vrs_set_telemetry_rate(c, (uint16_t)v[0]);
         break;
@@ -343,6 +386,8 @@ static void frame(vrs_core *c, const uint8_t *bytes, uint32_t len)
     }
     c->rx_good_frames++;
     c->last_rx_us = c->now_us;
+    if (c->state == VRS_STATE_HOLDING)  /* the host is back before the hold ran out */
+        c->state = VRS_STATE_ACTIVE;
     for (i = 0; i < VRS_REPLY_MEMORY; i++) {
         const vrs_reply *m = &c->replies[i];
         if (m->used && m->seq == seq && m->request_crc == crc && c->now_us - m->at_us < VRS_REPLY_KEEP_US) {
@@ -388,15 +433,24 @@ static void checks(vrs_core *c, uint32_t now_us)
 {
     uint8_t k, n = c->cfg.n_hinges;
     int32_t far = c->cfg.limit_counts + c->cfg.limit_margin_counts;
-    if (c->cfg.watchdog_ms && now_us - c->last_rx_us > (uint32_t)c->cfg.watchdog_ms * 1000u) {
+    if (c->state == VRS_STATE_ACTIVE && c->cfg.watchdog_ms
+        && now_us - c->last_rx_us > (uint32_t)c->cfg.watchdog_ms * 1000u) {
+        c->state = VRS_STATE_HOLDING;  /* the host went quiet: hold the last targets, then release */
+        c->away_since_us = now_us;
+    }
+    if (c->state == VRS_STATE_HOLDING && now_us - c->away_since_us >= (uint32_t)c->cfg.host_away_hold_ms * 1000u) {
         fault(c, VRS_FAULT_WATCHDOG, 0xFF);
         return;
     }
-    for (k = 0; k < n; k++)
-        if (c->counts[k] > far || c->counts[k] < -far) {
+    for (k = 0; k < n; k++) {
+        int32_t out = c->counts[k] < 0 ? -c->counts[k] : c->counts[k];
+        if (out > c->limit_out[k]) {
             fault(c, VRS_FAULT_LIMIT, k);
             return;
         }
+        if (out + c->cfg.limit_margin_counts < c->limit_out[k])  /* back toward the range: the limit follows */
+            c->limit_out[k] = out + c->cfg.limit_margin_counts > far ? out + c->cfg.limit_margin_counts : far;
+    }
     if (c->cfg.overcurrent_ma > 0)
         for (k = 0; k < n; k++)
             if (c->current_ma[k] > c->cfg.overcurrent_ma || c->current_ma[k] < -c->cfg.overcurrent_ma) {
@@ -441,19 +495,38 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
               float *duty_out, uint8_t *decay_out)
 {
     uint8_t k, n = c->cfg.n_hinges;
+    int driving;
+    float i_stall = (float)c->cfg.stall_current_ma * 1e-3f, i_cont = (float)c->cfg.continuous_current_ma * 1e-3f;
+    float budget = (i_stall * i_stall - i_cont * i_cont) * (float)c->cfg.overload_ms * 1e-3f;
+    float cap = i_stall > 0.0f ? i_cont / i_stall : 1.0f;
     c->now_us = now_us;
     for (k = 0; k < n; k++) {
-        c->counts[k] = counts[k];
+        c->counts[k] = counts[k] - c->zero[k];
         c->current_ma[k] = current_ma ? current_ma[k] : 0;
     }
-    if (c->state == VRS_STATE_ACTIVE)
+    if (c->state == VRS_STATE_ACTIVE || c->state == VRS_STATE_HOLDING)
         checks(c, now_us);
+    driving = c->state == VRS_STATE_ACTIVE || c->state == VRS_STATE_HOLDING;
     for (k = 0; k < n; k++) {
-        if (c->state == VRS_STATE_ACTIVE)
-            c->duty[k] = vrs_pid_update(&c->pid[k], &c->gains[k], c->alpha[k], c->dt, c->targets[k], counts[k]);
+        float i;
+        if (driving)
+            c->duty[k] = vrs_pid_update(&c->pid[k], &c->gains[k], c->alpha[k], c->dt, c->targets[k], c->counts[k]);
         else {
             c->duty[k] = 0.0f;
-            c->pid[k].prev = counts[k];
+            c->pid[k].prev = c->counts[k];
+        }
+        /* I2t: current estimated from duty at standstill (an upper bound); over budget, the continuous rating */
+        if (budget > 0.0f) {
+            if (c->derated & (1u << k))
+                c->duty[k] = c->duty[k] > cap ? cap : (c->duty[k] < -cap ? -cap : c->duty[k]);
+            i = c->duty[k] * i_stall;
+            c->heat[k] += (i * i - i_cont * i_cont) * c->dt;
+            if (c->heat[k] < 0.0f)
+                c->heat[k] = 0.0f;
+            if (c->heat[k] >= budget)
+                c->derated = (uint8_t)(c->derated | (1u << k));
+            else if (c->heat[k] < 0.5f * budget)
+                c->derated = (uint8_t)(c->derated & ~(1u << k));
         }
         duty_out[k] = c->duty[k];
         /* brake (slow decay): duty proportional to voltage while driving, and after an e-stop or a

@@ -53,6 +53,10 @@ typedef struct {
     int16_t overcurrent_ma;         /* 0 = current not sensed */
     uint16_t drive_cap_mv;          /* the motor voltage duty 1 means: vrs_pwm scales by it / battery */
     uint8_t fw_version[3];
+    uint16_t stall_current_ma;      /* the motor's current at duty 1 and standstill; 0 = no I2t protection */
+    uint16_t continuous_current_ma; /* the motor's continuous rating */
+    uint16_t overload_ms;           /* I2t budget: (stall^2 - continuous^2) * this */
+    uint16_t host_away_hold_ms;     /* after the watchdog: hold the targets this long (HOLDING), then FAULT */
 } vrs_config;
 
 /* one hinge's PID memory */
@@ -85,6 +89,12 @@ typedef struct vrs_core {
     int16_t current_ma[VRS_MAX_HINGES];         /* as read at the last tick; 0 if not sensed */
     int32_t stall_ref[VRS_MAX_HINGES];
     uint32_t stall_since_us[VRS_MAX_HINGES];
+    int32_t zero[VRS_MAX_HINGES];               /* raw counts at the flat pose (CONFIRM_ZERO) */
+    int32_t limit_out[VRS_MAX_HINGES];          /* |counts| beyond this: LIMIT (ratchets in toward the range) */
+    float heat[VRS_MAX_HINGES];                 /* I2t estimate above the continuous rating, A^2 s */
+    uint8_t derated;                            /* bit k: hinge k held to its continuous rating */
+    uint8_t zero_confirmed;
+    uint32_t away_since_us;                     /* HOLDING since */
     uint8_t state;
     uint16_t faults;
     uint8_t fault_hinge;
@@ -120,7 +130,8 @@ void vrs_rx(vrs_core *c, const uint8_t *bytes, uint32_t n, uint32_t now_us);
 /* Take up to max queued bytes for the host; returns how many. */
 uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max);
 
-/* One control tick: supervisor, PID, telemetry. current_ma: NULL when not sensed. Writes
+/* One control tick: supervisor, PID, I2t, telemetry. counts: raw (the zero is subtracted here).
+ * current_ma: NULL when not sensed. Writes
  * duty_out[k] in [-1, 1] and decay_out[k] (VRS_DECAY_*) for each hinge. */
 void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t *current_ma,
               float *duty_out, uint8_t *decay_out);
@@ -139,6 +150,14 @@ int vrs_set_gains(vrs_core *c, uint8_t hinge /* VRS_BROADCAST: all */, const vrs
 int vrs_set_telemetry_rate(vrs_core *c, uint16_t rate_hz);
 void vrs_estop(vrs_core *c);
 int vrs_clear_fault(vrs_core *c);  /* 0, or VRS_NACK_FAULT_PERSISTS while a HARDWARE fault stands */
+
+/* The flaps lie flat now: the present counts become zero (CONFIRM_ZERO does this); 0, or VRS_NACK_BAD_STATE
+ * outside IDLE. vrs_mark_zero_confirmed accepts the present zero as it is (the twin, whose counts are true). */
+int vrs_confirm_zero(vrs_core *c);
+void vrs_mark_zero_confirmed(vrs_core *c);
+/* The I2t estimate per hinge as a share of the budget (1: derating), and the derated hinges' bits. */
+void vrs_get_heat(const vrs_core *c, float *share_out);
+uint8_t vrs_get_derated(const vrs_core *c);
 
 /* The board's start, after vrs_init: why it reset (esp_reset_reason_t, reported in HELLO_REPLY), and a
  * set-up call that failed (VRS_SETUP_*, for the hinge it was setting up, 0xFF for the board): the core

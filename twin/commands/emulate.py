@@ -4,6 +4,7 @@ twin/link/pty_device.py); prints the pty's path and runs until SIGINT/SIGTERM.""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 import os
 import signal
@@ -42,6 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pack-voltage", type=float,
                    help="the 2S pack's open-circuit voltage, V (default: the spec's supply_voltage)")
     p.add_argument("--watchdog-ms", type=int, help="watchdog timeout, ms (default: the spec's, 0: off)")
+    p.add_argument("--host-away-hold-ms", type=int,
+                   help="how long the targets are held after the watchdog fires, before the release, ms "
+                        "(default: the spec's host_away_hold)")
     p.add_argument("--jam-hinge", type=int, help="this hinge jams ...")
     p.add_argument("--jam-after", type=float, default=0.0, help="... this many s after the first target (default 0)")
     p.add_argument("--drop-after", type=float, help="the link goes dead after this many s of device time")
@@ -52,6 +56,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run the whole ESP32-S3 sketch on stand-ins for its peripherals (encoders decoded from "
                         "quadrature edges, MCPWM through the H-bridges, USB CDC buffers), not the C core alone "
                         "(docs/firmware.md, 'The sketch in the loop'); needs a C++ compiler")
+    p.add_argument("--zeroed", action="store_true",
+                   help="start with the zero confirmed, as if `vrscroll zero` had run at power-on while the flaps lay "
+                        "flat (by default, as a real device, it refuses to move until confirmed)")
     p.add_argument("--ideal", action="store_true",
                    help="the twin's own plant: nothing drawn, no latency (the other options still apply)")
 
@@ -87,9 +94,12 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
     for flag, value in (("--jam-after", args.jam_after), ("--drop-after", args.drop_after)):
         if value is not None and not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{flag} {value}: a time in s, finite and not negative")
-    if args.sketch and args.watchdog_ms is not None:
-        raise ValueError("--watchdog-ms: the sketch's watchdog is the spec's, compiled into its header; "
-                         "it applies to the C core alone (without --sketch)")
+    if args.host_away_hold_ms is not None and not 0 <= args.host_away_hold_ms <= 65535:
+        raise ValueError(f"--host-away-hold-ms {args.host_away_hold_ms}: 0 to 65535 ms, what the firmware's config holds")
+    for flag, value in (("--watchdog-ms", args.watchdog_ms), ("--host-away-hold-ms", args.host_away_hold_ms)):
+        if args.sketch and value is not None:
+            raise ValueError(f"{flag}: the sketch's is the spec's, compiled into its header; "
+                             "it applies to the C core alone (without --sketch)")
     if args.seed < 0:
         raise ValueError(f"--seed {args.seed}: not negative")
     default = PlantRanges()
@@ -105,8 +115,9 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
         raise ValueError(f"{_flag(field)}: {reason}") from None
     faults = FaultOptions(jam_hinge=args.jam_hinge, jam_after=args.jam_after, drop_after=args.drop_after,
                           corrupt=args.corrupt)
-    return drawn_options(ranges, faults, args.seed, args.watchdog_ms, args.encoder_miss, args.pack_voltage,
-                         args.sketch)
+    opt = drawn_options(ranges, faults, args.seed, args.watchdog_ms, args.encoder_miss, args.pack_voltage,
+                        args.sketch, args.zeroed)
+    return dataclasses.replace(opt, host_away_hold_ms=args.host_away_hold_ms)
 
 
 def run(args) -> int:

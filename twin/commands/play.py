@@ -56,7 +56,7 @@ def _play(args, spec, shapes) -> list[dict]:
             tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="vrscroll-play-")))
             serve_args = ["--variant", args.variant]
             if not args.no_device:
-                emulator = stack.enter_context(EmulatorProcess(tmp / "emulator.jsonl"))
+                emulator = stack.enter_context(EmulatorProcess(tmp / "emulator.jsonl", "--zeroed"))
                 serve_args += ["--serial", emulator.port, "--log", str(tmp / "session.jsonl")]
                 print(f"emulator on {emulator.port}", flush=True)
             service = stack.enter_context(ServiceProcess(*serve_args, stderr_path=tmp / "serve.stderr"))

@@ -15,7 +15,7 @@ from twin.commands.options import (
 from twin.errors import UserError
 from twin.hil.mirror import faults_text
 from twin.link import protocol as P
-from twin.link.serial_link import Link, LinkError
+from twin.link.serial_link import Link, LinkError, zero_hint
 
 
 def add_arguments(p) -> None:
@@ -49,6 +49,10 @@ def run(args) -> int:
     print(f"started  {P.enum_name(P.ResetReason, info.reset_reason)}"
           + ("" if info.setup_error == P.SetupStep.NONE else
              f"; set-up failed at {P.enum_name(P.SetupStep, info.setup_error)} (docs/firmware.md, 'Set-up faults')"))
+    print(f"zero     {'confirmed' if s.zero_confirmed else 'UNCONFIRMED: ' + zero_hint(args.serial)}")
+    if s.derated:
+        print(f"derated  hinges {[k for k in range(spec.n_hinges) if s.derated >> k & 1]}: held to the motor's "
+              "continuous current by the I2t protection")
     print(f"state    {P.State(s.state).name}")
     print(f"faults   {faults_text(s.faults)}" + (f" (hinge {s.fault_hinge})" if s.fault_hinge != 0xFF else ""))
     print("angles   " + " ".join(f"{a:7.1f}" for a in deg) + "  deg")

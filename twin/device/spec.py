@@ -84,6 +84,8 @@ class DeviceSpec:
     stall_time: float  # s
     limit_margin: int  # counts past the hinge range
     overcurrent: float  # A; 0: current not sensed
+    overload_time: float  # s at stall current before the I2t protection derates (the budget's size)
+    host_away_hold: float  # s the device holds its targets after the watchdog, before it releases
     # simulation
     timestep: float  # s
 

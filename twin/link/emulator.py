@@ -48,17 +48,20 @@ class EmulatorOptions:
     plant: PlantOptions = PlantOptions()
     faults: FaultOptions = FaultOptions()
     watchdog_ms: int | None = None
+    host_away_hold_ms: int | None = None  # None: the spec's (the C core alone; the sketch has the spec's)
     seed: int = 0
     sketch: bool = False
+    zeroed: bool = False  # the bench user confirmed the flat pose at power-on, before anything sagged
 
 
 def drawn_options(ranges: PlantRanges, faults: FaultOptions, seed: int, watchdog_ms: int | None = None,
-                  encoder_miss: float = 0.0, pack_voltage: float | None = None, sketch: bool = False) -> EmulatorOptions:
+                  encoder_miss: float = 0.0, pack_voltage: float | None = None, sketch: bool = False,
+                  zeroed: bool = False) -> EmulatorOptions:
     """An emulated device whose plant and latency are drawn within `ranges` from `seed` (the faults' latency
     replaced by the drawn one)."""
     plant, latency = draw_plant(ranges, random.Random(seed), encoder_miss, pack_voltage)
     return EmulatorOptions(plant=plant, faults=dataclasses.replace(faults, latency_ms=latency),
-                           watchdog_ms=watchdog_ms, seed=seed, sketch=sketch)
+                           watchdog_ms=watchdog_ms, seed=seed, sketch=sketch, zeroed=zeroed)
 
 
 class Emulator:
@@ -74,20 +77,26 @@ class Emulator:
         self.dt = s.firmware_dt
         self.tick = 0
         if self.opt.sketch:
-            if self.opt.watchdog_ms is not None and self.opt.watchdog_ms != round(s.watchdog * 1000):
-                raise ValueError("the sketch's watchdog is the spec's (its header's): --watchdog-ms is for the bare core")
+            if self.opt.watchdog_ms is not None or self.opt.host_away_hold_ms is not None:
+                raise ValueError("the sketch's watchdog and hold are the spec's (its header's): "
+                                 "--watchdog-ms and --host-away-hold-ms are for the C core alone")
             self.firmware = Sketch(self.plant.counts, P.ResetReason.POWERON)
         else:
             config = core.config_from_spec(s)
             if self.opt.watchdog_ms is not None:
                 config.watchdog_ms = self.opt.watchdog_ms
+            if self.opt.host_away_hold_ms is not None:
+                config.host_away_hold_ms = self.opt.host_away_hold_ms
             self.firmware = core.Core(config, [PidGains.from_spec(s)] * s.n_hinges, self.plant.counts)
             self.firmware.set_reset_reason(P.ResetReason.POWERON)
+        if self.opt.zeroed:
+            self.firmware.confirm_zero()
         self.out = bytearray()  # bytes for the host, not yet taken
         self._heard = P.Decoder()  # reads what the firmware is given and what it answers, for the log
         self._said = P.Decoder()
         self._last_rx_tick = 0
         self._faults = 0
+        self._state = P.State.IDLE
         self.log = open(log_path, "a", buffering=1) if log_path else None
         p = self.plant.spec
         self._log("start", plant={k: getattr(p, k) for k in ("gear_friction", "gear_stiction", "gear_damping",
@@ -167,6 +176,10 @@ class Emulator:
                           detail=msg.detail)
 
     def _log_faults(self) -> None:
+        state = self.firmware.state
+        if state == P.State.HOLDING and self._state != P.State.HOLDING:
+            self._log("host_away", last_rx_t=round(self._last_rx_tick * self.dt, 6))
+        self._state = state
         faults = self.firmware.faults
         new = faults & ~self._faults
         self._faults = faults

@@ -66,7 +66,14 @@ def header(spec: DeviceSpec | None = None) -> str:
     for name, v in (("KP", gains.kp), ("KI", gains.ki), ("KD", gains.kd), ("CUTOFF_HZ", gains.derivative_cutoff),
                     ("INTEGRAL_LIMIT", gains.integral_limit), ("DEADBAND", gains.deadband_duty)):
         out.append(f"#define VRS_DEVICE_{name} {_float(v)}")
-    out += [f"#define VRS_DEVICE_HOLD_BAND {gains.hold_band}", "", "#endif", ""]
+    out += [f"#define VRS_DEVICE_HOLD_BAND {gains.hold_band}", "",
+            "/* initializers in vrs_config's and vrs_gains's field order */"]
+    names = [f"VRS_DEVICE_{n.upper()}" for n, _ in cfg._fields_]
+    names[names.index("VRS_DEVICE_FW_VERSION")] = ("{VRS_DEVICE_FW_VERSION_MAJOR, VRS_DEVICE_FW_VERSION_MINOR, "
+                                                   "VRS_DEVICE_FW_VERSION_PATCH}")
+    out += ["#define VRS_DEVICE_CONFIG {" + ", ".join(names) + "}",
+            "#define VRS_DEVICE_GAINS {VRS_DEVICE_KP, VRS_DEVICE_KI, VRS_DEVICE_KD, VRS_DEVICE_CUTOFF_HZ, "
+            "VRS_DEVICE_INTEGRAL_LIMIT, VRS_DEVICE_DEADBAND, VRS_DEVICE_HOLD_BAND}", "", "#endif", ""]
     return "\n".join(out)
 
 

@@ -22,7 +22,7 @@ import struct
 
 from controllers.pid import PidGains
 
-PROTOCOL_VERSION = 2  # 2: HELLO_REPLY carries the reset reason and the failed set-up step
+PROTOCOL_VERSION = 2  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING
 MAX_FRAME = 512  # bytes of decoded payload (header + body + crc); longer is garbage
 DUTY_SCALE = 32767  # duty [-1, 1] on the wire as int16 duty * 32767
 GAIN_SCALE = 10_000_000  # kp, ki, kd on the wire as int32 gain * 1e7
@@ -43,6 +43,7 @@ class MsgId(enum.IntEnum):
     CLEAR_FAULT = 0x07
     SET_TELEMETRY_RATE = 0x08
     GET_GAINS = 0x09
+    CONFIRM_ZERO = 0x0A
     # device -> host
     ACK = 0x80
     NACK = 0x81
@@ -62,6 +63,7 @@ class Nack(enum.IntEnum):
     BAD_STATE = 5  # e.g. SET_TARGETS while in ESTOP or FAULT
     BAD_VALUE = 6  # e.g. a telemetry rate over the maximum
     FAULT_PERSISTS = 7  # CLEAR_FAULT while the cause is still there
+    ZERO_UNCONFIRMED = 8  # SET_TARGETS before CONFIRM_ZERO since the device started
 
 
 class State(enum.IntEnum):
@@ -69,6 +71,7 @@ class State(enum.IntEnum):
     ACTIVE = 1  # PID holding the targets
     ESTOP = 2  # motors off after ESTOP; CLEAR_FAULT to leave
     FAULT = 3  # motors off after a fault; CLEAR_FAULT to leave
+    HOLDING = 4  # the host went quiet: the targets held for host_away_hold, then FAULT WATCHDOG; any frame resumes
 
 
 class Fault(enum.IntFlag):
@@ -252,6 +255,14 @@ class ClearFault:
 
 
 @dataclasses.dataclass(frozen=True)
+class ConfirmZero:
+    """Host -> device: the flaps lie flat now; their counts become zero. IDLE only; SET_TARGETS is refused
+    (ZERO_UNCONFIRMED) from every start until this."""
+
+    MSG = MsgId.CONFIRM_ZERO
+
+
+@dataclasses.dataclass(frozen=True)
 class SetTelemetryRate:
     """Host -> device: telemetry frames per second (0 = off, at most the device's maximum)."""
 
@@ -299,6 +310,7 @@ class HelloReply:
     max_telemetry_hz: int
     reset_reason: int = ResetReason.UNKNOWN  # ResetReason: why the device last started
     setup_error: int = SetupStep.NONE  # SetupStep: the first set-up call that failed at boot
+    zero_confirmed: int = 0  # 1 once CONFIRM_ZERO was heard since the start
 
 
 @dataclasses.dataclass(frozen=True)
@@ -314,6 +326,8 @@ class StateMsg:
     rx_bad_frames: int
     counts: tuple[int, ...]
     targets: tuple[int, ...]
+    zero_confirmed: int = 0  # 1 once CONFIRM_ZERO was heard since the start
+    derated: int = 0  # bit k: hinge k's duty held to its continuous rating by the I2t protection
 
 
 @dataclasses.dataclass(frozen=True)
@@ -407,15 +421,16 @@ LAYOUTS = {
     MsgId.GET_STATE: Layout(GetState),
     MsgId.ESTOP: Layout(EStop),
     MsgId.CLEAR_FAULT: Layout(ClearFault),
+    MsgId.CONFIRM_ZERO: Layout(ConfirmZero),
     MsgId.SET_TELEMETRY_RATE: Layout(SetTelemetryRate, (("rate_hz", "H"),)),
     MsgId.GET_GAINS: Layout(GetGains, (("hinge", "B"),)),
     MsgId.ACK: Layout(Ack, (("acked", "B"), ("time_us", "I"))),
     MsgId.NACK: Layout(NackMsg, (("acked", "B"), ("reason", "B"), ("detail", "B"))),
     MsgId.HELLO_REPLY: Layout(HelloReply, (("firmware", "3B"), ("protocol", "B"), ("n_hinges", "B"),
                                            ("loop_rate_hz", "H"), ("watchdog_ms", "H"), ("max_telemetry_hz", "H"),
-                                           ("reset_reason", "B"), ("setup_error", "B"))),
+                                           ("reset_reason", "B"), ("setup_error", "B"), ("zero_confirmed", "B"))),
     MsgId.STATE: Layout(StateMsg, (("firmware", "3B"), ("state", "B"), ("faults", "H"), ("fault_hinge", "B"),
-                                   ("time_us", "I"), ("rx_bad_frames", "I")),
+                                   ("time_us", "I"), ("rx_bad_frames", "I"), ("zero_confirmed", "B"), ("derated", "B")),
                         (("counts", "i"), ("targets", "i"))),
     MsgId.GAINS: Layout(GainsReply, (("hinge", "B"), ("gains", "gains"))),
     MsgId.TELEMETRY: Layout(Telemetry, (("time_us", "I"), ("state", "B"), ("faults", "H"), ("fault_hinge", "B")),

@@ -44,7 +44,19 @@ class NackError(LinkError):
         self.reason = P.Nack(reason) if reason in P.Nack._value2member_map_ else reason
         self.detail = detail
         name = self.reason.name if isinstance(self.reason, P.Nack) else f"reason {reason}"
-        super().__init__(f"device refused {msg_name}: {name} (detail {detail})")
+        hint = f": {zero_hint('PORT')}" if self.reason == P.Nack.ZERO_UNCONFIRMED else f" (detail {detail})"
+        super().__init__(f"device refused {msg_name}: {name}{hint}")
+
+
+def zero_hint(port: str) -> str:
+    """What to do about a device whose zero is unconfirmed."""
+    return (f"its zero is unconfirmed since it started: lay it flat and run `vrscroll zero --serial {port}` "
+            "(docs/firmware.md, 'Bring-up')")
+
+
+class ZeroUnconfirmed(LinkError):
+    """The device started (a power-on, a brown-out, a reset) and nobody has confirmed its flat pose since:
+    its counts may not be the flaps' angles, so nothing moves it."""
 
 
 _CLOSED = object()  # put in the telemetry queue when the link ends
@@ -89,6 +101,7 @@ class Link:
         self.telemetry_received = 0
         self.telemetry_lost = 0  # gaps in the device's telemetry sequence numbers
         self.info: P.HelloReply | None = None
+        self.zero_confirmed = False  # from HELLO_REPLY, and set by confirm_zero
         self.moved = False  # whether this session sent targets
         self.echoes = 0  # frames that came back as the host sent them (a looped-back line)
 
@@ -249,7 +262,14 @@ class Link:
             raise LinkError(f"{self.url}: the device has {reply.n_hinges} hinges, the spec this host uses "
                             f"{self.hinges}: select the device's profile (--device) or calibrate one for it")
         self.info = reply
+        self.zero_confirmed = bool(reply.zero_confirmed)
         return reply
+
+    def confirm_zero(self) -> P.Ack:
+        """CONFIRM_ZERO: the flaps lie flat now and their counts become zero (the device must be IDLE)."""
+        ack = self.request(P.ConfirmZero())
+        self.zero_confirmed = True
+        return ack
 
     def get_state(self) -> P.StateMsg:
         return self.request(P.GetState())
@@ -265,6 +285,10 @@ class Link:
         return self.request(P.SetGains(hinge, wire))
 
     def set_targets(self, counts) -> P.Ack:
+        """ZeroUnconfirmed, and nothing sent, when the device has not had its zero confirmed since it started."""
+        if not self.zero_confirmed:
+            reason = P.enum_name(P.ResetReason, self.info.reset_reason) if self.info else "unknown"
+            raise ZeroUnconfirmed(f"{self.url}: not moved: the device started ({reason}) and {zero_hint(self.url)}")
         self.moved = True  # from now on an interrupt e-stops (see __exit__)
         return self.request(P.SetTargets(tuple(int(c) for c in counts)))
 

@@ -122,6 +122,7 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
         return GateReport(start, targets, checks, None)
     twin = _twin_at(spec, start, gains, twin)
     trace = twin.move_to(targets, max_time=settle_limit, stop_when_settled=True)
+    moved = _heat(twin)
     settle_ticks = int(round(spec.settle_hold / spec.firmware_dt))
     hold = twin.hold(spec.settle_hold)  # keep simulating: the hold current is what the device draws at rest
 
@@ -134,6 +135,7 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
     checks.append(Check("settle", settled, t_settle, settle_limit, "s",
                         "all hinges" if settled else f"hinge {worst} still {int(err[worst])} counts off"))
     checks += _current_checks(spec, trace, hold, peak_current_limit, hold_current_limit)
+    checks.append(_thermal_check(moved, _heat(twin)))
     return GateReport(start, targets, checks, trace)
 
 
@@ -156,6 +158,7 @@ def check_scenario(spec: DeviceSpec, scenario: Scenario, gains=None, settle_limi
     dt = spec.firmware_dt
     end = int(round(max(scenario.duration, scenario.times[-1] + settle_limit) / dt))
     trace = join_traces([tr for _, tr in replay_targets(twin, list(zip(scenario.times, scenario.targets)), 0, end)])
+    moved = _heat(twin)
     hold = twin.hold(spec.settle_hold)
 
     checks.append(_collision_check(spec, twin, trace, collision_step))
@@ -168,6 +171,7 @@ def check_scenario(spec: DeviceSpec, scenario: Scenario, gains=None, settle_limi
                         "the last target, all hinges" if settled else
                         f"the last target: hinge {worst} still {int(err[worst])} counts off"))
     checks += _current_checks(spec, trace, hold, peak_current_limit, hold_current_limit)
+    checks.append(_thermal_check(moved, _heat(twin)))
     return GateReport(start, last, checks, trace)
 
 
@@ -235,6 +239,22 @@ def _current_checks(spec: DeviceSpec, trace: Trace, hold: Trace, peak_current_li
     k = int(np.argmax(held))
     out.append(Check("hold_current", float(held[k]) <= hold_lim, float(held[k]), hold_lim, "A", f"hinge {k}"))
     return out
+
+
+def _heat(twin: Twin) -> tuple[np.ndarray, int]:
+    """The twin's firmware's I2t estimate per hinge (share of its budget) and its derated hinges' bits."""
+    return twin.firmware.heat, twin.firmware.derated
+
+
+def _thermal_check(*readings) -> Check:
+    """The firmware's I2t protection as the twin's run met it (from cold): the largest estimate, as a share of
+    the budget, after the move and after the hold; at 100 % the device derates the hinge to its continuous
+    current, and the move is not what was asked."""
+    share = np.max([h for h, _ in readings], axis=0)
+    derated = any(d for _, d in readings)
+    k = int(np.argmax(share))
+    return Check("i2t", not derated and float(share[k]) < 1.0, float(share[k]) * 100, 100.0, "%",
+                 f"hinge {k}" + (": derated to its continuous current" if derated else " (from cold)"))
 
 
 def redirection_check(summary: dict, strict: bool = False) -> Check:

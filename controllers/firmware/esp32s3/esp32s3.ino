@@ -230,18 +230,13 @@ void setup()
     }
     analogSetPinAttenuation(PIN_BATTERY, ADC_11db);
 
-    vrs_config cfg = {VRS_DEVICE_N_HINGES, VRS_DEVICE_LOOP_RATE_HZ, VRS_DEVICE_WATCHDOG_MS,
-                      VRS_DEVICE_MAX_TELEMETRY_HZ, VRS_DEVICE_LIMIT_COUNTS, VRS_DEVICE_LIMIT_MARGIN_COUNTS,
-                      VRS_DEVICE_STALL_DUTY, VRS_DEVICE_STALL_COUNTS, VRS_DEVICE_STALL_MS, VRS_DEVICE_OVERCURRENT_MA,
-                      VRS_DEVICE_DRIVE_CAP_MV,
-                      {VRS_DEVICE_FW_VERSION_MAJOR, VRS_DEVICE_FW_VERSION_MINOR, VRS_DEVICE_FW_VERSION_PATCH}};
-    vrs_gains g = {VRS_DEVICE_KP, VRS_DEVICE_KI, VRS_DEVICE_KD, VRS_DEVICE_CUTOFF_HZ, VRS_DEVICE_INTEGRAL_LIMIT,
-                   VRS_DEVICE_DEADBAND, VRS_DEVICE_HOLD_BAND};
+    vrs_config cfg = VRS_DEVICE_CONFIG;
+    vrs_gains g = VRS_DEVICE_GAINS;
     vrs_gains gains[VRS_DEVICE_N_HINGES];
     int32_t counts[VRS_DEVICE_N_HINGES];
     for (int k = 0; k < VRS_DEVICE_N_HINGES; k++)
         gains[k] = g;
-    read_counts(NULL, counts);  /* power on with the flaps flat: these counts are zero */
+    read_counts(NULL, counts);  /* zero unconfirmed: SET_TARGETS is refused until the host's CONFIRM_ZERO */
     vrs_init(&core, &cfg, gains, counts);
     vrs_set_reset_reason(&core, (uint8_t)esp_reset_reason());
 

@@ -1,0 +1,47 @@
+"""`vrscroll zero --serial PORT`: confirm the device's flat pose as its zero, after every start of the device.
+
+Its encoders count from wherever the motors stood when it started (a power-on, a brown-out, a reset):
+until a person confirms that the flaps lie flat, the device refuses every target (NACK ZERO_UNCONFIRMED)
+and the host's commands refuse to move it. This command shows where the flaps are by the old zero,
+then makes the present counts zero."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from controllers.encoder import angle_from_counts
+from twin.commands.options import add_device_option, add_serial, profile_line, profile_of, said_by_device
+from twin.errors import UserError
+from twin.link import protocol as P
+from twin.link.serial_link import Link, LinkError
+
+
+def add_arguments(p) -> None:
+    add_serial(p, required=True)
+    p.add_argument("--log", help="session log, JSON lines")
+    add_device_option(p)
+
+
+def run(args) -> int:
+    profile = profile_of(args)
+    spec = profile.spec
+    try:
+        with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
+            spec, notes = said_by_device(spec, link)
+            for line in notes:
+                print(line)
+            before = link.get_state()
+            if before.state != P.State.IDLE:
+                raise UserError(f"the device is {P.State(before.state).name}: the zero is confirmed in IDLE only "
+                                "(`vrscroll status --serial PORT --clear-fault` after a fault or e-stop)")
+            link.confirm_zero()
+            after = link.get_state()
+    except LinkError as exc:
+        raise UserError(str(exc)) from None
+    print(profile_line(profile))
+    was = np.degrees(angle_from_counts(spec, before.counts))
+    print(f"started  {P.enum_name(P.ResetReason, link.info.reset_reason)}")
+    print("was      " + " ".join(f"{a:7.1f}" for a in was) + "  deg by the zero before")
+    print("counts   " + " ".join(f"{c:7d}" for c in after.counts))
+    print("zero confirmed: the flat pose is 0 deg on every hinge; the device takes targets now")
+    return 0
