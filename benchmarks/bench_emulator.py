@@ -7,7 +7,10 @@ six hinges every 0.5 s. The device's process stamps the start of every tick
 (the wall clock as `serve` asks whether to stop); the period is the difference
 between stamps, the jitter its difference from 1 / loop rate.
 
-    python benchmarks/bench_emulator.py [--seconds 20]
+    python benchmarks/bench_emulator.py [--seconds 20] [--sketch]
+
+--sketch: the emulator runs the whole ESP32-S3 sketch on its peripherals' stand-ins (controllers.sketch)
+instead of the C core alone.
 
 Prints p50 and p99 of |jitter| (goal: p99 within 0.5 ms) and the emulator's overruns.
 Measured, not asserted: shared machines are noisy (the load average is printed beside).
@@ -36,10 +39,10 @@ from twin.link.serial_link import Link  # noqa: E402
 MOVES_DEG = ([30.0, -20.0, 45.0, 10.0, -60.0, 80.0], [-30.0, 20.0, -45.0, -10.0, 60.0, -80.0])
 
 
-def device(ticks: int, conn) -> None:
+def device(ticks: int, sketch: bool, conn) -> None:
     """The emulated device for `ticks` ticks; sends its pty path, then its tick stamps (s) and overruns."""
     master, slave, path = open_pty()
-    emu = Emulator(load_spec(), EmulatorOptions(zeroed=True))
+    emu = Emulator(load_spec(), EmulatorOptions(zeroed=True, sketch=sketch))
     stamps = np.zeros(ticks)
     done = [0]
 
@@ -59,12 +62,13 @@ def device(ticks: int, conn) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--sketch", action="store_true", help="the whole sketch, not the C core alone")
     args = ap.parse_args()
     spec = load_spec()
     ticks = int(args.seconds * spec.loop_rate)
     ctx = multiprocessing.get_context("spawn")
     ours, theirs = ctx.Pipe()
-    proc = ctx.Process(target=device, args=(ticks, theirs))
+    proc = ctx.Process(target=device, args=(ticks, args.sketch, theirs))
     proc.start()
     port = ours.recv()
     end = time.monotonic() + args.seconds - 1.0  # the host stops before the device does
@@ -83,7 +87,8 @@ def main() -> None:
         stamps, overruns = ours.recv()
     proc.join()
     jitter = np.abs(np.diff(stamps) - spec.firmware_dt) * 1e3
-    print(f"emulator control tick at {spec.loop_rate:.0f} Hz, {args.seconds:.0f} s with a host streaming telemetry "
+    firmware = "the whole sketch (--sketch)" if args.sketch else "the C core alone"
+    print(f"emulator ({firmware}) control tick at {spec.loop_rate:.0f} Hz, {args.seconds:.0f} s with a host streaming telemetry "
           f"at 500 Hz and moving all hinges every 0.5 s (load average {os.getloadavg()[0]:.2f}):")
     print(f"  period p50 {np.median(np.diff(stamps)) * 1e3:.3f} ms; |jitter| p50 {np.percentile(jitter, 50):.3f} ms, "
           f"p99 {np.percentile(jitter, 99):.3f} ms, max {jitter.max():.3f} ms (goal p99 <= 0.5 ms); "

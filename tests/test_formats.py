@@ -291,6 +291,11 @@ def test_bad_run_folders_are_refused(tmp_path):
     (run / "run.json").write_text(json.dumps(meta))
     with pytest.raises(ValueError, match="start_counts: expected 6 whole encoder counts"):
         read_run(run, SPEC)
+    meta["start_counts"] = [0] * 6
+    meta["changes"] = []
+    (run / "run.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"r/run.json: changes: expected a list .* at least the first target's"):
+        read_run(run, SPEC)
     with pytest.raises(ValueError, match="no run.json"):
         read_run(tmp_path, SPEC)
 

@@ -11,10 +11,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from twin.device.spec import load_spec
+from twin.device.spec import SPEC_PATH, load_spec
 from twin.evaluation.table1 import METHODS
 from twin.formats.gains import read_gains
 from twin.formats.pen import read_pen_samples
+from twin.formats.profile import read_profile
+from twin.formats.run import read_run_meta
 from twin.formats.scenario import read_scenario
 from twin.formats.sweep import read_sweep
 from twin.formats.target import read_approximation, read_target
@@ -23,6 +25,13 @@ from twin.formats.trials import read_trials
 from twin.morphpatch.shapes import shape_names
 
 SPEC = load_spec()
+
+
+def _profile(meta_path):
+    """A device profile folder with the spec's spec.toml and the drawn profile.json."""
+    (meta_path.parent / "spec.toml").write_bytes(SPEC_PATH.read_bytes())
+    return read_profile(meta_path.parent)
+
 FUZZ = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 READERS = {
@@ -36,6 +45,8 @@ READERS = {
     "trace.csv": lambda p: read_trace(p, SPEC.n_hinges, SPEC.hinge_limit),
     "pens.csv": read_pen_samples,
     "trials.csv": read_trials,
+    "run.json": lambda p: read_run_meta(p.parent, SPEC),
+    "profile.json": _profile,
 }
 
 numbers = st.one_of(st.integers(-10 ** 30, 10 ** 30), st.floats(allow_nan=True, allow_infinity=True),
@@ -45,7 +56,8 @@ json_values = st.recursive(st.one_of(numbers, st.text(max_size=8)),
                                                    st.dictionaries(st.text(max_size=12), inner, max_size=6)),
                            max_leaves=30)
 KEYS = ["angles_deg", "root_position_mm", "root_quat_wxyz", "widths_mm", "variant", "kp", "ki", "kd", "hinges",
-        "name", "duration_s", "step", "t_s", "shapes", "starts", "design", "plants", "draws", "count", "value"]
+        "name", "duration_s", "step", "t_s", "shapes", "starts", "design", "plants", "draws", "count", "value",
+        "scenario", "status", "changes", "start_counts", "start_target_counts", "format", "calibration"]
 objects = st.dictionaries(st.sampled_from(KEYS), json_values, max_size=6)
 
 

@@ -446,12 +446,22 @@ def test_connections_are_bounded_and_a_silent_one_is_closed(twin_service):
 
     from twin.live.service import HELLO_TIMEOUT, MAX_UNGREETED
 
+    def rss_mb() -> float:
+        status = Path(f"/proc/{twin_service.pid}/status").read_text()
+        return int(next(x for x in status.splitlines() if x.startswith("VmRSS:")).split()[1]) / 1024
+
     async def session():
         idle = [await websockets.connect(twin_service.url) for _ in range(MAX_UNGREETED)]
         extra = await websockets.connect(twin_service.url)
         with pytest.raises(websockets.ConnectionClosed) as closed:
             await asyncio.wait_for(extra.recv(), 5)
         assert closed.value.rcvd.code == 1013
+        before = rss_mb()
+        for _ in range(300):  # a flood beyond the limit: each refused at once, nothing kept
+            flood = await websockets.connect(twin_service.url)
+            with pytest.raises(websockets.ConnectionClosed):
+                await asyncio.wait_for(flood.recv(), 5)
+        assert rss_mb() - before < 20, f"the service grew from {before:.0f} MB to {rss_mb():.0f} MB"
         for ws in idle:  # the silent ones go after HELLO_TIMEOUT
             with pytest.raises(websockets.ConnectionClosed):
                 await asyncio.wait_for(ws.recv(), HELLO_TIMEOUT + 5)

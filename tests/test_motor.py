@@ -153,7 +153,8 @@ def test_the_firmware_compensates_its_duty_for_the_battery(spec):
     """The C core's vrs_pwm: duty 1 means the drive cap (6 V) at the motor, whatever the pack: PWM = duty x
     6 V / battery, clamped to 1 when the pack sags below the cap; with no battery reading, PWM = duty."""
     fw = core.Core(core.config_from_spec(spec), [PidGains.from_spec(spec)] * spec.n_hinges, np.zeros(spec.n_hinges))
-    fw.set_targets(np.array([40, -40, 10, -10, 300, 0]), 0)
+    fw.mark_zero_confirmed()
+    assert fw.set_targets(np.array([40, -40, 10, -10, 300, 0]), 0) == 0
     duty, _ = fw.tick(0, np.zeros(spec.n_hinges))
     assert np.all(fw.pwm() == pytest.approx(duty))  # no reading yet
     for mv in (8400, 7400, 6600, 5000):

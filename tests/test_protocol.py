@@ -125,3 +125,11 @@ def test_decoder_on_pure_noise(data):
     d = P.Decoder()
     d.feed(data)
     assert d.bad_frames + d.good_frames <= data.count(0) + 1
+
+
+def test_a_newer_devices_states_and_faults_are_named_by_number_not_a_traceback():
+    from twin.hil.mirror import faults_text
+
+    assert P.enum_name(P.State, P.State.HOLDING) == "HOLDING" and P.enum_name(P.State, 9) == "9"
+    assert faults_text(P.Fault.WATCHDOG | P.Fault.HARDWARE | 0x80) == "WATCHDOG|HARDWARE|0x80"
+    assert faults_text(0) == "none"

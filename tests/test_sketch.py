@@ -84,9 +84,14 @@ def test_the_board_brakes_from_its_first_instruction_and_says_why_it_started(spe
         assert shares[2] == pytest.approx(1.0), f"hinge {k}: forward, reverse, brake, coast shares {shares}"
     hello = frames(board, P.Hello())[0]
     assert hello.reset_reason == P.ResetReason.BROWNOUT and hello.setup_error == P.SetupStep.NONE
+    assert hello.zero_confirmed == 0
     for _ in range(50):
         emu.step()
     assert emu.firmware.state == P.State.IDLE and np.all(emu.firmware.run_tick(0, emu.counts, None, 8000)[0] == 0)
+    nack = frames(board, P.SetTargets((0,) * 6))[0]  # its counts restarted from where the flaps stood
+    assert isinstance(nack, P.NackMsg) and nack.reason == P.Nack.ZERO_UNCONFIRMED
+    ack, again = frames(board, P.ConfirmZero(), P.SetTargets((0,) * 6))
+    assert ack.MSG == again.MSG == P.MsgId.ACK
 
 
 def test_a_pwm_the_timer_cannot_make_is_a_named_hardware_fault():
@@ -125,8 +130,19 @@ def test_the_host_build_names_a_missing_cxx_compiler(monkeypatch, tmp_path):
         sketch.build()
 
 
-def test_status_against_the_sketch_on_a_pty(emulator):
-    dev = emulator("--sketch", "--ideal")
-    r = vrscroll("status", "--serial", dev.port)
-    assert r.returncode == 0, r.stderr
-    assert "started  POWERON" in r.stdout and "faults   none" in r.stdout
+def test_commands_against_the_sketch_on_a_pty_wait_for_the_zero(tmp_path):
+    """`emulate --sketch` without --zeroed, as a device fresh from power-on: status says the zero is unconfirmed,
+    mirror refuses to move it naming `vrscroll zero`, zero confirms, mirror then moves it."""
+    from twin.link.emulator_process import EmulatorProcess
+
+    with EmulatorProcess(tmp_path / "emulator.jsonl", "--sketch", "--ideal") as dev:
+        r = vrscroll("status", "--serial", dev.port)
+        assert r.returncode == 0, r.stderr
+        assert "started  POWERON" in r.stdout and "faults   none" in r.stdout and "zero     UNCONFIRMED" in r.stdout
+        r = vrscroll("mirror", "--serial", dev.port, "--angles=5,0,0,0,0,0", "--tolerance-deg", "30")
+        assert r.returncode == 2 and f"vrscroll zero --serial {dev.port}" in r.stderr, r.stderr
+        assert not [e for e in dev.events("rx") if e["msg"] == "SET_TARGETS"]
+        r = vrscroll("zero", "--serial", dev.port)
+        assert r.returncode == 0 and "zero confirmed" in r.stdout, r.stderr
+        r = vrscroll("mirror", "--serial", dev.port, "--angles=5,0,0,0,0,0", "--tolerance-deg", "30")
+        assert r.returncode == 0, r.stdout + r.stderr

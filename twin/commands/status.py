@@ -53,7 +53,7 @@ def run(args) -> int:
     if s.derated:
         print(f"derated  hinges {[k for k in range(spec.n_hinges) if s.derated >> k & 1]}: held to the motor's "
               "continuous current by the I2t protection")
-    print(f"state    {P.State(s.state).name}")
+    print(f"state    {P.enum_name(P.State, s.state)}")
     print(f"faults   {faults_text(s.faults)}" + (f" (hinge {s.fault_hinge})" if s.fault_hinge != 0xFF else ""))
     print("angles   " + " ".join(f"{a:7.1f}" for a in deg) + "  deg")
     print("targets  " + " ".join(f"{a:7.1f}" for a in tgt) + "  deg")

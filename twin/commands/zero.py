@@ -32,7 +32,7 @@ def run(args) -> int:
                 print(line)
             before = link.get_state()
             if before.state != P.State.IDLE:
-                raise UserError(f"the device is {P.State(before.state).name}: the zero is confirmed in IDLE only "
+                raise UserError(f"the device is {P.enum_name(P.State, before.state)}: the zero is confirmed in IDLE only "
                                 "(`vrscroll status --serial PORT --clear-fault` after a fault or e-stop)")
             link.confirm_zero()
             after = link.get_state()

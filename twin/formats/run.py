@@ -59,8 +59,9 @@ def read_run_meta(run_dir, spec: DeviceSpec) -> dict:
         required_keys(before, BEFORE_KEYS, f"{path}: before")
         _counts(before["counts"], n, f"{path}: before.counts")
         _counts(before["target_counts"], n, f"{path}: before.target_counts")
-    if not isinstance(meta["changes"], list):
-        raise ValueError(f"{path}: changes: expected a list of {{t_s, angles_deg}}")
+    if not isinstance(meta["changes"], list) or not meta["changes"]:
+        raise ValueError(f"{path}: changes: expected a list of {{t_s, angles_deg}}, at least the first target's "
+                         "(a run that sent no target has nothing to compare or calibrate)")
     last = -1.0
     for i, c in enumerate(meta["changes"]):
         where = f"{path}: changes[{i}]"

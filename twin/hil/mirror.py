@@ -46,8 +46,10 @@ class MirrorResult:
 
 
 def faults_text(faults: int) -> str:
+    """The fault bits by name ("none"); bits this host does not know (a newer device's) in hex."""
     names = [f.name for f in P.Fault if f and faults & f]
-    return "|".join(names) if names else "none"
+    unknown = faults & ~sum(f for f in P.Fault)
+    return "|".join(names + ([f"0x{unknown:X}"] if unknown else [])) or "none"
 
 
 REST_COUNTS = 2  # the device is at rest when no hinge moves more than this ...
@@ -81,7 +83,7 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
         link.clear_fault()
         state = link.get_state()
     if state.state in (P.State.ESTOP, P.State.FAULT):
-        raise DeviceNotReady(f"device is in {P.State(state.state).name} (faults: {faults_text(state.faults)}); "
+        raise DeviceNotReady(f"device is in {P.enum_name(P.State, state.state)} (faults: {faults_text(state.faults)}); "
                              "clear it first (vrscroll status --clear-fault)")
     gains = device_gains(link, spec.n_hinges)
     state = wait_for_rest(link, spec)

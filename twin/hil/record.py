@@ -72,7 +72,7 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     write_gains(out / "gains.json", gains, {"source": f"read from the device at {link.url}"})
     state = wait_for_rest(link, spec)
     meta = {"scenario": scenario.name, "start_counts": list(state.counts), "start_target_counts": list(state.targets),
-            "before": {"state": P.State(prior.state).name, "counts": list(prior.counts),
+            "before": {"state": P.enum_name(P.State, prior.state), "counts": list(prior.counts),
                        "target_counts": list(prior.targets)},
             "telemetry_hz": telemetry_hz, "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url,
             "device_profile": profile}

@@ -189,7 +189,7 @@ class Emulator:
             if flag & new:
                 hinge = self.firmware.fault_hinge
                 self._log("fault", fault=flag.name, hinge=None if hinge == 0xFF else hinge,
-                          state=P.State(self.firmware.state).name, last_rx_t=round(self._last_rx_tick * self.dt, 6))
+                          state=P.enum_name(P.State, self.firmware.state), last_rx_t=round(self._last_rx_tick * self.dt, 6))
 
 
 def _name(kind, value: int) -> str:

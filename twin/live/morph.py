@@ -130,7 +130,7 @@ class DeviceMorpher:
             state = self.link.get_state()
         except LinkError as exc:
             return {"device": self.name, "device_state": "UNREACHABLE", "faults": str(exc), "angles_deg": None}
-        return {"device": self.name, "device_state": P.State(state.state).name, "faults": faults_text(state.faults),
+        return {"device": self.name, "device_state": P.enum_name(P.State, state.state), "faults": faults_text(state.faults),
                 "angles_deg": _degrees(angle_from_counts(self.spec, state.counts))}
 
     def close(self) -> None:
