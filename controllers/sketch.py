@@ -104,6 +104,8 @@ _SIGNATURES = {
     "host_now_us": ([], _U64),
     "host_blocked_us": ([], _U64),
     "host_sample_times": ([_VP, _U32], _U32),
+    "host_nvs_dump": ([_VP, _U32], _U32),
+    "host_nvs_load": ([_VP, _U32], None),
     "vrs_get_state": ([_VP], _U8),
     "vrs_confirm_zero": ([_VP], _I32),
     "vrs_get_faults": ([_VP], ctypes.c_uint16),
@@ -146,8 +148,9 @@ class Sketch:
         self.resets = 0
         self._boot(np.asarray(positions, np.int64), reset_reason, at_us)
 
-    def _boot(self, positions, reason: int, at_us: int) -> None:
+    def _boot(self, positions, reason: int, at_us: int, flash: bytes = b"") -> None:
         self.lib = lib = _load(self.path)
+        lib.host_nvs_load(flash, len(flash))
         self._core = ctypes.addressof(ctypes.c_uint8.in_dll(lib, "core"))
         w = self.wires
         for k in range(self.n):
@@ -158,7 +161,10 @@ class Sketch:
     def reset(self, reason: int) -> None:
         """The board restarts (esp_reset_reason `reason`), its motors where they stand: the sketch from setup()."""
         self.resets += 1
-        self._boot(self._positions, reason, int(self.lib.host_now_us()))
+        flash = ctypes.create_string_buffer(4096)
+        used = self.lib.host_nvs_dump(flash, len(flash))
+        kept = flash.raw[:used]  # the flash survives the reset
+        self._boot(self._positions, reason, int(self.lib.host_now_us()), kept)
 
     def confirm_zero(self) -> int:
         """What CONFIRM_ZERO does, done on the board (a bench user at power-on); 0 or the NACK reason."""

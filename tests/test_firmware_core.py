@@ -94,6 +94,7 @@ def refusals(spec):
 
 _DEVICE_MESSAGES = [P.Ack(3, 5), P.NackMsg(3, 4, 1), P.HelloReply((0, 1, 0), 1, 6, 1000, 200, 500),
                     P.StateMsg((0, 1, 0), 0, 0, 255, 1, 0, (0,) * 6, (0,) * 6), P.GainsReply(0, P.Gains(*[1] * 7)),
+                    P.WiringReply((0, 1, 2, 3, 4, 5), (0,) * 6),
                     P.Telemetry(1, 0, 0, 255, (0,) * 6, (0,) * 6, (0,) * 6, (0,) * 6)]
 
 
@@ -404,3 +405,38 @@ def test_a_host_gone_quiet_leaves_the_targets_held_for_the_stated_time_then_rele
     back.rx(P.encode(P.Heartbeat(), 9), 400_000)  # the host is back within the hold
     back.tick(401_000, [40] * back.n)
     assert back.state == P.State.ACTIVE and back.faults == 0
+
+
+def test_a_pulse_drives_one_hinge_open_loop_for_its_time_in_idle_only(spec):
+    c = make(spec, watchdog_ms=0)
+    c.tick(0, [0] * 6)
+    assert ask(c, P.Pulse(2, round(0.2 * P.DUTY_SCALE), 30), 1, 0)[1] == P.Ack(P.MsgId.PULSE, 0)
+    duties = [c.tick(t * 1000, [0] * 6)[0] for t in range(1, 40)]
+    on = [d[2] for d in duties]
+    assert on[:29] == [pytest.approx(0.2, abs=1e-4)] * 29 and on[29:] == [0.0] * 10
+    assert all(d[k] == 0 for d in duties for k in (0, 1, 3, 4, 5)) and c.state == P.State.IDLE
+    for bad in (P.Pulse(2, round(0.5 * P.DUTY_SCALE), 30), P.Pulse(2, 100, P.PULSE_MAX_MS + 1), P.Pulse(6, 100, 30)):
+        assert ask(c, bad, 2, 50_000)[1].reason == P.Nack.BAD_VALUE, bad
+    ask(c, P.SetTargets((0,) * 6), 3, 50_000)
+    assert ask(c, P.Pulse(2, 100, 30), 4, 50_000)[1].reason == P.Nack.BAD_STATE
+
+
+def test_the_wiring_correction_reads_the_named_input_turned_around_and_drives_the_motor_reversed(spec):
+    c = make(spec, watchdog_ms=0)
+    raw = [10, 20, 30, 40, 50, 60]
+    flags = (0, P.WIRING_ENCODER_REVERSED, 0, P.WIRING_MOTOR_REVERSED, 0, 0)
+    assert ask(c, P.SetWiring((0, 3, 2, 1, 4, 5), flags))[1].MSG == P.MsgId.ACK
+    assert ask(c, P.Hello(), 2)[1].wiring_set == 1 and ask(c, P.GetWiring(), 3)[1].flags == flags
+    c.tick(1000, raw)
+    assert ask(c, P.GetState(), 4, 1000)[1].counts == (10, -40, 30, 20, 50, 60)  # zero unconfirmed again
+    assert ask(c, P.SetTargets((0,) * 6), 5, 1000)[1].reason == P.Nack.ZERO_UNCONFIRMED
+    ask(c, P.ConfirmZero(), 6, 1000)
+    ask(c, P.SetTargets((0, 0, 0, 50, 0, 0)), 7, 1000)
+    duty, _ = c.tick(2000, raw)
+    assert duty[3] < 0  # the PID asks hinge 3 for positive duty; its motor's bridge gets it reversed
+    for bad in ((0, 0, 2, 3, 4, 5), (0, 1, 2, 3, 4, 6)):
+        assert ask(c, P.SetWiring(bad, (0,) * 6), 8)[1].reason == P.Nack.BAD_STATE  # ACTIVE now
+    idle = make(spec, watchdog_ms=0)
+    for bad in ((0, 0, 2, 3, 4, 5), (0, 1, 2, 3, 4, 6)):
+        assert ask(idle, P.SetWiring(bad, (0,) * 6))[1].reason == P.Nack.BAD_VALUE
+    assert ask(idle, P.SetWiring(tuple(range(6)), (4,) * 6))[1].reason == P.Nack.BAD_VALUE

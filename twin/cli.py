@@ -27,6 +27,8 @@ COMMANDS = {
     "emulate": ("twin.commands.emulate", "run a device emulator on a pseudo-terminal (prints its port)"),
     "mirror": ("twin.commands.mirror", "gate a target on the twin, send it to the device, watch it follow"),
     "status": ("twin.commands.status", "the device's firmware version, state, faults and hinge angles"),
+    "bringup": ("twin.commands.bringup", "bring up a new board: pulse each motor, check its encoder, name and "
+                                         "correct wiring mistakes, confirm the zero, a first gated move"),
     "zero": ("twin.commands.zero", "confirm the device's flat pose as its zero (after every start it refuses to move until then)"),
     "tune": ("twin.commands.tune", "tune PID gains per hinge on the twin (robust to tolerances); --serial confirms"),
     "hil": ("twin.commands.hil", "play a scenario on the device and the twin; traces, metrics, plots, report"),

@@ -57,7 +57,8 @@ uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max)
 static int acts(uint8_t id)
 {
     return id == VRS_MSG_SET_TARGETS || id == VRS_MSG_SET_GAINS || id == VRS_MSG_ESTOP || id == VRS_MSG_CLEAR_FAULT
-           || id == VRS_MSG_SET_TELEMETRY_RATE || id == VRS_MSG_CONFIRM_ZERO;
+           || id == VRS_MSG_SET_TELEMETRY_RATE || id == VRS_MSG_CONFIRM_ZERO || id == VRS_MSG_PULSE
+           || id == VRS_MSG_SET_WIRING;
 }
 
 /* queue a reply to the command (request id, seq, frame CRC); keep it if the command acts */
@@ -139,6 +140,62 @@ int vrs_confirm_zero(vrs_core *c)
 }
 
 void vrs_mark_zero_confirmed(vrs_core *c) { c->zero_confirmed = 1; }
+
+int vrs_set_wiring(vrs_core *c, const vrs_wiring *w)
+{
+    uint8_t k, seen = 0;
+    if (c->state != VRS_STATE_IDLE)
+        return VRS_NACK_BAD_STATE;
+    for (k = 0; k < c->cfg.n_hinges; k++) {
+        if (w->encoder[k] >= c->cfg.n_hinges || (seen & (1u << w->encoder[k]))
+            || (w->flags[k] & ~(VRS_WIRING_ENCODER_REVERSED | VRS_WIRING_MOTOR_REVERSED)))
+            return VRS_NACK_BAD_VALUE;
+        seen = (uint8_t)(seen | (1u << w->encoder[k]));
+    }
+    if (memcmp(&c->wiring, w, sizeof *w) != 0) {
+        c->wiring = *w;
+        c->wiring_changed = 1;
+        c->zero_confirmed = 0;  /* the counts mean something else now */
+        memset(c->zero, 0, sizeof c->zero);
+    }
+    return 0;
+}
+
+void vrs_get_wiring(const vrs_core *c, vrs_wiring *out) { *out = c->wiring; }
+
+int vrs_take_wiring_change(vrs_core *c, vrs_wiring *out)
+{
+    if (!c->wiring_changed)
+        return 0;
+    c->wiring_changed = 0;
+    *out = c->wiring;
+    return 1;
+}
+
+static int wiring_is_identity(const vrs_core *c)
+{
+    uint8_t k;
+    for (k = 0; k < c->cfg.n_hinges; k++)
+        if (c->wiring.encoder[k] != k || c->wiring.flags[k])
+            return 0;
+    return 1;
+}
+
+static int pulse(vrs_core *c, uint8_t hinge, float duty, uint32_t ms, uint32_t *detail)
+{
+    float mag = duty < 0.0f ? -duty : duty;
+    *detail = hinge;
+    if (c->state != VRS_STATE_IDLE) {
+        *detail = c->state;
+        return VRS_NACK_BAD_STATE;
+    }
+    if (hinge >= c->cfg.n_hinges || mag > VRS_PULSE_MAX_DUTY || ms > VRS_PULSE_MAX_MS)
+        return VRS_NACK_BAD_VALUE;
+    c->pulse_hinge = hinge;
+    c->pulse_duty = duty;
+    c->pulse_end_us = c->now_us + ms * 1000u;
+    return 0;
+}
 
 void vrs_get_heat(const vrs_core *c, float *share_out)
 {
@@ -236,7 +293,9 @@ int vrs_init(vrs_core *c, const vrs_config *cfg, const vrs_gains *gains, const i
             return -1;
         c->counts[k] = c->targets[k] = c->pid[k].prev = c->stall_ref[k] = counts_now[k];
         c->limit_out[k] = cfg->limit_counts + cfg->limit_margin_counts;
+        c->wiring.encoder[k] = k;
     }
+    c->pulse_hinge = 0xFF;
     c->state = VRS_STATE_IDLE;
     c->fault_hinge = 0xFF;
     return 0;
@@ -306,6 +365,7 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         out[8] = c->reset_reason;
         out[9] = c->setup_error;
         out[10] = c->zero_confirmed;
+        out[11] = (uint32_t)!wiring_is_identity(c);
         memset(c->replies, 0, sizeof c->replies);  /* a new session: its seqs start again */
         reply(c, id, seq, crc, VRS_MSG_HELLO_REPLY, out, 0);
         return;
@@ -356,6 +416,30 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         r = vrs_confirm_zero(c);
         detail = c->state;
         break;
+    case VRS_MSG_PULSE:
+        r = pulse(c, (uint8_t)v[0], (float)(int16_t)v[1] / (float)VRS_DUTY_SCALE, v[2], &detail);
+        break;
+    case VRS_MSG_SET_WIRING: {
+        vrs_wiring w;
+        if (n != nh) {
+            nack(c, seq, crc, id, VRS_NACK_BAD_LENGTH, n);
+            return;
+        }
+        memset(&w, 0, sizeof w);
+        for (k = 0; k < nh; k++) {
+            w.encoder[k] = (uint8_t)v[k];
+            w.flags[k] = (uint8_t)v[nh + k];
+        }
+        r = vrs_set_wiring(c, &w);
+        break;
+    }
+    case VRS_MSG_GET_WIRING:
+        for (k = 0; k < nh; k++) {
+            out[k] = c->wiring.encoder[k];
+            out[nh + k] = c->wiring.flags[k];
+        }
+        reply(c, id, seq, crc, VRS_MSG_WIRING, out, nh);
+        return;
     case VRS_MSG_SET_TELEMETRY_RATE:
         r = vrs_set_telemetry_rate(c, (uint16_t)v[0]);
         break;
@@ -501,8 +585,15 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
     float cap = i_stall > 0.0f ? i_cont / i_stall : 1.0f;
     c->now_us = now_us;
     for (k = 0; k < n; k++) {
-        c->counts[k] = counts[k] - c->zero[k];
+        int32_t raw = counts[c->wiring.encoder[k]];
+        c->counts[k] = (c->wiring.flags[k] & VRS_WIRING_ENCODER_REVERSED ? -raw : raw) - c->zero[k];
         c->current_ma[k] = current_ma ? current_ma[k] : 0;
+    }
+    if (c->pulse_hinge != 0xFF) {  /* a bring-up pulse: IDLE only, ended by time, a state change or the range */
+        int32_t at = c->counts[c->pulse_hinge];
+        int32_t far = c->cfg.limit_counts + c->cfg.limit_margin_counts;
+        if (c->state != VRS_STATE_IDLE || (int32_t)(now_us - c->pulse_end_us) >= 0 || at > far || at < -far)
+            c->pulse_hinge = 0xFF;
     }
     if (c->state == VRS_STATE_ACTIVE || c->state == VRS_STATE_HOLDING)
         checks(c, now_us);
@@ -512,7 +603,7 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
         if (driving)
             c->duty[k] = vrs_pid_update(&c->pid[k], &c->gains[k], c->alpha[k], c->dt, c->targets[k], c->counts[k]);
         else {
-            c->duty[k] = 0.0f;
+            c->duty[k] = k == c->pulse_hinge ? c->pulse_duty : 0.0f;
             c->pid[k].prev = c->counts[k];
         }
         /* I2t: current estimated from duty at standstill (an upper bound); over budget, the continuous rating */
@@ -528,7 +619,7 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
             else if (c->heat[k] < 0.5f * budget)
                 c->derated = (uint8_t)(c->derated & ~(1u << k));
         }
-        duty_out[k] = c->duty[k];
+        duty_out[k] = c->wiring.flags[k] & VRS_WIRING_MOTOR_REVERSED ? -c->duty[k] : c->duty[k];
         /* brake (slow decay): duty proportional to voltage while driving, and after an e-stop or a
          * fault the flaps stop and hold where they are; coast when idle, so they turn by hand */
         decay_out[k] = VRS_DECAY_BRAKE;
@@ -548,6 +639,8 @@ void vrs_pwm(const vrs_core *c, float *pwm_out)
     float scale = c->battery_mv ? (float)c->cfg.drive_cap_mv / (float)c->battery_mv : 1.0f;
     for (k = 0; k < n; k++) {
         float p = c->duty[k] * scale;
+        if (c->wiring.flags[k] & VRS_WIRING_MOTOR_REVERSED)
+            p = -p;
         pwm_out[k] = p > 1.0f ? 1.0f : (p < -1.0f ? -1.0f : p);
     }
 }

@@ -59,6 +59,13 @@ typedef struct {
     uint16_t host_away_hold_ms;     /* after the watchdog: hold the targets this long (HOLDING), then FAULT */
 } vrs_config;
 
+/* the wiring correction: hinge k reads encoder input encoder[k] and flags[k] (VRS_WIRING_*) turn its encoder's
+ * count and its motor's drive around; the identity after vrs_init */
+typedef struct {
+    uint8_t encoder[VRS_MAX_HINGES];
+    uint8_t flags[VRS_MAX_HINGES];
+} vrs_wiring;
+
 /* one hinge's PID memory */
 typedef struct {
     int32_t prev;               /* counts at the last tick */
@@ -95,6 +102,11 @@ typedef struct vrs_core {
     uint8_t derated;                            /* bit k: hinge k held to its continuous rating */
     uint8_t zero_confirmed;
     uint32_t away_since_us;                     /* HOLDING since */
+    vrs_wiring wiring;
+    uint8_t wiring_changed;                     /* set by SET_WIRING until vrs_take_wiring_change */
+    uint8_t pulse_hinge;                        /* a bring-up PULSE under way (0xFF: none) ... */
+    float pulse_duty;                           /* ... at this duty ... */
+    uint32_t pulse_end_us;                      /* ... until then */
     uint8_t state;
     uint16_t faults;
     uint8_t fault_hinge;
@@ -130,7 +142,8 @@ void vrs_rx(vrs_core *c, const uint8_t *bytes, uint32_t n, uint32_t now_us);
 /* Take up to max queued bytes for the host; returns how many. */
 uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max);
 
-/* One control tick: supervisor, PID, I2t, telemetry. counts: raw (the zero is subtracted here).
+/* One control tick: supervisor, PID, I2t, telemetry. counts: raw encoder inputs (the wiring correction and
+ * the zero are applied here); duty_out per H-bridge (the motor's flag applied).
  * current_ma: NULL when not sensed. Writes
  * duty_out[k] in [-1, 1] and decay_out[k] (VRS_DECAY_*) for each hinge. */
 void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t *current_ma,
@@ -158,6 +171,14 @@ void vrs_mark_zero_confirmed(vrs_core *c);
 /* The I2t estimate per hinge as a share of the budget (1: derating), and the derated hinges' bits. */
 void vrs_get_heat(const vrs_core *c, float *share_out);
 uint8_t vrs_get_derated(const vrs_core *c);
+
+/* The wiring correction (SET_WIRING calls vrs_set_wiring): 0, or VRS_NACK_BAD_STATE outside IDLE,
+ * VRS_NACK_BAD_VALUE for encoders that are not a permutation or unknown flags. A change leaves the zero
+ * unconfirmed. The board stores it where it survives a power cycle: vrs_take_wiring_change gives it (1) once
+ * after each change; at boot the board gives it back with vrs_set_wiring. */
+int vrs_set_wiring(vrs_core *c, const vrs_wiring *w);
+void vrs_get_wiring(const vrs_core *c, vrs_wiring *out);
+int vrs_take_wiring_change(vrs_core *c, vrs_wiring *out);
 
 /* The board's start, after vrs_init: why it reset (esp_reset_reason_t, reported in HELLO_REPLY), and a
  * set-up call that failed (VRS_SETUP_*, for the hinge it was setting up, 0xFF for the board): the core

@@ -10,6 +10,10 @@
 #define VRS_GAIN_SCALE 10000000
 #define VRS_CUTOFF_SCALE 10
 #define VRS_BROADCAST 0xFF
+#define VRS_PULSE_MAX_DUTY 0.4f
+#define VRS_PULSE_MAX_MS 500
+#define VRS_WIRING_ENCODER_REVERSED 0x01
+#define VRS_WIRING_MOTOR_REVERSED 0x02
 
 /* message ids */
 #define VRS_MSG_HELLO 0x01
@@ -22,11 +26,15 @@
 #define VRS_MSG_SET_TELEMETRY_RATE 0x08
 #define VRS_MSG_GET_GAINS 0x09
 #define VRS_MSG_CONFIRM_ZERO 0x0A
+#define VRS_MSG_PULSE 0x0B
+#define VRS_MSG_SET_WIRING 0x0C
+#define VRS_MSG_GET_WIRING 0x0D
 #define VRS_MSG_ACK 0x80
 #define VRS_MSG_NACK 0x81
 #define VRS_MSG_HELLO_REPLY 0x82
 #define VRS_MSG_STATE 0x83
 #define VRS_MSG_GAINS 0x84
+#define VRS_MSG_WIRING 0x85
 #define VRS_MSG_TELEMETRY 0x90
 
 /* bodies: X(name, fixed fields, per-hinge fields after a count byte n); codes B H I h i are
@@ -40,11 +48,15 @@
     X(ESTOP, "", "") \
     X(CLEAR_FAULT, "", "") \
     X(CONFIRM_ZERO, "", "") \
+    X(PULSE, "BhH", "") \
+    X(SET_WIRING, "", "BB") \
+    X(GET_WIRING, "", "") \
+    X(WIRING, "", "BB") \
     X(SET_TELEMETRY_RATE, "H", "") \
     X(GET_GAINS, "B", "") \
     X(ACK, "BI", "") \
     X(NACK, "BBB", "") \
-    X(HELLO_REPLY, "BBBBBHHHBBB", "") \
+    X(HELLO_REPLY, "BBBBBHHHBBBB", "") \
     X(STATE, "BBBBHBIIBB", "ii") \
     X(GAINS, "BiiiHHHH", "") \
     X(TELEMETRY, "IBHB", "iihh")

@@ -11,7 +11,7 @@ import signal
 
 from twin.device.spec import DeviceSpec, load_spec
 from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
-from twin.link.faults import FaultOptions
+from twin.link.faults import FaultOptions, Miswiring
 from twin.link.pty_device import open_pty, serve
 from twin.paths import replacing
 from twin.sim.plant import PlantRanges, as_twin
@@ -49,6 +49,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jam-hinge", type=int, help="this hinge jams ...")
     p.add_argument("--jam-after", type=float, default=0.0, help="... this many s after the first target (default 0)")
     p.add_argument("--drop-after", type=float, help="the link goes dead after this many s of device time")
+    p.add_argument("--wiring-fault", action="append", default=[], metavar="FAULT:HINGE[,HINGE]",
+                   help="a wiring mistake between the board and its motors (repeatable): motor-reversed:K, "
+                        "encoder-reversed:K, encoder-dead:K, crossed:J,K (the encoder cables of J and K swapped)")
     p.add_argument("--corrupt", type=float, default=0.0,
                    help="probability per frame sent of a flipped byte and of inserted garbage (default 0)")
     p.add_argument("--seed", type=int, default=0, help="random seed: the plant drawn, missed edges, corruption")
@@ -56,6 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run the whole ESP32-S3 sketch on stand-ins for its peripherals (encoders decoded from "
                         "quadrature edges, MCPWM through the H-bridges, USB CDC buffers), not the C core alone "
                         "(docs/firmware.md, 'The sketch in the loop'); needs a C++ compiler")
+    p.add_argument("--lying-flat", action="store_true",
+                   help="the device lies flat on a table (its flaps cannot fold below it), instead of hanging from "
+                        "its root flap, where the flaps beside the root sag under gravity while nothing drives them")
     p.add_argument("--zeroed", action="store_true",
                    help="start with the zero confirmed, as if `vrscroll zero` had run at power-on while the flaps lay "
                         "flat (by default, as a real device, it refuses to move until confirmed)")
@@ -114,10 +120,12 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
         field, reason = str(exc).split(": ", 1)
         raise ValueError(f"{_flag(field)}: {reason}") from None
     faults = FaultOptions(jam_hinge=args.jam_hinge, jam_after=args.jam_after, drop_after=args.drop_after,
-                          corrupt=args.corrupt)
+                          corrupt=args.corrupt, wiring=tuple(args.wiring_fault))
+    Miswiring.parse(faults.wiring, spec.n_hinges)  # refused here, naming the fault
     opt = drawn_options(ranges, faults, args.seed, args.watchdog_ms, args.encoder_miss, args.pack_voltage,
                         args.sketch, args.zeroed)
-    return dataclasses.replace(opt, host_away_hold_ms=args.host_away_hold_ms)
+    return dataclasses.replace(opt, host_away_hold_ms=args.host_away_hold_ms,
+                               plant=dataclasses.replace(opt.plant, lying_flat=args.lying_flat))
 
 
 def run(args) -> int:

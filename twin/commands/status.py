@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from controllers.encoder import angle_from_counts
@@ -11,6 +13,7 @@ from twin.commands.options import (
     profile_line,
     profile_of,
     said_by_device,
+    within,
 )
 from twin.errors import UserError
 from twin.hil.mirror import faults_text
@@ -23,6 +26,9 @@ def add_arguments(p) -> None:
     p.add_argument("--clear-fault", action="store_true", help="clear an ESTOP or FAULT first")
     p.add_argument("--estop", action="store_true", help="e-stop the device first")
     p.add_argument("--log", help="session log, JSON lines")
+    p.add_argument("--watch", type=within(0, 86400, "s"), nargs="?", const=0.0, metavar="SECONDS",
+                   help="then a live readout of the hinge angles, 5 lines a second, for SECONDS (none or 0: until "
+                        "Ctrl-C): for the bring-up steps where you bend a flap by hand")
     add_device_option(p)
 
 
@@ -39,8 +45,32 @@ def run(args) -> int:
             s = link.get_state()
             info = link.info
             held = [link.get_gains(k) for k in range(spec.n_hinges)]  # as the wire carries them
+            _report(spec, profile, s, info, held, args.serial)
+            if args.watch is not None:
+                watch(link, spec, args.watch)
     except LinkError as exc:
         raise UserError(str(exc)) from None
+    return 0
+
+
+WATCH_PERIOD_S = 0.2
+
+
+def watch(link, spec, seconds: float) -> None:
+    """One line of hinge angles (deg) and the state every WATCH_PERIOD_S, for seconds (0: until Ctrl-C)."""
+    start = time.monotonic()
+    try:
+        while not seconds or time.monotonic() - start < seconds:
+            s = link.get_state()
+            deg = np.degrees(angle_from_counts(spec, s.counts))
+            print(f"t={time.monotonic() - start:6.1f} s " + " ".join(f"{a:7.1f}" for a in deg)
+                  + f"  deg  {P.enum_name(P.State, s.state)}", flush=True)
+            time.sleep(WATCH_PERIOD_S)
+    except KeyboardInterrupt:  # the way a watch ends: nothing was moved
+        print()
+
+
+def _report(spec, profile, s, info, held, port) -> None:
     deg = np.degrees(angle_from_counts(spec, s.counts))
     tgt = np.degrees(angle_from_counts(spec, s.targets))
     print(profile_line(profile))
@@ -49,7 +79,7 @@ def run(args) -> int:
     print(f"started  {P.enum_name(P.ResetReason, info.reset_reason)}"
           + ("" if info.setup_error == P.SetupStep.NONE else
              f"; set-up failed at {P.enum_name(P.SetupStep, info.setup_error)} (docs/firmware.md, 'Set-up faults')"))
-    print(f"zero     {'confirmed' if s.zero_confirmed else 'UNCONFIRMED: ' + zero_hint(args.serial)}")
+    print(f"zero     {'confirmed' if s.zero_confirmed else 'UNCONFIRMED: ' + zero_hint(port)}")
     if s.derated:
         print(f"derated  hinges {[k for k in range(spec.n_hinges) if s.derated >> k & 1]}: held to the motor's "
               "continuous current by the I2t protection")
@@ -61,5 +91,4 @@ def run(args) -> int:
     other = [k for k, (a, b) in enumerate(zip(held, profile.gains)) if a != P.Gains.from_pid(b)]
     print(f"gains    {'as' if not other else 'NOT as'} {profile.label}'s ({profile.gains_from})"
           + (f" on hinges {other}" if other else ""))
-    print(f"device time {s.time_us / 1e6:.3f} s, bad frames received {s.rx_bad_frames}")
-    return 0
+    print(f"device time {s.time_us / 1e6:.3f} s, bad frames received {s.rx_bad_frames}", flush=True)

@@ -27,9 +27,7 @@ def run(args) -> int:
     spec = profile.spec
     try:
         with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
-            spec, notes = said_by_device(spec, link)
-            for line in notes:
-                print(line)
+            spec = said_by_device(spec, link)
             before = link.get_state()
             if before.state != P.State.IDLE:
                 raise UserError(f"the device is {P.enum_name(P.State, before.state)}: the zero is confirmed in IDLE only "

@@ -248,9 +248,18 @@ def mjcf(spec: DeviceSpec | None = None, root: str = "fixed") -> str:
 """
 
 
-def load_model(spec: DeviceSpec | None = None, root: str = "fixed") -> mujoco.MjModel:
-    """Compile the device model from a spec (the default spec if None)."""
-    return mujoco.MjModel.from_xml_string(mjcf(spec, root))
+TABLE_GAP = 1e-4  # m between the flat device's underside and the table under it
+
+
+def load_model(spec: DeviceSpec | None = None, root: str = "fixed", table: bool = False) -> mujoco.MjModel:
+    """Compile the device model from a spec (the default spec if None). table: a table just under the flat
+    device, which the flaps rest on and cannot fold through (the emulator's lying-flat start)."""
+    text = mjcf(spec, root)
+    if table:
+        z = -((spec or load_spec()).thickness + TABLE_GAP)
+        text = text.replace("  <worldbody>\n", '  <worldbody>\n    <geom name="table" type="plane" size="0.5 0.5 0.01" '
+                                             f'pos="0 0 {z!r}" material="collision"/>\n', 1)
+    return mujoco.MjModel.from_xml_string(text)
 
 
 def scene_mjcf() -> str:

@@ -28,7 +28,7 @@ from twin.formats.gains import read_gains, write_gains
 from twin.paths import replacing
 
 PROFILE_FORMAT = "vrscroll-profile/1"
-META, SPEC, GAINS = "profile.json", "spec.toml", "gains.json"
+META, SPEC, GAINS, WIRING = "profile.json", "spec.toml", "gains.json", "wiring.json"
 PARAMETER_KEYS = ("value", "prior", "low", "high", "identifiable", "note")
 
 
@@ -177,6 +177,18 @@ def write_profile_gains(name: str, gains: list[PidGains], meta: dict | None = No
                          f"(`vrscroll calibrate RUN --device {name}`) or `vrscroll device create {name}`")
     write_gains(folder / GAINS, gains, meta)
     return folder / GAINS
+
+
+def write_profile_wiring(name: str, encoder, flags, checks: list[str]) -> Path:
+    """Keep a copy of the wiring correction the device holds (`vrscroll bringup`) as the profile's wiring.json:
+    per hinge the encoder input it reads and its WIRING_* flags, with what bring-up found. Returns the file."""
+    folder = profile_dir(name)
+    if not (folder / META).is_file():
+        raise ValueError(f"device profile {name!r} is not in {profiles_dir()}: `vrscroll device create {name}`")
+    doc = {"encoder": [int(e) for e in encoder], "flags": [int(f) for f in flags], "found": list(checks)}
+    with replacing(folder / WIRING) as tmp:
+        tmp.write_text(json.dumps(doc, indent=2) + "\n")
+    return folder / WIRING
 
 
 def create_profile(name: str) -> Path:

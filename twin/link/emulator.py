@@ -33,7 +33,7 @@ from controllers.pid import PidGains
 from controllers.sketch import Sketch
 from twin.device.spec import DeviceSpec, load_spec
 from twin.link import protocol as P
-from twin.link.faults import FaultOptions, Faults
+from twin.link.faults import FaultOptions, Faults, Miswiring
 from twin.sim.plant import Plant, PlantOptions, PlantRanges, draw_plant
 
 BACKLOG = 4096  # bytes out of the firmware but not yet taken by the host: it is not asked for more beyond this
@@ -74,20 +74,25 @@ class Emulator:
         self.rng = random.Random(self.opt.seed)
         self.plant = Plant(s, self.opt.plant, self.rng)
         self.faults = Faults(self.opt.faults, self.rng)
+        self.wiring = Miswiring.parse(self.opt.faults.wiring, s.n_hinges)
+        self._first_counts = self.plant.counts.copy()
+        self.hand: tuple[int, float] | None = None  # (hinge, rad): a hand holding that flap there, for bring-up
         self.dt = s.firmware_dt
         self.tick = 0
         if self.opt.sketch:
             if self.opt.watchdog_ms is not None or self.opt.host_away_hold_ms is not None:
                 raise ValueError("the sketch's watchdog and hold are the spec's (its header's): "
                                  "--watchdog-ms and --host-away-hold-ms are for the C core alone")
-            self.firmware = Sketch(self.plant.counts, P.ResetReason.POWERON)
+            self.firmware = Sketch(self.wiring.encoder_inputs(self.plant.counts, self._first_counts),
+                                   P.ResetReason.POWERON)
         else:
             config = core.config_from_spec(s)
             if self.opt.watchdog_ms is not None:
                 config.watchdog_ms = self.opt.watchdog_ms
             if self.opt.host_away_hold_ms is not None:
                 config.host_away_hold_ms = self.opt.host_away_hold_ms
-            self.firmware = core.Core(config, [PidGains.from_spec(s)] * s.n_hinges, self.plant.counts)
+            self.firmware = core.Core(config, [PidGains.from_spec(s)] * s.n_hinges,
+                                      self.wiring.encoder_inputs(self.plant.counts, self._first_counts))
             self.firmware.set_reset_reason(P.ResetReason.POWERON)
         if self.opt.zeroed:
             self.firmware.confirm_zero()
@@ -134,9 +139,12 @@ class Emulator:
             self.firmware.rx(data, now_us)
         sensed = np.clip(np.rint(self.plant.current * 1000), -32768, 32767)  # mA, the last tick's winding current
         # the battery the ADC reads is the last tick's bus voltage
-        pwm, decay = self.firmware.run_tick(now_us, self.plant.sense(), sensed, round(self.plant.bus * 1000))
+        inputs = self.wiring.encoder_inputs(self.plant.sense(), self._first_counts)
+        pwm, decay = self.firmware.run_tick(now_us, inputs, sensed, round(self.plant.bus * 1000))
         self._log_faults()
-        self.plant.actuate(pwm, decay)
+        self.plant.actuate(self.wiring.plant_drive(pwm), decay)
+        if self.hand is not None:
+            self.plant.hold_hinge(*self.hand)
         jammed = self.faults.jam(self.plant, self.firmware.state == P.State.ACTIVE, self.time)
         if jammed is not None:
             self._log("jam", hinge=self.opt.faults.jam_hinge, angle_deg=math.degrees(jammed))

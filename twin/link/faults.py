@@ -1,4 +1,5 @@
-"""Faults injected into the emulated device: command latency, a dropped link, corrupted bytes, a jammed hinge.
+"""Faults injected into the emulated device: command latency, a dropped link, corrupted bytes, a jammed hinge,
+wiring mistakes between the board and its motors and encoders.
 
 Each acts at the device's edge, never inside its firmware: latency and a dead
 link on the bytes in, a dead link and corruption on the bytes out, a jam on the
@@ -10,6 +11,8 @@ from __future__ import annotations
 import collections
 import dataclasses
 import random
+
+import numpy as np
 
 from twin.sim.plant import Plant
 
@@ -25,6 +28,68 @@ class FaultOptions:
     jam_after: float = 0.0  # ... this many seconds after it first moves under a target
     drop_after: float | None = None  # s of device time after which the link goes dead (no bytes in or out)
     corrupt: float = 0.0  # probability per outgoing frame of a flipped byte, and of garbage inserted
+    wiring: tuple[str, ...] = ()  # wiring mistakes (WIRING_FAULTS): "motor-reversed:2", "crossed:1,3", ...
+
+
+WIRING_FAULTS = {
+    "motor-reversed": "hinge K's motor leads swapped: positive drive turns it the negative way",
+    "encoder-reversed": "hinge K's encoder A and B swapped: it counts the other way",
+    "encoder-dead": "hinge K's encoder unpowered: its count never changes",
+    "crossed": "hinges J and K's encoder cables swapped: each motor turns the other's encoder",
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Miswiring:
+    """How the board's inputs and outputs reach the plant: board encoder input k reads plant motor source[k]'s
+    shaft (times sign[k]; dead ones stay at their first reading), board bridge k drives plant motor k times
+    motor_sign[k]."""
+
+    source: tuple[int, ...]
+    sign: tuple[int, ...]
+    dead: tuple[bool, ...]
+    motor_sign: tuple[int, ...]
+
+    @classmethod
+    def parse(cls, faults, n: int) -> "Miswiring":
+        """From FaultOptions.wiring; ValueError naming a fault or hinge that is not there."""
+        source, sign, dead, motor = list(range(n)), [1] * n, [False] * n, [1] * n
+        for text in faults:
+            kind, _, where = str(text).partition(":")
+            if kind not in WIRING_FAULTS:
+                raise ValueError(f"wiring fault {text!r}: one of {', '.join(WIRING_FAULTS)} with its hinge(s), "
+                                 "e.g. motor-reversed:2 or crossed:1,3")
+            try:
+                hinges = [int(x) for x in where.split(",")]
+            except ValueError:
+                raise ValueError(f"wiring fault {text!r}: expected hinge numbers after the colon") from None
+            if len(hinges) != (2 if kind == "crossed" else 1) or not all(0 <= k < n for k in hinges) \
+                    or len(set(hinges)) != len(hinges):
+                raise ValueError(f"wiring fault {text!r}: {'two different hinges' if kind == 'crossed' else 'one hinge'}"
+                                 f" of 0..{n - 1}")
+            k = hinges[0]
+            if kind == "motor-reversed":
+                motor[k] = -motor[k]
+            elif kind == "encoder-reversed":
+                sign[k] = -sign[k]
+            elif kind == "encoder-dead":
+                dead[k] = True
+            else:
+                j = hinges[1]
+                source[k], source[j] = source[j], source[k]
+        return cls(tuple(source), tuple(sign), tuple(dead), tuple(motor))
+
+    def encoder_inputs(self, shaft_counts, first) -> np.ndarray:
+        """What the board's encoder inputs count, from the plant's shaft counts (first: the counts at power-on)."""
+        c = np.asarray(shaft_counts)
+        out = np.array([s * c[src] for src, s in zip(self.source, self.sign)], c.dtype)
+        dead = np.array(self.dead)
+        out[dead] = np.asarray(first)[dead]
+        return out
+
+    def plant_drive(self, pwm) -> np.ndarray:
+        """The plant's motors' PWM from the board's bridges'."""
+        return np.asarray(pwm, np.float32) * np.asarray(self.motor_sign, np.float32)
 
 
 class Faults:

@@ -36,7 +36,11 @@ def header(spec: DeviceSpec | None = None) -> str:
            f"#define VRS_DUTY_SCALE {P.DUTY_SCALE}",
            f"#define VRS_GAIN_SCALE {P.GAIN_SCALE}",
            f"#define VRS_CUTOFF_SCALE {P.CUTOFF_SCALE}",
-           f"#define VRS_BROADCAST 0x{P.BROADCAST:02X}", "",
+           f"#define VRS_BROADCAST 0x{P.BROADCAST:02X}",
+           f"#define VRS_PULSE_MAX_DUTY {_float(P.PULSE_MAX_DUTY)}",
+           f"#define VRS_PULSE_MAX_MS {P.PULSE_MAX_MS}",
+           f"#define VRS_WIRING_ENCODER_REVERSED 0x{P.WIRING_ENCODER_REVERSED:02X}",
+           f"#define VRS_WIRING_MOTOR_REVERSED 0x{P.WIRING_MOTOR_REVERSED:02X}", "",
            "/* message ids */"]
     out += [f"#define VRS_MSG_{m.name} 0x{m.value:02X}" for m in P.MsgId]
     out += ["", "/* bodies: X(name, fixed fields, per-hinge fields after a count byte n); codes B H I h i are",

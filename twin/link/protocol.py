@@ -28,6 +28,10 @@ DUTY_SCALE = 32767  # duty [-1, 1] on the wire as int16 duty * 32767
 GAIN_SCALE = 10_000_000  # kp, ki, kd on the wire as int32 gain * 1e7
 CUTOFF_SCALE = 10  # derivative cutoff on the wire as uint16 Hz * 10
 BROADCAST = 0xFF  # "every hinge" in SET_GAINS
+PULSE_MAX_DUTY = 0.4  # |duty| a bring-up PULSE may ask for
+PULSE_MAX_MS = 500  # ms a PULSE may last
+WIRING_ENCODER_REVERSED = 0x01  # SET_WIRING flags: the hinge's encoder counts the other way (A and B swapped)
+WIRING_MOTOR_REVERSED = 0x02  # ... its motor turns the other way (its two leads swapped)
 
 _HEADER = struct.Struct("<BBH")
 
@@ -44,12 +48,16 @@ class MsgId(enum.IntEnum):
     SET_TELEMETRY_RATE = 0x08
     GET_GAINS = 0x09
     CONFIRM_ZERO = 0x0A
+    PULSE = 0x0B
+    SET_WIRING = 0x0C
+    GET_WIRING = 0x0D
     # device -> host
     ACK = 0x80
     NACK = 0x81
     HELLO_REPLY = 0x82
     STATE = 0x83
     GAINS = 0x84
+    WIRING = 0x85
     TELEMETRY = 0x90
 
 
@@ -263,6 +271,42 @@ class ConfirmZero:
 
 
 @dataclasses.dataclass(frozen=True)
+class Pulse:
+    """Host -> device, for bring-up: drive one hinge's motor open loop at duty (int16 duty * 32767, at most
+    PULSE_MAX_DUTY) for duration_ms (at most PULSE_MAX_MS), the others braked. IDLE only; the hinge's range
+    still ends it."""
+
+    MSG = MsgId.PULSE
+    hinge: int
+    duty: int
+    duration_ms: int
+
+
+@dataclasses.dataclass(frozen=True)
+class SetWiring:
+    """Host -> device: the wiring correction per hinge: which encoder input is the hinge's (a permutation),
+    and WIRING_* flags. IDLE only; the device keeps it across power cycles; the zero must be confirmed again."""
+
+    MSG = MsgId.SET_WIRING
+    encoder: tuple[int, ...]
+    flags: tuple[int, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class GetWiring:
+    MSG = MsgId.GET_WIRING
+
+
+@dataclasses.dataclass(frozen=True)
+class WiringReply:
+    """Device -> host: the wiring correction the device applies (SetWiring's fields)."""
+
+    MSG = MsgId.WIRING
+    encoder: tuple[int, ...]
+    flags: tuple[int, ...]
+
+
+@dataclasses.dataclass(frozen=True)
 class SetTelemetryRate:
     """Host -> device: telemetry frames per second (0 = off, at most the device's maximum)."""
 
@@ -311,6 +355,7 @@ class HelloReply:
     reset_reason: int = ResetReason.UNKNOWN  # ResetReason: why the device last started
     setup_error: int = SetupStep.NONE  # SetupStep: the first set-up call that failed at boot
     zero_confirmed: int = 0  # 1 once CONFIRM_ZERO was heard since the start
+    wiring_set: int = 0  # 1 when a wiring correction other than the identity is applied
 
 
 @dataclasses.dataclass(frozen=True)
@@ -338,7 +383,8 @@ class GainsReply:
 
 
 # what answers a request: these three their data, every other command an ACK (or a NACK) naming it
-REPLY_TO = {MsgId.HELLO: MsgId.HELLO_REPLY, MsgId.GET_STATE: MsgId.STATE, MsgId.GET_GAINS: MsgId.GAINS}
+REPLY_TO = {MsgId.HELLO: MsgId.HELLO_REPLY, MsgId.GET_STATE: MsgId.STATE, MsgId.GET_GAINS: MsgId.GAINS,
+            MsgId.GET_WIRING: MsgId.WIRING}
 
 
 def answers(request: "MsgId", reply) -> bool:
@@ -422,13 +468,18 @@ LAYOUTS = {
     MsgId.ESTOP: Layout(EStop),
     MsgId.CLEAR_FAULT: Layout(ClearFault),
     MsgId.CONFIRM_ZERO: Layout(ConfirmZero),
+    MsgId.PULSE: Layout(Pulse, (("hinge", "B"), ("duty", "h"), ("duration_ms", "H"))),
+    MsgId.SET_WIRING: Layout(SetWiring, per_hinge=(("encoder", "B"), ("flags", "B"))),
+    MsgId.GET_WIRING: Layout(GetWiring),
+    MsgId.WIRING: Layout(WiringReply, per_hinge=(("encoder", "B"), ("flags", "B"))),
     MsgId.SET_TELEMETRY_RATE: Layout(SetTelemetryRate, (("rate_hz", "H"),)),
     MsgId.GET_GAINS: Layout(GetGains, (("hinge", "B"),)),
     MsgId.ACK: Layout(Ack, (("acked", "B"), ("time_us", "I"))),
     MsgId.NACK: Layout(NackMsg, (("acked", "B"), ("reason", "B"), ("detail", "B"))),
     MsgId.HELLO_REPLY: Layout(HelloReply, (("firmware", "3B"), ("protocol", "B"), ("n_hinges", "B"),
                                            ("loop_rate_hz", "H"), ("watchdog_ms", "H"), ("max_telemetry_hz", "H"),
-                                           ("reset_reason", "B"), ("setup_error", "B"), ("zero_confirmed", "B"))),
+                                           ("reset_reason", "B"), ("setup_error", "B"), ("zero_confirmed", "B"),
+                                           ("wiring_set", "B"))),
     MsgId.STATE: Layout(StateMsg, (("firmware", "3B"), ("state", "B"), ("faults", "H"), ("fault_hinge", "B"),
                                    ("time_us", "I"), ("rx_bad_frames", "I"), ("zero_confirmed", "B"), ("derated", "B")),
                         (("counts", "i"), ("targets", "i"))),

@@ -44,14 +44,14 @@ class NackError(LinkError):
         self.reason = P.Nack(reason) if reason in P.Nack._value2member_map_ else reason
         self.detail = detail
         name = self.reason.name if isinstance(self.reason, P.Nack) else f"reason {reason}"
-        hint = f": {zero_hint('PORT')}" if self.reason == P.Nack.ZERO_UNCONFIRMED else f" (detail {detail})"
+        hint = (f": its zero is unconfirmed since it started: {zero_hint('PORT')}"
+                if self.reason == P.Nack.ZERO_UNCONFIRMED else f" (detail {detail})")
         super().__init__(f"device refused {msg_name}: {name}{hint}")
 
 
 def zero_hint(port: str) -> str:
     """What to do about a device whose zero is unconfirmed."""
-    return (f"its zero is unconfirmed since it started: lay it flat and run `vrscroll zero --serial {port}` "
-            "(docs/firmware.md, 'Bring-up')")
+    return f"lay it flat and run `vrscroll zero --serial {port}` (docs/firmware.md, 'Bring-up')"
 
 
 class ZeroUnconfirmed(LinkError):
@@ -288,9 +288,28 @@ class Link:
         """ZeroUnconfirmed, and nothing sent, when the device has not had its zero confirmed since it started."""
         if not self.zero_confirmed:
             reason = P.enum_name(P.ResetReason, self.info.reset_reason) if self.info else "unknown"
-            raise ZeroUnconfirmed(f"{self.url}: not moved: the device started ({reason}) and {zero_hint(self.url)}")
+            raise ZeroUnconfirmed(f"{self.url}: not moved: the device started ({reason}) and its zero is unconfirmed "
+                                  f"since: {zero_hint(self.url)}")
         self.moved = True  # from now on an interrupt e-stops (see __exit__)
         return self.request(P.SetTargets(tuple(int(c) for c in counts)))
+
+    def pulse(self, hinge: int, duty: float, duration_s: float) -> P.Ack:
+        """Bring-up: hinge's motor open loop at duty ([-PULSE_MAX_DUTY, PULSE_MAX_DUTY]) for duration_s, the
+        device IDLE; ValueError, and nothing sent, outside those bounds."""
+        if not (abs(duty) <= P.PULSE_MAX_DUTY and 0 < duration_s <= P.PULSE_MAX_MS / 1000):
+            raise ValueError(f"a pulse is at most duty {P.PULSE_MAX_DUTY} for {P.PULSE_MAX_MS} ms; "
+                             f"asked duty {duty} for {duration_s} s")
+        self.moved = True
+        return self.request(P.Pulse(hinge, round(duty * P.DUTY_SCALE), round(duration_s * 1000)))
+
+    def get_wiring(self) -> P.WiringReply:
+        return self.request(P.GetWiring())
+
+    def set_wiring(self, encoder, flags) -> P.Ack:
+        """The wiring correction (see protocol.SetWiring): kept on the device; its zero must be confirmed again."""
+        ack = self.request(P.SetWiring(tuple(int(e) for e in encoder), tuple(int(f) for f in flags)))
+        self.zero_confirmed = False
+        return ack
 
     def estop(self) -> P.Ack:
         return self.request(P.EStop(), timeout=0.05, retries=5)

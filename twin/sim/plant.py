@@ -38,6 +38,7 @@ class PlantOptions:
     backlash_deg: float = 0.0  # dead zone between gearbox output and flap, deg (full width)
     encoder_miss: float = 0.0  # probability that the counter misses an edge (they accumulate)
     pack_voltage: float | None = None  # V, the pack's open-circuit voltage (None: the spec's supply_voltage)
+    lying_flat: bool = False  # on a table (the flaps cannot fold below it), not held up by the root flap
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,7 +99,7 @@ class Plant:
         self.spec = plant_spec(spec, opt)
         self.opt = opt
         self.rng = rng
-        self.model = load_model(self.spec)
+        self.model = load_model(self.spec, table=opt.lying_flat)
         self.data = mujoco.MjData(self.model)
         self.substeps = physics_substeps(self.spec, self.model)
         n = self.spec.n_hinges

@@ -6,6 +6,7 @@
  * it (VRS_SETUP_*). The host build (controllers/sketch.py) compiles this file unchanged against stand-ins
  * for the calls it makes. docs/firmware.md has the wiring, the build commands and the bring-up. */
 #include <Arduino.h>
+#include <Preferences.h>
 #include <driver/mcpwm_prelude.h>
 #include <driver/pulse_cnt.h>
 #include <esp_system.h>
@@ -25,6 +26,7 @@ static mcpwm_gen_handle_t gen_in1[6], gen_in2[6];
 static int8_t drive_dir[6];                    /* +1 forward, -1 reverse, 0 stopped: which generator is forced */
 static uint8_t stop_decay[6];                   /* decay while stopped (VRS_DECAY_*) */
 static uint8_t setup_step, setup_hinge = 0xFF; /* the first set-up call that failed */
+static Preferences prefs;                      /* NVS: the wiring correction bring-up stored */
 
 /* remember the first failed set-up call; true if this one failed */
 static bool failed(esp_err_t err, uint8_t step, int hinge)
@@ -239,6 +241,11 @@ void setup()
     read_counts(NULL, counts);  /* zero unconfirmed: SET_TARGETS is refused until the host's CONFIRM_ZERO */
     vrs_init(&core, &cfg, gains, counts);
     vrs_set_reset_reason(&core, (uint8_t)esp_reset_reason());
+    vrs_wiring wiring;  /* the correction `vrscroll bringup` stored, applied from the first tick */
+    if (prefs.begin("vrscroll", false) && prefs.getBytesLength("wiring") == sizeof wiring
+        && prefs.getBytes("wiring", &wiring, sizeof wiring) == sizeof wiring)
+        vrs_set_wiring(&core, &wiring);
+    vrs_take_wiring_change(&core, &wiring);  /* loaded, not changed */
 
     timer = timerBegin(1000000);  /* 1 MHz timer clock */
     if (timer == NULL) {
@@ -259,4 +266,7 @@ void loop()
         vrs_control(&core, &hw);
     }
     vrs_service(&core, &hw);
+    vrs_wiring wiring;
+    if (vrs_take_wiring_change(&core, &wiring))  /* SET_WIRING: kept across power cycles */
+        prefs.putBytes("wiring", &wiring, sizeof wiring);
 }

@@ -12,6 +12,7 @@
 #include <string.h>
 
 #include "Arduino.h"
+#include "Preferences.h"
 #include "driver/mcpwm_prelude.h"
 #include "driver/pulse_cnt.h"
 #include "esp_system.h"
@@ -605,6 +606,73 @@ static int wdt_expired;
 void enableLoopWDT(void) { loop_wdt = 1; }
 #define TWDT_TIMEOUT_US 5000000u
 
+/* ---- NVS through Preferences: one flash page of key/blob records the host keeps across resets
+ * (host_nvs_dump / host_nvs_load), as the flash keeps them across power cycles ---------------------- */
+
+#define NVS_BYTES 4096u
+static uint8_t nvs[NVS_BYTES];  /* records: key[16], length u16, bytes */
+static size_t nvs_used;
+
+static uint8_t *nvs_find(const char *key, size_t *len)
+{
+    for (size_t at = 0; at + 18 <= nvs_used;) {
+        size_t n = (size_t)(nvs[at + 16] | nvs[at + 17] << 8);
+        if (strncmp((const char *)nvs + at, key, 16) == 0) {
+            *len = n;
+            return nvs + at + 18;
+        }
+        at += 18 + n;
+    }
+    return NULL;
+}
+
+bool Preferences::begin(const char *name, bool readOnly)
+{
+    open_ = name && strlen(name) <= 15;
+    read_only_ = readOnly;
+    return open_;
+}
+void Preferences::end(void) { open_ = false; }
+size_t Preferences::getBytesLength(const char *key)
+{
+    size_t n = 0;
+    return open_ && nvs_find(key, &n) ? n : 0;
+}
+size_t Preferences::getBytes(const char *key, void *buf, size_t len)
+{
+    size_t n = 0;
+    uint8_t *at = open_ ? nvs_find(key, &n) : NULL;
+    if (!at || n > len)
+        return 0;
+    memcpy(buf, at, n);
+    return n;
+}
+size_t Preferences::putBytes(const char *key, const void *value, size_t len)
+{
+    size_t n = 0;
+    if (!open_ || read_only_ || strlen(key) > 15 || len > 0xFFFF)
+        return 0;
+    uint8_t *at = nvs_find(key, &n);
+    if (at && n == len) {
+        memcpy(at, value, len);
+        return len;
+    }
+    if (at) {  /* remove the old record, then append */
+        size_t start = (size_t)(at - 18 - nvs), end = start + 18 + n;
+        memmove(nvs + start, nvs + end, nvs_used - end);
+        nvs_used -= end - start;
+    }
+    if (nvs_used + 18 + len > NVS_BYTES)
+        return 0;  /* the page is full: ESP_ERR_NVS_NOT_ENOUGH_SPACE */
+    memset(nvs + nvs_used, 0, 16);
+    strncpy((char *)nvs + nvs_used, key, 16);
+    nvs[nvs_used + 16] = (uint8_t)(len & 0xFF);
+    nvs[nvs_used + 17] = (uint8_t)(len >> 8);
+    memcpy(nvs + nvs_used + 18, value, len);
+    nvs_used += 18 + len;
+    return len;
+}
+
 /* ---- the plant's side (controllers/sketch.py) -------------------------------------------------------- */
 
 extern "C" {
@@ -728,6 +796,20 @@ uint32_t host_tx(uint8_t *out, uint32_t max)
     memmove(cdc_tx, cdc_tx + n, cdc_tx_len - n);
     cdc_tx_len -= n;
     return n;
+}
+
+/* The flash's contents, to carry across a reset (host_nvs_load into the next instance before host_boot). */
+uint32_t host_nvs_dump(uint8_t *out, uint32_t max)
+{
+    uint32_t n = (uint32_t)(nvs_used < max ? nvs_used : max);
+    memcpy(out, nvs, n);
+    return n;
+}
+
+void host_nvs_load(const uint8_t *data, uint32_t n)
+{
+    nvs_used = n < NVS_BYTES ? n : NVS_BYTES;
+    memcpy(nvs, data, nvs_used);
 }
 
 uint64_t host_now_us(void) { return now_us; }

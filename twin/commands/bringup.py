@@ -1,0 +1,69 @@
+"""`vrscroll bringup --serial PORT`: bring a new board up, step by step, with the device on the bench.
+
+Firmware and configuration read back (a set-up fault named); for each hinge a short low-duty pulse of its
+motor each way (twin.hil.bringup), the encoder that answers, its direction and counts per pulse; wiring
+mistakes named (motor leads or encoder A/B swapped, encoder cables crossed, a dead encoder) and the correction
+stored on the device (kept across power cycles, reported in HELLO) and in the device profile; the flat pose
+confirmed as zero; then a first gated move of every hinge and back."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twin.commands.options import add_device_option, add_serial, add_tolerance_deg, profile_line, profile_of, \
+    said_by_device
+from twin.errors import UserError
+from twin.formats.profile import write_profile_wiring
+from twin.hil.bringup import bring_up, hand_by_prompt
+from twin.hil.mirror import mirror
+from twin.link.serial_link import Link, LinkError
+from twin.sim.gate import GateRefused
+
+FIRST_MOVE_DEG = 10.0  # the first gated move: every hinge this far, then back to flat
+
+
+def add_arguments(p) -> None:
+    add_serial(p, required=True)
+    p.add_argument("--hand", action="store_true",
+                   help="ask you to bend each flap by hand, so that a reversed encoder is told from a reversed "
+                        "motor (without it the encoder is taken as right)")
+    p.add_argument("--no-move", action="store_true", help="stop after the zero: no first gated move")
+    add_tolerance_deg(p)
+    p.add_argument("--log", help="session log, JSON lines")
+    add_device_option(p)
+
+
+def run(args) -> int:
+    profile = profile_of(args)
+    spec = profile.spec
+    print(profile_line(profile))
+    try:
+        with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
+            spec = said_by_device(spec, link)
+            checks = bring_up(link, spec, hand_by_prompt(link) if args.hand else None)
+            wiring = link.get_wiring()
+            found = [c.note for c in checks if c.note]
+            print("wiring   " + ("as built: nothing to correct" if not found else
+                                 f"corrected on the device: encoder inputs {list(wiring.encoder)}, "
+                                 f"flags {list(wiring.flags)}"))
+            if profile.folder:
+                print(f"         kept in {write_profile_wiring(profile.name, wiring.encoder, wiring.flags, found)}")
+            if args.hand:
+                input("lay every flap flat for the zero; press Enter ")
+            link.confirm_zero()
+            print("zero     confirmed: the pose now is 0 deg on every hinge" +
+                  ("" if args.hand else " (the device must lie flat now: `vrscroll zero` again if it did not)"))
+            if args.no_move:
+                return 0
+            for deg in (FIRST_MOVE_DEG, 0.0):
+                result = mirror(link, spec, np.radians([deg] * spec.n_hinges), args.tolerance_deg)
+                print(f"move     every hinge to {deg:g} deg: {result.outcome}"
+                      + (f" (hinge {result.hinge})" if result.hinge is not None else ""))
+                if result.outcome != "settled":
+                    raise UserError(f"the first gated move did not settle ({result.outcome}); check the hinge named")
+    except GateRefused as exc:
+        raise UserError(str(exc)) from None
+    except LinkError as exc:
+        raise UserError(str(exc)) from None
+    print("bring-up done: the device takes targets")
+    return 0

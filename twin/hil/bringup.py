@@ -1,0 +1,162 @@
+"""Bring-up of a new board, as ODrive's and Klipper's commands check each motor and encoder and say what is wrong.
+
+`bring_up(link, spec)` measures the wiring as it is (the device's correction set to the identity first):
+for each hinge, a short low-duty pulse of its motor each way, open loop (PULSE), and the encoder input that
+answers. The encoder that moves most between the two pulses is the hinge's (another hinge's: the cables
+are crossed); its sign says whether the motor turns the encoder up for positive drive; its size, against
+the spec's no-load speed, whether the counts per degree are plausible. A motor that turns no encoder is a
+dead encoder or an unconnected motor: named, nothing stored. Whether the encoder or the motor is the one
+reversed only a person can tell, by bending the flap by hand (`hand`); without it the encoder is taken as
+right and the motor's flag corrects the pair. The correction goes to the device (SET_WIRING, kept across
+power cycles), which leaves its zero unconfirmed. Units: counts, s, duty.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from twin.device.spec import DeviceSpec
+from twin.errors import UserError
+from twin.link import protocol as P
+from twin.link.serial_link import Link
+
+PULSE_DUTY = 0.2  # duty of a bring-up pulse
+PULSE_S = 0.05  # s a pulse lasts
+SETTLE_S = 0.1  # s waited after a pulse before the counts are read
+MIN_SHARE = 0.15  # the answering encoder must move at least this share of what the spec's no-load speed gives
+MAX_SHARE = 1.6  # ... and at most this share (more: counts per degree unlike the spec's)
+HAND_COUNTS = 15  # counts a hand's bend must move an encoder by
+
+
+class BringupError(UserError):
+    """The board cannot be corrected from here (a dead encoder, a set-up fault): what is wrong, per line."""
+
+
+@dataclasses.dataclass(frozen=True)
+class HingeCheck:
+    """What the pulses found for one hinge (its bridge's motor)."""
+
+    hinge: int
+    encoder: int  # the encoder input that answered
+    encoder_reversed: bool
+    motor_reversed: bool
+    counts: float  # |counts| the encoder moved per pulse
+    expected: float  # |counts| the spec's no-load speed would give, an upper bound
+    note: str  # what was wrong, "" if nothing
+
+    @property
+    def flags(self) -> int:
+        return (P.WIRING_ENCODER_REVERSED if self.encoder_reversed else 0) | \
+            (P.WIRING_MOTOR_REVERSED if self.motor_reversed else 0)
+
+
+def pulse_counts(spec: DeviceSpec) -> float:
+    """|counts| a pulse turns the output at the spec's no-load speed (rad/s at duty 1): an upper bound."""
+    return spec.no_load_speed * PULSE_DUTY * PULSE_S / spec.rad_per_count
+
+
+def _measure(link: Link, hinge: int, duty: float) -> np.ndarray:
+    """Each encoder input's change over one pulse of hinge's motor at duty."""
+    before = np.asarray(link.get_state().counts)
+    link.pulse(hinge, duty, PULSE_S)
+    time.sleep(PULSE_S + SETTLE_S)
+    return np.asarray(link.get_state().counts) - before
+
+
+def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeCheck:
+    """Pulse one hinge's motor each way and name what answers (the device IDLE, its wiring the identity)."""
+    expected = pulse_counts(spec)
+    state = link.get_state()
+    far = spec.hinge_limit / spec.rad_per_count - 2 * expected
+    if abs(state.counts[hinge]) > far:  # the gate of a pulse: its farthest reach stays inside the range
+        raise BringupError(f"hinge {hinge}: at {state.counts[hinge]} counts, too near its range for a pulse; "
+                           "lay the device flat first")
+    swing = (_measure(link, hinge, PULSE_DUTY) - _measure(link, hinge, -PULSE_DUTY)) / 2  # sagging cancels
+    j = int(np.argmax(np.abs(swing)))
+    moved = float(abs(swing[j]))
+    if moved < MIN_SHARE * expected:
+        return HingeCheck(hinge, hinge, False, False, moved, expected,
+                          f"hinge {hinge}: its motor was pulsed and no encoder answered ({moved:.0f} counts, "
+                          f"expected up to {expected:.0f}): a dead encoder (power, A/B wires) or a motor not "
+                          f"connected to bridge {hinge}")
+    notes = []
+    if j != hinge:
+        notes.append(f"hinge {hinge}: its motor turns encoder input {j}: the encoder cables of hinges {hinge} and "
+                     f"{j} are crossed (corrected: hinge {hinge} reads input {j})")
+    encoder_reversed = False
+    if hand is not None:
+        bent = np.asarray(hand(hinge))
+        k = int(np.argmax(np.abs(bent)))
+        if abs(bent[k]) < HAND_COUNTS or k != j:
+            notes.append(f"hinge {hinge}: the hand's bend moved input {k} by {bent[k]:.0f} counts, not input {j}: "
+                         f"bend flap {hinge}'s free end up by about 20 deg and run again")
+        encoder_reversed = bool(bent[j] < 0)
+        if encoder_reversed:
+            notes.append(f"hinge {hinge}: its encoder counts down when the flap bends up: A and B swapped "
+                         "(corrected: counted the other way)")
+    motor_reversed = bool((swing[j] < 0) != encoder_reversed)
+    if motor_reversed:
+        notes.append(f"hinge {hinge}: positive drive turns it the negative way: motor leads swapped "
+                     f"(corrected: driven the other way)" + ("" if hand else
+                                                              "; or its encoder's A and B, if the flap then moves "
+                                                              "the wrong way: run with --hand to tell them apart"))
+    if moved > MAX_SHARE * expected:
+        notes.append(f"hinge {hinge}: {moved:.0f} counts per pulse, more than the spec's no-load speed allows "
+                     f"({expected:.0f}): counts per degree unlike the spec's (gear ratio, encoder CPR)")
+    return HingeCheck(hinge, j, encoder_reversed, motor_reversed, moved, expected, "; ".join(notes))
+
+
+def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCheck]:
+    """Check the board, measure each hinge's wiring, store the correction on the device. BringupError, and nothing
+    stored, for what cannot be corrected here."""
+    info = link.info
+    say(f"firmware {'.'.join(map(str, info.firmware))}, protocol {info.protocol}, {info.n_hinges} hinges; started "
+        f"{P.enum_name(P.ResetReason, info.reset_reason)}")
+    if info.setup_error != P.SetupStep.NONE:
+        raise BringupError(f"the board's set-up failed at {P.enum_name(P.SetupStep, info.setup_error)}: nothing "
+                           "moves until it starts (docs/firmware.md, 'Set-up faults')")
+    state = link.get_state()
+    if state.state == P.State.FAULT and state.faults == P.Fault.WATCHDOG:
+        link.clear_fault()
+        state = link.get_state()
+    if state.state != P.State.IDLE:
+        raise BringupError(f"the device is {P.enum_name(P.State, state.state)}: bring-up starts from IDLE "
+                           "(`vrscroll status --serial PORT --clear-fault`, or power it off and on)")
+    n = spec.n_hinges
+    link.set_wiring(range(n), [0] * n)  # measure the wires as they are
+    checks = []
+    for k in range(n):
+        c = check_hinge(link, spec, k, hand)
+        say(f"hinge {k}: encoder input {c.encoder}, {c.counts:.0f} counts per pulse (at most {c.expected:.0f}) "
+            + ("ok" if not c.note else c.note.split(": ", 1)[1]))
+        checks.append(c)
+    dead = [c.note for c in checks if "no encoder answered" in c.note]
+    inputs = [c.encoder for c in checks]
+    if sorted(inputs) != list(range(n)):
+        dead.append(f"encoder inputs {inputs}: two hinges answer on one input; check each motor's bridge wires")
+    if dead:
+        raise BringupError("nothing stored: " + "; ".join(dead))
+    link.set_wiring(inputs, [c.flags for c in checks])
+    wiring = link.get_wiring()
+    if list(wiring.encoder) != inputs or list(wiring.flags) != [c.flags for c in checks]:
+        raise BringupError(f"the device holds wiring {wiring}, not what was sent")
+    return checks
+
+
+def hand_by_prompt(link: Link, wait_s: float = 30.0, ask=input):
+    """hand(hinge) for a person: asks for flap hinge to be bent up, returns each input's change (counts)."""
+    def hand(hinge: int) -> np.ndarray:
+        before = np.asarray(link.get_state().counts)
+        ask(f"bend flap {hinge}'s free end up (toward the touch side) by about 20 deg and hold it; press Enter ")
+        deadline = time.monotonic() + wait_s
+        while True:
+            moved = np.asarray(link.get_state().counts) - before
+            if np.abs(moved).max() >= HAND_COUNTS or time.monotonic() > deadline:
+                ask("let it go; press Enter ")
+                return moved
+            time.sleep(0.1)
+    return hand
+
