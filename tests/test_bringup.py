@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.cli import vrscroll
+from cli import vrscroll
 from twin.hil.bringup import bring_up
 from twin.hil.mirror import mirror
 from twin.link import protocol as P

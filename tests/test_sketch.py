@@ -9,7 +9,7 @@ import pytest
 
 from controllers import sketch
 from controllers.encoder import target_counts
-from tests.cli import vrscroll
+from cli import vrscroll
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions
 from twin.sim.plant import as_twin
