@@ -6,11 +6,14 @@ the calibration tests and benchmarks/bench_calibration.py.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
-# the stated ranges: x the spec's value, or deg and ms
-RANGES = {"speed-scale": "0.7,1.3", "friction-scale": "0.7,1.6", "armature-scale": "0.7,1.4",
-          "damping-scale": "0.7,1.6", "backlash-deg": "0,0.5", "latency-ms": "0,3"}
+from twin.sim.plant import PlantRanges
+
+# the stated ranges (the emulator's documented defaults), as its options: x the spec's value, or deg and ms
+RANGES = {f.name.replace("_", "-"): "{:g},{:g}".format(*getattr(PlantRanges(), f.name))
+          for f in dataclasses.fields(PlantRanges)}
 ENCODER_MISS = 0.0005  # probability per edge the encoder's counter misses it
 
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from twin.device.mjcf import mjcf
 from twin.device.spec import DeviceSpec
+from twin.formats.run import Run
 
 TWIN_ALPHA = 0.3  # opacity of the twin's flaps beside the device's
 TWIN_PREFIX = "twin/"
@@ -55,18 +56,18 @@ def hinge_qadr(model: mujoco.MjModel, n: int, prefix: str = "") -> np.ndarray:
     return np.array([[model.joint(f"{prefix}{j}{k}").qposadr[0] for k in range(n)] for j in ("hinge", "gear")])
 
 
-def run_frames(run: dict, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
+def run_frames(run: Run, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
     """(t s, qpos rows (frames, 2n) rad: the device's hinges then the twin's) of a recorded run
     (twin.formats.run.read_run), at the device's frame times: the device's encoder angles mid-count, the
     twin's true angles interpolated to those times."""
-    dev, tw = run["device"], run["twin"]
-    if tw is None or not len(tw["time_s"]):
-        raise ValueError(f"{run['dir']}: no twin.csv to replay beside the device")
-    t = dev["time_s"]
-    device = np.radians(dev["angle_deg"]) + 0.5 * spec.rad_per_count
-    twin_deg = tw["true_angle_deg"] if "true_angle_deg" in tw else tw["angle_deg"]
-    twin = np.stack([np.interp(t, tw["time_s"], twin_deg[:, k]) for k in range(twin_deg.shape[1])], axis=1)
-    return t, np.concatenate([device, np.radians(twin)], axis=1)
+    dev, tw = run.device, run.twin
+    if tw is None or not len(tw.time):
+        raise ValueError(f"{run.dir}: no twin.csv to replay beside the device")
+    t = dev.time
+    device = dev.angle + 0.5 * spec.rad_per_count
+    flap = tw.true_angle if tw.true_angle is not None else tw.angle
+    twin = np.stack([np.interp(t, tw.time, flap[:, k]) for k in range(tw.n_hinges)], axis=1)
+    return t, np.concatenate([device, twin], axis=1)
 
 
 def play(model: mujoco.MjModel, qadr: np.ndarray, t: np.ndarray, rows: np.ndarray, title: str) -> str:
@@ -88,13 +89,13 @@ def play(model: mujoco.MjModel, qadr: np.ndarray, t: np.ndarray, rows: np.ndarra
     return f"viewer closed ({title}, {t[-1] - t[0]:.2f} s played)"
 
 
-def view_run(run: dict, spec: DeviceSpec) -> str:
+def view_run(run: Run, spec: DeviceSpec) -> str:
     """A recorded HIL run replayed: the device solid, the twin translucent."""
     model = pair_model(spec)
     t, rows = run_frames(run, spec)
     n = spec.n_hinges
     qadr = np.concatenate([hinge_qadr(model, n), hinge_qadr(model, n, TWIN_PREFIX)], axis=1)
-    return play(model, qadr, t, rows, f"{run['dir']}: device solid, twin translucent")
+    return play(model, qadr, t, rows, f"{run.dir}: device solid, twin translucent")
 
 
 def play_trace(spec: DeviceSpec, trace) -> str:

@@ -1,6 +1,6 @@
 /* Feeds each corpus file to a fresh firmware core, in chunks, between control ticks; then a
  * GET_STATE frame, whose STATE reply must come back. Built with -fsanitize=address,undefined by
- * tests/test_firmware_wire.py. Exit 0: every file survived; 1: a core stopped answering. */
+ * tests/firmware/test_firmware_wire.py. Exit 0: every file survived; 1: a core stopped answering. */
 #include <stdio.h>
 #include <string.h>
 

@@ -10,13 +10,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from twin.commands.options import add_device_option, add_serial, add_tolerance_deg, profile_line, profile_of, \
-    said_by_device
+from twin.commands.options import (
+    add_device_option,
+    add_serial,
+    add_tolerance_deg,
+    device_session,
+    profile_line,
+    profile_of,
+)
 from twin.errors import UserError
 from twin.formats.profile import write_profile_wiring
 from twin.hil.bringup import bring_up, hand_by_prompt
 from twin.hil.mirror import mirror
-from twin.link.serial_link import Link, LinkError
+from twin.link.serial_link import LinkError
 from twin.sim.gate import GateRefused
 
 FIRST_MOVE_DEG = 10.0  # the first gated move: every hinge this far, then back to flat
@@ -38,8 +44,7 @@ def run(args) -> int:
     spec = profile.spec
     print(profile_line(profile))
     try:
-        with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
-            spec = said_by_device(spec, link)
+        with device_session(args, spec) as (link, spec):
             checks = bring_up(link, spec, hand_by_prompt(link) if args.hand else None)
             wiring = link.get_wiring()
             found = [c.note for c in checks if c.note]

@@ -14,6 +14,8 @@ from twin.commands.options import (
     add_refused,
     json_to_stdout,
     output_file,
+    select_profile,
+    spec_defaults,
     within,
     write_json,
 )
@@ -21,7 +23,7 @@ from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
 from twin.device.spec_toml import write_spec_toml
 from twin.errors import UserError
-from twin.formats.profile import select_profile, spec_defaults, write_profile_spec
+from twin.formats.profile import write_profile_spec
 from twin.formats.run import read_run
 from twin.hil.calibration import calibrate, trace_rmse
 
@@ -69,13 +71,13 @@ def run(args) -> int:
         raise UserError(f"cannot read a HIL run: {exc}" + ("" if args.incomplete or "did not complete" not in str(exc)
                                                             else " (--incomplete uses what it recorded)")) from None
     for r in runs + ([holdout] if holdout else []):
-        if r["meta"]["status"] != "complete":
-            print(f"note: {r['dir']} did not complete (status {r['meta']['status']!r}); using the "
-                  f"{len(r['device']['time_s'])} device frames it recorded", file=sys.stderr)
-        if len(r["device"]["time_s"]) < 10:
-            raise UserError(f"{r['dir']}: fewer than 10 device frames; nothing to fit")
-        if "before" not in r["meta"]:
-            raise UserError(f"{r['dir']}: recorded without the device's state before the run; record it again")
+        if r.status != "complete":
+            print(f"note: {r.dir} did not complete (status {r.status!r}); using the "
+                  f"{len(r.device.time)} device frames it recorded", file=sys.stderr)
+        if len(r.device.time) < 10:
+            raise UserError(f"{r.dir}: fewer than 10 device frames; nothing to fit")
+        if r.start.before_state is None:
+            raise UserError(f"{r.dir}: recorded without the device's state before the run; record it again")
     res = calibrate(runs, spec, population=args.population, generations=args.generations,
                     progress=None if json_to_stdout(args) else lambda g, c: print(
                         f"generation {g + 1}/{args.generations}: best cost {c:.4g}", flush=True))

@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import math
 
+from twin.commands.options import select_profile
 from twin.device.profile import NO_PROFILE, default_name, profile_names, profiles_dir, set_default
 from twin.device.spec import spec_sources
-from twin.formats.profile import create_profile, select_profile, spec_source_of
+from twin.formats.profile import create_profile, spec_source_of
 
 
 def add_arguments(p) -> None:

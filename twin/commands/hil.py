@@ -11,7 +11,7 @@ from twin.commands.options import (
     add_tolerance_deg,
     profile_line,
     profile_of,
-    said_by_device,
+    device_session,
     within,
 )
 from twin.errors import UserError
@@ -21,7 +21,7 @@ from twin.formats.scenario import read_scenario
 from twin.hil.compare import compare
 from twin.hil.mirror import DeviceNotReady
 from twin.hil.record import GainsRestored, run_hil
-from twin.link.serial_link import Link, LinkError, NackError
+from twin.link.serial_link import LinkError, NackError
 from twin.sim.gate import GateRefused
 from viz.hil_report import write_report
 
@@ -65,11 +65,9 @@ def _record(args, profile, spec, scenario, gains, out: Path) -> int:
             print(f"t={t:6.2f} s of {scenario.duration:.2f} s", flush=True)
 
     try:
-        with Link(args.serial, log_path=log, hinges=spec.n_hinges) as link:
-            spec = said_by_device(spec, link)
-            meta = run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz,
-                           scenario_path=args.scenario, on_progress=progress, gains=gains,
-                           tolerance_deg=args.tolerance_deg, profile=profile.label)
+        with device_session(args, spec, log) as (link, spec):
+            run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz, scenario_path=args.scenario,
+                    on_progress=progress, gains=gains, tolerance_deg=args.tolerance_deg, profile=profile.label)
     except GainsRestored as exc:
         print(exc.report.text())
         raise UserError(f"refused by the gate: {exc} (the gains of {args.gains or profile.gains_from} were sent, "
@@ -88,7 +86,7 @@ def _record(args, profile, spec, scenario, gains, out: Path) -> int:
     except RuntimeError as exc:
         raise UserError(f"{exc} (traces so far in {out})") from None
     run_ = read_run(out, spec)
-    rows = compare(spec, run_["device"], run_["twin"], [c["t_s"] for c in meta["changes"]])
+    rows = compare(spec, run_.device, run_.twin, [t for t, _ in run_.changes])
     report = write_report(spec, out, rows)
     print(f"{'hinge':>5} {'RMSE deg':>9} {'max err deg':>11} {'lag ms':>7} {'settle dev s':>12} {'settle twin s':>13}")
     for r in rows:

@@ -13,13 +13,13 @@ from twin.commands.options import (
     add_tolerance_deg,
     profile_line,
     profile_of,
-    said_by_device,
+    device_session,
     within,
 )
 from twin.errors import UserError
 from twin.formats.target import read_target
 from twin.hil.mirror import DeviceNotReady, mirror
-from twin.link.serial_link import Link, LinkError
+from twin.link.serial_link import LinkError
 from twin.sim.gate import GateRefused
 
 
@@ -73,8 +73,7 @@ def run(args) -> int:
                   + f"  deg   largest deviation {dev.max():4.1f} deg (hinge {int(dev.argmax())})", flush=True)
 
     try:
-        with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
-            spec = said_by_device(spec, link)
+        with device_session(args, spec) as (link, spec):
             if args.override:
                 print("gate override requested: a failed check will be logged and the move sent anyway")
             result = mirror(link, spec, targets, tolerance_deg=args.tolerance_deg, settle_limit=args.settle_limit,

@@ -14,14 +14,18 @@ An old spelling (`--port`, `--tolerance`, `--json` without a file) is refused wi
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
 from pathlib import Path
 
-from twin.device.profile import set_default
-from twin.formats.profile import Profile, select_profile
+from controllers.pid import PidGains
+from twin.device.profile import default_name, profile_dir, profiles_dir, set_default
+from twin.device.spec import load_spec
+from twin.formats.profile import Profile, read_profile
 from twin.hil.device_gains import device_spec
+from twin.link.serial_link import Link
 
 # old spelling -> new, refused wherever the new one is an option of the command
 RENAMED = {"--port": "--serial", "--tolerance": "--tolerance-pct"}
@@ -149,6 +153,28 @@ def add_device_option(p) -> None:
                         "default: the one selected last, else the spec's defaults")
 
 
+def spec_defaults() -> Profile:
+    """The spec's defaults: models/vrscroll/spec.toml and its gains on every hinge."""
+    spec = load_spec()
+    return Profile(None, None, spec, [PidGains.from_spec(spec)] * spec.n_hinges, "spec", None)
+
+
+def select_profile(name: str | None = None) -> Profile:
+    """The profile called name, or the selected one (twin.device.profile.default_name), or the spec's defaults.
+
+    ValueError (one line) for a profile that is not there or is damaged, naming it and where it was looked for.
+    """
+    chosen = name or default_name()
+    if chosen is None:
+        return spec_defaults()
+    folder = profile_dir(chosen)
+    if not folder.is_dir():
+        how = "given with --device" if name else f"selected in {profiles_dir() / 'default'}"
+        raise ValueError(f"device profile {chosen!r} ({how}) is not in {profiles_dir()}: `vrscroll device list` "
+                         f"shows those there are; `vrscroll calibrate RUN --device {chosen}` makes one")
+    return read_profile(folder)
+
+
 def profile_of(args) -> Profile:
     """The profile args.device names (then remembered as the default), or the selected one, or the spec's
     defaults. ValueError (one line) for a profile that is not there or is damaged."""
@@ -165,6 +191,15 @@ def said_by_device(spec, link):
     for note in notes:
         print(f"note: {note}")
     return spec
+
+
+@contextlib.contextmanager
+def device_session(args, spec, log=None):
+    """(link, spec): the device on --serial, opened (closed, e-stopped on an interrupt, when the block ends),
+    and the spec with the device's own configuration from its HELLO (said_by_device). log: the session log
+    (default --log)."""
+    with Link(args.serial, log_path=log or args.log, hinges=spec.n_hinges) as link:
+        yield link, said_by_device(spec, link)
 
 
 def profile_line(profile: Profile) -> str:

@@ -12,13 +12,13 @@ from twin.commands.options import (
     add_serial,
     profile_line,
     profile_of,
-    said_by_device,
+    device_session,
     within,
 )
 from twin.errors import UserError
 from twin.hil.mirror import faults_text
 from twin.link import protocol as P
-from twin.link.serial_link import Link, LinkError, zero_hint
+from twin.link.serial_link import LinkError, zero_hint
 
 
 def add_arguments(p) -> None:
@@ -36,8 +36,7 @@ def run(args) -> int:
     profile = profile_of(args)
     spec = profile.spec
     try:
-        with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
-            spec = said_by_device(spec, link)
+        with device_session(args, spec) as (link, spec):
             if args.estop:
                 link.estop()
             if args.clear_fault:

@@ -17,21 +17,22 @@ from twin.commands.options import (
     output_file,
     profile_line,
     profile_of,
-    said_by_device,
+    device_session,
     within,
     write_json,
 )
+from twin.device.variation import tolerance_ranges
 from twin.errors import UserError
 from twin.evaluation.backends import BACKENDS, make_backend
 from twin.formats.gains import write_gains
 from twin.formats.profile import write_profile_gains
 from twin.hil.device_gains import push_gains
 from twin.hil.mirror import DeviceNotReady, device_step
-from twin.link.serial_link import Link, LinkError
+from twin.link.serial_link import LinkError
 from twin.sim.gate import GateRefused
 from twin.sim.response import move_report, step_metrics
 from twin.sim.twin import Twin
-from twin.tuning.tuner import TuneGoal, step_report, tolerance_ranges, tune
+from twin.tuning.tuner import TuneGoal, step_report, tune
 
 
 def add_arguments(p) -> None:
@@ -135,8 +136,7 @@ def confirm_on_device(args, spec, gains, step, pushed, quiet=False) -> list[dict
     n = spec.n_hinges
     targets = np.full(n, step)
     try:
-        with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
-            spec = said_by_device(spec, link)
+        with device_session(args, spec) as (link, spec):
             push_gains(link, gains, n)
             pushed()
             t, deg, start, res = device_step(link, spec, targets)

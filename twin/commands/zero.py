@@ -10,10 +10,10 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.encoder import angle_from_counts
-from twin.commands.options import add_device_option, add_serial, profile_line, profile_of, said_by_device
+from twin.commands.options import add_device_option, add_serial, device_session, profile_line, profile_of
 from twin.errors import UserError
 from twin.link import protocol as P
-from twin.link.serial_link import Link, LinkError
+from twin.link.serial_link import LinkError
 
 
 def add_arguments(p) -> None:
@@ -26,8 +26,7 @@ def run(args) -> int:
     profile = profile_of(args)
     spec = profile.spec
     try:
-        with Link(args.serial, log_path=args.log, hinges=spec.n_hinges) as link:
-            spec = said_by_device(spec, link)
+        with device_session(args, spec) as (link, spec):
             before = link.get_state()
             if before.state != P.State.IDLE:
                 raise UserError(f"the device is {P.enum_name(P.State, before.state)}: the zero is confirmed in IDLE only "

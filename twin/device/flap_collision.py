@@ -7,7 +7,7 @@ two or more apart may. Their penetration depth is found by the separating-axis t
 the smallest overlap along any axis that could separate them is the depth, none means
 no contact.
 The gate (twin/sim/gate.py) counts a contact deeper than CONTACT_DEPTH; so does
-`flap_overlap` here, and tests/test_gate.py checks the two agree.
+`flap_overlap` here, and tests/sim/test_gate.py checks the two agree.
 
 `apart` is a cheaper, proven bound for the twin's loop: where it holds, no two flaps two or more
 apart touch, so MuJoCo's collision detection can be skipped for that step.

@@ -19,10 +19,6 @@ ENV = "VRSCROLL_DEVICES"
 DEFAULT_FILE = "default"
 NO_PROFILE = "spec defaults"  # how reports name the absence of a profile
 RESERVED = ("none",)  # `vrscroll device select none` means the spec's defaults: no profile can be called that
-# the spec fields a profile may hold other values of than the spec's: the plant parameters calibration fits
-# (gear_stiction moves with gear_friction). Every other value (hinge range, settle band, flap count, limits)
-# is the device's design, the same for every device built to the spec: a profile that changes one is refused.
-PLANT_FIELDS = ("no_load_speed", "gear_friction", "gear_stiction", "gear_damping", "rotor_inertia", "backlash")
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 

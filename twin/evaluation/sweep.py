@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from twin.device.design import design_spec
 from twin.device.spec import DeviceSpec, load_spec
+from twin.device.variation import drawn_scales, scaled
 from twin.evaluation.cbs import CbsSimulator
 from twin.evaluation.starts import approach_starts
 from twin.evaluation.table1 import _shape_seed, twin_outcome
@@ -64,6 +65,14 @@ def with_unit(key: str, unit: str) -> str:
     return key if unit == "1" else f"{key}_{unit.replace('*', '').replace('/', '_per_').replace('^', '')}"
 
 
+def sweep_plants(sweep: Sweep) -> list[dict]:
+    """Per plant, spec key -> scale on the design's value: the nominal ({}) first, then the draws, each key
+    scaled uniformly within +-its tolerance (twin.device.variation.drawn_scales: draw i depends on the seed
+    and i only)."""
+    tolerance = {k: pct / 100 for k, pct in sweep.tolerance_pct.items()}
+    return [{}] + [drawn_scales(tolerance, sweep.plant_seed, i) for i in range(1, sweep.plant_draws + 1)]
+
+
 def sweep_tasks(sweep: Sweep) -> tuple[list[Task], list[dict]]:
     """Every task of a sweep, designs outermost, and per task the labels its record starts with."""
     base = load_spec(sweep.spec_path)
@@ -74,7 +83,7 @@ def sweep_tasks(sweep: Sweep) -> tuple[list[Task], list[dict]]:
         for shape in sweep.shapes:
             for start in range(sweep.starts):
                 for method in sweep.methods:
-                    for p, plant in enumerate(sweep.plants()):
+                    for p, plant in enumerate(sweep_plants(sweep)):
                         what = {"base": fingerprint, "design": given, "shape": shape, "start": start,
                                 "starts": sweep.starts, "seed": sweep.seed, "method": method, "plant": plant}
                         key = hashlib.sha256(json.dumps(what, sort_keys=True).encode()).hexdigest()[:20]
@@ -101,7 +110,7 @@ def run_task(task: Task) -> dict:
     mesh, fields, starts = _target(task.shape, task.starts, task.seed)
     if (spec, task.plant) not in _TWINS:
         # the plant differs only in physical values: its MJCF and its drive model (the tuner's rule)
-        _TWINS[(spec, task.plant)] = Twin(spec.replace(**{k: getattr(spec, k) * scale for k, scale in task.plant}))
+        _TWINS[(spec, task.plant)] = Twin(scaled(spec, dict(task.plant)))
     if task.method == "cbs":
         if (spec, task.shape) not in _CBS:
             _CBS[(spec, task.shape)] = CbsSimulator(spec, mesh)

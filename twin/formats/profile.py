@@ -9,7 +9,7 @@ knows it after calibration and tuning.
 {name: {"value", "prior", "low", "high", "identifiable", "note"}}}, values in SI (the spec's field
 units); low..high is the interval the calibration leaves open (its 95 % interval for a fitted
 parameter, the prior range for one the runs do not show), which `vrscroll tune` tunes over.
-Where the folders live and which one is selected is twin.device.profile's.
+Where the folders live is twin.device.profile's; which one a command uses, twin.commands.options'.
 """
 
 from __future__ import annotations
@@ -21,9 +21,10 @@ from pathlib import Path
 
 from controllers.pid import PidGains
 from twin.checks import json_object, known_keys, number, required_keys
-from twin.device.profile import NO_PROFILE, PLANT_FIELDS, default_name, profile_dir, profiles_dir
+from twin.device.profile import NO_PROFILE, profile_dir, profiles_dir
 from twin.device.spec import SPEC_PATH, DeviceSpec, load_spec, spec_sources
 from twin.device.spec_toml import write_spec_toml
+from twin.device.variation import PLANT_FIELDS
 from twin.formats.gains import read_gains, write_gains
 from twin.paths import replacing
 
@@ -55,12 +56,6 @@ class Profile:
         return {p: (e["low"], e["high"]) for p, e in self.calibration["parameters"].items()}
 
 
-def spec_defaults() -> Profile:
-    """The spec's defaults: models/vrscroll/spec.toml and its gains on every hinge."""
-    spec = load_spec()
-    return Profile(None, None, spec, [PidGains.from_spec(spec)] * spec.n_hinges, "spec", None)
-
-
 def _calibration(doc, where: str) -> dict:
     if not isinstance(doc, dict):
         raise ValueError(f"{where}: expected an object with runs, parameters")
@@ -90,7 +85,7 @@ def _calibration(doc, where: str) -> dict:
 
 def design_unchanged(spec: DeviceSpec, base: DeviceSpec, where) -> None:
     """ValueError naming the first field a profile's spec changes that is not a plant parameter
-    (twin.device.profile.PLANT_FIELDS): the host's checks (the gate's hinge range, the settle band, the flap
+    (twin.device.variation.PLANT_FIELDS): the host's checks (the gate's hinge range, the settle band, the flap
     count) are the spec's, whatever a profile says."""
     for f in dataclasses.fields(base):
         mine, theirs = getattr(spec, f.name), getattr(base, f.name)
@@ -127,22 +122,6 @@ def read_profile(folder) -> Profile:
     else:
         gains, source = [PidGains.from_spec(spec)] * spec.n_hinges, "spec"
     return Profile(folder.name, folder, spec, gains, source, calibration)
-
-
-def select_profile(name: str | None = None) -> Profile:
-    """The profile called name, or the selected one (twin.device.profile.default_name), or the spec's defaults.
-
-    ValueError (one line) for a profile that is not there or is damaged, naming it and where it was looked for.
-    """
-    chosen = name or default_name()
-    if chosen is None:
-        return spec_defaults()
-    folder = profile_dir(chosen)
-    if not folder.is_dir():
-        how = "given with --device" if name else f"selected in {profiles_dir() / 'default'}"
-        raise ValueError(f"device profile {chosen!r} ({how}) is not in {profiles_dir()}: `vrscroll device list` "
-                         f"shows those there are; `vrscroll calibrate RUN --device {chosen}` makes one")
-    return read_profile(folder)
 
 
 def _write_meta(folder: Path, calibration: dict | None) -> None:

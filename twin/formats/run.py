@@ -9,23 +9,68 @@
 run.json's "status" is "running" while the run is recorded (and stays so when the recording
 process was killed), "complete" when every step was played, "interrupted" after Ctrl-C, or
 "failed: <why>". Traces of a run that did not complete hold what was recorded up to its end.
+`read_run` returns a `Run`, in SI (times s, targets rad), the form calibration, replay and the
+reports take.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
+import numpy as np
+
+from controllers.pid import PidGains
 from twin.checks import hinge_angles, json_object, known_keys, number, required_keys
 from twin.device.spec import DeviceSpec
 from twin.formats.gains import read_gains
-from twin.formats.trace import read_trace
+from twin.formats.trace import Recording, read_trace
 from twin.paths import replacing
 
 RUN_KEYS = ("scenario", "start_counts", "start_target_counts", "before", "telemetry_hz", "firmware_dt_s", "changes",
             "status", "port", "device_t0_us", "device_rows", "twin_rows", "device_profile")
 BEFORE_KEYS = ("state", "counts", "target_counts")
 COMPLETE = "complete"
+
+
+@dataclasses.dataclass(frozen=True)
+class RunStart:
+    """Where the device was when a run began, and just before (its recent history: the twin replays it)."""
+
+    counts: np.ndarray  # encoder counts at the start
+    target_counts: np.ndarray  # the targets it held at the start, counts
+    before_state: str | None = None  # its state just before the run's first move ("ACTIVE", "IDLE", ...)
+    before_counts: np.ndarray | None = None  # its counts then
+    before_target_counts: np.ndarray | None = None  # its targets then
+
+
+@dataclasses.dataclass(frozen=True)
+class Run:
+    """A recorded run, in SI."""
+
+    dir: Path
+    scenario: str
+    status: str
+    start: RunStart
+    changes: list  # [(device time s, targets rad (n,))], the first at 0: each target from its ACK on
+    device: Recording
+    twin: Recording | None
+    gains: list[PidGains]  # per hinge, the gains the device held
+    meta: dict  # run.json as written: the report's other lines (port, telemetry rate, device profile)
+
+
+def run_start(meta: dict) -> RunStart:
+    """The start of a run from its run.json (checked by read_run_meta, or being written by the recorder)."""
+    before = meta.get("before") or {}
+    counts = {k: np.asarray(before[k], np.int64) if k in before else None for k in ("counts", "target_counts")}
+    return RunStart(np.asarray(meta["start_counts"], np.int64), np.asarray(meta["start_target_counts"], np.int64),
+                    before.get("state"), counts["counts"], counts["target_counts"])
+
+
+def run_changes(meta: dict) -> list:
+    """run.json's target changes as [(t s, targets rad)]."""
+    return [(float(c["t_s"]), np.radians(np.asarray(c["angles_deg"], float))) for c in meta["changes"]]
 
 
 def write_run_meta(run_dir, meta: dict) -> None:
@@ -76,8 +121,8 @@ def read_run_meta(run_dir, spec: DeviceSpec) -> dict:
     return meta
 
 
-def read_run(run_dir, spec: DeviceSpec, incomplete: bool = False) -> dict:
-    """A recorded run: {dir, meta, device, twin (None if absent), gains}.
+def read_run(run_dir, spec: DeviceSpec, incomplete: bool = False) -> Run:
+    """A recorded run, in SI.
 
     A run whose status is not "complete" (killed, interrupted, failed) is refused, naming the run
     and its status, unless `incomplete` is True: then what was recorded is returned.
@@ -92,7 +137,7 @@ def read_run(run_dir, spec: DeviceSpec, incomplete: bool = False) -> dict:
         raise ValueError(f"{d}: the run did not complete (status {meta['status']!r}: killed, interrupted or failed "
                          "while it was recorded)")
     n = spec.n_hinges
-    return {"dir": d, "meta": meta,
-            "device": read_trace(d / "device.csv", n, spec.hinge_limit),
-            "twin": read_trace(d / "twin.csv", n, spec.hinge_limit) if (d / "twin.csv").exists() else None,
-            "gains": read_gains(d / "gains.json", n)}
+    return Run(d, meta["scenario"], meta["status"], run_start(meta), run_changes(meta),
+               read_trace(d / "device.csv", n, spec.hinge_limit),
+               read_trace(d / "twin.csv", n, spec.hinge_limit) if (d / "twin.csv").exists() else None,
+               read_gains(d / "gains.json", n), meta)

@@ -60,16 +60,6 @@ class Sweep:
     plant_seed: int = 0
     tolerance_pct: dict = dataclasses.field(default_factory=dict)  # spec key -> +- percent
 
-    def plants(self) -> list[dict]:
-        """Per plant, spec key -> scale on the design's value: the nominal ({}) first, then the draws, each
-        key scaled uniformly within +-its tolerance (draw i depends on the seed and i only)."""
-        out = [{}]
-        for i in range(1, self.plant_draws + 1):
-            rng = np.random.default_rng([self.plant_seed, i])
-            out.append({k: round(1.0 + self.tolerance_pct[k] / 100 * rng.uniform(-1, 1), 6)
-                        for k in sorted(self.tolerance_pct)})
-        return out
-
 
 def read_sweep(path, shapes: list[str], methods: list[str]) -> Sweep:
     """A sweep file, checked: ValueError naming the file, the key and the reason. shapes, methods: those known."""

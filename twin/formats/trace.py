@@ -5,11 +5,13 @@ trace has (TRACE_COLUMNS): target_deg, angle_deg (the encoder's angle: counts x 
 the device reports it), counts, duty, current_A. Columns only a twin has (TWIN_COLUMNS):
 true_angle_deg (the simulated hinge's true angle), target_counts, torque_Nm. One line per row,
 written and flushed as it comes, so an interrupted recording keeps every row up to its last
-line; the reader drops a cut-off last line and refuses any other bad line.
+line; the reader drops a cut-off last line and refuses any other bad line, and returns a `Recording`:
+the same columns in SI (rad, A, N*m), so no degree travels past the reader.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 from pathlib import Path
@@ -23,6 +25,37 @@ TWIN_COLUMNS = ("true_angle_deg", "target_counts", "torque_Nm")
 _INTEGER = ("counts", "target_counts")
 _HEADER = re.compile(r"h(\d+)_(.+)")
 MAX_TRACE_BYTES = 512 << 20  # a 600 s HIL run at 1 kHz is about 210 MB
+# column -> (Recording field, its unit in SI from the file's)
+_FIELDS = {"target_deg": ("target", math.radians(1.0)), "angle_deg": ("angle", math.radians(1.0)),
+           "counts": ("counts", 1), "duty": ("duty", 1.0), "current_A": ("current", 1.0),
+           "true_angle_deg": ("true_angle", math.radians(1.0)), "target_counts": ("target_counts", 1),
+           "torque_Nm": ("torque", 1.0)}
+
+
+@dataclasses.dataclass(frozen=True)
+class Recording:
+    """A trace read back, in SI: `time` (rows,) and per hinge (rows, hinges) the rest; the twin's own columns
+    None in a device's trace."""
+
+    time: np.ndarray  # s
+    target: np.ndarray  # rad, the target the firmware held
+    angle: np.ndarray  # rad, the encoder's angle (counts x rad per count)
+    counts: np.ndarray  # encoder counts (whole numbers)
+    duty: np.ndarray  # the commanded duty, -1 .. 1
+    current: np.ndarray  # A, the winding current
+    true_angle: np.ndarray | None = None  # rad, the simulated flap's true angle (a twin's trace)
+    target_counts: np.ndarray | None = None  # the target in counts (a twin's trace)
+    torque: np.ndarray | None = None  # N*m at the hinge (a twin's trace)
+
+    @property
+    def n_hinges(self) -> int:
+        return self.angle.shape[1]
+
+    def until(self, end: float) -> "Recording":
+        """The rows at or before `end` s."""
+        sel = self.time <= end + 1e-9
+        return dataclasses.replace(self, **{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[sel]
+                                            for f in dataclasses.fields(self)})
 
 
 class TraceWriter:
@@ -58,8 +91,8 @@ class TraceWriter:
         self.close()
 
 
-def read_trace(path, n: int | None = None, hinge_limit: float | None = None) -> dict:
-    """A trace CSV as arrays: 'time_s' (rows,) and each column (rows, hinges).
+def read_trace(path, n: int | None = None, hinge_limit: float | None = None) -> Recording:
+    """A trace CSV as a Recording (SI).
 
     n: the hinge count it must have; hinge_limit (rad): targets must lie within it. A cut-off
     last line (an interrupted recording) is dropped; any other bad line is a ValueError naming it.
@@ -114,13 +147,15 @@ def read_trace(path, n: int | None = None, hinge_limit: float | None = None) -> 
     if np.any(np.diff(t) < 0):
         i = int(np.argmax(np.diff(t) < 0))
         raise ValueError(f"{path}:{i + 3}: time_s {t[i + 1]:g} goes back from {t[i]:g}")
-    out = {"time_s": t}
+    out = {}
     for c in columns:
-        out[c] = np.stack([data[:, header.index(f"h{k}_{c}")] for k in hinges], axis=1)
-    if hinge_limit is not None and len(t):
-        bad = np.abs(out["target_deg"]) > math.degrees(hinge_limit) + 1e-3
-        if bad.any():
-            row, k = np.argwhere(bad)[0]
-            raise ValueError(f"{path}:{row + 2}: h{k}_target_deg {out['target_deg'][row, k]:g} is outside the hinge "
-                             f"range +-{math.degrees(hinge_limit):g} deg")
-    return out
+        column = np.stack([data[:, header.index(f"h{k}_{c}")] for k in hinges], axis=1)
+        if c == "target_deg" and hinge_limit is not None and len(t):
+            bad = np.abs(column) > math.degrees(hinge_limit) + 1e-3
+            if bad.any():
+                row, k = np.argwhere(bad)[0]
+                raise ValueError(f"{path}:{row + 2}: h{k}_target_deg {column[row, k]:g} is outside the hinge "
+                                 f"range +-{math.degrees(hinge_limit):g} deg")
+        field, unit = _FIELDS[c]
+        out[field] = column.astype(np.int64) if c in _INTEGER else column * unit
+    return Recording(time=t, **out)

@@ -31,7 +31,7 @@ Search: a cross-entropy method, then a quadratic fitted to the better half of it
 samples (the cost is rough at small scales, where a gradient method stalls: see
 `calibrate`). The parameters are the mode of the runs' likelihood (that quadratic)
 times a prior about the spec's values (log spread: half the farther end of
-PRIOR_RANGE), so a parameter the runs show little stays near its prior without
+twin.device.variation.SPREAD), so a parameter the runs show little stays near its prior without
 being held there. Each one's 95 % interval is the wider of the posterior's and a
 jackknife's over the hinges' stretches of the runs. Three verdicts: identifiable
 (the interval within x(1 -+ MAX_HALFWIDTH)); fitted, not identifiable (its fitted
@@ -49,51 +49,42 @@ import math
 import numpy as np
 
 from controllers.encoder import angle_from_counts
-from twin.device.profile import PLANT_FIELDS
 from twin.device.spec import DeviceSpec
+from twin.device.variation import PARAMS, SPREAD, scaled
+from twin.formats.run import Run
+from twin.search import CrossEntropy
 from twin.sim.replay import replay_targets, twin_at_start
 
-# the spec fields that move with a parameter, in proportion: the static friction keeps its ratio to the
-# Coulomb friction (one gearbox's friction, the emulator scales them together)
-MOVES_WITH = {"gear_friction": ("gear_stiction",)}
-# the plant parameters a profile may hold (twin.device.profile.PLANT_FIELDS), less those that move with another
-PARAMS = tuple(p for p in PLANT_FIELDS if not any(p in moved for moved in MOVES_WITH.values()))
-# x the prior: how far a device may differ from its datasheet (an assumption: the spread of a batch of micro
-# metal gearmotors and of their assembly; the backlash 0.01 .. 0.5 deg about the spec's 0.25 deg: not 0,
-# which the MJCF makes a rigid coupling, another model layout than the batch twin's other plants). The
-# interval a parameter the runs do not show is left with.
-PRIOR_RANGE = {"no_load_speed": (0.7, 1.3), "gear_friction": (0.7, 1.6), "gear_damping": (0.7, 1.6),
-               "rotor_inertia": (0.7, 1.4), "backlash": (0.04, 2.0)}
 LOG_BOUND = math.log(3.0)
 MAX_HALFWIDTH = 0.15  # a parameter is identifiable when its 95 % interval is within x(1 -+ this) of its value
 NOT_SHOWN = 3.0  # a parameter whose fitted spread exceeds this many times its prior's is left at its prior
 SEARCH_STD = 0.25  # log: the cross-entropy search's first spread about the prior
 ELITE = 6  # samples per generation the next is drawn about
+STD_FLOOR = 0.02  # log: the search's least spread (2 %: the parameters' own resolution in the cost)
 DUTY_WINDOW = 0.2  # s: the duty is compared as means over windows this long
 DUTY_WEIGHT = 20.0  # deg per unit duty: a 0.01 duty error weighs as 0.2 deg (each about its noise floor)
 JACKKNIFE_SEGMENTS = 3  # stretches of a run per hinge the jackknife leaves out: 18 groups for one run
 
 
-def replay(run: dict, plant: DeviceSpec, spec: DeviceSpec | None = None):
+def replay(run: Run, plant: DeviceSpec, spec: DeviceSpec | None = None):
     """The twin's encoder angles (deg, mid-count, as device_angles) and duty at the run's device frame times,
     with `plant` as the physics: the encoder, on the motor, is what the device reports, so the twin is read
     the same way (its flap angle differs by up to half the backlash, which is outside the loop)."""
     spec = spec or plant
-    t = run["device"]["time_s"]
+    t = run.device.time
     dt = spec.firmware_dt
     end_tick = int(round(t[-1] / dt)) + 1 if len(t) else 1
-    twin = twin_at_start(plant, run["gains"], run["meta"], spec)
-    changes = [(c["t_s"], np.radians(c["angles_deg"])) for c in run["meta"]["changes"]]
-    traces = [tr for _, tr in replay_targets(twin, changes, 0, end_tick)]
+    twin = twin_at_start(plant, run.gains, run.start, spec)
+    traces = [tr for _, tr in replay_targets(twin, run.changes, 0, end_tick)]
     c = np.concatenate([tr.counts for tr in traces])
     d = np.concatenate([tr.duty for tr in traces])
     idx = np.clip(np.rint(t / dt).astype(int), 0, max(len(c) - 1, 0))
     return np.degrees(angle_from_counts(spec, c[idx] + 0.5)), d[idx]
 
 
-def device_angles(run: dict, spec: DeviceSpec) -> np.ndarray:
+def device_angles(run: Run, spec: DeviceSpec) -> np.ndarray:
     """The device's encoder angles, deg, mid-count (the encoder floors: the true angle is half a count up)."""
-    return run["device"]["angle_deg"] + 0.5 * math.degrees(spec.rad_per_count)
+    return np.degrees(run.device.angle + 0.5 * spec.rad_per_count)
 
 
 def window_means(t, x, width: float = DUTY_WINDOW) -> np.ndarray:
@@ -104,16 +95,15 @@ def window_means(t, x, width: float = DUTY_WINDOW) -> np.ndarray:
     return np.stack([(np.bincount(bins, weights=x[:, k]) / n)[bins] for k in range(x.shape[1])], axis=1)
 
 
-def residual_blocks(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
+def residual_blocks(run: Run, plant: DeviceSpec, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
     """The fit's residual for one run, per frame and hinge (frames, n): the angle error (deg), and the
     error of the duty's window mean x DUTY_WEIGHT."""
     angle, duty = replay(run, plant, spec)
-    dev = run["device"]
-    t = dev["time_s"]
-    return angle - device_angles(run, spec), DUTY_WEIGHT * (window_means(t, duty) - window_means(t, dev["duty"]))
+    t = run.device.time
+    return angle - device_angles(run, spec), DUTY_WEIGHT * (window_means(t, duty) - window_means(t, run.device.duty))
 
 
-def group_costs(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
+def group_costs(run: Run, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
     """The fit's cost (sum of squared residuals, deg^2) for one run, split into groups: each hinge's, in
     JACKKNIFE_SEGMENTS consecutive stretches of the run ((segments x n,)). Their sum is the run's cost; the
     groups are what the intervals' jackknife leaves out one at a time."""
@@ -121,7 +111,7 @@ def group_costs(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
     return np.stack([c.sum(axis=0) for c in np.array_split(sq, JACKKNIFE_SEGMENTS)]).ravel()
 
 
-def trace_rmse(run: dict, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
+def trace_rmse(run: Run, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
     """Per-hinge RMSE, deg, between the device's hinge angles and the twin's replayed with `plant`.
 
     The overall figure quoted for a run is the RMS of these (every frame of every hinge alike)."""
@@ -206,9 +196,9 @@ def quadratic_fit(X: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 
 def prior_spread(param: str) -> float:
-    """The prior's standard deviation of log(value / prior): half the farther end of its PRIOR_RANGE, so
+    """The prior's standard deviation of log(value / prior): half the farther end of its SPREAD, so
     the whole range lies within two of them."""
-    return max(abs(math.log(r)) for r in PRIOR_RANGE[param]) / 2.0
+    return max(abs(math.log(r)) for r in SPREAD[param]) / 2.0
 
 
 def posterior_mode(grad, H, xb, s2: float, spread, held) -> tuple[np.ndarray, np.ndarray]:
@@ -252,12 +242,12 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
     F = np.array([i for i in range(k) if i not in held], int)
     if held and len(F):
         S = -cov[np.ix_(F, F)] @ H[np.ix_(F, held)] / (2.0 * s2)  # cov_FF is (A + P)_FF^-1
-        ends = np.log([PRIOR_RANGE[params[j]] for j in held])  # (held, 2)
+        ends = np.log([SPREAD[params[j]] for j in held])  # (held, 2)
         lo[F] += np.minimum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
         hi[F] += np.maximum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
     estimates = {}
     for i, p in enumerate(params):
-        lo_p, hi_p = PRIOR_RANGE[p]
+        lo_p, hi_p = SPREAD[p]
         if i in F:
             below, above = math.exp(lo[i] - x[i]), math.exp(hi[i] - x[i])
             pinned = bool(max(x[i] - lo[i], hi[i] - x[i]) <= math.log1p(max_halfwidth))
@@ -274,7 +264,7 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
     return x, estimates
 
 
-def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int = 24, generations: int = 8,
+def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int = 24, generations: int = 8,
               seed: int = 0, max_halfwidth: float = MAX_HALFWIDTH, progress=None) -> CalibrationResult:
     """Fit `params` (log(value / base value), within x1/3 .. x3) to the runs' device traces (angles and duty),
     and say what the runs show.
@@ -304,8 +294,7 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int
     count = [0]
 
     def plant(x):
-        return base.replace(**{f: getattr(base, f) * math.exp(float(xi)) for p, xi in zip(params, x)
-                               for f in (p, *MOVES_WITH.get(p, ()))})
+        return scaled(base, {p: math.exp(float(xi)) for p, xi in zip(params, x)})
 
     def cost(x):
         count[0] += 1
@@ -315,13 +304,12 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int
         return float(np.sqrt(np.mean(np.concatenate([trace_rmse(r, p, base) ** 2 for r in runs]))))
 
     rng = np.random.default_rng(seed)
-    mean, std = np.zeros(k), np.full(k, SEARCH_STD)
-    first = cost(mean)
-    best = (float(first.sum()), mean.copy())
-    X, G = [mean.copy()], [first]
+    search = CrossEntropy(np.zeros(k), SEARCH_STD, floor=STD_FLOOR, low=-LOG_BOUND, high=LOG_BOUND)
+    first = cost(search.mean)
+    best = (float(first.sum()), search.mean.copy())
+    X, G = [search.mean.copy()], [first]
     for g in range(generations):
-        pop = np.clip(mean + std * rng.standard_normal((population, k)), -LOG_BOUND, LOG_BOUND)
-        pop[0] = best[1]
+        pop = search.draw(rng, population, first=best[1])
         costs = [cost(x) for x in pop[1:]]
         X.extend(pop[1:])
         G.extend(costs)
@@ -329,9 +317,7 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int
         order = np.argsort(c)
         if c[order[0]] < best[0]:
             best = (float(c[order[0]]), pop[order[0]].copy())
-        elite = pop[order[:ELITE]]
-        mean = elite.mean(axis=0)
-        std = np.maximum(0.7 * std + 0.3 * elite.std(axis=0), 0.02)
+        search.refit(pop[order[:ELITE]])
         if progress:
             progress(g, best[0])
     X, G = np.array(X), np.array(G)
@@ -339,7 +325,7 @@ def calibrate(runs: list[dict], base: DeviceSpec, params=PARAMS, population: int
     xb = best[1]
     grads, Hs = quadratic_fit(X[near] - xb, G[near])
     tau = autocorrelation_time([b for run in runs for b in residual_blocks(run, plant(xb), base)])
-    m = sum(len(r["device"]["time_s"]) for r in runs) * 2 * base.n_hinges
+    m = sum(len(r.device.time) for r in runs) * 2 * base.n_hinges
     s2 = best[0] * tau / max(m - k, 1)
 
     x, estimates = verdicts(grads, Hs, xb, s2, params, prior, max_halfwidth)

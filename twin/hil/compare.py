@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from twin.device.spec import DeviceSpec
+from twin.formats.trace import Recording
 from twin.sim.response import step_metrics
 
 
@@ -52,22 +53,20 @@ def segment_settle(spec: DeviceSpec, t, angle_deg, target_deg, changes_t, end_t)
     return np.array(out).reshape(len(changes_t), angle_deg.shape[1])
 
 
-def compare(spec: DeviceSpec, device: dict, twin: dict, changes_t=(0.0,)) -> list[dict]:
+def compare(spec: DeviceSpec, device: Recording, twin: Recording, changes_t=(0.0,)) -> list[dict]:
     """Per hinge: RMSE and largest |device - twin| (deg, encoder angles, at the device's sample times),
     lag (s, positive: the device later than the twin), mean settle time per side over the steps."""
-    t = device["time_s"]
-    end = float(min(t[-1], twin["time_s"][-1])) if len(t) and len(twin["time_s"]) else 0.0
-    sel = t <= end + 1e-9
-    t = t[sel]
-    n = device["angle_deg"].shape[1]
+    t = device.time
+    end = float(min(t[-1], twin.time[-1])) if len(t) and len(twin.time) else 0.0
+    device, twin = device.until(end), twin.until(end)
+    t = device.time
+    n = device.n_hinges
     rows = []
-    tw = np.stack([np.interp(t, twin["time_s"], twin["angle_deg"][:, k]) for k in range(n)], axis=1)
-    dv = device["angle_deg"][sel]
+    tw = np.degrees(np.stack([np.interp(t, twin.time, twin.angle[:, k]) for k in range(n)], axis=1))
+    dv = np.degrees(device.angle)
     err = dv - tw
-    s_dev = segment_settle(spec, t, dv, device["target_deg"][sel], changes_t, end)
-    tsel = twin["time_s"] <= end + 1e-9
-    s_twin = segment_settle(spec, twin["time_s"][tsel], twin["angle_deg"][tsel], twin["target_deg"][tsel],
-                            changes_t, end)
+    s_dev = segment_settle(spec, t, dv, np.degrees(device.target), changes_t, end)
+    s_twin = segment_settle(spec, twin.time, np.degrees(twin.angle), np.degrees(twin.target), changes_t, end)
     for k in range(n):
         rows.append({
             "hinge": k,

@@ -22,7 +22,7 @@ from controllers.encoder import angle_from_counts, target_counts
 from twin.device.profile import NO_PROFILE
 from twin.device.spec import DeviceSpec
 from twin.formats.gains import write_gains
-from twin.formats.run import write_run_meta
+from twin.formats.run import run_start, write_run_meta
 from twin.formats.scenario import Scenario
 from twin.formats.trace import TraceWriter
 from twin.hil.device_gains import device_gains, push_gains, restore_gains
@@ -76,7 +76,7 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
                        "target_counts": list(prior.targets)},
             "telemetry_hz": telemetry_hz, "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url,
             "device_profile": profile}
-    twin = twin_at_start(spec, gains, meta)
+    twin = twin_at_start(spec, gains, run_start(meta))
 
     dev_w = TraceWriter(out / "device.csv", n)
     twin_w = TraceWriter(out / "twin.csv", n, extra=("true_angle_deg",))

@@ -2,7 +2,7 @@
 
 One home for each: message ids and body layouts, NACK reasons, states and fault bits, scales
 and the gain bounds come from twin.link.protocol; the device's config and default gains (for
-the ESP32-S3 sketch) from the spec through controllers.core. tests/test_firmware_build.py pins
+the ESP32-S3 sketch) from the spec through controllers.core. tests/firmware/test_firmware_build.py pins
 the committed file to what `header()` writes; `vrscroll model --write` rewrites it.
 """
 

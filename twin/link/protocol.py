@@ -139,7 +139,7 @@ def crc16(data: bytes) -> int:
 
 
 # COBS stays written out here (about 30 lines, checked against the reference vectors in
-# tests/test_protocol.py): a package would add a dependency without sparing a test, and the
+# tests/firmware/test_protocol.py): a package would add a dependency without sparing a test, and the
 # firmware core has its own C version (vrs_wire.c), which the golden-frame tests hold to this one.
 
 def cobs_encode(data: bytes) -> bytes:

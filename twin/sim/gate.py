@@ -226,15 +226,21 @@ def _settle_time(spec: DeviceSpec, counts, target_counts) -> float:
     return float("inf")
 
 
+def current_limits(spec: DeviceSpec, peak_current_limit: float | None = None,
+                   hold_current_limit: float | None = None) -> tuple[float, float]:
+    """The gate's current limits, A: (peak winding current, mean current while holding), the given ones or
+    the driver's peak rating and the motor's continuous rating. The tuner keeps its candidates within them."""
+    return peak_current_limit or spec.driver_peak_current, hold_current_limit or spec.continuous_current
+
+
 def _current_checks(spec: DeviceSpec, trace: Trace, hold: Trace, peak_current_limit, hold_current_limit) -> list:
     """The peak winding current over the run (hinge and moment) and the mean over the hold after it."""
-    peak_lim = peak_current_limit or spec.driver_peak_current
+    peak_lim, hold_lim = current_limits(spec, peak_current_limit, hold_current_limit)
     cur = np.abs(trace.current)
     i, k = np.unravel_index(int(np.argmax(cur)), cur.shape) if cur.size else (0, 0)
     peak_i = float(cur[i, k]) if cur.size else 0.0
     when = float(trace.time[i] - trace.time[0]) if cur.size else 0.0
     out = [Check("peak_current", peak_i <= peak_lim, peak_i, peak_lim, "A", f"hinge {k} at t={when:.3f} s")]
-    hold_lim = hold_current_limit or spec.continuous_current
     held = np.abs(hold.current).mean(axis=0)
     k = int(np.argmax(held))
     out.append(Check("hold_current", float(held[k]) <= hold_lim, float(held[k]), hold_lim, "A", f"hinge {k}"))

@@ -23,6 +23,7 @@ import numpy as np
 from controllers.encoder import counts_from_motor_angles
 from twin.device.mjcf import load_model
 from twin.device.spec import DeviceSpec
+from twin.device.variation import SPREAD, scaled
 from twin.sim.drive import drive, drive_params
 from twin.sim.hinges import Hinges, physics_substeps
 
@@ -44,13 +45,14 @@ class PlantOptions:
 @dataclasses.dataclass(frozen=True)
 class PlantRanges:
     """(low, high) per drawn parameter; low == high fixes it. The defaults are the documented ranges
-    (docs/device.md "The emulator's plant")."""
+    (docs/device.md "The emulator's plant"): the device's spread about its spec
+    (twin.device.variation.SPREAD), the backlash from none to the spread's top, the link's latency."""
 
-    speed_scale: tuple[float, float] = (0.7, 1.3)
-    friction_scale: tuple[float, float] = (0.7, 1.6)
-    damping_scale: tuple[float, float] = (0.7, 1.6)
-    armature_scale: tuple[float, float] = (0.7, 1.4)
-    backlash_deg: tuple[float, float] = (0.0, 0.5)
+    speed_scale: tuple[float, float] = SPREAD["no_load_speed"]
+    friction_scale: tuple[float, float] = SPREAD["gear_friction"]
+    damping_scale: tuple[float, float] = SPREAD["gear_damping"]
+    armature_scale: tuple[float, float] = SPREAD["rotor_inertia"]
+    backlash_deg: tuple[float, float] = (0.0, 0.5)  # deg: SPREAD's top x the spec's 0.25 deg
     latency_ms: tuple[float, float] = (0.0, 3.0)
 
     def __post_init__(self):
@@ -83,12 +85,9 @@ def as_twin(spec: DeviceSpec) -> PlantOptions:
 
 def plant_spec(spec: DeviceSpec, opt: PlantOptions) -> DeviceSpec:
     """The emulated device's physical spec: the twin's, scaled."""
-    return spec.replace(gear_friction=spec.gear_friction * opt.friction_scale,
-                        gear_stiction=spec.gear_stiction * opt.friction_scale,
-                        gear_damping=spec.gear_damping * opt.damping_scale,
-                        no_load_speed=spec.no_load_speed * opt.speed_scale,
-                        rotor_inertia=spec.rotor_inertia * opt.armature_scale,
-                        backlash=math.radians(opt.backlash_deg),
+    body = scaled(spec, {"no_load_speed": opt.speed_scale, "gear_friction": opt.friction_scale,
+                         "gear_damping": opt.damping_scale, "rotor_inertia": opt.armature_scale})
+    return body.replace(backlash=math.radians(opt.backlash_deg),
                         supply_voltage=spec.supply_voltage if opt.pack_voltage is None else opt.pack_voltage)
 
 

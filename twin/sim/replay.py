@@ -12,19 +12,20 @@ import numpy as np
 
 from controllers.encoder import angle_from_counts
 from twin.device.spec import DeviceSpec
+from twin.formats.run import RunStart
 from twin.sim.twin import Twin
 
 REST = 1.0  # s the twin spends on each leg of the device's history before a run
 
 
-def twin_at_start(plant: DeviceSpec, gains, meta: dict, spec: DeviceSpec | None = None) -> Twin:
+def twin_at_start(plant: DeviceSpec, gains, start: RunStart, spec: DeviceSpec | None = None) -> Twin:
     """A twin at the device's start with the device's recent history, so its firmware state matches.
 
-    meta: a run.json (twin.formats.run) with "before", "start_counts", "start_target_counts".
+    start: where the device was (twin.formats.run.RunStart), with its state just before.
     The device's PID integral carries the flaps' weight, and where in its friction band it sits
     depends on how the hinge came to rest (a twin started with an empty integral sags, then
-    overshoots the first step). So the twin lives the run's prelude as the device did (meta
-    "before"): resting at the device's pose before the run (holding its targets if it was ACTIVE;
+    overshoots the first step). So the twin lives the run's prelude as the device did (start's
+    before_*): resting at the device's pose before the run (holding its targets if it was ACTIVE;
     limp and with a fresh PID, as after IDLE, if not), then brought to the start targets (REST s
     each); finally its hinges are put exactly where the device's encoders say (mid-count: the
     encoder floors), its firmware state kept. plant: the physics; spec: the device's encoder
@@ -36,13 +37,12 @@ def twin_at_start(plant: DeviceSpec, gains, meta: dict, spec: DeviceSpec | None 
     def put(counts):
         return np.clip(angle_from_counts(spec, np.asarray(counts) + 0.5), -spec.hinge_limit, spec.hinge_limit)
 
-    before = meta["before"]
-    twin.reset(put(before["counts"]))
-    if before["state"] == "ACTIVE":
-        twin.move_to(angle_from_counts(spec, before["target_counts"]), max_time=REST, stop_when_settled=False)
-    twin.move_to(angle_from_counts(spec, meta["start_target_counts"]), max_time=REST, stop_when_settled=False)
+    twin.reset(put(start.before_counts))
+    if start.before_state == "ACTIVE":
+        twin.move_to(angle_from_counts(spec, start.before_target_counts), max_time=REST, stop_when_settled=False)
+    twin.move_to(angle_from_counts(spec, start.target_counts), max_time=REST, stop_when_settled=False)
     integral = twin.pid.integral.copy()
-    twin.reset(put(meta["start_counts"]))
+    twin.reset(put(start.counts))
     twin.pid.integral[:] = integral
     return twin
 

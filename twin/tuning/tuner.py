@@ -37,7 +37,6 @@ not loop shaping).
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import math
 import time
 
@@ -47,13 +46,17 @@ from controllers.core import per_hinge
 from controllers.encoder import target_counts
 from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec
+from twin.device.variation import corners, tolerance_ranges
+from twin.search import CrossEntropy
 from twin.sim.batch import TwinBatch
+from twin.sim.gate import current_limits
 from twin.sim.response import hinge_metrics, move_report
 from twin.sim.twin import Twin
 
 # log-space bounds of the search, per gain (duty per count, per count-s, per count/s)
 BOUNDS = {"kp": (0.003, 0.5), "ki": (0.0, 2.0), "kd": (1e-5, 0.01)}
 KI_FLOOR = 1e-4  # ki is searched in log space above this; below it counts as 0
+STD_FLOOR = 0.05  # log gain: the search's least spread (5 %: finer than the encoder's quantisation shows)
 
 
 @dataclasses.dataclass
@@ -67,25 +70,6 @@ class TuneGoal:
     step: float = math.radians(30.0)  # rad, every hinge steps from flat to this
     duration: float = 1.0  # s simulated per candidate: the window of the tuner's and the report's metrics
     ranges: dict = dataclasses.field(default_factory=dict)  # spec field -> (low, high), SI
-
-
-def tolerance_ranges(spec: DeviceSpec, tolerance: float) -> dict:
-    """The ranges of an uncalibrated spec: motor constant and gear friction each x (1 +- tolerance).
-
-    The motor constant is derived from the no-load speed (K ~ V / (N w0)), so a motor constant
-    x (1 + t) is a no-load speed / (1 + t).
-    """
-    return {"no_load_speed": (spec.no_load_speed / (1 + tolerance), spec.no_load_speed / (1 - tolerance)),
-            "gear_friction": (spec.gear_friction * (1 - tolerance), spec.gear_friction * (1 + tolerance))}
-
-
-def plant_corners(spec: DeviceSpec, ranges: dict) -> list[DeviceSpec]:
-    """The nominal plant, then every corner of the box `ranges` spans (2^k plants for k ranges)."""
-    plants = [spec]
-    names = list(ranges)
-    for corner in itertools.product((0, 1), repeat=len(names)):
-        plants.append(spec.replace(**{p: float(ranges[p][c]) for p, c in zip(names, corner)}))
-    return plants
 
 
 def step_scores(spec: DeviceSpec, out: dict, target: np.ndarray) -> dict:
@@ -114,9 +98,10 @@ def cost_of(scores: dict, spec: DeviceSpec, goal: TuneGoal) -> np.ndarray:
     growing with the relative excess over the overshoot, peak current and hold current limits."""
     settle = scores["settle"]
     c = np.where(np.isfinite(settle), settle, goal.duration)
+    peak_limit, hold_limit = current_limits(spec)
     excess = (np.maximum(0.0, scores["overshoot"] / goal.max_overshoot - 1.0)
-              + np.maximum(0.0, scores["peak_current"] / spec.driver_peak_current - 1.0)
-              + np.maximum(0.0, scores["hold_current"] / spec.continuous_current - 1.0))
+              + np.maximum(0.0, scores["peak_current"] / peak_limit - 1.0)
+              + np.maximum(0.0, scores["hold_current"] / hold_limit - 1.0))
     bad = (excess > 0) | ~np.isfinite(settle)
     return c + np.where(bad, goal.duration * (1.0 + 10.0 * excess), 0.0)
 
@@ -145,7 +130,7 @@ class RobustEvaluator:
         task on its workers (the same numbers)."""
         self.spec, self.goal, self.population = spec, goal, population
         self.base = per_hinge(base or PidGains.from_spec(spec), spec.n_hinges)
-        self.plants = plant_corners(spec, goal.ranges or tolerance_ranges(spec, goal.tolerance))
+        self.plants = corners(spec, goal.ranges or tolerance_ranges(spec, goal.tolerance))
         self.nplant = len(self.plants)
         self.backend = backend
         if backend is None:  # simulation index = candidate * nplant + plant
@@ -230,22 +215,19 @@ def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, g
     rng = np.random.default_rng(seed)
     t0 = time.perf_counter()
     ev = RobustEvaluator(spec, goal, population, nthread, start, backend=backend)
-    mean = _to_x(*(np.array([getattr(g, k) for g in start]) for k in ("kp", "ki", "kd")))  # (n, 3)
-    std = np.tile([0.5, 1.0, 0.7], (n, 1))
-    best_x, best_cost = mean.copy(), np.full(n, math.inf)
+    search = CrossEntropy(_to_x(*(np.array([getattr(g, k) for g in start]) for k in ("kp", "ki", "kd"))),
+                          np.tile([0.5, 1.0, 0.7], (n, 1)), floor=STD_FLOOR)  # (n, 3) in log gains
+    best_x, best_cost = search.mean.copy(), np.full(n, math.inf)
     history = []
     for gen in range(generations):
-        x = mean[None] + std[None] * rng.standard_normal((population, n, 3))
-        x[0] = best_x  # gen 0: the starting gains
+        x = search.draw(rng, population, first=best_x)  # gen 0's first: the starting gains
         cost, _ = ev.evaluate(*_from_x(x))
         for hinges in chains(spec):
             total = cost[:, hinges].sum(axis=1)
             order = np.argsort(total, kind="stable")
             if total[order[0]] < best_cost[hinges].sum():
                 best_x[hinges], best_cost[hinges] = x[order[0], hinges], cost[order[0], hinges]
-            el = x[order[:elite]][:, hinges]
-            mean[hinges] = el.mean(axis=0)
-            std[hinges] = np.maximum(0.7 * std[hinges] + 0.3 * el.std(axis=0), 0.05)
+            search.refit(x[order[:elite]], hinges)
         history.append(float(best_cost.sum()))
         if progress:
             progress(gen, best_cost, time.perf_counter() - t0)

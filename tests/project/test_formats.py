@@ -100,15 +100,15 @@ def _cell(line, i, value):
 def test_trace_round_trip_with_the_twins_columns(tmp_path):
     path = _trace(tmp_path / "t.csv", extra=TWIN_COLUMNS)
     t = read_trace(path, N, SPEC.hinge_limit)
-    assert set(t) == {"time_s", "target_deg", "angle_deg", "counts", "duty", "current_A", *TWIN_COLUMNS}
-    assert t["angle_deg"].shape == (5, N) and t["time_s"][-1] == pytest.approx(0.008)
+    assert all(getattr(t, f) is not None for f in ("true_angle", "target_counts", "torque"))
+    assert t.angle.shape == (5, N) and t.time[-1] == pytest.approx(0.008)
 
 
 def test_a_cut_off_last_line_is_dropped_and_a_bad_middle_line_refused(tmp_path):
     path = _trace(tmp_path / "t.csv")
     text = path.read_text()
     path.write_text(text[:-20])  # killed while writing the last row
-    assert len(read_trace(path, N)["time_s"]) == 4
+    assert len(read_trace(path, N).time) == 4
     lines = text.splitlines()
     lines[2] = _cell(lines[2], 3, "oops")
     path.write_text("\n".join(lines) + "\n")
@@ -272,11 +272,11 @@ def _run(folder, status="complete"):
 
 
 def test_a_run_that_did_not_complete_is_refused_unless_asked(tmp_path):
-    assert read_run(_run(tmp_path / "done"), SPEC)["meta"]["status"] == "complete"
+    assert read_run(_run(tmp_path / "done"), SPEC).status == "complete"
     killed = _run(tmp_path / "killed", status="running")
     with pytest.raises(ValueError, match=r"killed: the run did not complete \(status 'running'"):
         read_run(killed, SPEC)
-    assert len(read_run(killed, SPEC, incomplete=True)["device"]["time_s"]) == 20
+    assert len(read_run(killed, SPEC, incomplete=True).device.time) == 20
 
 
 def test_bad_run_folders_are_refused(tmp_path):

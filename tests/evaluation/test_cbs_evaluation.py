@@ -97,28 +97,38 @@ def test_starts_come_from_where_a_user_is(name):
     assert np.all(exact_signed_distance(mesh, anchors)[0] > 0.0)
 
 
-def test_small_evaluation_keeps_the_papers_order_and_resumes(tmp_path):
-    shapes = ["cube", "torus", "arch", "cone", "cylinder", "ellipsoid", "stairs", "curved_stairs"]
-    out = tmp_path / "ev"
-    run_evaluation(out, shapes[:1], n_starts=3, seed=0, workers=2, progress=False)
+def _evaluate_and_resume(out, shapes, n_starts):
+    """Evaluate the first shape, cut the log mid-record, evaluate all: every (shape, start, method) once."""
+    run_evaluation(out, shapes[:1], n_starts=n_starts, seed=0, workers=2, progress=False)
     log = out / "results.jsonl"
     lines = log.read_text().splitlines()
     log.write_text("\n".join(lines[:-1]) + "\n" + lines[-1][:20])  # interrupted mid-record
-    assert len({r["start"] for r in read_records(log)}) == 2
-    records = run_evaluation(out, shapes, n_starts=3, seed=0, workers=2, progress=False)
-    assert len(records) == len(shapes) * 3 * len(METHODS)
+    assert len({r["start"] for r in read_records(log)}) == n_starts - 1
+    records = run_evaluation(out, shapes, n_starts=n_starts, seed=0, workers=2, progress=False)
+    assert len(records) == len(shapes) * n_starts * len(METHODS)
     assert len({(r["shape"], r["start"], r["method"]) for r in read_records(log)}) == len(records)
     for r in records:  # what the twin made of each: the gate's verdicts and the reached shape
         assert r["gate_range_ok"] and r["twin_msd_mm"] >= 0 and 0 <= r["share_within"] <= 1
-    rows = summarize(records)
+    return records
+
+
+def test_an_interrupted_evaluation_resumes_and_writes_its_tables(tmp_path):
+    out = tmp_path / "ev"
+    records = _evaluate_and_resume(out, ["cube", "cylinder"], 2)
+    md, csv_path = write_tables(summarize(records), out)
+    assert "paper MSD" in md.read_text() and "MSD on the twin" in md.read_text() and csv_path.exists()
+    with pytest.raises(ValueError, match="holds a run"):
+        run_evaluation(out, ["cube", "cylinder"], n_starts=3, seed=0, workers=1, progress=False)
+
+
+@pytest.mark.slow
+def test_small_evaluation_keeps_the_papers_order_on_every_shape(tmp_path):
+    shapes = ["cube", "torus", "arch", "cone", "cylinder", "ellipsoid", "stairs", "curved_stairs"]
+    rows = summarize(_evaluate_and_resume(tmp_path / "ev", shapes, 3))
     mean = {(r["shape"], r["method"]): r["msd_mean_mm"] for r in rows}
     for shape in shapes:
         assert mean[(shape, "full")] < mean[(shape, "cbs")] * 1.2, shape  # a fair CBS is close on smooth shapes
         assert mean[(shape, "refined")] < mean[(shape, "full")], shape
-    md, csv_path = write_tables(rows, out)
-    assert "paper MSD" in md.read_text() and "MSD on the twin" in md.read_text() and csv_path.exists()
-    with pytest.raises(ValueError, match="holds a run"):
-        run_evaluation(out, shapes, n_starts=4, seed=0, workers=1, progress=False)
 
 
 def test_a_damaged_coacd_cache_file_is_built_again_with_a_notice(tmp_path, monkeypatch, capsys):
@@ -146,7 +156,7 @@ def test_a_second_evaluate_into_one_folder_is_refused(tmp_path, capsys):
     holder = subprocess.Popen(
         [sys.executable, "-c", "import sys, time\nfrom twin.evaluation.lock import folder_lock\n"
          "with folder_lock(sys.argv[1], 'holder'):\n    print('locked', flush=True)\n    time.sleep(60)\n", str(out)],
-        cwd=Path(__file__).resolve().parent.parent, stdout=subprocess.PIPE, text=True)
+        cwd=Path(__file__).resolve().parents[2], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "locked"
         with pytest.raises(ValueError, match=f"pid {holder.pid}"):

@@ -15,9 +15,9 @@ from controllers.pid import PidGains
 from test_protocol import MESSAGES
 from twin.link import protocol as P
 
-FUZZ_DRIVER = Path(__file__).parent / "firmware" / "fuzz_driver.c"
+FUZZ_DRIVER = Path(__file__).parent / "fuzz_driver.c"
 
-# every message of tests/test_protocol.py, and a few more at the edges of their ranges
+# every message of tests/firmware/test_protocol.py, and a few more at the edges of their ranges
 GOLDEN = MESSAGES + [
     P.SetGains(3, P.Gains(-1, 2**31 - 1, -(2**31), 65535, 0, 1, 65535)),
     P.Telemetry(0, 0, 0, 0, (7,), (8,), (-32768,), (32767,)),

@@ -36,7 +36,7 @@ def test_safe_move_passes_every_check_with_numbers(spec, twin):
 def test_the_gate_predicts_the_firmwares_i2t_derating(spec):
     """The firmware's I2t protection runs in the twin: a motor with a small overload budget (0.02 s at stall
     current) is derated during a fast 60 deg move, and the gate names the hinge; the same move with the
-    spec's budget passes. (A jam held at duty 0.45 is tests/test_firmware_core.py's.)"""
+    spec's budget passes. (A jam held at duty 0.45 is tests/firmware/test_firmware_core.py's.)"""
     small = spec.replace(overload_time=0.02)
     targets = np.radians([60, 0, 0, 0, 0, 0])
     i2t = by_name(check_move(small, np.zeros(6), targets))["i2t"]

@@ -17,7 +17,7 @@ import pytest
 
 from twin.live.process import ServiceProcess
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SOURCES = ["clients/unity/VRScrollLive/Json.cs", "clients/unity/VRScrollLive/LiveClient.cs",
            "clients/unity/tests/ScriptedSession.cs"]
 

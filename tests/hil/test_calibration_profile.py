@@ -10,7 +10,8 @@ from random_plant import drawn_plant, emulator_args, held_out_improved
 from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
 from twin.formats.run import read_run
-from twin.hil.calibration import PRIOR_RANGE, trace_rmse
+from twin.device.variation import SPREAD
+from twin.hil.calibration import trace_rmse
 from twin.hil.mirror import mirror
 from twin.link.serial_link import Link
 
@@ -42,7 +43,7 @@ def calibrate_and_tune_on_a_drawn_plant(seed, emulator, tmp_path, capsys):
         if e["identifiable"]:  # within 20 % of the truth
             assert e["value"] == pytest.approx(truth[p], rel=0.2), (p, e, truth[p])
         else:  # fitted loosely (its interval wider than x(1 -+ 0.15)), or left at its prior: its prior range open
-            lo, hi = (e["prior"] * r for r in PRIOR_RANGE[p])
+            lo, hi = (e["prior"] * r for r in SPREAD[p])
             assert e["low"] <= lo * (1 + 1e-9) and e["high"] >= hi * (1 - 1e-9), (p, e)
     # held-out error: at least half of what can go is gone, or the rest is at the floor (held_out_improved)
     h = cal["holdout"]

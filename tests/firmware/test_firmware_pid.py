@@ -2,8 +2,8 @@
 
 Each tick is drawn at random (gains within the firmware's bounds, targets, counts, and the PID's
 memory); both computed one update from the same start. The numba PID is gone (the twin runs the C
-core); its answers are recorded in tests/data/firmware_pid_reference.npz (written by commit 66ec328's
-`python tests/test_firmware_pid.py`, which compared the two live over 100 000 random ticks).
+core); its answers are recorded in tests/firmware/firmware_pid_reference.npz (written by commit 66ec328's
+`python tests/firmware/test_firmware_pid.py`, which compared the two live over 100 000 random ticks).
 """
 
 import ctypes
@@ -14,7 +14,7 @@ import numpy as np
 
 from controllers import core
 
-REFERENCE = Path(__file__).parent / "data" / "firmware_pid_reference.npz"
+REFERENCE = Path(__file__).parent / "firmware_pid_reference.npz"
 DT = 0.001
 EPS = 2.0 ** -23  # float32 spacing at 1
 

@@ -18,7 +18,7 @@ from twin.device.design import bevel_limit, design_spec
 from twin.device.mjcf import load_model
 from twin.evaluation.backends import LocalBackend, RayBackend, make_backend
 from twin.evaluation.starts import approach_starts
-from twin.evaluation.sweep import RECORDS, run_sweep, summarize_designs, sweep_tasks
+from twin.evaluation.sweep import RECORDS, run_sweep, summarize_designs, sweep_plants, sweep_tasks
 from twin.evaluation.table1 import METHODS
 from twin.formats.sweep import read_records, read_sweep
 from twin.morphpatch.approximation import approximate
@@ -27,7 +27,7 @@ from twin.morphpatch.shapes import load_shape, shape_names
 from twin.sim.twin import Twin
 from twin.tuning.tuner import RobustEvaluator, TuneGoal
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _sweep_file(path: Path, text: str) -> Path:
@@ -115,15 +115,15 @@ tolerance_pct = { gear_friction = 30 }
 """))
     assert [g for g, _ in sweep.designs][:2] == [{"n_flaps": 5, "hinge_limit": 90.0}, {"n_flaps": 5, "hinge_limit": 100.0}]
     assert len(sweep.designs) == 6 and sweep.designs[0][1]["hinge_limit"] == pytest.approx(math.radians(90))  # SI inside
-    plants = sweep.plants()
+    plants = sweep_plants(sweep)
     assert plants[0] == {} and len(plants) == 3 and all(0.7 <= p["gear_friction"] <= 1.3 for p in plants[1:])
-    assert plants == sweep.plants() and plants[1] != plants[2]
+    assert plants == sweep_plants(sweep) and plants[1] != plants[2]
     tasks, labels = sweep_tasks(sweep)
     assert len(tasks) == 6 * 2 * 2 * 2 * 3 and len({t.key for t in tasks}) == len(tasks)
     assert labels[0]["design_values"] == {"n_flaps": 5, "hinge_limit_deg": 90.0}
     assert main(["sweep", str(tmp_path / "example.toml"), "--example"]) == 0  # the example reads
     example = _read(tmp_path / "example.toml")
-    assert len(example.designs) == 6 and len(example.plants()) == 2
+    assert len(example.designs) == 6 and len(sweep_plants(example)) == 2
 
 
 @pytest.mark.parametrize("text, message", [

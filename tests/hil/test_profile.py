@@ -13,7 +13,8 @@ from twin.cli import main as vrscroll
 from twin.device.profile import profiles_dir
 from twin.device.mjcf import load_model
 from twin.formats.gains import write_gains
-from twin.formats.profile import read_profile, select_profile, write_profile_spec
+from twin.commands.options import select_profile
+from twin.formats.profile import read_profile, write_profile_spec
 from twin.formats.run import read_run
 from twin.hil.mirror import mirror
 from twin.hil.record import run_hil
@@ -161,7 +162,7 @@ def test_view_without_a_display_is_one_line_and_the_replay_is_built(capsys, emul
     assert rows.shape == (len(t), 2 * spec.n_hinges)
     # at the end, device and twin have both reached the step's targets (within a degree)
     assert np.all(np.abs(np.degrees(rows[-1]) - np.tile([20, 10, 5, 5, 10, 20], 2)) < 1.0)
-    assert math.isclose(t[0], recorded["device"]["time_s"][0])
+    assert math.isclose(t[0], recorded.device.time[0])
 
 
 @pytest.mark.parametrize("key, value", [("hinge_limit", "170"), ("settle_band", "400"), ("n_flaps", "3")])

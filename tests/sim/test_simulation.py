@@ -45,7 +45,7 @@ def test_target_beyond_range_is_refused_not_clipped(twin):
 
 def test_encoder_counts_are_quantized(spec):
     """The encoder counts the motor's turns (with no backlash the flap turns with it; with backlash see
-    tests/test_drive_train.py)."""
+    tests/device/test_drive_train.py)."""
     twin = Twin(spec.replace(backlash=0.0))
     trace = twin.move_to(np.radians([20.0, 0, 0, 0, 0, 0]), max_time=0.3)
     motor_turns = trace.angle[:, 0] * twin.spec.gear_ratio / (2 * math.pi)

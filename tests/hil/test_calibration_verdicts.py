@@ -5,7 +5,8 @@ here, fitted by the same `quadratic_fit` the search uses."""
 import numpy as np
 import pytest
 
-from twin.hil.calibration import PRIOR_RANGE, quadratic_fit, verdicts
+from twin.device.variation import SPREAD
+from twin.hil.calibration import quadratic_fit, verdicts
 
 PARAMS = ("rotor_inertia", "gear_friction")
 PRIOR = {"rotor_inertia": 1e-8, "gear_friction": 4e-3}
@@ -35,8 +36,8 @@ def test_a_barely_shown_parameter_does_not_make_its_partner_look_identified():
     _, est = verdicts(grads, Hs, xb, 0.05, PARAMS, PRIOR)
     friction, inertia = est["gear_friction"], est["rotor_inertia"]
     assert not friction.identifiable and 1.0 < friction.value / PRIOR["gear_friction"] < 1.46
-    assert friction.low <= PRIOR["gear_friction"] * PRIOR_RANGE["gear_friction"][0]  # its prior range left open
-    assert friction.high >= PRIOR["gear_friction"] * PRIOR_RANGE["gear_friction"][1]
+    assert friction.low <= PRIOR["gear_friction"] * SPREAD["gear_friction"][0]  # its prior range left open
+    assert friction.high >= PRIOR["gear_friction"] * SPREAD["gear_friction"][1]
     assert not inertia.identifiable and inertia.low <= PRIOR["rotor_inertia"] <= inertia.high
 
 

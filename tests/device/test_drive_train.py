@@ -69,7 +69,7 @@ def test_zero_volts_from_flat_hinge_2_falls_slowly_braked(spec):
     hinge 2 carries 0.026 N*m of flaps, above the gearbox's static friction (0.008 N*m): it falls, slowed by
     back-EMF through the back-driven gearbox, to about -65 deg in 2 s (the previous model: -70 deg); the
     outer hinges (0.002 N*m) hold. (Coasting, the drive model's other decay, it would drop to the hanging
-    pose within half a second: tests/test_motor.py checks coast at the winding.)"""
+    pose within half a second: tests/device/test_motor.py checks coast at the winding.)"""
     braked = Twin(spec)
     braked.firmware.estop()
     fall = np.degrees(braked.hold(2.0).angle)

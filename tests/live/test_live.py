@@ -1,6 +1,6 @@
 """The live service (twin/live), run as `vrscroll serve` in its own process and talked to over
 loopback by the Python client (twin/live/client.py), with the emulator as the device where one
-is needed. The C# client's test is tests/test_live_unity.py.
+is needed. The C# client's test is tests/live/test_live_unity.py.
 """
 
 import asyncio

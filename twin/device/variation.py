@@ -1,0 +1,62 @@
+"""How a built device differs from its spec: the plant parameters, how far each may be off, and the
+plants a range spans. One home for plant variation: the emulator draws its plant within SPREAD
+(twin.sim.plant), calibration's prior is SPREAD (twin.hil.calibration), the tuner tunes over the
+corners of a box of ranges (twin.tuning.tuner), a sweep draws its plants with `drawn_scales`
+(twin.evaluation.sweep).
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from twin.device.spec import DeviceSpec
+
+# the spec fields a profile may hold other values of than the spec's: the plant parameters calibration fits
+# (gear_stiction moves with gear_friction). Every other value (hinge range, settle band, flap count, limits)
+# is the device's design, the same for every device built to the spec: a profile that changes one is refused.
+PLANT_FIELDS = ("no_load_speed", "gear_friction", "gear_stiction", "gear_damping", "rotor_inertia", "backlash")
+# the spec fields that move with a parameter, in proportion: the static friction keeps its ratio to the
+# Coulomb friction (one gearbox's friction)
+MOVES_WITH = {"gear_friction": ("gear_stiction",)}
+# the plant parameters a device is described by, less those that move with another
+PARAMS = tuple(p for p in PLANT_FIELDS if not any(p in moved for moved in MOVES_WITH.values()))
+# x the spec's value: how far a device may differ from its datasheet (an assumption: the spread of a batch of
+# micro metal gearmotors and of their assembly; the backlash 0.01 .. 0.5 deg about the spec's 0.25 deg: not 0,
+# which the MJCF makes a rigid coupling, another model layout). The emulator draws its plant within it (its
+# backlash from 0 up), calibration takes it as its prior, docs/device.md "The emulator's plant" states it.
+SPREAD = {"no_load_speed": (0.7, 1.3), "gear_friction": (0.7, 1.6), "gear_damping": (0.7, 1.6),
+          "rotor_inertia": (0.7, 1.4), "backlash": (0.04, 2.0)}
+
+
+def scaled(spec: DeviceSpec, scales: dict) -> DeviceSpec:
+    """The spec with each field in `scales` (field -> x its value) scaled, and those that move with it
+    (MOVES_WITH) alike unless `scales` names them too."""
+    moved = {f: getattr(spec, f) * float(x) for p, x in scales.items() for f in MOVES_WITH.get(p, ())}
+    return spec.replace(**(moved | {p: getattr(spec, p) * float(x) for p, x in scales.items()}))
+
+
+def tolerance_ranges(spec: DeviceSpec, tolerance: float) -> dict:
+    """The ranges of an uncalibrated spec, {field: (low, high) SI}: motor constant and gear friction each
+    x (1 +- tolerance). The motor constant is derived from the no-load speed (K ~ V / (N w0)), so a motor
+    constant x (1 + t) is a no-load speed / (1 + t)."""
+    return {"no_load_speed": (spec.no_load_speed / (1 + tolerance), spec.no_load_speed / (1 - tolerance)),
+            "gear_friction": (spec.gear_friction * (1 - tolerance), spec.gear_friction * (1 + tolerance))}
+
+
+def corners(spec: DeviceSpec, ranges: dict) -> list[DeviceSpec]:
+    """The nominal plant, then every corner of the box `ranges` ({field: (low, high) SI}) spans: 2^k plants
+    for k ranges. A field that moves another (MOVES_WITH) moves it in proportion."""
+    plants = [spec]
+    names = list(ranges)
+    for corner in itertools.product((0, 1), repeat=len(names)):
+        plants.append(scaled(spec, {p: float(ranges[p][c]) / getattr(spec, p) for p, c in zip(names, corner)}))
+    return plants
+
+
+def drawn_scales(tolerance: dict, seed: int, draw: int) -> dict:
+    """Draw number `draw` (from 1) of a set: {field: x the value}, each uniform within 1 +- tolerance[field]
+    (a fraction); it depends on the seed and the draw's number only, so a set can grow or resume."""
+    rng = np.random.default_rng([seed, draw])
+    return {k: round(1.0 + tolerance[k] * rng.uniform(-1, 1), 6) for k in sorted(tolerance)}
