@@ -139,10 +139,10 @@ def test_commands_against_the_sketch_on_a_pty_wait_for_the_zero(tmp_path):
         r = vrscroll("status", "--serial", dev.port)
         assert r.returncode == 0, r.stderr
         assert "started  POWERON" in r.stdout and "faults   none" in r.stdout and "zero     UNCONFIRMED" in r.stdout
-        r = vrscroll("mirror", "--serial", dev.port, "--angles=5,0,0,0,0,0", "--tolerance-deg", "30")
+        r = vrscroll("mirror", "--serial", dev.port, "--angles=5,0,0,0,0,0", "--tolerance-deg", "30", cwd=tmp_path)
         assert r.returncode == 2 and f"vrscroll zero --serial {dev.port}" in r.stderr, r.stderr
         assert not [e for e in dev.events("rx") if e["msg"] == "SET_TARGETS"]
         r = vrscroll("zero", "--serial", dev.port)
         assert r.returncode == 0 and "zero confirmed" in r.stdout, r.stderr
-        r = vrscroll("mirror", "--serial", dev.port, "--angles=5,0,0,0,0,0", "--tolerance-deg", "30")
+        r = vrscroll("mirror", "--serial", dev.port, "--angles=5,0,0,0,0,0", "--tolerance-deg", "30", cwd=tmp_path)
         assert r.returncode == 0, r.stdout + r.stderr

@@ -606,7 +606,8 @@ static int wdt_expired;
 void enableLoopWDT(void) { loop_wdt = 1; }
 #define TWDT_TIMEOUT_US 5000000u
 
-/* ---- NVS through Preferences: one flash page of key/blob records the host keeps across resets
+/* ---- NVS through Preferences (libraries/Preferences; ESP-IDF 5.x "Non-Volatile Storage Library": 4096-byte
+ * flash pages): one page of key/blob records the host keeps across resets
  * (host_nvs_dump / host_nvs_load), as the flash keeps them across power cycles ---------------------- */
 
 #define NVS_BYTES 4096u
