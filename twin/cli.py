@@ -39,7 +39,9 @@ COMMANDS = {
     "serve": ("twin.commands.serve", "the live service for VR applications: pose in, approximation out, lock, pen"),
     "play": ("twin.commands.play", "play synthetic VR sessions over the evaluation shapes against the live service"),
     "device": ("twin.commands.device", "list, show, select or create device profiles (calibrated spec and gains)"),
-    "view": ("twin.commands.view", "replay a HIL run's device and twin side by side in MuJoCo's viewer"),
+    "view": ("twin.commands.view", "replay a HIL run's device and twin side by side: MuJoCo's viewer, or a video "
+                                   "and a contact sheet without a display"),
+    "compare": ("twin.commands.compare", "HIL runs of one scenario side by side: per hinge RMSE, settle, overshoot, plot"),
 }
 
 

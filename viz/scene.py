@@ -1,8 +1,7 @@
 """Off-screen pyvista pictures of the device on a target.
 
-Rendering is off-screen (pyvista.OFF_SCREEN); it works headless here without xvfb
-(VTK falls back from X to an off-screen context and prints one "bad X server
-connection" warning on stderr).
+Rendering is off-screen (pyvista.OFF_SCREEN); without a display VTK uses its EGL
+window (twin/__init__.py sets VTK_DEFAULT_OPENGL_WINDOW), so no X warning is printed.
 """
 
 from __future__ import annotations
@@ -22,14 +21,25 @@ from twin.perception.thresholds import load_thresholds
 pv.OFF_SCREEN = True
 
 
-def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.ndarray, widths,
-                         path: str | Path, title: str = "", window_size=(1200, 900)) -> Path:
-    """Write a PNG of the target (grey) and the device's flaps coloured by distance to it (mm).
+def _nice_ceiling(x: float) -> float:
+    """The smallest of 1, 2 or 5 x 10^k at or above x (> 0)."""
+    k = 10.0 ** np.floor(np.log10(x))
+    return float(next(m * k for m in (1, 2, 5, 10) if m * k >= x - 1e-12))
 
-    frames: world flap frames (n_flaps, 4, 4), e.g. `Approximation.frames(spec)`; widths: m.
+
+def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.ndarray, widths,
+                         path: str | Path, title: str = "", notes=(), start_frames: np.ndarray | None = None,
+                         window_size=(1200, 900)) -> Path:
+    """Write a PNG of the target (grey) and the device's flaps coloured by distance to it (mm), the colour
+    scale running from 0 to the largest distance (rounded up to 1, 2 or 5 x 10^k, at least 0.5 mm) so the
+    fit's own spread is seen; `notes` (lines of text, e.g. hinge angles) lower left; where start_frames
+    are given, the device where it started, as a black outline.
+
+    frames, start_frames: world flap frames (n_flaps, 4, 4), e.g. `Approximation.frames(spec)`; widths: m.
     """
     plotter = pv.Plotter(off_screen=True, window_size=window_size)
     plotter.add_mesh(pv.wrap(mesh), color="lightgrey", opacity=0.35, smooth_shading=True)
+    grids = []
     for i, width in enumerate(widths):
         layout = grid_layout(spec, METRIC_SPACING, width)
         nu = len(np.unique(layout.u))
@@ -37,11 +47,20 @@ def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.nda
         grid = pv.StructuredGrid(*(points[:, d].reshape(nu, -1, 1) for d in range(3)))
         # the grid's points run in Fortran order (u fastest); the layout's in C order (y fastest)
         grid["distance_mm"] = (point_distances(mesh, points) * 1e3).reshape(nu, -1).ravel(order="F")
-        plotter.add_mesh(grid, scalars="distance_mm", cmap="viridis", clim=(0.0, 20.0), show_edges=False,
+        grids.append(grid)
+        if start_frames is not None:
+            start = world_points(start_frames, widths, layout, [i])[0]
+            outline = pv.StructuredGrid(*(start[:, d].reshape(nu, -1, 1) for d in range(3))).extract_feature_edges()
+            plotter.add_mesh(outline, color="black", line_width=2)
+    top = _nice_ceiling(max(0.5, max(float(g["distance_mm"].max()) for g in grids)))
+    for i, grid in enumerate(grids):
+        plotter.add_mesh(grid, scalars="distance_mm", cmap="viridis", clim=(0.0, top), show_edges=False,
                          scalar_bar_args={"title": "distance to target, mm"} if i == 0 else None,
                          show_scalar_bar=i == 0)
     if title:
         plotter.add_text(title, font_size=10)
+    if notes:
+        plotter.add_text("\n".join(notes), position="lower_left", font_size=8)
     plotter.camera_position = "iso"
     plotter.reset_camera()
     path = Path(path)

@@ -2,7 +2,8 @@
 solid, the twin translucent, both replayed from the run's traces), and a twin's move played in real
 time (`--view` on `vrscroll simulate` and `vrscroll demo`).
 
-The window needs a display; without one each entry point returns a one-line message instead.
+The window needs a display; without one (or when asked for files) `show_move` and `show_run` write a video
+and a contact sheet rendered off-screen (viz.render) instead, and say where.
 """
 
 from __future__ import annotations
@@ -17,7 +18,9 @@ import numpy as np
 
 from twin.device.mjcf import mjcf
 from twin.device.spec import DeviceSpec
+from twin.errors import UserError
 from twin.formats.run import Run
+from viz.render import offscreen_missing, write_views
 
 TWIN_ALPHA = 0.3  # opacity of the twin's flaps beside the device's
 TWIN_PREFIX = "twin/"
@@ -102,3 +105,30 @@ def play_trace(spec: DeviceSpec, trace) -> str:
     """A twin's move (twin.sim.trace.Trace) in real time."""
     model = mujoco.MjModel.from_xml_string(mjcf(spec))
     return play(model, hinge_qadr(model, spec.n_hinges), trace.time - trace.time[0], trace.angle, "the twin's move")
+
+
+def _files(spec: DeviceSpec, t, panels, out_stem, title: str) -> str:
+    missing = offscreen_missing()
+    if missing:
+        raise UserError(missing)
+    video, sheet = write_views(spec, t, panels, out_stem, title)
+    return f"video {video}, contact sheet {sheet} ({title})"
+
+
+def show_move(spec: DeviceSpec, trace, out_stem, files: bool = False) -> str:
+    """A twin's move: MuJoCo's viewer where there is a display and files is False, else out_stem.mp4 and
+    out_stem.png rendered off-screen. A line saying what was shown or written."""
+    if files or display_missing():
+        return _files(spec, trace.time, [trace.angle], out_stem, "the twin's move (true hinge angles)")
+    return play_trace(spec, trace)
+
+
+def show_run(run: Run, spec: DeviceSpec, out_stem, files: bool = False) -> str:
+    """A recorded run: the viewer (device solid, twin translucent) where there is a display and files is False;
+    else out_stem.mp4 and .png, the device (grey, left) and the twin (blue, right) side by side."""
+    if files or display_missing():
+        t, rows = run_frames(run, spec)
+        n = spec.n_hinges
+        return _files(spec, t, [rows[:, :n], rows[:, n:]], out_stem,
+                      f"{run.scenario}: device (grey, left; encoder angles) and twin (blue, right)")
+    return view_run(run, spec)

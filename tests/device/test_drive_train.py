@@ -90,7 +90,7 @@ def emulated_settle(spec, opt, targets, seconds) -> np.ndarray:
         emu.step()
         counts.append(emu.counts.copy())
     time_s = np.arange(len(counts)) * spec.firmware_dt
-    return np.array([step_metrics(time_s, c, g, spec.settle_band, tail=spec.settle_hold).settle_time
+    return np.array([step_metrics(time_s, c, g, spec.settle_band, hold=spec.settle_hold).settle_time
                      for c, g in zip(np.array(counts).T, goal)])
 
 

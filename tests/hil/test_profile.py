@@ -1,26 +1,17 @@
 """Device profiles: where they live, selection and the remembered default, every command naming the one it
-used, a missing or damaged profile as a one-line error; the viewer's message where there is no display."""
+used, a missing or damaged profile as a one-line error."""
 
 import json
-import math
 import re
 
-import numpy as np
 import pytest
 
 from controllers.pid import PidGains
 from twin.cli import main as vrscroll
 from twin.device.profile import profiles_dir
-from twin.device.mjcf import load_model
 from twin.formats.gains import write_gains
 from twin.commands.options import select_profile
 from twin.formats.profile import read_profile, write_profile_spec
-from twin.formats.run import read_run
-from twin.hil.mirror import mirror
-from twin.hil.record import run_hil
-from twin.formats.scenario import read_scenario
-from twin.link.serial_link import Link
-from viz.viewer import TWIN_ALPHA, pair_model, run_frames
 
 ONE_STEP = """name = "one"
 duration_s = 0.6
@@ -138,31 +129,6 @@ def test_every_command_that_talks_to_the_device_names_its_profile(capsys, emulat
     assert (profiles_dir() / "emu" / "gains.json").is_file()
     assert "gains    as emu's" in _run(capsys, "status", "--serial", emu.port)[1]
     assert "device settle s" in out and "twin settle s" in out
-
-
-def test_view_without_a_display_is_one_line_and_the_replay_is_built(capsys, emulator, tmp_path, spec, monkeypatch):
-    emu = emulator()
-    (tmp_path / "s.toml").write_text(ONE_STEP)
-    with Link(emu.port) as link:
-        assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
-        run_hil(link, spec, read_scenario(tmp_path / "s.toml", spec), tmp_path / "run")
-    monkeypatch.delenv("DISPLAY", raising=False)
-    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    rc, _, err = _run(capsys, "view", str(tmp_path / "run"))
-    assert rc == 2 and len(err.splitlines()) == 1 and "no display" in err
-    rc, out, _ = _run(capsys, "simulate", "20", "0", "0", "0", "0", "0", "--view")
-    assert rc == 0 and out.rstrip().splitlines()[-1].startswith("no display")
-    # what the window would show: two devices, the twin's translucent, replayed from the traces
-    model = pair_model(spec)
-    assert model.njnt == 2 * load_model(spec).njnt
-    twin_geoms = [i for i in range(model.ngeom) if model.body(model.geom_bodyid[i]).name.startswith("twin/")]
-    assert twin_geoms and all(model.geom_rgba[i, 3] == pytest.approx(TWIN_ALPHA) for i in twin_geoms)
-    recorded = read_run(tmp_path / "run", spec)
-    t, rows = run_frames(recorded, spec)
-    assert rows.shape == (len(t), 2 * spec.n_hinges)
-    # at the end, device and twin have both reached the step's targets (within a degree)
-    assert np.all(np.abs(np.degrees(rows[-1]) - np.tile([20, 10, 5, 5, 10, 20], 2)) < 1.0)
-    assert math.isclose(t[0], recorded.device.time[0])
 
 
 @pytest.mark.parametrize("key, value", [("hinge_limit", "170"), ("settle_band", "400"), ("n_flaps", "3")])

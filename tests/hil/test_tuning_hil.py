@@ -131,7 +131,7 @@ def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device
     # then ran the same step (flat, then 30 deg on every hinge) and printed its metrics beside the twin's
     steps = [e["counts"] for e in emu.events("rx") if e["msg"] == "SET_TARGETS"]
     assert steps[-1] == target_counts(spec, np.full(spec.n_hinges, math.radians(30.0))).tolist()
-    assert f"device at {emu.port}: settled at t=" in text
+    assert f"device at {emu.port}: settled: settle time" in text
     lines = text.splitlines()
     head = next(i for i, ln in enumerate(lines) if "device settle s" in ln and "twin settle s" in ln)
     rows = [ln.split() for ln in lines[head + 1:head + 1 + spec.n_hinges]]

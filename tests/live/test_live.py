@@ -305,12 +305,33 @@ def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twi
 
     gate, progress, done, points, replies = run(session())
     assert gate["passed"] and progress["source"] == "twin"
+    # the morph's settle time, as the gate predicted it (one definition: docs/device.md)
+    assert done["settle_time_s"] == pytest.approx(next(c["value"] for c in gate["checks"] if c["name"] == "settle"),
+                                                  abs=1e-4)
     assert done["redirection"]["share_within"] > 0.9
     virtual = np.array([r["position_mm"] for r in replies]) / 1e3
     on_device = point_distances(mesh, points)
     on_target = point_distances(mesh, virtual)
     # the device is within a few mm of the cylinder; the redirected pen lands on it (the blur leaves < 1 mm)
     assert on_device.max() > 1e-3 and on_target.max() < 1e-3, (on_device.max(), on_target.max())
+
+
+def test_serve_records_every_morph_for_rerun(tmp_path):
+    from rerun_read import read_rrd
+
+    rrd = tmp_path / "live.rrd"
+    with ServiceProcess("--shape", "cylinder", "--rerun", str(rrd), stderr_path=tmp_path / "serve.err") as service:
+        async def session():
+            async with LiveClient(service.url) as client:
+                await first_approximation(client)
+                await client.lock()
+                return await client.expect("done", timeout=10)
+
+        done = run(session())
+    columns = read_rrd(rrd)
+    final = [columns[(f"/hinge{k}/angle_deg/twin", "Scalars:scalars")][-1][0] for k in range(6)]
+    assert final == pytest.approx(done["angles_deg"], abs=1e-3)
+    assert ("/world/twin/flap0_visual", "Transform3D:translation") in columns
 
 
 def test_a_pose_never_moves_the_device_and_a_controller_leaving_mid_morph_leaves_it_holding(emulator, tmp_path):

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from twin.commands.options import add_device_option, add_json, output_file, profile_line, profile_of, write_json
+import math
+
+from twin.commands.options import add_device_option, add_json, add_rerun, output_file, profile_line, profile_of, write_json
 from twin.device.kinematics import flap_frames
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
@@ -19,18 +21,27 @@ from twin.morphpatch.surface_metrics import msd_hd
 from twin.sim.gate import check_move, redirection_check
 from twin.sim.response import move_report
 from viz.scene import render_approximation
-from viz.viewer import play_trace
+from viz.traces import hinge_figure
+from viz.viewer import show_move
 
 
 def add_arguments(p) -> None:
     p.add_argument("--shape", choices=shape_names(), default="cylinder", help="target shape (default cylinder)")
     p.add_argument("--variant", choices=VARIANTS, default="full",
                    help="approximation: the paper's full, no_hcevf, or ours, refined (default full)")
-    p.add_argument("--png", default="demo.png", type=output_file, help="picture to write (default demo.png)")
+    p.add_argument("--png", default="demo.png", type=output_file,
+                   help="picture to write: the device where the twin ended on the target, coloured by distance, "
+                        "its start outlined, the hinge angles (default demo.png)")
+    p.add_argument("--plot", metavar="PNG", default="demo_step.png", type=output_file,
+                   help="the morph's step response per hinge (default demo_step.png)")
     add_json(p, "the report")
     p.add_argument("--strict", action="store_true",
                    help="refuse (exit 1) when the pen redirection goes beyond the perception thresholds")
-    p.add_argument("--view", action="store_true", help="play the morph in MuJoCo's viewer, in real time")
+    p.add_argument("--view", action="store_true",
+                   help="play the morph in MuJoCo's viewer; without a display, write --view-out.mp4 and .png")
+    p.add_argument("--view-out", metavar="STEM", type=output_file, default="demo_view",
+                   help="video and contact sheet of --view without a display (default demo_view)")
+    add_rerun(p)
     add_device_option(p)
 
 
@@ -69,12 +80,26 @@ def run(args) -> int:
           f"(largest {redirection['largest_offset_mm']:.1f} mm, {redirection['largest_rotation_deg']:.1f} deg)")
 
     frames = flap_frames(spec, end_angles, approx.root_pose, approx.widths)
-    render_approximation(spec, mesh, frames, approx.widths, args.png,
-                         title=f"{args.shape}: twin after the morph, MSD {end_msd * 1e3:.1f} mm")
+    start_frames = flap_frames(spec, np.zeros(spec.n_hinges), pose, approx.widths)
+    notes = [f"start (outlined): {', '.join(f'{v:g}' for v in start)} (x y z mm, roll pitch yaw deg)",
+             "approximation: " + " ".join(f"{a:.1f}" for a in np.degrees(approx.angles)) + " deg",
+             "twin ended at:  " + " ".join(f"{a:.1f}" for a in np.degrees(end_angles)) + " deg"]
+    render_approximation(spec, mesh, frames, approx.widths, args.png, notes=notes, start_frames=start_frames,
+                         title=f"{args.shape}, {args.variant}: twin after the morph, MSD {end_msd * 1e3:.2f} mm, "
+                               f"HD {end_hd * 1e3:.2f} mm")
     print(f"[5/5] picture: {args.png}")
+    if trace is not None:
+        hinge_figure(args.plot, f"demo: {args.shape} morph on the twin", [("twin", trace)], range(spec.n_hinges),
+                     math.degrees(spec.settle_band * spec.rad_per_count),
+                     settle={"twin": [h["settle_time_s"] for h in hinges]})
+        print(f"      step response: {args.plot}")
+        if args.rerun:
+            from viz.rerun_log import log_move
+
+            print("      " + log_move(args.rerun, spec, trace, mesh, approx.root_pose, approx.widths))
     if args.view:
-        print("      " + (play_trace(spec, trace) if trace is not None else "no morph to show: the twin could not "
-                          "simulate the move"))
+        print("      " + (show_move(spec, trace, args.view_out) if trace is not None else
+                          "no morph to show: the twin could not simulate the move"))
     report = {
         "device_profile": profile.label,
         "shape": args.shape,
@@ -85,6 +110,7 @@ def run(args) -> int:
         "morph": {"settle_time_s": settle, "largest_final_error_deg": final_err, "hinges": hinges,
                   "msd_after_morph_mm": round(end_msd * 1e3, 3), "hd_after_morph_mm": round(end_hd * 1e3, 3)},
         "png": args.png,
+        "step_png": args.plot if trace is not None else None,
     }
     write_json(args.json, report)
     return 0 if gate.passed else 1

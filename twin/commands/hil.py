@@ -7,6 +7,7 @@ from pathlib import Path
 
 from twin.commands.options import (
     add_device_option,
+    add_rerun,
     add_serial,
     add_tolerance_deg,
     profile_line,
@@ -18,7 +19,7 @@ from twin.errors import UserError
 from twin.formats.gains import read_gains
 from twin.formats.run import read_run
 from twin.formats.scenario import read_scenario
-from twin.hil.compare import compare
+from twin.hil.compare import compare, metrics_text
 from twin.hil.mirror import DeviceNotReady
 from twin.hil.record import GainsRestored, run_hil
 from twin.link.serial_link import LinkError, NackError
@@ -35,6 +36,7 @@ def add_arguments(p) -> None:
                    "(default: the device profile's gains, if it holds any)")
     p.add_argument("--log", help="session log, JSON lines (default <out>/session.jsonl)")
     add_tolerance_deg(p)
+    add_rerun(p)
     add_device_option(p)
 
 
@@ -88,9 +90,10 @@ def _record(args, profile, spec, scenario, gains, out: Path) -> int:
     run_ = read_run(out, spec)
     rows = compare(spec, run_.device, run_.twin, [t for t, _ in run_.changes])
     report = write_report(spec, out, rows)
-    print(f"{'hinge':>5} {'RMSE deg':>9} {'max err deg':>11} {'lag ms':>7} {'settle dev s':>12} {'settle twin s':>13}")
-    for r in rows:
-        print(f"{r['hinge']:>5} {r['rmse_deg']:>9.3f} {r['max_error_deg']:>11.3f} {r['lag_s'] * 1000:>7.1f} "
-              f"{r['settle_device_s']:>12.3f} {r['settle_twin_s']:>13.3f}")
-    print(f"report: {report}")
+    print(metrics_text(rows))
+    print(f"report: {report} (each column defined there)")
+    if args.rerun:
+        from viz.rerun_log import log_run
+
+        print(log_run(args.rerun, spec, run_))
     return 0

@@ -9,6 +9,7 @@ import numpy as np
 from twin.checks import cell, hinge_angles
 from twin.commands.options import (
     add_device_option,
+    add_rerun,
     add_serial,
     add_tolerance_deg,
     profile_line,
@@ -32,6 +33,7 @@ def add_arguments(p) -> None:
     p.add_argument("--settle-limit", type=within(0.1, 60, "s"), default=2.0, help="s the move may take (default %(default)s)")
     p.add_argument("--telemetry-hz", type=within(1, 1000, "Hz", whole=True), default=500, help="telemetry rate (default %(default)s)")
     p.add_argument("--log", default="vrscroll-session.jsonl", help="session log, JSON lines (default %(default)s)")
+    add_rerun(p)
     p.add_argument("--override", action="store_true",
                    help="send even when the gate fails a check (logged); the device's own limits still apply")
     add_device_option(p)
@@ -88,4 +90,10 @@ def run(args) -> int:
     print(result.report.text())
     print(("mirror: " if result.ok else "mirror: STOPPED: ") + result.message)
     print("final   " + " ".join(f"{a:7.1f}" for a in result.final_deg) + "  deg")
+    if args.rerun:
+        from viz.rerun_log import RerunRecording, add_move
+
+        with RerunRecording(args.rerun, spec) as rec:
+            add_move(rec, 0.0, result.telemetry, result.report.prediction)
+        print(f"rerun recording {args.rerun} (device and twin, {result.elapsed:.2f} s)")
     return 0 if result.ok else 3

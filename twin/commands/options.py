@@ -95,6 +95,13 @@ def add_json(p, what: str) -> None:
                    help=f"write {what} as JSON to FILE; - prints it on standard output instead of the report")
 
 
+def add_rerun(p) -> None:
+    """--rerun FILE.rrd: a Rerun recording of what the command ran (viz.rerun_log; the `rerun` extra)."""
+    p.add_argument("--rerun", metavar="FILE.rrd", type=output_file,
+                   help="also write a Rerun recording (3-D device and, per hinge, target, twin, device, difference, "
+                        "duty, current on one timeline); open it with `rerun FILE.rrd` (pip install '.[rerun]')")
+
+
 def json_to_stdout(args) -> bool:
     """Whether the JSON replaces the human-readable report on standard output (--json -)."""
     return getattr(args, "json", None) == "-"

@@ -43,7 +43,9 @@ def _line(r: dict) -> str:
     if not r["morphed"]:
         return f"{r['shape']:<14} not morphed ({tries}): {r['attempts'][-1]['message'] if r['attempts'] else ''}"
     pen, red = r["pen"], r["redirection"]
-    return (f"{r['shape']:<14} {tries:<28} morph {r['attempts'][-1]['morph_s']:5.2f} s  pen {pen['redirected']}/"
+    settle = r["attempts"][-1]["settle_time_s"]
+    settle = "not settled" if settle is None else f"{settle:5.3f} s"
+    return (f"{r['shape']:<14} {tries:<28} settle time {settle}  pen {pen['redirected']}/"
             f"{pen['sent']} redirected, p99 {pen['latency_p99_ms']} ms, {pen['within_share']:.0%} within; surface "
             f"{red['share_within']:.0%} within; approximation p99 {r['approximation_latency_p99_ms']} ms")
 

@@ -13,8 +13,18 @@ import asyncio
 import os
 import secrets
 import signal
+import threading
+import time
 
-from twin.commands.options import add_device_option, add_serial, add_target, add_tolerance_deg, profile_line, profile_of
+from twin.commands.options import (
+    add_device_option,
+    add_rerun,
+    add_serial,
+    add_target,
+    add_tolerance_deg,
+    profile_line,
+    profile_of,
+)
 from twin.errors import UserError
 from twin.link.serial_link import LinkError
 from twin.live.messages import DEFAULT_LISTEN_PORT
@@ -36,6 +46,7 @@ def add_arguments(p) -> None:
                    help="token every client must present (default $VRSCROLL_TOKEN; generated and printed when "
                    "--allow-remote is given without one)")
     p.add_argument("--log", default="vrscroll-live.jsonl", help="serial session log with --serial (default %(default)s)")
+    add_rerun(p)
     add_device_option(p)
     add_tolerance_deg(p)
 
@@ -60,6 +71,7 @@ def run(args) -> int:
                            allow_remote=args.allow_remote, variant=args.variant, shape=args.shape, mesh=mesh,
                            profile=profile.label)
     service = LiveService(config)
+    recording = _recording(args, spec, morpher)
 
     host = f"[{args.host}]" if ":" in args.host else args.host  # an IPv6 address in a URL
 
@@ -78,4 +90,26 @@ def run(args) -> int:
         raise UserError(f"device: {exc}") from None
     except OSError as exc:
         raise UserError(f"cannot serve on {args.host}:{args.listen}: {exc}") from None
+    finally:
+        if recording is not None:
+            recording.close()
+            print(f"vrscroll serve: rerun recording {args.rerun} (every morph on the service's clock)", flush=True)
     return 0
+
+
+def _recording(args, spec, morpher):
+    """With --rerun, a recording every morph is added to, at its time since the service started (s)."""
+    if not args.rerun:
+        return None
+    from viz.rerun_log import RerunRecording, add_move
+
+    recording = RerunRecording(args.rerun, spec)
+    started = time.monotonic()
+    lock = threading.Lock()  # morphs run in a worker thread
+
+    def on_move(telemetry, prediction):
+        with lock:
+            add_move(recording, time.monotonic() - started, telemetry, prediction)
+
+    morpher.on_move = on_move
+    return recording

@@ -152,7 +152,7 @@ def confirm_on_device(args, spec, gains, step, pushed, quiet=False) -> list[dict
     tgt = np.degrees(target_counts(spec, targets) * spec.rad_per_count)
     rows = []
     for k in range(n):
-        m = step_metrics(t, deg[:, k], float(tgt[k]), band, tail=spec.settle_hold) if len(t) > 1 else None
+        m = step_metrics(t, deg[:, k], float(tgt[k]), band, hold=spec.settle_hold) if len(t) > 1 else None
         rows.append({"hinge": k, "device_settle_s": round(m.settle_time, 4) if m else float("nan"),
                      "device_overshoot_deg": round(m.overshoot, 3) if m else float("nan"),
                      "twin_settle_s": pred[k]["settle_time_s"], "twin_overshoot_deg": pred[k]["overshoot_deg"]})

@@ -1,24 +1,33 @@
-"""`vrscroll view RUN`: a HIL run's device and twin side by side in MuJoCo's viewer, replayed from its traces."""
+"""`vrscroll view RUN`: a HIL run's device and twin side by side, replayed from its traces: in MuJoCo's viewer
+where there is a display, else (or with --out) as a video and a contact sheet rendered off-screen; --rerun
+writes a Rerun recording of it."""
 
 from __future__ import annotations
 
-from twin.commands.options import add_device_option, profile_line, profile_of
-from twin.errors import UserError
+from pathlib import Path
+
+from twin.commands.options import add_device_option, add_rerun, output_file, profile_line, profile_of
 from twin.formats.run import read_run
-from viz.viewer import display_missing, view_run
+from viz.viewer import show_run
 
 
 def add_arguments(p) -> None:
     p.add_argument("run", metavar="RUN", help="HIL run folder (vrscroll hil --out)")
+    p.add_argument("--out", metavar="STEM", type=output_file,
+                   help="write STEM.mp4 and STEM.png instead of opening the viewer (without a display: RUN/view)")
+    add_rerun(p)
     add_device_option(p)
 
 
 def run(args) -> int:
     profile = profile_of(args)
     recorded = read_run(args.run, profile.spec, incomplete=True)
-    missing = display_missing()
-    if missing:
-        raise UserError(missing)
     print(profile_line(profile))
-    print(view_run(recorded, profile.spec))
+    if args.rerun:
+        from viz.rerun_log import log_run
+
+        print(log_run(args.rerun, profile.spec, recorded))
+    if args.rerun and not args.out:
+        return 0
+    print(show_run(recorded, profile.spec, args.out or Path(args.run) / "view", files=bool(args.out)))
     return 0

@@ -5,7 +5,11 @@ Time base: the device's ACK of SET_TARGETS carries the device time (us) at which
 the targets took effect; telemetry frame times are taken relative to it, so
 device and prediction share t = 0. Both are compared in encoder counts turned
 into angles (what the device can report). When a hinge parts from the prediction
-by more than `tolerance_deg`, the host sends ESTOP and names the hinge.
+by more than `tolerance_deg`, the host sends ESTOP and names the hinge. A hinge's
+deviation is its distance from the range the prediction spans within TIME_SLACK
+of the frame's time: a device a few milliseconds ahead of or behind the twin in a
+fast move (the link's latency, the telemetry period) is not parting from it; a
+hinge that jams or runs away is, whatever the shift.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
 from twin.device.spec import DeviceSpec
+from twin.formats.trace import Recording
 from twin.hil.device_gains import device_gains
 from twin.link import protocol as P
 from twin.link.serial_link import Link
@@ -34,11 +39,14 @@ class MirrorResult:
     report: GateReport
     outcome: str  # "settled", "diverged" (host e-stopped), "device_fault", "timeout"
     hinge: int | None  # the hinge that diverged or faulted
-    max_deviation_deg: np.ndarray  # per hinge, over the run
+    max_deviation_deg: np.ndarray  # per hinge, over the run: distance from the prediction within TIME_SLACK
     elapsed: float  # s of device time watched
+    settle_time: float  # s, the device's settle time (twin.sim.response.settle_time); NaN unless settled
+    twin_settle_time: float  # s, the twin's for the same move (NaN: not simulated or not settled)
     frames: int
     final_deg: np.ndarray  # device hinge angles at the end, deg
     message: str
+    telemetry: Recording | None = None  # the device's frames, time s from the moment the targets took effect
 
     @property
     def ok(self) -> bool:
@@ -52,6 +60,7 @@ def faults_text(faults: int) -> str:
     return "|".join(names + ([f"0x{unknown:X}"] if unknown else [])) or "none"
 
 
+TIME_SLACK = 0.02  # s the device may lead or lag the prediction before a difference counts as a deviation
 REST_COUNTS = 2  # the device is at rest when no hinge moves more than this ...
 REST_TIME = 0.05  # ... in this many seconds
 
@@ -116,15 +125,23 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
     tgt = target_counts(spec, targets)
     max_dev = np.zeros(spec.n_hinges)
     hold_needed = spec.settle_hold
+    frame_period = 1.0 / telemetry_hz
+    slack = int(round(TIME_SLACK / dt))
     in_band_since = None
     frames = 0
     elapsed = 0.0
     device = start
     deadline = settle_limit + 1.0
 
-    def result(outcome, hinge, message):
-        r = MirrorResult(report, outcome, hinge, np.degrees(max_dev), elapsed, frames, np.degrees(device), message)
+    twin_settle = report.settle_time
+
+    rows = []  # (time s, counts, target counts, duty, current mA) per frame
+
+    def result(outcome, hinge, message, settle=math.nan):
+        r = MirrorResult(report, outcome, hinge, np.degrees(max_dev), elapsed, settle, twin_settle, frames,
+                         np.degrees(device), message, _recording(spec, rows))
         link.log("mirror_result", outcome=outcome, hinge=hinge, message=message, elapsed_s=elapsed,
+                 settle_time_s=settle, twin_settle_time_s=twin_settle,
                  max_deviation_deg=np.degrees(max_dev).round(3).tolist(), frames=frames)
         return r
 
@@ -139,9 +156,9 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
             continue
         elapsed = since
         frames += 1
+        rows.append((since, fr.counts, fr.targets, fr.duty, fr.current_ma))
         device = angle_from_counts(spec, fr.counts)
-        expected = device if predicted is None else predicted[min(int(round(elapsed / dt)), len(predicted) - 1)]
-        dev = np.abs(device - expected)
+        expected, dev = _deviation(device, predicted, int(round(elapsed / dt)), slack)
         max_dev = np.maximum(max_dev, dev)
         if on_frame:
             on_frame(elapsed, np.degrees(device), np.degrees(expected))
@@ -157,16 +174,35 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
                           f"(tolerance {tolerance_deg:.1f} deg) at t={elapsed:.3f} s: device e-stopped")
         if np.all(np.abs(np.asarray(fr.counts) - tgt) <= spec.settle_band):
             in_band_since = elapsed if in_band_since is None else in_band_since
-            if elapsed - in_band_since >= hold_needed:
-                # the twin stops once settled for settle_hold: it entered the band that much earlier
-                twin_t = f"{trace.duration - hold_needed:.3f} s" if trace is not None else "not simulated"
-                return result("settled", None, f"settled at t={in_band_since:.3f} s (twin: {twin_t}), "
-                              f"largest deviation {np.degrees(max_dev).max():.2f} deg")
+            if elapsed - in_band_since + frame_period >= hold_needed:
+                # the settle time's definition (twin.sim.response.settle_time), applied as the frames come
+                return result("settled", None, f"settled: settle time {in_band_since:.3f} s (twin: {twin_settle:.3f} s), "
+                              f"largest deviation {np.degrees(max_dev).max():.2f} deg", settle=in_band_since)
         else:
             in_band_since = None
     worst = int(np.argmax(np.abs(np.asarray(device) - targets)))
     return result("timeout", worst, f"not settled after {deadline:.1f} s (hinge {worst} at "
                   f"{math.degrees(device[worst]):.1f} deg, target {math.degrees(targets[worst]):.1f} deg)")
+
+
+def _deviation(device, predicted, row: int, slack: int):
+    """(the prediction at `row`, each hinge's distance (rad) from the range the prediction spans within
+    `slack` rows of it); no prediction: the device itself, and no deviation."""
+    if predicted is None:
+        return device, np.zeros_like(device)
+    last = len(predicted) - 1
+    window = predicted[min(max(row - slack, 0), last): min(row + slack, last) + 1]
+    dev = np.maximum(0.0, np.maximum(window.min(axis=0) - device, device - window.max(axis=0)))
+    return predicted[min(row, last)], dev
+
+
+def _recording(spec: DeviceSpec, rows) -> Recording | None:
+    """Telemetry frames as a Recording in SI (None without frames)."""
+    if not rows:
+        return None
+    t, counts, targets, duty, current = (np.array(c) for c in zip(*rows))
+    return Recording(time=t.astype(float), target=targets * spec.rad_per_count, angle=counts * spec.rad_per_count,
+                     counts=counts.astype(np.int64), duty=duty / P.DUTY_SCALE, current=current / 1000.0)
 
 
 def device_step(link: Link, spec: DeviceSpec, targets, settle_limit: float = 2.0):

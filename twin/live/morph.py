@@ -43,6 +43,7 @@ class MorphOutcome:
     status: str  # "done", "refused" (nothing moved) or "stopped" (the device stopped mid-way)
     final: np.ndarray | None  # rad, the hinge angles where the device ended (None when refused)
     message: str
+    settle_time: float = math.nan  # s, the morph's settle time (twin.sim.response.settle_time); NaN: not settled
 
 
 def _degrees(angles) -> list[float]:
@@ -75,7 +76,12 @@ class _ReportingLink(Link):
 
 
 class DeviceMorpher:
-    """The device on a serial port (or the emulator's pty); the link stays open, so the device holds."""
+    """The device on a serial port (or the emulator's pty); the link stays open, so the device holds.
+
+    on_move(telemetry, prediction), where set, gets every move sent: the device's frames (a Recording) and
+    the twin's predicted Trace (e.g. for a Rerun recording of the session)."""
+
+    on_move = None
 
     def __init__(self, spec: DeviceSpec, port: str, log_path=None, tolerance_deg: float = 5.0):
         self.spec = spec
@@ -115,7 +121,10 @@ class DeviceMorpher:
         finally:
             self.link.listener = None
             self._quiet()
-        return MorphOutcome("done" if result.ok else "stopped", np.radians(result.final_deg), result.message)
+        if self.on_move is not None:
+            self.on_move(result.telemetry, result.report.prediction)
+        return MorphOutcome("done" if result.ok else "stopped", np.radians(result.final_deg), result.message,
+                            result.settle_time)
 
     def _quiet(self) -> None:
         """Telemetry off between morphs: the link queues every frame until it is read, and nothing reads it then."""
@@ -138,7 +147,10 @@ class DeviceMorpher:
 
 
 class TwinMorpher:
-    """No device: the twin is the device; it holds the angles its last morph reached."""
+    """No device: the twin is the device; it holds the angles its last morph reached. on_move(None, trace)
+    as DeviceMorpher's."""
+
+    on_move = None
 
     def __init__(self, spec: DeviceSpec, gains=None):
         self.spec = spec
@@ -165,7 +177,10 @@ class TwinMorpher:
             emit({"type": "progress", "elapsed_s": round(k * step, 4), "source": "twin",
                   "angles_deg": angles, "predicted_deg": angles})
         self.angles = trace.angle[-1].copy()
-        return MorphOutcome("done", self.angles.copy(), f"the twin settled in {trace.duration:.3f} s")
+        if self.on_move is not None:
+            self.on_move(None, trace)
+        return MorphOutcome("done", self.angles.copy(), f"the twin's settle time {report.settle_time:.3f} s",
+                            report.settle_time)
 
     def status(self) -> dict:
         return {"device": self.name, "device_state": "TWIN", "faults": "none", "angles_deg": _degrees(self.angles)}

@@ -116,7 +116,8 @@ async def play_shape(client: LiveClient, spec: DeviceSpec, name: str, attempts: 
         locked = await client.lock()
         outcome = await client.expect("done", "refused", "stopped", timeout=MORPH_TIMEOUT)
         attempt = {"start_pose_seq": last, "locked_seq": locked["seq"], "outcome": outcome["type"],
-                   "message": outcome["message"], "morph_s": round(time.perf_counter() - t_lock, 3)}
+                   "message": outcome["message"], "settle_time_s": outcome.get("settle_time_s"),
+                   "lock_to_done_wall_s": round(time.perf_counter() - t_lock, 3)}
         record["attempts"].append(attempt)
         if outcome["type"] != "done":
             continue

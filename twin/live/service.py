@@ -341,7 +341,9 @@ class LiveService:
             return
         redirect(field, np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0, 0.0]]))  # loads the compiled kernel now
         self.field, self.state = field, "locked"
+        settle = outcome.settle_time
         self._broadcast({"type": "done", "message": outcome.message, "seq": seq,
+                         "settle_time_s": round(settle, 4) if math.isfinite(settle) else None,
                          "angles_deg": np.degrees(outcome.final).round(3).tolist(), "redirection": summary})
 
     # ---- datagrams ------------------------------------------------------------------------

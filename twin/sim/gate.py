@@ -10,8 +10,8 @@ still runs draws what the two steps from rest do not). Both check:
 - collision: no flap-on-flap contact anywhere along the simulated trajectory
              (trace angles replayed through mj_forward, every `collision_step` s; the
              same contact as twin.device.flap_collision finds without MuJoCo);
-- settle:    every hinge settles (|error| <= settle_band counts for settle_hold s)
-             within `settle_limit` s;
+- settle:    the move's settle time (twin.sim.response.settle_time: every hinge within
+             settle_band counts, staying there settle_hold s) is at most `settle_limit` s;
 - peak current: the largest winding current, A, within the motor driver's peak rating
              (spec [power] driver_peak_current; not the stall current: braking or
              reversing at speed draws more, back-EMF adding to the supply), naming the
@@ -36,6 +36,7 @@ from twin.device.flap_collision import CONTACT_DEPTH
 from twin.device.spec import DeviceSpec
 from twin.formats.scenario import Scenario
 from twin.sim.replay import replay_targets
+from twin.sim.response import move_settle_time
 from twin.sim.trace import Trace, join_traces
 from twin.sim.twin import Twin
 
@@ -73,6 +74,13 @@ class GateReport:
     @property
     def failed(self) -> list[Check]:
         return [c for c in self.checks if not c.passed]
+
+    @property
+    def settle_time(self) -> float:
+        """The predicted move's settle time, s (twin.sim.response.settle_time); NaN where it did not settle
+        within the limit or was not simulated."""
+        c = next((c for c in self.checks if c.name == "settle"), None)
+        return c.value if c is not None and c.passed else math.nan
 
     def text(self) -> str:
         head = (f"gate: targets {', '.join(f'{math.degrees(a):.1f}' for a in self.targets)} deg from "
@@ -123,17 +131,10 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
     twin = _twin_at(spec, start, gains, twin)
     trace = twin.move_to(targets, max_time=settle_limit, stop_when_settled=True)
     moved = _heat(twin)
-    settle_ticks = int(round(spec.settle_hold / spec.firmware_dt))
     hold = twin.hold(spec.settle_hold)  # keep simulating: the hold current is what the device draws at rest
 
     checks.append(_collision_check(spec, twin, trace, collision_step))
-    # settle: the twin stops early once every hinge has stayed in the band for settle_hold
-    err = np.abs(trace.target_counts[-settle_ticks:] - trace.counts[-settle_ticks:]).max(axis=0)
-    settled = len(trace.time) < int(round(settle_limit / spec.firmware_dt)) or bool(np.all(err <= spec.settle_band))
-    t_settle = trace.duration if settled else float("inf")
-    worst = int(np.argmax(err))
-    checks.append(Check("settle", settled, t_settle, settle_limit, "s",
-                        "all hinges" if settled else f"hinge {worst} still {int(err[worst])} counts off"))
+    checks.append(_settle_check(spec, trace, 0, settle_limit, "all hinges"))
     checks += _current_checks(spec, trace, hold, peak_current_limit, hold_current_limit)
     checks.append(_thermal_check(moved, _heat(twin)))
     return GateReport(start, targets, checks, trace)
@@ -162,14 +163,8 @@ def check_scenario(spec: DeviceSpec, scenario: Scenario, gains=None, settle_limi
     hold = twin.hold(spec.settle_hold)
 
     checks.append(_collision_check(spec, twin, trace, collision_step))
-    first = int(round(scenario.times[-1] / dt))
-    t_settle = _settle_time(spec, trace.counts[first:], trace.target_counts[first:])
-    settled = t_settle <= settle_limit
-    err = np.abs(trace.target_counts[-1] - trace.counts[-1])
-    worst = int(np.argmax(err))
-    checks.append(Check("settle", settled, t_settle, settle_limit, "s",
-                        "the last target, all hinges" if settled else
-                        f"the last target: hinge {worst} still {int(err[worst])} counts off"))
+    checks.append(_settle_check(spec, trace, int(round(scenario.times[-1] / dt)), settle_limit,
+                                "the last target, all hinges"))
     checks += _current_checks(spec, trace, hold, peak_current_limit, hold_current_limit)
     checks.append(_thermal_check(moved, _heat(twin)))
     return GateReport(start, last, checks, trace)
@@ -214,16 +209,15 @@ def _collision_check(spec: DeviceSpec, twin: Twin, trace: Trace, collision_step:
     return Check("collision", hit is None, deepest * 1000, 0.0, "mm", hit or "no flap-on-flap contact")
 
 
-def _settle_time(spec: DeviceSpec, counts, target_counts) -> float:
-    """s from the first row until every hinge has stayed within the settle band for settle_hold (inf: never)."""
-    hold = int(round(spec.settle_hold / spec.firmware_dt))
-    inside = np.all(np.abs(target_counts - counts) <= spec.settle_band, axis=1)
-    run = 0
-    for i, ok in enumerate(inside):
-        run = run + 1 if ok else 0
-        if run >= hold:
-            return (i + 1) * spec.firmware_dt
-    return float("inf")
+def _settle_check(spec: DeviceSpec, trace: Trace, first: int, settle_limit: float, what: str) -> Check:
+    """The move's settle time (response.move_settle_time) from row `first` on, against settle_limit s."""
+    t_settle = move_settle_time(spec, trace.time[first:], trace.counts[first:], trace.target_counts[first:])
+    if math.isfinite(t_settle) and t_settle <= settle_limit:
+        return Check("settle", True, t_settle, settle_limit, "s", what)
+    err = np.abs(trace.target_counts[-1] - trace.counts[-1])
+    worst = int(np.argmax(err))
+    return Check("settle", False, math.inf, settle_limit, "s",
+                 f"{what.split(',')[0]}: hinge {worst} still {int(err[worst])} counts off at the end")
 
 
 def current_limits(spec: DeviceSpec, peak_current_limit: float | None = None,

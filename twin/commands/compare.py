@@ -1,0 +1,51 @@
+"""`vrscroll compare RUN_A RUN_B ...`: HIL runs of one scenario side by side (e.g. before and after calibration):
+per hinge and run the device-twin RMSE, largest error, settle times and overshoots, and a plot."""
+
+from __future__ import annotations
+
+import json
+import math
+
+from twin.commands.options import add_device_option, output_file, profile_line, profile_of
+from twin.errors import UserError
+from twin.formats.run import read_run
+from twin.hil.compare import METRICS, compare, metrics_text
+from viz.traces import runs_figure
+
+
+def add_arguments(p) -> None:
+    p.add_argument("runs", nargs="+", metavar="RUN", help="HIL run folders (vrscroll hil --out), two or more")
+    p.add_argument("--png", default="compare.png", type=output_file,
+                   help="plot: per hinge RMSE of each run, and device - twin over time (default compare.png)")
+    p.add_argument("--json", metavar="FILE", type=output_file, help="write the metrics per run as JSON")
+    add_device_option(p)
+
+
+def run(args) -> int:
+    if len(args.runs) < 2:
+        raise UserError("compare needs two or more run folders")
+    profile = profile_of(args)
+    spec = profile.spec
+    print(profile_line(profile))
+    runs = [read_run(r, spec, incomplete=True) for r in args.runs]
+    if len({r.scenario for r in runs}) > 1:
+        print("note: the runs played different scenarios (" + ", ".join(sorted({r.scenario for r in runs}))
+              + "): their metrics are compared, the traces not time-aligned")
+    table = {}
+    for path, r in zip(args.runs, runs):
+        rows = compare(spec, r.device, r.twin, [t for t, _ in r.changes] or [0.0])
+        table[path] = rows
+        print(f"\n{path} ({r.scenario}, {r.status}, device profile {r.meta.get('device_profile', 'not recorded')})")
+        print(metrics_text(rows))
+    base, last = table[args.runs[0]], table[args.runs[-1]]
+    print(f"\nRMSE device - twin, {args.runs[-1]} against {args.runs[0]}: "
+          + "  ".join(f"h{a['hinge']} x{b['rmse_deg'] / a['rmse_deg']:.2f}" if a["rmse_deg"] > 0 else f"h{a['hinge']} -"
+                      for a, b in zip(base, last)))
+    runs_figure(args.png, [(p, r) for p, r in zip(args.runs, runs)], table, spec.n_hinges)
+    print(f"plot: {args.png}; metrics: " + "; ".join(f"{label} = {meaning}" for _, label, meaning in METRICS[:1]))
+    if args.json:
+        doc = {p: [{k: (v if not (isinstance(v, float) and math.isnan(v)) else None) for k, v in row.items()}
+                   for row in rows] for p, rows in table.items()}
+        with open(args.json, "w") as f:
+            json.dump({"runs": doc, "metrics": {k: m for k, _, m in METRICS}}, f, indent=2)
+    return 0
