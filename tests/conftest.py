@@ -44,6 +44,13 @@ def emulator(tmp_path):
 
 
 @pytest.fixture(autouse=True)
+def in_own_folder(tmp_path, monkeypatch):
+    """Every test runs in its own folder: what a command writes by default (simulate.png, demo.png, a session
+    log) lands there, never in the repository."""
+    monkeypatch.chdir(tmp_path)
+
+
+@pytest.fixture(autouse=True)
 def device_profiles(tmp_path, monkeypatch):
     """Every test gets its own, empty profiles folder: never the user's ~/.config/vrscroll/devices."""
     folder = tmp_path / "devices"

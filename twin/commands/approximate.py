@@ -21,11 +21,8 @@ from twin.errors import UserError
 from twin.formats.target import write_approximation
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
-from twin.morphpatch.shapes import load_mesh, load_shape, shape_names, shape_table
+from twin.morphpatch.shapes import load_mesh, load_shape, mesh_start, shape_names, shape_table
 from viz.scene import render_approximation
-
-MESH_START_HEIGHT = 0.04  # m above the top of a mesh file's bounding box
-
 
 def add_arguments(p) -> None:
     add_target_arguments(p)
@@ -57,8 +54,7 @@ def target_and_start(args):
         default_start = shape_table()[args.shape]["start"]
     else:
         mesh, name = load_mesh(args.mesh), args.mesh
-        (x0, y0, _), (x1, y1, z1) = mesh.bounds
-        default_start = [(x0 + x1) / 2 * 1e3, (y0 + y1) / 2 * 1e3, (z1 + MESH_START_HEIGHT) * 1e3, 0, 0, 0]
+        default_start = mesh_start(mesh)
     start = _parse_start(args.start) if args.start else default_start
     return name, mesh, start, pose_from_mm_deg(start)
 

@@ -1,4 +1,4 @@
-"""`vrscroll demo`: the whole path once. Approximate a shape from its default start,
+"""`vrscroll demo`: the whole path once. Approximate a shape or a mesh (--mesh) from its default start (or --start),
 validate the move on the twin (the gate: range, collisions, settling, current),
 simulate the morph with the firmware in the loop, check the pen redirection the
 reached shape needs against the perception thresholds (a warning, or with --strict
@@ -11,12 +11,22 @@ import numpy as np
 
 import math
 
-from twin.commands.options import add_device_option, add_json, add_rerun, output_file, profile_line, profile_of, write_json
+from twin.commands.approximate import target_and_start
+from twin.commands.options import (
+    add_device_option,
+    add_json,
+    add_rerun,
+    add_target,
+    output_file,
+    profile_line,
+    profile_of,
+    write_json,
+)
 from twin.device.kinematics import flap_frames
-from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
+from twin.morphpatch.approximation import VARIANTS, approximate
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.redirection import build_field, threshold_summary
-from twin.morphpatch.shapes import load_shape, shape_names, shape_table
+from twin.morphpatch.shapes import shape_names
 from twin.morphpatch.surface_metrics import msd_hd
 from twin.sim.gate import check_move, redirection_check
 from twin.sim.response import move_report
@@ -26,7 +36,7 @@ from viz.viewer import show_move
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--shape", choices=shape_names(), default="cylinder", help="target shape (default cylinder)")
+    add_target(p, shape_names(), required=False, role="the target (default: the cylinder)")
     p.add_argument("--variant", choices=VARIANTS, default="full",
                    help="approximation: the paper's full, no_hcevf, or ours, refined (default full)")
     p.add_argument("--png", default="demo.png", type=output_file,
@@ -49,11 +59,11 @@ def run(args) -> int:
     profile = profile_of(args)
     spec = profile.spec
     print(profile_line(profile), flush=True)
-    mesh = load_shape(args.shape)
-    print(f"[1/5] fields of {args.shape} (cached after the first run) ...", flush=True)
+    if not args.mesh and not args.shape:
+        args.shape = "cylinder"
+    name, mesh, start, pose = target_and_start(args)
+    print(f"[1/5] fields of {name} (cached after the first run) ...", flush=True)
     fields = build_fields(mesh)
-    start = shape_table()[args.shape]["start"]
-    pose = pose_from_mm_deg(start)
     approximate(fields, pose, spec, args.variant)  # warm-up: loads compiled code
     approx = approximate(fields, pose, spec, args.variant).measured(spec, mesh)
     print(f"[2/5] {args.variant} approximated in {approx.time * 1e3:.2f} ms: MSD {approx.msd * 1e3:.2f} mm, "
@@ -85,11 +95,11 @@ def run(args) -> int:
              "approximation: " + " ".join(f"{a:.1f}" for a in np.degrees(approx.angles)) + " deg",
              "twin ended at:  " + " ".join(f"{a:.1f}" for a in np.degrees(end_angles)) + " deg"]
     render_approximation(spec, mesh, frames, approx.widths, args.png, notes=notes, start_frames=start_frames,
-                         title=f"{args.shape}, {args.variant}: twin after the morph, MSD {end_msd * 1e3:.2f} mm, "
+                         title=f"{name}, {args.variant}: twin after the morph, MSD {end_msd * 1e3:.2f} mm, "
                                f"HD {end_hd * 1e3:.2f} mm")
     print(f"[5/5] picture: {args.png}")
     if trace is not None:
-        hinge_figure(args.plot, f"demo: {args.shape} morph on the twin", [("twin", trace)], range(spec.n_hinges),
+        hinge_figure(args.plot, f"demo: {name} morph on the twin", [("twin", trace)], range(spec.n_hinges),
                      math.degrees(spec.settle_band * spec.rad_per_count),
                      settle={"twin": [h["settle_time_s"] for h in hinges]})
         print(f"      step response: {args.plot}")
@@ -102,7 +112,7 @@ def run(args) -> int:
                           "no morph to show: the twin could not simulate the move"))
     report = {
         "device_profile": profile.label,
-        "shape": args.shape,
+        "target": name,
         "start_mm_deg": start,
         "approximation": approx.to_json(),
         "gate": gate.to_dict(),

@@ -1,9 +1,14 @@
-"""`vrscroll simulate`: move the twin's hinges to targets (deg), report each hinge's step response and plot it."""
+"""`vrscroll simulate`: move the twin's hinges to targets (deg), or to an approximation's (APPROX.json, from
+`vrscroll approximate --json`), from flat or --from; gate the move, report each hinge's step response and plot
+it; for an approximation, the MSD where the twin ended on its target."""
 
 from __future__ import annotations
 
 import math
 import sys
+from pathlib import Path
+
+import numpy as np
 
 from twin.commands.options import (
     add_device_option,
@@ -16,15 +21,25 @@ from twin.commands.options import (
     within,
     write_json,
 )
+from twin.errors import UserError
+from twin.formats.target import read_approximation
+from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
+from twin.morphpatch.surface_metrics import msd_hd
+from twin.sim.gate import check_move
 from twin.sim.response import move_report
+from twin.sim.targets import check_targets
 from twin.sim.twin import Twin
 from viz.traces import hinge_figure
 from viz.viewer import show_move
 
 
 def add_arguments(p) -> None:
-    p.add_argument("targets", nargs="+", type=float, metavar="DEG",
-                   help="hinge targets in degrees, one per hinge (hinge 0 first); positive bends concave")
+    p.add_argument("targets", nargs="+", metavar="DEG|APPROX.json",
+                   help="hinge targets in degrees, one per hinge (hinge 0 first; positive bends concave), or one "
+                        "approximation file (vrscroll approximate --json): its hinge angles, and its target for the MSD")
+    p.add_argument("--from", dest="start", metavar="DEG,...",
+                   help="the hinge angles the move starts from, degrees, comma-separated (default flat; "
+                        "write --from=-30,0,... when the first is negative)")
     p.add_argument("--max-time", type=within(0.01, 60, "s"), default=3.0, help="longest the move may take, s (default 3)")
     p.add_argument("--hold", action="store_true", help="run the full --max-time instead of stopping once settled")
     p.add_argument("--trace", metavar="CSV", type=output_file, help="write the firmware-rate trace to this CSV file")
@@ -40,13 +55,36 @@ def add_arguments(p) -> None:
     add_device_option(p)
 
 
+def _angles(text: str, n: int, what: str) -> list[float]:
+    try:
+        values = [float(v) for v in text]
+    except ValueError:
+        raise UserError(f"{what}: expected {n} hinge targets in degrees or one approximation file, got "
+                        f"{' '.join(text)!r}") from None
+    if len(values) != n or not all(math.isfinite(v) for v in values):
+        raise UserError(f"{what}: expected {n} hinge targets in degrees, finite, got {len(values)}")
+    return values
+
+
 def run(args) -> int:
     profile = profile_of(args)
-    twin = Twin(profile.spec, profile.gains)
-    if len(args.targets) != twin.spec.n_hinges:
-        raise ValueError(f"expected {twin.spec.n_hinges} hinge targets in degrees, got {len(args.targets)}")
-    trace = twin.move_to([math.radians(a) for a in args.targets], max_time=args.max_time,
-                         stop_when_settled=not args.hold)
+    spec = profile.spec
+    approx = None
+    if len(args.targets) == 1 and not _number(args.targets[0]):
+        approx = read_approximation(args.targets[0], spec)
+        targets = approx["angles"]
+    else:
+        targets = np.radians(_angles(args.targets, spec.n_hinges, "targets"))
+    start = np.radians(_angles(args.start.split(","), spec.n_hinges, "--from")) if args.start else \
+        np.zeros(spec.n_hinges)
+    check_targets(spec, targets)
+    check_targets(spec, start)
+    twin = Twin(spec, profile.gains)
+    gate = check_move(spec, start, targets, profile.gains, settle_limit=args.max_time, twin=twin)
+    if gate.prediction is None:
+        raise UserError(gate.refusal())
+    twin.reset(start)
+    trace = twin.move_to(targets, max_time=args.max_time, stop_when_settled=not args.hold)
     rows = move_report(twin.spec, trace)
     summary = {
         "device_profile": profile.label,
@@ -54,8 +92,12 @@ def run(args) -> int:
         "wall_s": round(trace.wall_time, 4),
         "real_time_factor": round(trace.real_time_factor, 1),
         "settled": all(not math.isnan(r["settle_time_s"]) for r in rows),
+        "start_deg": np.degrees(start).round(3).tolist(),
+        "gate": gate.to_dict(),
         "hinges": rows,
     }
+    if approx is not None:
+        summary.update(_on_target(spec, approx, trace, args.targets[0]))
     if args.trace:
         trace.write_csv(args.trace, twin.spec)
         summary["trace_csv"] = args.trace
@@ -75,6 +117,7 @@ def run(args) -> int:
         print("\n".join(lines), file=sys.stderr)
         return 0
     print(profile_line(profile))
+    print(gate.text())
     print(f"{'hinge':>5} {'target_deg':>10} {'final_deg':>9} {'settle_time_s':>13} {'overshoot_deg':>13} "
           f"{'ss_err_deg':>10} {'ss_err_counts':>13} {'peak_A':>6}")
     for r in rows:
@@ -83,7 +126,38 @@ def run(args) -> int:
               f"{r['steady_state_error_counts']:>13.1f} {r['peak_current_A']:>6.2f}")
     print(f"simulated {summary['simulated_s']} s in {summary['wall_s']} s wall "
           f"({summary['real_time_factor']}x real time); settled: {summary['settled']}")
+    if "msd_after_morph_mm" in summary:
+        print(f"on {summary['target']}: MSD where the twin ended {summary['msd_after_morph_mm']} mm "
+              f"(HD {summary['hd_after_morph_mm']} mm; the approximation's own {summary['approximation_msd_mm']} mm)")
+    elif approx is not None:
+        print(f"no MSD: {summary['target_note']}")
     if args.trace:
         print(f"trace: {args.trace}")
     print(f"step response: {args.plot}" + "".join("\n" + line for line in lines))
     return 0
+
+
+def _number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _on_target(spec, approx: dict, trace, path: str) -> dict:
+    """The MSD and HD (mm) where the twin ended, on the approximation's target (a shape's name, or a mesh path
+    relative to the approximation file or the working folder); a note where the target cannot be read."""
+    target = approx["target"]
+    out = {"target": target, "approximation_msd_mm": None if approx["msd"] is None else round(approx["msd"] * 1e3, 3)}
+    if target is None:
+        return {**out, "target_note": f"{path} names no target"}
+    if target in shape_names():
+        mesh = load_shape(target)
+    else:
+        mesh_path = next((p for p in (Path(path).parent / target, Path(target)) if p.is_file()), None)
+        if mesh_path is None:
+            return {**out, "target_note": f"its target {target!r} is neither a shape nor a mesh file found here"}
+        mesh = load_mesh(mesh_path)
+    msd, hd = msd_hd(spec, mesh, approx["root_pose"], trace.angle[-1], approx["widths"])
+    return {**out, "msd_after_morph_mm": round(msd * 1e3, 3), "hd_after_morph_mm": round(hd * 1e3, 3)}

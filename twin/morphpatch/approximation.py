@@ -32,6 +32,15 @@ The pipeline, in the paper's order (its figure; §3.2):
 
 Where the paper averages angles we take the angle of the mean gradient (the same
 for nearby gradients, and immune to wrap-around). Variant "no_hcevf" skips 5 and 7.
+
+The side the device came from (every variant): the anchor's path from the start (straight
+to the snapped point, then the pipeline's slide and each of the refinement's steps, each
+straight) never crosses the target's solid. Step 1 reaches the surface without crossing
+it (the first entry along -z, or the closest surface point); step 5 is undone where its
+slide would cross the solid; the refinement refuses a step whose path would. The start must
+be outside the target (ValueError otherwise). What it does not yet guarantee: a device
+wider than a cavity it is lowered into (a cup from above its opening) can still rest
+its anchor inside it (docs/approximation.md, "Starts and the approached side").
 Variant "refined" (ours, beyond the paper) is "full" followed by a bounded local
 least-squares refinement of the root pose and hinge angles (twin.morphpatch.refinement).
 SI units throughout (m, rad, s); `Approximation.to_json` gives mm and degrees.
@@ -52,7 +61,7 @@ from twin.checks import REACH_M
 from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_flap, pose_matrix
 from twin.device.spec import DeviceSpec, load_spec
 from twin.formats.target import APPROXIMATION_KEYS, OPTIONAL_KEYS, approximation_fields
-from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate
+from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate, _path_clear
 from twin.morphpatch.refinement import refine
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
 from twin.morphpatch.surface_metrics import msd_hd
@@ -193,12 +202,16 @@ def approximate(fields: Fields, start, spec: DeviceSpec | None = None, variant: 
     if variant not in VARIANTS:
         raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
     spec = load_spec() if spec is None else spec
+    start = as_pose(start)
+    if sdf_at(fields, start[:3, 3]) < 0.0:
+        raise ValueError("the start is inside the target: give one outside it, on the side the device comes from")
     t0 = time.perf_counter()
     lay = _layouts(spec)
-    snapped = _snap(fields.grid, as_pose(start))
-    pose = _align_root(fields.grid, snapped, lay.root_points, lay.all_points)
+    snapped, pose = _rest(fields.grid, start, lay)
     if variant != "no_hcevf":
-        pose = _hcevf_translation(fields.grid, fields.edge_grid, pose, lay.edge_points)
+        slid = _hcevf_translation(fields.grid, fields.edge_grid, pose, lay.edge_points)
+        if _path_clear(fields.grid, snapped[:3, 3], slid[:3, 3]):
+            pose = slid
     widths = np.full(spec.n_flaps, spec.flap_pitch)
     angles = _align_hinges(fields.grid, pose, lay.flap_points, widths, lay.hinge_order, lay.hinge_outer,
                            lay.hinge_sign, spec.root_flap, spec.hinge_limit)
@@ -213,8 +226,13 @@ def approximate(fields: Fields, start, spec: DeviceSpec | None = None, variant: 
 
 def root_pose(fields: Fields, start, spec: DeviceSpec) -> np.ndarray:
     """Steps 1-4 only: the start snapped onto the target and the root turned to it (4x4, m)."""
-    lay = _layouts(spec)
-    return _align_root(fields.grid, _snap(fields.grid, as_pose(start)), lay.root_points, lay.all_points)
+    return _rest(fields.grid, as_pose(start), _layouts(spec))[1]
+
+
+def _rest(grid, start: np.ndarray, lay: _Layouts) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 1-4: (the snapped pose, the root turned to the target there)."""
+    snapped = _snap(grid, start)
+    return snapped, _align_root(grid, snapped, lay.root_points, lay.all_points)
 
 
 @numba.njit(cache=True)
@@ -285,6 +303,11 @@ def _snap(grid, pose):
     t = s[a] + (s[b] - s[a]) * values[a] / (values[a] - values[b])
     out[:3, 3] = anchor + t * down
     return out
+
+
+def sdf_at(fields: Fields, point) -> float:
+    """The target's signed distance (m, < 0 inside) at a point (3,) m, on the grid."""
+    return float(_interpolate(fields.grid, float(point[0]), float(point[1]), float(point[2]))[0])
 
 
 @numba.njit(cache=True)

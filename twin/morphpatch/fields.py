@@ -44,6 +44,7 @@ rebuild them on every call.
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import sys
 import tempfile
@@ -65,6 +66,8 @@ GRID_SPACING = 0.003  # m, default spacing of the SDF grid
 MARGIN = 0.1  # m, grid padding around the mesh's bounding box (the device's half length)
 MIN_CURVATURE = 1.0 / 0.015  # 1/m: |tr H| of a ridge sharper than a 15 mm radius cylinder
 CURVATURE_SCALE = 0.003  # m: Gaussian sigma over which a ridge's curvature must persist (a few facets' width)
+PATH_DEPTH = 1e-3  # m: an anchor's path may graze the target this deep (the grid's error), no deeper
+PATH_STEP = 1e-3  # m between the samples of such a path
 _VERSION = 2  # bump when the stored arrays change meaning
 
 _MEMORY: dict[str, "Fields"] = {}
@@ -166,6 +169,19 @@ def _interpolate(grid, x, y, z):
     if outside2 > 0.0:
         v += np.sqrt(outside2) * spacing
     return v, gx, gy, gz
+
+
+@numba.njit(cache=True)
+def _path_clear(grid, a, b):
+    """Whether the segment a -> b (m) stays out of the target, to PATH_DEPTH, sampled every PATH_STEP: the
+    approximation's side guarantee (twin.morphpatch.approximation) and the refinement's steps."""
+    n = int(math.sqrt((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2 + (b[2] - a[2]) ** 2) / PATH_STEP) + 1
+    for k in range(n + 1):
+        f = k / n
+        if _interpolate(grid, a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]))[0] \
+                < -PATH_DEPTH:
+            return False
+    return True
 
 
 @numba.njit(cache=True)

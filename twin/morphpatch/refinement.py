@@ -27,6 +27,8 @@ Bounds, so every result is a pose the device can take where the user asked for i
   with the sum falling inwards, steps keep to the surface's tangent plane there (least
   squares alone sinks the root flap's middle up to 17 mm into a convex target to bring
   its 155 mm long ends closer; the device is meant to lie on the target, not in it);
+- the anchor keeps to the side the device came from: a step whose straight path crosses the
+  target (deeper than PATH_DEPTH, twin.morphpatch.fields) is refused like a collision;
 - the anchor stays within ANCHOR_RADIUS of the snapped point (the pipeline's step 1:
   where the user brought the device; unbounded, it drifts up to 150 mm to the easiest
   flat patch, which is not the region the user chose); on the ball's surface, steps
@@ -54,7 +56,7 @@ import numpy as np
 from twin.device.flap_collision import collides, flap_boxes
 from twin.device.kinematics import _chain, hinge_axis_sign, outer_flap
 from twin.device.spec import DeviceSpec
-from twin.morphpatch.fields import Fields, _interpolate
+from twin.morphpatch.fields import Fields, _interpolate, _path_clear
 
 CLEARANCE = 0.0  # m: refined poses keep the flaps out of contact altogether (the gate refuses past 0.1 mm)
 ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
@@ -106,6 +108,9 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius):
             continue
         new_rot = _rodrigues(step[3:6].copy()) @ rot
         new_anchor = _bounded(grid, anchor + step[:3], centre, radius)
+        if not _path_clear(grid, anchor, new_anchor):  # through the target: off the side the device came from
+            damping *= 4.0
+            continue
         trial = _evaluate(grid, device, local, new_rot, new_anchor, new_angles, widths)
         if trial[0] < cost:
             gain = cost - trial[0]

@@ -13,6 +13,7 @@ import tomllib
 from functools import lru_cache
 from pathlib import Path
 
+import igl
 import numpy as np
 import trimesh
 
@@ -20,6 +21,9 @@ from twin.paths import MODELS_DIR
 
 SHAPES_PATH = MODELS_DIR / "shapes" / "shapes.toml"
 
+START_HEIGHT = 0.04  # m: a mesh's default start is this far above its top (mesh_start)
+TOP_BAND = 0.002  # m: the top of a mesh is its upward faces within this of its highest point
+TOP_SUPPORT = 0.002  # m: a start is over a point of the top with solid this far under it (at least half of it)
 MIN_SIZE = 0.01  # m: a target whose bounding box is smaller than this is an error (wrong units?)
 MAX_SIZE = 5.0  # m: ... or larger than this
 
@@ -49,6 +53,30 @@ def load_shape(name: str) -> trimesh.Trimesh:
     if mesh.volume < 0:  # sweeps come out consistently wound, but maybe inside out
         mesh.invert()
     return check_mesh(mesh, name)
+
+
+def mesh_start(mesh: trimesh.Trimesh) -> list[float]:
+    """The default start for a mesh file, [x, y, z mm, roll, pitch, yaw deg]: the device level (its touch
+    surface facing down, -z), START_HEIGHT above the top of the object, over the point of the top nearest
+    the top's middle that has solid under it (TOP_SUPPORT): where a hand lowering the device onto the object
+    first meets it (a box's top face's middle, a sphere's pole, a point of a cup's rim, never the open middle
+    of a cup). Ties go to the larger x, then y, so the start does not depend on the order of the faces."""
+    top = mesh.vertices[:, 2].max()
+    up = (mesh.face_normals[:, 2] > 0.5) & (mesh.triangles_center[:, 2] >= top - TOP_BAND)
+    if not up.any():  # no upward face at the top (a point, an edge): over its highest vertex
+        x, y = mesh.vertices[np.argmax(mesh.vertices[:, 2]), :2]
+        return [float(x) * 1e3, float(y) * 1e3, float(top + START_HEIGHT) * 1e3, 0.0, 0.0, 0.0]
+    triangles = mesh.triangles[up]
+    middle = np.average(mesh.triangles_center[up], axis=0, weights=mesh.area_faces[up])
+    nearest = trimesh.triangles.closest_point(triangles, np.tile(middle, (len(triangles), 1)))
+    candidates = np.vstack([nearest, mesh.triangles_center[up]])
+    below = candidates - [0.0, 0.0, TOP_SUPPORT]
+    supported = igl.signed_distance(below, mesh.vertices, mesh.faces)[0] < -TOP_SUPPORT / 2
+    if supported.any():
+        candidates = candidates[supported]
+    d = np.round(np.linalg.norm(candidates[:, :2] - middle[:2], axis=1), 4)  # to 0.1 mm: ties
+    x, y = candidates[np.lexsort((-candidates[:, 1], -candidates[:, 0], d))[0], :2]
+    return [float(x) * 1e3, float(y) * 1e3, float(top + START_HEIGHT) * 1e3, 0.0, 0.0, 0.0]
 
 
 def load_mesh(path: str | Path) -> trimesh.Trimesh:

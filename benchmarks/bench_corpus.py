@@ -1,0 +1,107 @@
+"""The approximation on shapes nobody tuned it for (tests/shape_corpus.py, issue 22): per shape and variant the
+mean MSD and HD over seeded starts all round it (exact mesh, mm), whether any anchor crossed the solid, the
+default start outside it; ours' time per approximation (median, p99, one core); each shape's field build (s,
+peak memory of the process, MB) against its face count.
+
+    PYTHONPATH=$PWD:$PWD/tests .venv/bin/python benchmarks/bench_corpus.py [--seed 0] [--starts 10] [--out results/corpus]
+
+Writes OUT/corpus.json and OUT/corpus.md; prints the table.
+"""
+
+import os
+
+for var in ("NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[var] = "1"
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import resource  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import igl  # noqa: E402
+import numpy as np  # noqa: E402
+
+from shape_corpus import corpus, starts  # noqa: E402
+from twin.device.spec import load_spec  # noqa: E402
+from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose  # noqa: E402
+from twin.morphpatch.fields import build_fields  # noqa: E402
+from twin.morphpatch.shapes import mesh_start  # noqa: E402
+from twin.morphpatch.surface_metrics import msd_hd  # noqa: E402
+
+PATH_TOLERANCE = 2.5e-3  # m: exact depth a path may graze (the grid's PATH_DEPTH plus its error at sharp edges)
+
+
+def crossed(mesh, a, b) -> bool:
+    """Whether the segment a -> b goes deeper than PATH_TOLERANCE into the solid (exact, every 0.5 mm)."""
+    n = max(2, int(np.linalg.norm(b - a) / 5e-4) + 1)
+    return bool(igl.signed_distance(np.linspace(a, b, n), mesh.vertices, mesh.faces)[0].min() < -PATH_TOLERANCE)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--starts", type=int, default=10)
+    parser.add_argument("--out", default="results/corpus")
+    args = parser.parse_args()
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    spec = load_spec()
+    rows, times = [], []
+    for name, mesh in corpus(args.seed):
+        t0 = time.perf_counter()
+        fields = build_fields(mesh, disk_cache=False)
+        build = time.perf_counter() - t0
+        default = pose_from_mm_deg(mesh_start(mesh))
+        default_out = float(igl.signed_distance(default[None, :3, 3], mesh.vertices, mesh.faces)[0][0])
+        row = {"shape": name, "faces": len(mesh.faces), "extent_mm": (mesh.extents * 1e3).round(0).tolist(),
+               "field_build_s": round(build, 2),
+               "peak_memory_MB": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 0),
+               "default_start_outside_mm": round(default_out * 1e3, 1)}
+        per = {v: [] for v in VARIANTS}
+        crossings = {v: 0 for v in VARIANTS}
+        for k, start in enumerate(starts(mesh, args.starts, args.seed * 1000 + len(rows))):
+            snapped = root_pose(fields, start, spec)[:3, 3]
+            for v in VARIANTS:
+                approximate(fields, start, spec, v) if k == 0 else None  # compiled code loaded before timing
+                a = approximate(fields, start, spec, v)
+                if v == "refined":
+                    times.append(a.time)
+                per[v].append(msd_hd(spec, mesh, a.root_pose, a.angles, a.widths))
+                crossings[v] += crossed(mesh, start[:3, 3], snapped) or crossed(mesh, snapped, a.root_pose[:3, 3])
+        for v in VARIANTS:
+            m = np.array(per[v]) * 1e3
+            row[v] = {"msd_mm": round(float(m[:, 0].mean()), 2), "hd_mm": round(float(m[:, 1].mean()), 2),
+                      "worst_start_msd_mm": round(float(m[:, 0].max()), 2), "crossed": crossings[v]}
+        full, ours = np.array(per["full"])[:, 0], np.array(per["refined"])[:, 0]
+        row["ours_below_full"] = round(float(1 - ours.mean() / full.mean()), 3)
+        row["ours_worse_by_mm"] = round(float((ours - full).max() * 1e3), 2)
+        rows.append(row)
+        print(f"{name:16s} faces {row['faces']:6d} build {build:5.1f} s  MSD full {row['full']['msd_mm']:6.2f} "
+              f"no_hcevf {row['no_hcevf']['msd_mm']:6.2f} ours {row['refined']['msd_mm']:6.2f} mm "
+              f"({row['ours_below_full']:+.0%}), worst start +{row['ours_worse_by_mm']:.2f} mm; crossed "
+              f"{sum(crossings.values())}; default start {row['default_start_outside_mm']} mm out", flush=True)
+    t = np.array(times) * 1e3
+    summary = {"seed": args.seed, "starts_per_shape": args.starts, "shapes": len(rows),
+               "ours_time_ms": {"median": round(float(np.median(t)), 2), "p99": round(float(np.percentile(t, 99)), 2)},
+               "mean": {v: {"msd_mm": round(float(np.mean([r[v]["msd_mm"] for r in rows])), 2),
+                            "hd_mm": round(float(np.mean([r[v]["hd_mm"] for r in rows])), 2)} for v in VARIANTS},
+               "shapes_where_ours_is_20pct_below_full": sum(r["ours_below_full"] >= 0.2 for r in rows
+                                                           if r["full"]["msd_mm"] > 1.0),
+               "shapes_where_full_is_above_1mm": sum(r["full"]["msd_mm"] > 1.0 for r in rows),
+               "anchors_that_crossed": sum(r[v]["crossed"] for r in rows for v in VARIANTS)}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "corpus.json").write_text(json.dumps({"summary": summary, "shapes": rows}, indent=2) + "\n")
+    lines = ["| shape | faces | build s | full MSD / HD mm | no_hcevf | ours | ours below full | worst start |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        lines.append(f"| {r['shape']} | {r['faces']} | {r['field_build_s']} | {r['full']['msd_mm']} / {r['full']['hd_mm']} | "
+                     f"{r['no_hcevf']['msd_mm']} / {r['no_hcevf']['hd_mm']} | {r['refined']['msd_mm']} / "
+                     f"{r['refined']['hd_mm']} | {r['ours_below_full']:.0%} | +{r['ours_worse_by_mm']} mm |")
+    (out / "corpus.md").write_text("\n".join(lines) + "\n")
+    print(json.dumps(summary, indent=2))
+
+
+if __name__ == "__main__":
+    main()
