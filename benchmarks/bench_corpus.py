@@ -79,7 +79,7 @@ def main() -> None:
         rows.append(row)
         print(f"{name:16s} faces {row['faces']:6d} build {build:5.1f} s  MSD full {row['full']['msd_mm']:6.2f} "
               f"no_hcevf {row['no_hcevf']['msd_mm']:6.2f} ours {row['refined']['msd_mm']:6.2f} mm "
-              f"({row['ours_below_full']:+.0%}), worst start +{row['ours_worse_by_mm']:.2f} mm; crossed "
+              f"({row['ours_below_full']:+.0%} below full), worst start {row['ours_worse_by_mm']:+.2f} mm; crossed "
               f"{sum(crossings.values())}; default start {row['default_start_outside_mm']} mm out", flush=True)
     t = np.array(times) * 1e3
     summary = {"seed": args.seed, "starts_per_shape": args.starts, "shapes": len(rows),
@@ -98,7 +98,7 @@ def main() -> None:
     for r in rows:
         lines.append(f"| {r['shape']} | {r['faces']} | {r['field_build_s']} | {r['full']['msd_mm']} / {r['full']['hd_mm']} | "
                      f"{r['no_hcevf']['msd_mm']} / {r['no_hcevf']['hd_mm']} | {r['refined']['msd_mm']} / "
-                     f"{r['refined']['hd_mm']} | {r['ours_below_full']:.0%} | +{r['ours_worse_by_mm']} mm |")
+                     f"{r['refined']['hd_mm']} | {r['ours_below_full']:.0%} | {r['ours_worse_by_mm']:+.2f} mm |")
     (out / "corpus.md").write_text("\n".join(lines) + "\n")
     print(json.dumps(summary, indent=2))
 
