@@ -58,10 +58,10 @@ def test_the_default_start_is_above_the_top_where_a_hand_lowers_the_device():
     assert INNER * 1e3 - 1 <= math.hypot(x, y) <= OUTER * 1e3 + 1
 
 
-def test_a_start_inside_the_target_is_refused(cup_fields):
-    _, fields = cup_fields
-    with pytest.raises(ValueError, match="inside the target"):
-        approximate(fields, pose_matrix([0.0425, 0.0, 0.05], np.eye(3)))  # in the cup's wall
+def test_a_start_inside_the_target_is_refused(tmp_path):
+    cup().export(tmp_path / "cup.stl")
+    out = vrscroll("approximate", "--mesh", tmp_path / "cup.stl", "--start", "42.5,0,50,0,0,0")  # in the wall
+    assert out.returncode == 2 and "starts inside the target" in out.stderr and "Traceback" not in out.stderr
 
 
 def test_a_cup_narrower_than_the_device_from_above_and_from_the_side(spec, cup_fields):

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 
+import igl
 import numpy as np
 
 from twin.commands.options import add_json, add_target, output_file
@@ -48,7 +49,8 @@ def _parse_start(text: str) -> list[float]:
 
 
 def target_and_start(args):
-    """(name, mesh, start as [x,y,z mm, roll,pitch,yaw deg], start pose 4x4) from --shape/--mesh and --start."""
+    """(name, mesh, start as [x,y,z mm, roll,pitch,yaw deg], start pose 4x4) from --shape/--mesh and --start;
+    a start inside the target is refused (a UserError)."""
     if args.shape:
         mesh, name = load_shape(args.shape), args.shape
         default_start = shape_table()[args.shape]["start"]
@@ -56,7 +58,11 @@ def target_and_start(args):
         mesh, name = load_mesh(args.mesh), args.mesh
         default_start = mesh_start(mesh)
     start = _parse_start(args.start) if args.start else default_start
-    return name, mesh, start, pose_from_mm_deg(start)
+    pose = pose_from_mm_deg(start)
+    if igl.signed_distance(pose[None, :3, 3], mesh.vertices, mesh.faces)[0][0] < 0:
+        raise UserError(f"--start {','.join(f'{v:g}' for v in start)}: the anchor starts inside the target; give a "
+                        "start outside it, on the side the device comes from (docs/approximation.md, Starts)")
+    return name, mesh, start, pose
 
 
 def write_result(args, name, start, result, mesh, spec, extra: dict | None = None) -> None:

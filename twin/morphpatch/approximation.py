@@ -37,8 +37,9 @@ The side the device came from (every variant): the anchor's path from the start 
 to the snapped point, then the pipeline's slide and each of the refinement's steps, each
 straight) never crosses the target's solid. Step 1 reaches the surface without crossing
 it (the first entry along -z, or the closest surface point); step 5 is undone where its
-slide would cross the solid; the refinement refuses a step whose path would. The start must
-be outside the target (ValueError otherwise). What it does not yet guarantee: a device
+slide would cross the solid; the refinement refuses a step whose path would. (A start
+inside the target, which the live service meets when a hand pushes the device into a
+virtual object, backs out along +z; the commands refuse such a start.) What it does not yet guarantee: a device
 wider than a cavity it is lowered into (a cup from above its opening) can still rest
 its anchor inside it (docs/approximation.md, "Starts and the approached side").
 Variant "refined" (ours, beyond the paper) is "full" followed by a bounded local
@@ -203,8 +204,6 @@ def approximate(fields: Fields, start, spec: DeviceSpec | None = None, variant: 
         raise ValueError(f"unknown variant {variant!r}; choose from {', '.join(VARIANTS)}")
     spec = load_spec() if spec is None else spec
     start = as_pose(start)
-    if sdf_at(fields, start[:3, 3]) < 0.0:
-        raise ValueError("the start is inside the target: give one outside it, on the side the device comes from")
     t0 = time.perf_counter()
     lay = _layouts(spec)
     snapped, pose = _rest(fields.grid, start, lay)
@@ -303,11 +302,6 @@ def _snap(grid, pose):
     t = s[a] + (s[b] - s[a]) * values[a] / (values[a] - values[b])
     out[:3, 3] = anchor + t * down
     return out
-
-
-def sdf_at(fields: Fields, point) -> float:
-    """The target's signed distance (m, < 0 inside) at a point (3,) m, on the grid."""
-    return float(_interpolate(fields.grid, float(point[0]), float(point[1]), float(point[2]))[0])
 
 
 @numba.njit(cache=True)
