@@ -22,21 +22,12 @@ from pathlib import Path  # noqa: E402
 import igl  # noqa: E402
 import numpy as np  # noqa: E402
 
-from shape_corpus import corpus, starts  # noqa: E402
+from shape_corpus import corpus, crossed, starts  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
 from twin.morphpatch.shapes import mesh_start  # noqa: E402
 from twin.morphpatch.surface_metrics import msd_hd  # noqa: E402
-
-PATH_TOLERANCE = 2.5e-3  # m: exact depth a path may graze (the grid's PATH_DEPTH plus its error at sharp edges)
-
-
-def crossed(mesh, a, b) -> bool:
-    """Whether the segment a -> b goes deeper than PATH_TOLERANCE into the solid (exact, every 0.5 mm)."""
-    n = max(2, int(np.linalg.norm(b - a) / 5e-4) + 1)
-    return bool(igl.signed_distance(np.linspace(a, b, n), mesh.vertices, mesh.faces)[0].min() < -PATH_TOLERANCE)
-
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import math
 
+import igl
 import numpy as np
 import trimesh
 
+PATH_TOLERANCE = 2.5e-3  # m, exact: the grid's PATH_DEPTH (1 mm) plus its rounding of sharp edges
 FAMILIES = ("superquadric", "bumpy_sphere", "blob", "height_field", "bowl", "cup", "plate", "torus")
 PER_FAMILY = 5  # 8 families x 5 = 40 shapes
 
@@ -148,3 +150,11 @@ def corpus(seed: int = 0, families=FAMILIES, per_family: int = PER_FAMILY) -> li
             assert mesh.is_watertight and mesh.volume > 0, (family, i)
             out.append((f"{family}_{i}", mesh))
     return out
+
+
+def crossed(mesh: trimesh.Trimesh, a, b, tolerance: float = PATH_TOLERANCE) -> bool:
+    """Whether the segment a -> b (m) goes deeper than `tolerance` into the solid (exact, every 0.5 mm): the
+    approximation checks its anchor's paths on the 3 mm grid to 1 mm, which rounds a sharp edge off."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    n = max(2, int(np.linalg.norm(b - a) / 5e-4) + 1)
+    return bool(igl.signed_distance(np.linspace(a, b, n), mesh.vertices, mesh.faces)[0].min() < -tolerance)

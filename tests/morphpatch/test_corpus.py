@@ -5,21 +5,12 @@ each. How well each variant fits them is measured, not asserted: benchmarks/benc
 docs/approximation.md "Shapes nobody tuned for"."""
 
 import igl
-import numpy as np
 import pytest
 
-from shape_corpus import corpus, starts
+from shape_corpus import corpus, crossed, starts
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import mesh_start
-
-PATH_TOLERANCE = 2.5e-3  # m, exact: the grid's PATH_DEPTH (1 mm) plus its rounding of sharp edges
-
-
-def crossed(mesh, a, b) -> bool:
-    n = max(2, int(np.linalg.norm(b - a) / 5e-4) + 1)
-    return bool(igl.signed_distance(np.linspace(a, b, n), mesh.vertices, mesh.faces)[0].min() < -PATH_TOLERANCE)
-
 
 def check_shapes(spec, shapes, n_starts):
     for i, (name, mesh) in enumerate(shapes):

@@ -11,6 +11,7 @@ import pytest
 import trimesh
 
 from cli import vrscroll
+from shape_corpus import crossed
 from twin.device.kinematics import pose_matrix
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose
 from twin.morphpatch.fields import build_fields
@@ -34,13 +35,6 @@ def cup_fields():
 def signed(mesh, points) -> np.ndarray:
     """Exact signed distance (m, < 0 inside) of points (N, 3)."""
     return igl.signed_distance(np.asarray(points, float), mesh.vertices, mesh.faces)[0]
-
-
-def path_clear(mesh, a, b, depth=2.5e-3) -> bool:
-    """The segment a -> b never deeper than `depth` in the solid (exact, every 0.5 mm): the approximation
-    checks its paths on the 3 mm grid to PATH_DEPTH (1 mm), which rounds a sharp edge off by up to ~1.5 mm."""
-    n = max(2, int(np.linalg.norm(np.subtract(b, a)) / 5e-4) + 1)
-    return bool(signed(mesh, np.linspace(a, b, n)).min() >= -depth)
 
 
 def test_the_default_start_is_above_the_top_where_a_hand_lowers_the_device():
@@ -95,10 +89,10 @@ def test_the_anchor_never_goes_through_the_solid_from_starts_around_a_target(spe
             x /= np.linalg.norm(x)
             start = pose_matrix(position, np.column_stack([x, np.cross(z, x), z]))
             snapped = root_pose(f, start, spec)[:3, 3]
-            assert path_clear(target, position, snapped)
+            assert not crossed(target, position, snapped)
             for variant in VARIANTS:
                 anchor = approximate(f, start, spec, variant).root_pose[:3, 3]
-                assert path_clear(target, snapped, anchor), (variant, position, anchor)
+                assert not crossed(target, snapped, anchor), (variant, position, anchor)
                 assert np.linalg.norm(anchor - position) <= 0.25 + 0.02 + 1e-6  # SNAP_REACH + ANCHOR_RADIUS
 
 
