@@ -42,11 +42,7 @@ A step is kept only when it lowers the sum, so the result is never worse than it
 on the grid's objective. The search ends when the model expects a gain below TOLERANCE of
 the sum, or after two kept steps in a row that each gained less: one small kept step is
 often a step cut short by a bound (the anchor's ball, its depth) or a refused collision,
-and ending there left a torus start 0.81 mm above the pipeline's MSD. The sum weighs buried
-samples more than the MSD does: where the end's mean |S| on the grid (the MSD's estimate)
-is above the start's, the start (the pipeline's pose, unrolled and bounded) is returned:
-on two tori of the shapes nobody tuned for the end was 33 % and 42 % above the pipeline's
-MSD. SI units (m, rad).
+and ending there left a torus start 0.81 mm above the pipeline's MSD. SI units (m, rad).
 """
 
 from __future__ import annotations
@@ -97,7 +93,6 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius):
     rot = root_pose[:3, :3].copy()
     angles = _uncurled(boxes, angles)
     anchor = _bounded(grid, root_pose[:3, 3].copy(), centre, radius)
-    first = (rot.copy(), anchor.copy(), angles.copy())
     cost, jtj, jtr, s_anchor, g_anchor = _evaluate(grid, device, local, rot, anchor, angles, widths)
     damping = DAMPING
     small = 0
@@ -127,32 +122,10 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius):
                 break
         else:
             damping *= 4.0
-    if _mean_distance(grid, device, local, *first, widths) < _mean_distance(grid, device, local, rot, anchor, angles,
-                                                                              widths):
-        rot, anchor, angles = first  # what the search lowered is not the mean distance here: keep where it began
     pose = np.eye(4)
     pose[:3, :3] = rot
     pose[:3, 3] = anchor
     return pose, angles
-
-
-@numba.njit(cache=True)
-def _mean_distance(grid, device, local, rot, anchor, angles, widths):
-    """Mean |S| (m, on the grid) over the flaps' samples at one state: the MSD's estimate."""
-    _, hinges, root_flap, _ = device
-    pose = np.eye(4)
-    pose[:3, :3] = rot
-    pose[:3, 3] = anchor
-    frames = _chain(hinges[1] * angles, widths, root_flap, pose)
-    total = 0.0
-    for f in range(local.shape[0]):
-        for p in range(local.shape[1]):
-            lx, ly, lz = local[f, p, 0], local[f, p, 1], local[f, p, 2]
-            x = frames[f, 0, 3] + frames[f, 0, 0] * lx + frames[f, 0, 1] * ly + frames[f, 0, 2] * lz
-            y = frames[f, 1, 3] + frames[f, 1, 0] * lx + frames[f, 1, 1] * ly + frames[f, 1, 2] * lz
-            z = frames[f, 2, 3] + frames[f, 2, 0] * lx + frames[f, 2, 1] * ly + frames[f, 2, 2] * lz
-            total += abs(_interpolate(grid, x, y, z)[0])
-    return total / (local.shape[0] * local.shape[1])
 
 
 @numba.njit(cache=True)
