@@ -33,8 +33,11 @@ def test_an_interrupt_e_stops_the_device(command, sig, emulator, tmp_path):
     # a tolerance no slow plant exceeds: the command is still watching the move when the signal comes
     args = {"mirror": ["mirror", "--angles=60,-45,20,30,90,-100", "--settle-limit", "5", "--tolerance-deg", "170"],
             "hil": ["hil", str(scenario), "--out", str(tmp_path / "run"), "--tolerance-deg", "170"]}[command]
+    # SIGINT as a terminal gives it, whatever this run inherited: a suite started in the background by a
+    # non-interactive shell has SIGINT ignored, and a child that starts so never sees Ctrl-C
     proc = subprocess.Popen(cli_command(*args, "--serial", emu.port, "--log", str(tmp_path / "session.jsonl")),
-                            env=cli_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            env=cli_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     try:
         deadline = time.monotonic() + 60
         while not _rx(emu, "SET_TARGETS") and time.monotonic() < deadline and proc.poll() is None:
