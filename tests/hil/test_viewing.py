@@ -15,6 +15,7 @@ import pytest
 import trimesh
 
 from cli import vrscroll as vrscroll_process
+from conftest import FIXED_PLANT
 from rerun_read import read_rrd
 from twin.cli import main as vrscroll
 from twin.device.mjcf import load_model
@@ -23,6 +24,7 @@ from twin.formats.scenario import read_scenario
 from twin.hil.compare import METRICS, compare
 from twin.hil.mirror import mirror
 from twin.hil.record import run_hil
+from twin.link.emulator_process import EmulatorProcess
 from twin.link.serial_link import Link
 from twin.live.morph import TwinMorpher
 from twin.sim.gate import check_move
@@ -41,16 +43,21 @@ angles_deg = [-15, 30, -20, 15, 0, -25]
 """
 
 
-@pytest.fixture
-def runs(emulator, tmp_path, spec):
-    """Two recorded runs of one scenario on the emulator (RUN folders a and b)."""
-    emu = emulator()
-    (tmp_path / "s.toml").write_text(TWO_STEPS)
-    with Link(emu.port) as link:
-        assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
-        for name in "ab":
-            run_hil(link, spec, read_scenario(tmp_path / "s.toml", spec), tmp_path / name)
-    return tmp_path / "a", tmp_path / "b"
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory, spec):
+    """Two recorded runs of one scenario on the emulator (RUN folders a and b), recorded once for the module
+    (the tests only read them)."""
+    folder = tmp_path_factory.mktemp("runs")
+    emu = EmulatorProcess(folder / "emulator.jsonl", *FIXED_PLANT, "--zeroed")
+    try:
+        (folder / "s.toml").write_text(TWO_STEPS)
+        with Link(emu.port) as link:
+            assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
+            for name in "ab":
+                run_hil(link, spec, read_scenario(folder / "s.toml", spec), folder / name)
+    finally:
+        emu.stop()
+    return folder / "a", folder / "b"
 
 
 def _no_display(monkeypatch):
