@@ -261,3 +261,15 @@ def test_mirror_simulate_and_a_move_on_a_target_write_rerun_recordings(spec, emu
     colours = np.array(d[("/world/target", "Mesh3D:vertex_colors")][0])  # logged once: one row, a colour per vertex
     assert len(d[("/world/target", "Mesh3D:vertex_positions")][0]) == len(colours) == len(box.vertices)
     assert np.ptp(colours) > 0  # the top corners nearer the device than the bottom ones
+
+
+def test_a_run_the_device_stopped_names_the_fault_and_can_still_be_watched(emulator, tmp_path, spec, monkeypatch,
+                                                                           capsys):
+    emu = emulator("--jam-hinge", "2", "--jam-after", "0.3")  # hinge 2 jams mid-run: the device's stall check stops it
+    (tmp_path / "s.toml").write_text(TWO_STEPS)
+    assert vrscroll(["hil", str(tmp_path / "s.toml"), "--serial", emu.port, "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert "device stopped itself" in err and "STALL on hinge 2" in err, err
+    _no_display(monkeypatch)
+    assert vrscroll(["view", str(tmp_path / "run")]) == 0  # what was recorded up to the stop
+    assert (tmp_path / "run" / "view.mp4").stat().st_size > 0

@@ -26,7 +26,7 @@ from twin.formats.run import run_start, write_run_meta
 from twin.formats.scenario import Scenario
 from twin.formats.trace import TraceWriter
 from twin.hil.device_gains import device_gains, push_gains, restore_gains
-from twin.hil.mirror import mirror, wait_for_rest
+from twin.hil.mirror import faults_text, mirror, wait_for_rest
 from twin.link import protocol as P
 from twin.sim.gate import GateRefused, check_scenario, enforce
 from twin.sim.replay import replay_targets, twin_at_start
@@ -128,7 +128,9 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
                 if since > 3600:
                     continue  # from before the first target took effect
                 if fr.state in (P.State.FAULT, P.State.ESTOP):
-                    raise RuntimeError(f"device stopped itself at t={since:.3f} s (faults {fr.faults})")
+                    hinge = "" if fr.fault_hinge == 0xFF else f" on hinge {fr.fault_hinge}"
+                    raise RuntimeError(f"device stopped itself at t={since:.3f} s: {faults_text(fr.faults)}{hinge}"
+                                       " (vrscroll view RUN shows the run up to there)")
                 dev_w.write(since, target_deg=np.degrees(angle_from_counts(spec, fr.targets)),
                             angle_deg=np.degrees(angle_from_counts(spec, fr.counts)), counts=fr.counts,
                             duty=np.asarray(fr.duty) / P.DUTY_SCALE, current_A=np.asarray(fr.current_ma) / 1000.0)
