@@ -27,6 +27,20 @@ SHEET_TILES = 8  # moments on a contact sheet
 CAMERA = {"azimuth": 90.0, "elevation": -28.0, "distance": 0.3}  # deg, deg, m: along the hinge axes (+y)
 
 
+def device_mjspec(spec: DeviceSpec) -> mujoco.MjSpec:
+    """The device's MJCF as an MjSpec without its keyframes (so that it can be attached, lit, recoloured)."""
+    s = mujoco.MjSpec.from_string(mjcf(spec))
+    for key in list(s.keys):
+        s.delete(key)
+    return s
+
+
+def hinge_qadr(model: mujoco.MjModel, n: int, prefix: str = "") -> np.ndarray:
+    """qpos addresses (2, n): each hinge's, then its gearbox output's (both shown at the hinge's angle: the
+    backlash between them is too small to see)."""
+    return np.array([[model.joint(f"{prefix}{j}{k}").qposadr[0] for k in range(n)] for j in ("hinge", "gear")])
+
+
 def offscreen_missing() -> str | None:
     """None where MuJoCo can render off-screen here; else a one-line reason naming what is missing."""
     try:
@@ -44,9 +58,7 @@ class DeviceCamera:
     """Renders the device (spec's MJCF) at given hinge angles (rad), one panel per call, from a fixed camera."""
 
     def __init__(self, spec: DeviceSpec, size=SIZE, rgba=None):
-        s = mujoco.MjSpec.from_string(mjcf(spec))
-        for key in list(s.keys):
-            s.delete(key)
+        s = device_mjspec(spec)
         s.worldbody.add_light(pos=[0.0, -0.3, 0.6], dir=[0.0, 0.45, -0.9], type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
         if rgba is not None:
             for g in s.geoms:
@@ -55,8 +67,7 @@ class DeviceCamera:
         self.model = s.compile()
         self.data = mujoco.MjData(self.model)
         self.spec = spec
-        self.qadr = np.array([[self.model.joint(f"{j}{k}").qposadr[0] for k in range(spec.n_hinges)]
-                              for j in ("hinge", "gear")])
+        self.qadr = hinge_qadr(self.model, spec.n_hinges)
         self.renderer = mujoco.Renderer(self.model, *size)
         self.camera = mujoco.MjvCamera()
         self.camera.type = mujoco.mjtCamera.mjCAMERA_FREE

@@ -25,7 +25,7 @@ from twin.device.mjcf import mjcf
 from twin.device.spec import DeviceSpec
 from twin.errors import UserError
 from twin.formats.run import Run
-from viz.render import FPS, TWIN_RGBA, frame_times, resample
+from viz.render import FPS, TWIN_RGBA, frame_times, hinge_qadr, resample
 
 APP = "vrscroll"
 DEVICE_RGBA = (0.85, 0.85, 0.82, 1.0)
@@ -50,7 +50,7 @@ def _geom_poses(spec: DeviceSpec, model, angles: np.ndarray, root: np.ndarray) -
     """Per frame and box geom: world position (frames, g, 3) m and quaternion (frames, g, 4) xyzw, the device's
     anchor at `root` (4x4, m)."""
     data = mujoco.MjData(model)
-    qadr = np.array([[model.joint(f"{j}{k}").qposadr[0] for k in range(spec.n_hinges)] for j in ("hinge", "gear")])
+    qadr = hinge_qadr(model, spec.n_hinges)
     geoms = _box_geoms(model)
     pos, quat = np.zeros((len(angles), len(geoms), 3)), np.zeros((len(angles), len(geoms), 4))
     q = np.zeros(4)

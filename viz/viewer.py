@@ -20,7 +20,7 @@ from twin.device.mjcf import mjcf
 from twin.device.spec import DeviceSpec
 from twin.errors import UserError
 from twin.formats.run import Run
-from viz.render import offscreen_missing, write_views
+from viz.render import device_mjspec, hinge_qadr, offscreen_missing, resample, write_views
 
 TWIN_ALPHA = 0.3  # opacity of the twin's flaps beside the device's
 TWIN_PREFIX = "twin/"
@@ -34,29 +34,16 @@ def display_missing() -> str | None:
     return "no display (neither DISPLAY nor WAYLAND_DISPLAY is set): MuJoCo's viewer needs one; nothing was shown"
 
 
-def _device(spec: DeviceSpec) -> mujoco.MjSpec:
-    s = mujoco.MjSpec.from_string(mjcf(spec))
-    for key in list(s.keys):
-        s.delete(key)
-    return s
-
-
 def pair_model(spec: DeviceSpec) -> mujoco.MjModel:
     """Two devices in one model, in the same place: the device's (joints hinge0..) and the twin's
     (joints twin/hinge0.., every geom translucent)."""
-    device, twin = _device(spec), _device(spec)
+    device, twin = device_mjspec(spec), device_mjspec(spec)
     device.attach(twin, prefix=TWIN_PREFIX, frame=device.worldbody.add_frame())
     for g in device.geoms:
         if g.name.startswith(TWIN_PREFIX) or g.parent.name.startswith(TWIN_PREFIX):
             g.material = ""
             g.rgba = [0.3, 0.6, 1.0, TWIN_ALPHA]
     return device.compile()
-
-
-def hinge_qadr(model: mujoco.MjModel, n: int, prefix: str = "") -> np.ndarray:
-    """qpos addresses (2, n): each hinge's, then its gearbox output's (both shown at the hinge's angle: the
-    backlash between them is too small to see)."""
-    return np.array([[model.joint(f"{prefix}{j}{k}").qposadr[0] for k in range(n)] for j in ("hinge", "gear")])
 
 
 def run_frames(run: Run, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -69,7 +56,7 @@ def run_frames(run: Run, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
     t = dev.time
     device = dev.angle + 0.5 * spec.rad_per_count
     flap = tw.true_angle if tw.true_angle is not None else tw.angle
-    twin = np.stack([np.interp(t, tw.time, flap[:, k]) for k in range(tw.n_hinges)], axis=1)
+    twin = resample(tw.time, flap, t)
     return t, np.concatenate([device, twin], axis=1)
 
 

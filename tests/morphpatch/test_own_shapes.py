@@ -11,8 +11,7 @@ import pytest
 import trimesh
 
 from cli import vrscroll
-from shape_corpus import crossed
-from twin.device.kinematics import pose_matrix
+from shape_corpus import crossed, starts
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import mesh_start
@@ -75,19 +74,11 @@ def test_a_cup_narrower_than_the_device_from_above_and_from_the_side(spec, cup_f
 
 def test_the_anchor_never_goes_through_the_solid_from_starts_around_a_target(spec, cup_fields):
     mesh, fields = cup_fields
-    rng = np.random.default_rng(22)
     torus = trimesh.creation.torus(0.07, 0.025)
     torus_fields = build_fields(torus)
     for target, f in ((mesh, fields), (torus, torus_fields)):
-        centre = target.bounds.mean(axis=0)
-        for _ in range(10):
-            direction = rng.normal(size=3)
-            direction /= np.linalg.norm(direction)
-            position = centre + direction * (np.linalg.norm(target.extents) / 2 + 0.04)
-            z = -direction  # the device's -z points back at the target
-            x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
-            x /= np.linalg.norm(x)
-            start = pose_matrix(position, np.column_stack([x, np.cross(z, x), z]))
+        for start in starts(target, 10, seed=22):  # all round it, facing it
+            position = start[:3, 3]
             snapped = root_pose(f, start, spec)[:3, 3]
             assert not crossed(target, position, snapped)
             for variant in VARIANTS:

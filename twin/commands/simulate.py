@@ -21,6 +21,7 @@ from twin.commands.options import (
     within,
     write_json,
 )
+from twin.checks import cell, hinge_angles
 from twin.errors import UserError
 from twin.formats.target import read_approximation
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
@@ -55,17 +56,6 @@ def add_arguments(p) -> None:
     add_device_option(p)
 
 
-def _angles(text: str, n: int, what: str) -> list[float]:
-    try:
-        values = [float(v) for v in text]
-    except ValueError:
-        raise UserError(f"{what}: expected {n} hinge targets in degrees or one approximation file, got "
-                        f"{' '.join(text)!r}") from None
-    if len(values) != n or not all(math.isfinite(v) for v in values):
-        raise UserError(f"{what}: expected {n} hinge targets in degrees, finite, got {len(values)}")
-    return values
-
-
 def run(args) -> int:
     profile = profile_of(args)
     spec = profile.spec
@@ -74,17 +64,18 @@ def run(args) -> int:
         approx = read_approximation(args.targets[0], spec)
         targets = approx["angles"]
     else:
-        targets = np.radians(_angles(args.targets, spec.n_hinges, "targets"))
-    start = np.radians(_angles(args.start.split(","), spec.n_hinges, "--from")) if args.start else \
-        np.zeros(spec.n_hinges)
+        targets = np.radians([cell(v, f"target {k}") for k, v in enumerate(args.targets)])
     check_targets(spec, targets)
-    check_targets(spec, start)
+    start = np.zeros(spec.n_hinges) if not args.start else hinge_angles(
+        [cell(v, f"--from[{k}]") for k, v in enumerate(args.start.split(","))], spec.n_hinges, spec.hinge_limit, "--from")
     twin = Twin(spec, profile.gains)
     gate = check_move(spec, start, targets, profile.gains, settle_limit=args.max_time, twin=twin)
     if gate.prediction is None:
         raise UserError(gate.refusal())
-    twin.reset(start)
-    trace = twin.move_to(targets, max_time=args.max_time, stop_when_settled=not args.hold)
+    trace = gate.prediction  # the move until settled, as simulated by the gate
+    if args.hold:  # ... or the whole --max-time
+        twin.reset(start)
+        trace = twin.move_to(targets, max_time=args.max_time, stop_when_settled=False)
     rows = move_report(twin.spec, trace)
     summary = {
         "device_profile": profile.label,
