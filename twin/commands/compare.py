@@ -3,10 +3,7 @@ per hinge and run the device-twin RMSE, largest error, settle times and overshoo
 
 from __future__ import annotations
 
-import json
-import math
-
-from twin.commands.options import add_device_option, output_file, profile_line, profile_of
+from twin.commands.options import add_device_option, add_json, output_file, profile_line, profile_of, write_json
 from twin.errors import UserError
 from twin.formats.run import read_run
 from twin.hil.compare import METRICS, compare, metrics_text
@@ -17,7 +14,7 @@ def add_arguments(p) -> None:
     p.add_argument("runs", nargs="+", metavar="RUN", help="HIL run folders (vrscroll hil --out), two or more")
     p.add_argument("--png", default="compare.png", type=output_file,
                    help="plot: per hinge RMSE of each run, and device - twin over time (default compare.png)")
-    p.add_argument("--json", metavar="FILE", type=output_file, help="write the metrics per run as JSON")
+    add_json(p, "the metrics per run and what each means")
     add_device_option(p)
 
 
@@ -42,10 +39,6 @@ def run(args) -> int:
           + "  ".join(f"h{a['hinge']} x{b['rmse_deg'] / a['rmse_deg']:.2f}" if a["rmse_deg"] > 0 else f"h{a['hinge']} -"
                       for a, b in zip(base, last)))
     runs_figure(args.png, [(p, r) for p, r in zip(args.runs, runs)], table, spec.n_hinges)
-    print(f"plot: {args.png}; metrics: " + "; ".join(f"{label} = {meaning}" for _, label, meaning in METRICS[:1]))
-    if args.json:
-        doc = {p: [{k: (v if not (isinstance(v, float) and math.isnan(v)) else None) for k, v in row.items()}
-                   for row in rows] for p, rows in table.items()}
-        with open(args.json, "w") as f:
-            json.dump({"runs": doc, "metrics": {k: m for k, _, m in METRICS}}, f, indent=2)
+    print(f"plot: {args.png} (what each metric means: a run's report.md, or --json)")
+    write_json(args.json, {"runs": table, "metrics": {k: m for k, _, m in METRICS}})
     return 0

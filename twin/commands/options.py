@@ -107,11 +107,24 @@ def json_to_stdout(args) -> bool:
     return getattr(args, "json", None) == "-"
 
 
+def _json_safe(value):
+    """value with every NaN or infinite float as None (JSON's null: not defined, e.g. a move that did not
+    settle); JSON has no NaN, and json.dumps would write one anyway."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
 def write_json(dest: str | None, doc) -> None:
-    """The result as JSON to `dest` (a file, or - for standard output); nothing when dest is None."""
+    """The result as JSON to `dest` (a file, or - for standard output; NaN and infinities as null); nothing
+    when dest is None."""
     if dest is None:
         return
-    text = json.dumps(doc, indent=2) + "\n"
+    text = json.dumps(_json_safe(doc), indent=2, allow_nan=False) + "\n"
     if dest == "-":
         sys.stdout.write(text)
     else:

@@ -134,7 +134,7 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
     hold = twin.hold(spec.settle_hold)  # keep simulating: the hold current is what the device draws at rest
 
     checks.append(_collision_check(spec, twin, trace, collision_step))
-    checks.append(_settle_check(spec, trace, 0, settle_limit, "all hinges"))
+    checks.append(_settle_check(spec, trace, 0, settle_limit, ""))
     checks += _current_checks(spec, trace, hold, peak_current_limit, hold_current_limit)
     checks.append(_thermal_check(moved, _heat(twin)))
     return GateReport(start, targets, checks, trace)
@@ -163,8 +163,7 @@ def check_scenario(spec: DeviceSpec, scenario: Scenario, gains=None, settle_limi
     hold = twin.hold(spec.settle_hold)
 
     checks.append(_collision_check(spec, twin, trace, collision_step))
-    checks.append(_settle_check(spec, trace, int(round(scenario.times[-1] / dt)), settle_limit,
-                                "the last target, all hinges"))
+    checks.append(_settle_check(spec, trace, int(round(scenario.times[-1] / dt)), settle_limit, "the last target"))
     checks += _current_checks(spec, trace, hold, peak_current_limit, hold_current_limit)
     checks.append(_thermal_check(moved, _heat(twin)))
     return GateReport(start, last, checks, trace)
@@ -209,15 +208,16 @@ def _collision_check(spec: DeviceSpec, twin: Twin, trace: Trace, collision_step:
     return Check("collision", hit is None, deepest * 1000, 0.0, "mm", hit or "no flap-on-flap contact")
 
 
-def _settle_check(spec: DeviceSpec, trace: Trace, first: int, settle_limit: float, what: str) -> Check:
-    """The move's settle time (response.move_settle_time) from row `first` on, against settle_limit s."""
+def _settle_check(spec: DeviceSpec, trace: Trace, first: int, settle_limit: float, scope: str) -> Check:
+    """The move's settle time (response.move_settle_time) from row `first` on, against settle_limit s; scope
+    names the target checked in the detail ("" for the one move)."""
     t_settle = move_settle_time(spec, trace.time[first:], trace.counts[first:], trace.target_counts[first:])
     if math.isfinite(t_settle) and t_settle <= settle_limit:
-        return Check("settle", True, t_settle, settle_limit, "s", what)
+        return Check("settle", True, t_settle, settle_limit, "s", f"{scope}, all hinges" if scope else "all hinges")
     err = np.abs(trace.target_counts[-1] - trace.counts[-1])
     worst = int(np.argmax(err))
     return Check("settle", False, math.inf, settle_limit, "s",
-                 f"{what.split(',')[0]}: hinge {worst} still {int(err[worst])} counts off at the end")
+                 (f"{scope}: " if scope else "") + f"hinge {worst} still {int(err[worst])} counts off at the end")
 
 
 def current_limits(spec: DeviceSpec, peak_current_limit: float | None = None,
