@@ -15,7 +15,7 @@ import trimesh
 from twin.device.spec import DeviceSpec
 from twin.morphpatch.redirection import within_flags
 from twin.morphpatch.sampling import METRIC_SPACING, grid_layout, world_points
-from twin.morphpatch.surface_metrics import point_distances
+from twin.morphpatch.surface_metrics import INSIDE_TOLERANCE, point_distances
 from twin.perception.thresholds import load_thresholds
 
 pv.OFF_SCREEN = True
@@ -30,10 +30,11 @@ def _nice_ceiling(x: float) -> float:
 def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.ndarray, widths,
                          path: str | Path, title: str = "", notes=(), start_frames: np.ndarray | None = None,
                          window_size=(1200, 900)) -> Path:
-    """Write a PNG of the target (grey) and the device's flaps coloured by distance to it (mm), the colour
-    scale running from 0 to the largest distance (rounded up to 1, 2 or 5 x 10^k, at least 0.5 mm) so the
-    fit's own spread is seen; `notes` (lines of text, e.g. hinge angles) lower left; where start_frames
-    are given, the device where it started, as a black outline.
+    """Write a PNG of the target (grey) and the device's flaps coloured by signed distance to it (mm; below 0,
+    blue, inside the target), the colour scale symmetric about 0 and running to the largest distance (rounded up
+    to 1, 2 or 5 x 10^k, at least 0.5 mm) so the fit's own spread is seen, and where the flaps lie inside the
+    target, how much and how deep, noted; `notes` (lines of text, e.g. hinge angles) lower left; where
+    start_frames are given, the device where it started, as a black outline.
 
     frames, start_frames: world flap frames (n_flaps, 4, 4), e.g. `Approximation.frames(spec)`; widths: m.
     """
@@ -52,11 +53,15 @@ def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.nda
             start = world_points(start_frames, widths, layout, [i])[0]
             outline = pv.StructuredGrid(*(start[:, d].reshape(nu, -1, 1) for d in range(3))).extract_feature_edges()
             plotter.add_mesh(outline, color="black", line_width=2)
-    top = _nice_ceiling(max(0.5, max(float(g["distance_mm"].max()) for g in grids)))
+    distances = np.concatenate([g["distance_mm"] for g in grids])
+    top = _nice_ceiling(max(0.5, float(np.abs(distances).max())))
     for i, grid in enumerate(grids):
-        plotter.add_mesh(grid, scalars="distance_mm", cmap="viridis", clim=(0.0, top), show_edges=False,
-                         scalar_bar_args={"title": "distance to target, mm"} if i == 0 else None,
+        plotter.add_mesh(grid, scalars="distance_mm", cmap="RdBu", clim=(-top, top), show_edges=False,
+                         scalar_bar_args={"title": "signed distance to target, mm (< 0: inside)"} if i == 0 else None,
                          show_scalar_bar=i == 0)
+    inside = distances < -INSIDE_TOLERANCE * 1e3
+    notes = [f"inside the target: {inside.mean():.0%} of the touch surface, up to {-distances.min():.1f} mm deep"
+             if inside.any() else "inside the target: none of the touch surface", *notes]
     if title:
         plotter.add_text(title, font_size=10)
     if notes:

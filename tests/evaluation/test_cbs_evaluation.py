@@ -109,6 +109,7 @@ def _evaluate_and_resume(out, shapes, n_starts):
     assert len({(r["shape"], r["start"], r["method"]) for r in read_records(log)}) == len(records)
     for r in records:  # what the twin made of each: the gate's verdicts and the reached shape
         assert r["gate_range_ok"] and r["twin_msd_mm"] >= 0 and 0 <= r["share_within"] <= 1
+        assert 0 <= r["inside_percent"] <= 100 and (r["inside_depth_mm"] > 0.5) == (r["inside_percent"] > 0)
     return records
 
 
@@ -117,6 +118,7 @@ def test_an_interrupted_evaluation_resumes_and_writes_its_tables(tmp_path):
     records = _evaluate_and_resume(out, ["cube", "cylinder"], 2)
     md, csv_path = write_tables(summarize(records), out)
     assert "paper MSD" in md.read_text() and "MSD on the twin" in md.read_text() and csv_path.exists()
+    assert "inside (deepest mm)" in md.read_text() and "inside_mean_percent" in csv_path.read_text()
     with pytest.raises(ValueError, match="holds a run"):
         run_evaluation(out, ["cube", "cylinder"], n_starts=3, seed=0, workers=1, progress=False)
 

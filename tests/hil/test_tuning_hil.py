@@ -33,7 +33,8 @@ from twin.sim.batch import TwinBatch
 from twin.sim.gate import check_move
 from twin.sim.response import move_report, step_metrics
 from twin.sim.twin import Twin
-from twin.tuning.tuner import TuneGoal, chains, step_report, tune
+from twin.device.variation import tolerance_ranges
+from twin.tuning.tuner import RobustEvaluator, TuneGoal, chains, step_report, tune
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -111,8 +112,12 @@ def test_tune_command_writes_a_gains_file(tmp_path, capsys):
     out = tmp_path / "g.json"
     assert vrscroll(["tune", "--population", "8", "--generations", "2", "--threads", "2", "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "spec defaults" in text and "tuned" in text and out.exists()
+    assert "spec defaults" in text and "tuned" in text and out.exists() and "every limit kept on every plant" in text
     assert vrscroll(["tune", "--tolerance-pct", "150"]) == 2
+    # a limit out of reach: the gains are written, each hinge that breaks it named, and the exit status says so
+    assert vrscroll(["tune", "--population", "6", "--generations", "1", "--threads", "2", "--out", str(out),
+                     "--max-overshoot-deg", "0.05"]) == 1
+    assert "NOT KEPT" in capsys.readouterr().out and json.loads(out.read_text())["meta"]["limits_broken"]
 
 
 def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device(emulator, tmp_path, capsys):
@@ -333,3 +338,47 @@ def test_calibrate_refuses_a_run_that_did_not_complete(spec, tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"{run}: the run did not complete (status 'running'" in err and "--incomplete" in err
     assert not (tmp_path / "cal.toml").exists()
+
+
+def test_tune_returns_the_best_whole_candidate_it_evaluated(spec, monkeypatch):
+    """Every gain set the search simulated is recorded (the real evaluator, watched); none ranks above the one
+    returned: fewer hinges breaking a limit, or as many and a lower total cost. The chains' bests put together
+    (never simulated whole during the search) are returned only where their own simulation ranks first."""
+    seen = []
+    evaluate = RobustEvaluator.evaluate
+
+    def watched(self, kp, ki, kd):
+        cost, worst = evaluate(self, kp, ki, kd)
+        seen.extend(cost)
+        return cost, worst
+
+    monkeypatch.setattr(RobustEvaluator, "evaluate", watched)
+    goal = TuneGoal()
+    result = tune(spec, goal, population=8, generations=4, nthread=2, seed=3)
+    assert len(seen) == 8 * 4 + 1
+    rank = (int(np.sum(result.cost >= goal.duration)), float(result.cost.sum()))
+    assert all(rank <= (int(np.sum(c >= goal.duration)), float(c.sum())) for c in seen)
+    assert result.history == sorted(result.history, reverse=True)  # the best so far never gets worse
+    # the numbers returned are the returned gains' own: simulated again, the same
+    again, _ = RobustEvaluator(spec, goal, 1, 2, result.gains).evaluate(
+        *(np.array([[getattr(g, k) for g in result.gains]]) for k in ("kp", "ki", "kd")))
+    assert again[0] == pytest.approx(result.cost, abs=1e-12)
+
+
+def test_tune_says_which_limit_it_could_not_keep_on_which_plant(spec):
+    """An overshoot limit no gains keep on every plant (0.05 deg on a 30 deg step): the result names each hinge
+    whose worst plant breaks it, and that plant; no hinge over the limit goes unnamed. Each hinge's worst
+    case is traced to one parameter's range."""
+    goal = TuneGoal(max_overshoot=math.radians(0.05))
+    result = tune(spec, goal, population=6, generations=2, nthread=2)
+    over = [h for h in range(spec.n_hinges) if result.overshoot[h] > goal.max_overshoot]
+    assert over, "the limit was meant to be out of reach"
+    named = {int(line.split(":")[0].split()[1]) for line in result.broken}
+    assert set(over) <= named
+    for line in result.broken:
+        h = int(line.split(":")[0].split()[1])
+        assert line.endswith(f" on {result.worst_plant[h]}")
+        if h in over:
+            assert f"overshoots {math.degrees(result.overshoot[h]):.2f} deg (limit 0.05)" in line
+    ranges = tolerance_ranges(spec, goal.tolerance)
+    assert all(r["parameter"] in ranges and r["end"] in ("low", "high") for r in result.sensitivity)

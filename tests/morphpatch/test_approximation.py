@@ -9,10 +9,11 @@ import pytest
 from twin import cli
 from twin.morphpatch.approximation import Approximation, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
-from twin.device.kinematics import pose_matrix
+from twin.device.kinematics import hinge_axis_sign, pose_matrix
 from twin.morphpatch.shapes import load_shape, shape_names
 from twin.evaluation.starts import approach_starts
-from twin.morphpatch.surface_metrics import msd_hd
+from twin.morphpatch.sampling import touch_surface_points
+from twin.morphpatch.surface_metrics import match, msd_hd
 
 EVAL_SPACING = 0.005  # m: coarser fields for the all-shapes test keep this file fast (about 5 s to build)
 HCEVF_MARGIN = 0.5e-3  # m: "full" may be at most this much worse than "no_hcevf" in mean MSD
@@ -89,13 +90,32 @@ def test_surface_metrics_of_a_device_hovering_over_a_face(spec):
     mesh = load_shape("cube")
     msd, hd = msd_hd(spec, mesh, level(0.0, 0.0, 0.21), np.zeros(spec.n_hinges))
     assert msd == pytest.approx(0.01, abs=1e-9) and hd == pytest.approx(0.01, abs=1e-9)
+    assert match(spec, mesh, level(0.0, 0.0, 0.21), np.zeros(spec.n_hinges))[2:] == (0.0, 0.0)
+
+
+def test_the_touch_surface_inside_the_target_is_measured(spec):
+    """Flat, 10 mm below the cube's top face: all of it inside, 10 mm deep; the middle flaps flat 3 mm above
+    the face and the outer ones turned down into the cube: some of it inside, no deeper than the tips went."""
+    mesh = load_shape("cube")
+    pressed = match(spec, mesh, level(0.0, 0.0, 0.19), np.zeros(spec.n_hinges))
+    assert pressed.inside == 1.0 and pressed.depth == pytest.approx(0.01, abs=1e-9)
+    assert pressed.msd <= pressed.depth
+    angles = np.zeros(spec.n_hinges)
+    angles[[0, -1]] = np.radians(30) * np.array([-1, 1]) * hinge_axis_sign(spec)[[0, -1]]
+    bent = Approximation(level(0.0, 0.0, 0.203), angles, np.full(spec.n_flaps, spec.flap_pitch), 0.0, "full")
+    bent = bent.measured(spec, mesh)
+    tips = touch_surface_points(spec, bent.frames(spec), bent.widths)[:, 2]
+    assert 0.0 < bent.inside < 0.5 and 0.005 < bent.depth <= 0.2 - tips.min() + 1e-9  # (the cube's sides are near)
+    out = bent.to_json()
+    assert out["inside_percent"] == pytest.approx(bent.inside * 100, abs=0.01) and out["inside_depth_mm"] > 0
+    assert Approximation.from_json(out, spec).depth == pytest.approx(bent.depth, abs=1e-6)
 
 
 def test_to_json_has_units_in_keys(spec):
     _, fields = fields_of("cylinder")
     out = approximate(fields, pose_from_mm_deg([0, 0, 190, 0, 0, 0]), spec).to_json()
     assert set(out) == {"variant", "root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm",
-                        "msd_mm", "hd_mm", "time_ms"}
+                        "msd_mm", "hd_mm", "inside_percent", "inside_depth_mm", "time_ms"}
     assert out["root_position_mm"][2] == pytest.approx(150.0, abs=0.2)
     assert out["widths_mm"][0] == pytest.approx(spec.flap_pitch * 1e3, abs=1e-3)
     assert np.linalg.norm(out["root_quat_wxyz"]) == pytest.approx(1.0, abs=1e-5)

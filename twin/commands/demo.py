@@ -27,7 +27,7 @@ from twin.morphpatch.approximation import VARIANTS, approximate
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import shape_names
-from twin.morphpatch.surface_metrics import msd_hd
+from twin.morphpatch.surface_metrics import inside_text, match, match_json
 from twin.sim.gate import check_move, redirection_check
 from twin.sim.response import move_report
 from viz.scene import render_approximation
@@ -74,7 +74,7 @@ def run(args) -> int:
     trace = gate.prediction
     hinges = move_report(spec, trace) if trace is not None else []
     end_angles = trace.angle[-1] if trace is not None else np.zeros(spec.n_hinges)
-    end_msd, end_hd = msd_hd(spec, mesh, approx.root_pose, end_angles, approx.widths)
+    end = match(spec, mesh, approx.root_pose, end_angles, approx.widths)
     settle = max((h["settle_time_s"] for h in hinges), default=float("nan"))
     final_err = max((abs(h["steady_state_error_deg"]) for h in hinges), default=float("nan"))
 
@@ -84,7 +84,7 @@ def run(args) -> int:
     gate.checks.append(redirection_check(redirection, strict=args.strict))
     print(gate.text())
     print(f"      morph settled in {settle:.3f} s (slowest hinge), largest final error {final_err:.2f} deg; "
-          f"MSD where the twin ended {end_msd * 1e3:.2f} mm (HD {end_hd * 1e3:.2f} mm)")
+          f"MSD where the twin ended {end.msd * 1e3:.2f} mm (HD {end.hd * 1e3:.2f} mm); {inside_text(end)}")
     print(f"[4/5] pen redirection over the reached shape: {redirection['share_within']:.1%} of the touch surface "
           f"within {redirection['position_threshold_mm']:g} mm / {redirection['rotation_threshold_deg']:g} deg "
           f"(largest {redirection['largest_offset_mm']:.1f} mm, {redirection['largest_rotation_deg']:.1f} deg)")
@@ -95,8 +95,8 @@ def run(args) -> int:
              "approximation: " + " ".join(f"{a:.1f}" for a in np.degrees(approx.angles)) + " deg",
              "twin ended at:  " + " ".join(f"{a:.1f}" for a in np.degrees(end_angles)) + " deg"]
     render_approximation(spec, mesh, frames, approx.widths, args.png, notes=notes, start_frames=start_frames,
-                         title=f"{name}, {args.variant}: twin after the morph, MSD {end_msd * 1e3:.2f} mm, "
-                               f"HD {end_hd * 1e3:.2f} mm")
+                         title=f"{name}, {args.variant}: twin after the morph, MSD {end.msd * 1e3:.2f} mm, "
+                               f"HD {end.hd * 1e3:.2f} mm")
     print(f"[5/5] picture: {args.png}")
     if trace is not None:
         hinge_figure(args.plot, f"demo: {name} morph on the twin", [("twin", trace)], range(spec.n_hinges),
@@ -118,7 +118,7 @@ def run(args) -> int:
         "gate": gate.to_dict(),
         "redirection": redirection,
         "morph": {"settle_time_s": settle, "largest_final_error_deg": final_err, "hinges": hinges,
-                  "msd_after_morph_mm": round(end_msd * 1e3, 3), "hd_after_morph_mm": round(end_hd * 1e3, 3)},
+                  **match_json(end, "_after_morph")},
         "png": args.png,
         "step_png": args.plot if trace is not None else None,
     }

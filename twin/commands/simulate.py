@@ -25,7 +25,7 @@ from twin.checks import cell, hinge_angles
 from twin.errors import UserError
 from twin.formats.target import read_approximation
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
-from twin.morphpatch.surface_metrics import msd_hd
+from twin.morphpatch.surface_metrics import match, match_json
 from twin.sim.gate import check_move
 from twin.sim.response import move_report
 from twin.sim.targets import check_targets
@@ -119,7 +119,9 @@ def run(args) -> int:
           f"({summary['real_time_factor']}x real time); settled: {summary['settled']}")
     if "msd_after_morph_mm" in summary:
         print(f"on {summary['target']}: MSD where the twin ended {summary['msd_after_morph_mm']} mm "
-              f"(HD {summary['hd_after_morph_mm']} mm; the approximation's own {summary['approximation_msd_mm']} mm)")
+              f"(HD {summary['hd_after_morph_mm']} mm; the approximation's own {summary['approximation_msd_mm']} mm); "
+              f"{summary['inside_after_morph_percent']} % of the touch surface inside the target, up to "
+              f"{summary['inside_depth_after_morph_mm']} mm deep")
     elif approx is not None:
         print(f"no MSD: {summary['target_note']}")
     if args.trace:
@@ -137,7 +139,7 @@ def _number(text: str) -> bool:
 
 
 def _on_target(spec, approx: dict, trace, path: str) -> dict:
-    """The MSD and HD (mm) where the twin ended, on the approximation's target (a shape's name, or a mesh path
+    """The MSD, HD (mm) and the share of the touch surface inside the target (match_json) where the twin ended, on the approximation's target (a shape's name, or a mesh path
     relative to the approximation file or the working folder); a note where the target cannot be read."""
     target = approx["target"]
     out = {"target": target, "approximation_msd_mm": None if approx["msd"] is None else round(approx["msd"] * 1e3, 3)}
@@ -150,5 +152,5 @@ def _on_target(spec, approx: dict, trace, path: str) -> dict:
         if mesh_path is None:
             return {**out, "target_note": f"its target {target!r} is neither a shape nor a mesh file found here"}
         mesh = load_mesh(mesh_path)
-    msd, hd = msd_hd(spec, mesh, approx["root_pose"], trace.angle[-1], approx["widths"])
-    return {**out, "msd_after_morph_mm": round(msd * 1e3, 3), "hd_after_morph_mm": round(hd * 1e3, 3)}
+    return {**out, **match_json(match(spec, mesh, approx["root_pose"], trace.angle[-1], approx["widths"]),
+                                "_after_morph")}

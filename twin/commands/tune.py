@@ -1,5 +1,6 @@
 """`vrscroll tune`: robust PID gains per hinge on the twin of the device profile in use, over the parameter
-ranges its calibration left open; stored in the profile; with --serial, confirmed on the device."""
+ranges its calibration left open; stored in the profile; with --serial, confirmed on the device. Exit 1 where
+the best gains found still break a limit on some plant (each named; with --serial they are not pushed)."""
 
 from __future__ import annotations
 
@@ -101,6 +102,9 @@ def run(args) -> int:
             "worst_plant_settle_s": [round(float(x), 4) for x in result.settle],
             "worst_plant_overshoot_deg": [round(math.degrees(x), 4) for x in result.overshoot],
             "worst_plant_peak_current_A": [round(float(x), 3) for x in result.peak_current],
+            "worst_plant": result.worst_plant,
+            "limits_broken": result.broken,
+            "worst_case_range": result.sensitivity,
             "simulations": result.simulations, "wall_time_s": round(result.wall_time, 2)}
     written = []
     if args.out or not profile.name:
@@ -121,13 +125,21 @@ def run(args) -> int:
         print(_line("tuned", rows_after))
         print("worst plant     " + "  ".join(f"{s * 1000:6.0f} ms {math.degrees(o):5.2f} deg"
                                           for s, o in zip(result.settle, result.overshoot)))
+        print("worst case set by (each range's ends, one at a time): " + "; ".join(
+            f"hinge {h} {r['parameter']} {r['end']}" for h, r in enumerate(result.sensitivity)))
+        print("every limit kept on every plant" if not result.broken else
+              "NOT KEPT on its worst plant (the best the search found):\n  " + "\n  ".join(result.broken))
         print("gains written to " + (", ".join(written) if written else
                                      f"device profile {profile.name} once the device holds them"))
+    if args.serial and result.broken:
+        write_json(args.json, summary)
+        raise UserError(f"not pushed to {args.serial}: the tuned gains break a limit on a plant the tuning covered "
+                        "(printed above); loosen the goal or narrow the ranges")
     if args.serial:
         summary["device"] = confirm_on_device(args, spec, result.gains, step, into_profile, quiet=quiet)
         summary["gains_files"] = written
     write_json(args.json, summary)
-    return 0
+    return 1 if result.broken else 0
 
 
 def confirm_on_device(args, spec, gains, step, pushed, quiet=False) -> list[dict]:

@@ -64,7 +64,8 @@ def _shape_seed(seed: int, shape: str) -> int:
 
 
 def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
-    """All methods from one start: a record each with msd_mm, hd_mm, angles_deg, time_ms, the anchor's
+    """All methods from one start: a record each with msd_mm, hd_mm, inside_percent and inside_depth_mm (the
+    touch surface inside the target: twin.morphpatch.surface_metrics), angles_deg, time_ms, the anchor's
     depth in the target, and what the twin made of it (see the module docstring)."""
 
     shape, index, n_starts, seed = task
@@ -78,7 +79,8 @@ def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
         r = r.measured(spec, mesh)
         depth = -float(exact_signed_distance(mesh, r.root_pose[None, :3, 3])[0][0])
         records.append({"shape": shape, "start": index, "method": method, "msd_mm": r.msd * 1e3,
-                        "hd_mm": r.hd * 1e3, "angles_deg": np.degrees(r.angles).round(3).tolist(),
+                        "hd_mm": r.hd * 1e3, "inside_percent": r.inside * 100, "inside_depth_mm": r.depth * 1e3,
+                        "angles_deg": np.degrees(r.angles).round(3).tolist(),
                         "time_ms": r.time * 1e3, "anchor_depth_mm": round(depth * 1e3, 4),
                         **twin_outcome(spec, mesh, fields, twin, r)})
     return records
@@ -171,6 +173,9 @@ def summarize(records: list[dict]) -> list[dict]:
                    "msd_mean_mm": statistics.fmean(msd), "msd_sd_mm": statistics.stdev(msd) if len(sel) > 1 else 0.0,
                    "hd_mean_mm": statistics.fmean(hd), "hd_sd_mm": statistics.stdev(hd) if len(sel) > 1 else 0.0,
                    "time_median_ms": statistics.median(r["time_ms"] for r in sel)}
+            if all("inside_percent" in r for r in sel):  # (records written before it was measured lack it)
+                row.update({"inside_mean_percent": statistics.fmean(r["inside_percent"] for r in sel),
+                            "inside_depth_max_mm": max(r["inside_depth_mm"] for r in sel)})
             if all("twin_msd_mm" in r for r in sel):
                 twin_msd = [r["twin_msd_mm"] for r in sel]
                 row.update({"twin_msd_mean_mm": statistics.fmean(twin_msd),
@@ -202,7 +207,7 @@ def write_tables(rows: list[dict], out_dir, wall_s: float | None = None) -> tupl
     """table.md (ours beside the paper's, and the full/CBS MSD ratios) and table.csv."""
     out = Path(out_dir)
     cols = ["shape", "method", "n", "msd_mean_mm", "msd_sd_mm", "hd_mean_mm", "hd_sd_mm", "time_median_ms",
-            "paper_msd_mean_mm", "paper_msd_sd_mm", "paper_hd_mean_mm", "paper_hd_sd_mm",
+            "inside_mean_percent", "inside_depth_max_mm", "paper_msd_mean_mm", "paper_msd_sd_mm", "paper_hd_mean_mm", "paper_hd_sd_mm",
             "msd_ratio_full_to_cbs", "paper_msd_ratio_full_to_cbs", "twin_msd_mean_mm", "twin_msd_sd_mm",
             "share_within_mean", "gate_ok_share", "anchor_depth_max_mm", "msd_drop_from_full", "hd_drop_from_full",
             "msd_worst_over_full_mm"]
@@ -227,15 +232,19 @@ def write_tables(rows: list[dict], out_dir, wall_s: float | None = None) -> tupl
         lines += [f"Wall time of this run: {wall_s:.1f} s.", ""]
     lines += ["The twin's columns: MSD where the twin ended after the morph to the method's pose (firmware,",
               "gravity, settled), and the share of the touch surface whose pen redirection from that shape is",
-              "within the perception thresholds (mean over starts). refined is ours, beyond the paper.", "",
-              "| shape | method | n | MSD | paper MSD | HD | paper HD | MSD on the twin | within thresholds | "
-              "median time (ms) |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+              "within the perception thresholds (mean over starts). refined is ours, beyond the paper.",
+              "Inside: the share of the touch surface more than 0.5 mm inside the target (mean over starts) and",
+              "the deepest any start's went (mm): where a row of flat flaps cannot follow the surface.", "",
+              "| shape | method | n | MSD | paper MSD | HD | paper HD | inside (deepest mm) | MSD on the twin | "
+              "within thresholds | median time (ms) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         twin = f"{r['twin_msd_mean_mm']:.2f} ± {r['twin_msd_sd_mm']:.2f}" if "twin_msd_mean_mm" in r else "–"
         share = f"{r['share_within_mean']:.1%}" if "share_within_mean" in r else "–"
+        inside = (f"{r['inside_mean_percent']:.1f} % ({r['inside_depth_max_mm']:.1f})" if "inside_mean_percent" in r
+                  else "–")
         lines.append(f"| {r['shape']} | {r['method']} | {r['n']} | {pm(r, 'msd')} | {paper_pm(r, 'msd')} | "
-                     f"{pm(r, 'hd')} | {paper_pm(r, 'hd')} | {twin} | {share} | {r['time_median_ms']:.2f} |")
+                     f"{pm(r, 'hd')} | {paper_pm(r, 'hd')} | {inside} | {twin} | {share} | {r['time_median_ms']:.2f} |")
     lines += ["", "Full method's MSD relative to CBS's:", "", "| shape | ours | paper |", "|---|---|---|"]
     for r in rows:
         if "msd_ratio_full_to_cbs" in r:

@@ -19,7 +19,7 @@ from twin.device.kinematics import pose_matrix
 from twin.device.spec import DeviceSpec
 
 APPROXIMATION_KEYS = ("root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm")
-OPTIONAL_KEYS = ("variant", "target", "start_mm_deg", "msd_mm", "hd_mm", "time_ms",
+OPTIONAL_KEYS = ("variant", "target", "start_mm_deg", "msd_mm", "hd_mm", "inside_percent", "inside_depth_mm", "time_ms",
                  # vrscroll cbs adds these
                  "collision_parts", "collision_error_mean_mm", "collision_error_max_mm", "touching_flaps")
 
@@ -41,7 +41,7 @@ def read_approximation(path, spec: DeviceSpec) -> dict:
 
 def approximation_fields(doc: dict, spec: DeviceSpec, where: str) -> dict:
     """An approximation result (a file's object, or a live message's), checked and in SI: root_pose (4x4, m),
-    angles (rad), widths (m), time (s), variant (default "full"), msd/hd (m or None), target (its name, or
+    angles (rad), widths (m), time (s), variant (default "full"), msd/hd/depth (m or None), inside (share 0..1 or None), target (its name, or
     None). ValueError naming `where` and the key."""
     if not isinstance(doc, dict):
         raise ValueError(f"{where}: expected an approximation result {{...}}, got {type(doc).__name__}")
@@ -61,6 +61,12 @@ def approximation_fields(doc: dict, spec: DeviceSpec, where: str) -> dict:
                          f"a flap is above 0 and at most the device's {spec.length * 1e3:g} mm")
     measure = {k: (None if doc.get(f"{k}_mm") is None else number(doc[f"{k}_mm"], f"{where}: {k}_mm") / 1e3)
                for k in ("msd", "hd")}
+    measure["depth"] = None if doc.get("inside_depth_mm") is None else number(doc["inside_depth_mm"],
+                                                                              f"{where}: inside_depth_mm") / 1e3
+    inside = None if doc.get("inside_percent") is None else number(doc["inside_percent"], f"{where}: inside_percent")
+    if inside is not None and not 0.0 <= inside <= 100.0:
+        raise ValueError(f"{where}: inside_percent: {inside:g} is not a percentage (0 to 100)")
+    measure["inside"] = None if inside is None else inside / 100
     target = doc.get("target")
     if target is not None and not isinstance(target, str):
         raise ValueError(f"{where}: target: expected a shape name or mesh path, got {target!r}")

@@ -65,7 +65,7 @@ from twin.formats.target import APPROXIMATION_KEYS, OPTIONAL_KEYS, approximation
 from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate, _path_clear
 from twin.morphpatch.refinement import refine
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
-from twin.morphpatch.surface_metrics import msd_hd
+from twin.morphpatch.surface_metrics import match
 
 VARIANTS = ("full", "no_hcevf", "refined")
 SNAP_REACH = 0.25  # m, how far along +-z a snap looks for the surface (here, and CBS's press along its normal)
@@ -88,15 +88,18 @@ class Approximation:
     variant: str
     msd: float | None = None  # m, once `measured`
     hd: float | None = None  # m
+    inside: float | None = None  # share (0..1) of the touch surface inside the target, once `measured`
+    depth: float | None = None  # m, the deepest of it
 
     def frames(self, spec: DeviceSpec) -> np.ndarray:
         """World poses (n_flaps, 4, 4) of the flaps' touch-surface frames."""
         return flap_frames(spec, self.angles, self.root_pose, self.widths)
 
     def measured(self, spec: DeviceSpec, mesh) -> "Approximation":
-        """A copy with MSD and HD (m) against the exact mesh (see twin.surface_metrics)."""
-        msd, hd = msd_hd(spec, mesh, self.root_pose, self.angles, self.widths)
-        return dataclasses.replace(self, msd=msd, hd=hd)
+        """A copy with MSD, HD (m) and the share inside the target and its depth against the exact mesh (see
+        twin.morphpatch.surface_metrics)."""
+        m = match(spec, mesh, self.root_pose, self.angles, self.widths)
+        return dataclasses.replace(self, msd=m.msd, hd=m.hd, inside=m.inside, depth=m.depth)
 
     def to_json(self) -> dict:
         """Plain dict with the unit in every key (mm, deg, ms)."""
@@ -110,6 +113,8 @@ class Approximation:
             "widths_mm": [round(v, 3) for v in (self.widths * 1e3).tolist()],
             "msd_mm": mm(self.msd),
             "hd_mm": mm(self.hd),
+            "inside_percent": None if self.inside is None else round(self.inside * 100, 2),
+            "inside_depth_mm": mm(self.depth),
             "time_ms": round(self.time * 1e3, 4),
         }
 
@@ -120,7 +125,8 @@ class Approximation:
         keys other than the result's (a live message's type, seq, ...) are ignored."""
         keys = APPROXIMATION_KEYS + OPTIONAL_KEYS
         f = approximation_fields({k: v for k, v in d.items() if k in keys}, spec or load_spec(), where)
-        return cls(f["root_pose"], f["angles"], f["widths"], f["time"], f["variant"], f["msd"], f["hd"])
+        return cls(f["root_pose"], f["angles"], f["widths"], f["time"], f["variant"], f["msd"], f["hd"], f["inside"],
+                   f["depth"])
 
 
 

@@ -32,6 +32,14 @@ candidates x plants simulations per generation, in lockstep.
 Search space per hinge: log kp, log ki, log kd (the derivative cutoff, integral
 limit, deadband and hold band stay the spec's: they are firmware structure,
 not loop shaping).
+
+What is returned: the best whole gain set the search evaluated, every hinge's gains from one
+simulation, ranked first by how many hinges break a limit on their worst plant, then by the sum of
+the costs. The chains' bests, taken from different candidates, are also put together and evaluated
+once more, and win only where that evaluation ranks first (the chains move each other a little
+through the pack, so their sum is not the evaluation's). Where a hinge breaks a limit on its worst
+plant even so, the result says which limit on which plant, and for every hinge which parameter's
+range sets its worst case (`range_sensitivity`: each range's ends, one at a time).
 """
 
 from __future__ import annotations
@@ -46,7 +54,7 @@ from controllers.core import per_hinge
 from controllers.encoder import target_counts
 from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec
-from twin.device.variation import corners, tolerance_ranges
+from twin.device.variation import corners, scaled, tolerance_ranges
 from twin.search import CrossEntropy
 from twin.sim.batch import TwinBatch
 from twin.sim.gate import current_limits
@@ -106,6 +114,21 @@ def cost_of(scores: dict, spec: DeviceSpec, goal: TuneGoal) -> np.ndarray:
     return c + np.where(bad, goal.duration * (1.0 + 10.0 * excess), 0.0)
 
 
+def broken_limits(scores: dict, spec: DeviceSpec, goal: TuneGoal) -> list[str]:
+    """The limits one simulation's hinge breaks, as words: scores are one (simulation, hinge)'s step_scores."""
+    peak_limit, hold_limit = current_limits(spec)
+    out = []
+    if not math.isfinite(scores["settle"]):
+        out.append(f"does not settle within {goal.duration:g} s")
+    if scores["overshoot"] > goal.max_overshoot:
+        out.append(f"overshoots {math.degrees(scores['overshoot']):.2f} deg (limit {math.degrees(goal.max_overshoot):g})")
+    if scores["peak_current"] > peak_limit:
+        out.append(f"peak current {scores['peak_current']:.2f} A (limit {peak_limit:g})")
+    if scores["hold_current"] > hold_limit:
+        out.append(f"holding current {scores['hold_current']:.2f} A (limit {hold_limit:g})")
+    return out
+
+
 @dataclasses.dataclass
 class TuneResult:
     gains: list[PidGains]  # per hinge
@@ -116,21 +139,25 @@ class TuneResult:
     generations: int
     simulations: int
     wall_time: float  # s
-    history: list[float]  # best total cost (sum over hinges, s) after each generation
+    history: list[float]  # the best whole candidate's total cost (sum over hinges, s) after each generation
+    worst_plant: list[str]  # per hinge, the plant its worst case is on, in words
+    broken: list[str]  # per hinge that breaks a limit on its worst plant: "hinge k: ... on <plant>"
+    sensitivity: list[dict]  # per hinge, range_sensitivity's row
 
 
 class RobustEvaluator:
     """Evaluates candidate gain sets (one PidGains per hinge each) on every plant, with TwinBatch."""
 
     def __init__(self, spec: DeviceSpec, goal: TuneGoal, population: int, nthread: int = 0, base=None,
-                 backend=None):
+                 backend=None, plants=None):
         """base: the gains whose kp, ki, kd the candidates replace (one PidGains or one per hinge; default the
         spec's): their derivative cutoff, integral limit, deadband and hold band are kept. backend: None runs
         every plant here in one TwinBatch; a twin.evaluation.backends backend runs each plant's batch as a
-        task on its workers (the same numbers)."""
+        task on its workers (the same numbers). plants: the plants (DeviceSpecs) to evaluate on; default the
+        nominal and the corners of the goal's ranges."""
         self.spec, self.goal, self.population = spec, goal, population
         self.base = per_hinge(base or PidGains.from_spec(spec), spec.n_hinges)
-        self.plants = corners(spec, goal.ranges or tolerance_ranges(spec, goal.tolerance))
+        self.plants = plants or corners(spec, goal.ranges or tolerance_ranges(spec, goal.tolerance))
         self.nplant = len(self.plants)
         self.backend = backend
         if backend is None:  # simulation index = candidate * nplant + plant
@@ -138,8 +165,9 @@ class RobustEvaluator:
             self.batch = TwinBatch(population * self.nplant, spec, specs=specs, nthread=nthread)
         self.simulations = 0
 
-    def evaluate(self, kp, ki, kd):
-        """kp, ki, kd: (population, n_hinges). Returns the worst-plant cost and scores, each (population, n)."""
+    def costs(self, kp, ki, kd):
+        """kp, ki, kd: (population, n_hinges). Returns the cost (cost_of) and scores (step_scores) on every
+        plant, each (population, nplant, n)."""
         s, g = self.spec, self.goal
         P, n = kp.shape
         candidates = [[self.base[h].replace(kp=float(kp[c, h]), ki=float(ki[c, h]), kd=float(kd[c, h])) for h in range(n)]
@@ -154,9 +182,15 @@ class RobustEvaluator:
             per_plant = dict(self.backend.map(plant_scores, [(s, p, g, candidates) for p in self.plants]))
             scores = {k: np.stack([per_plant[i][k] for i in range(self.nplant)], axis=1) for k in per_plant[0]}
         self.simulations += P * self.nplant
-        cost = cost_of(scores, s, g)
-        worst = {k: v.max(axis=1) for k, v in scores.items()}
-        return cost.max(axis=1), worst
+        return cost_of(scores, s, g), scores
+
+    def evaluate(self, kp, ki, kd):
+        """kp, ki, kd: (population, n_hinges). Returns the worst-plant cost and the scores on that plant, each
+        (population, n), with "plant": the worst plant's index."""
+        cost, scores = self.costs(kp, ki, kd)
+        plant = cost.argmax(axis=1)  # (P, n)
+        worst = {k: np.take_along_axis(v, plant[:, None], axis=1)[:, 0] for k, v in scores.items()}
+        return cost.max(axis=1), {**worst, "plant": plant}
 
 
 _PLANT_BATCHES: dict = {}  # per worker process: (plant, population) -> TwinBatch
@@ -197,17 +231,21 @@ def chains(spec: DeviceSpec) -> list[list[int]]:
     return [list(range(spec.root_flap)), list(range(spec.root_flap, spec.n_hinges))]
 
 
+def _rank(cost: np.ndarray, duration: float) -> tuple[int, float]:
+    """A whole candidate's rank from its per-hinge worst-plant costs: (hinges breaking a limit, total cost)."""
+    return int(np.sum(cost >= duration)), float(cost.sum())
+
+
 def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, generations: int = 8,
          elite: int = 6, seed: int = 0, nthread: int = 0, start=None,
          progress=None, backend=None) -> TuneResult:
-    """Cross-entropy search per chain of hinges, on the sum of the chain's worst-plant costs.
+    """Cross-entropy search per chain of hinges, on the sum of the chain's worst-plant costs; returns the best
+    whole candidate evaluated (module docstring).
 
     The starting gains (start: one PidGains or one per hinge; default the spec's) are candidate 0 of the
-    first generation, so
-    the result is never worse than them on that sum; from then on candidate 0 is
-    the best found so far. The chosen gains are simulated together once more at
-    the end, and the result's numbers are that run's. backend: where the plants' batches run
-    (RobustEvaluator).
+    first generation, so the result is never worse than them; from then on candidate 0 is the chains' best
+    found so far. backend: where the plants' batches run (RobustEvaluator). progress(generation, per-hinge
+    cost of the best whole candidate so far, wall s).
     """
     goal = goal or TuneGoal()
     n = spec.n_hinges
@@ -217,26 +255,62 @@ def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, g
     ev = RobustEvaluator(spec, goal, population, nthread, start, backend=backend)
     search = CrossEntropy(_to_x(*(np.array([getattr(g, k) for g in start]) for k in ("kp", "ki", "kd"))),
                           np.tile([0.5, 1.0, 0.7], (n, 1)), floor=STD_FLOOR)  # (n, 3) in log gains
-    best_x, best_cost = search.mean.copy(), np.full(n, math.inf)
+    best_x, best_cost = search.mean.copy(), np.full(n, math.inf)  # per chain: its best, from any candidate
+    whole = None  # (rank, x, cost, worst): the best whole candidate evaluated
     history = []
     for gen in range(generations):
         x = search.draw(rng, population, first=best_x)  # gen 0's first: the starting gains
-        cost, _ = ev.evaluate(*_from_x(x))
+        cost, worst = ev.evaluate(*_from_x(x))
+        for c in range(population):
+            rank = _rank(cost[c], goal.duration)
+            if whole is None or rank < whole[0]:
+                whole = (rank, x[c].copy(), cost[c], {k: v[c] for k, v in worst.items()})
         for hinges in chains(spec):
             total = cost[:, hinges].sum(axis=1)
             order = np.argsort(total, kind="stable")
             if total[order[0]] < best_cost[hinges].sum():
                 best_x[hinges], best_cost[hinges] = x[order[0], hinges], cost[order[0], hinges]
             search.refit(x[order[:elite]], hinges)
-        history.append(float(best_cost.sum()))
+        history.append(whole[0][1])
         if progress:
-            progress(gen, best_cost, time.perf_counter() - t0)
-    kp, ki, kd = _from_x(best_x)
-    cost, worst = RobustEvaluator(spec, goal, 1, nthread, start, backend=backend).evaluate(kp[None], ki[None],
-                                                                                          kd[None])
+            progress(gen, whole[2], time.perf_counter() - t0)
+    final = RobustEvaluator(spec, goal, 1, nthread, start, backend=backend)
+    cost, worst = final.evaluate(*(v[None] for v in _from_x(best_x)))  # the chains' bests, put together
+    if _rank(cost[0], goal.duration) < whole[0]:
+        whole = (_rank(cost[0], goal.duration), best_x, cost[0], {k: v[0] for k, v in worst.items()})
+    _, x, cost, worst = whole
+    kp, ki, kd = _from_x(x)
     gains = [start[h].replace(kp=float(kp[h]), ki=float(ki[h]), kd=float(kd[h])) for h in range(n)]
-    return TuneResult(gains, cost[0], worst["settle"][0], worst["overshoot"][0], worst["peak_current"][0],
-                      generations, ev.simulations + len(cost) * ev.nplant, time.perf_counter() - t0, history)
+    names = [plant_name(spec, p) for p in ev.plants]
+    broken = [f"hinge {h}: " + ", ".join(words) + f" on {names[worst['plant'][h]]}" for h in range(n)
+              if (words := broken_limits({k: v[h] for k, v in worst.items()}, spec, goal))]
+    sensitivity, simulations = range_sensitivity(spec, goal, gains, nthread, backend)
+    return TuneResult(gains, cost, worst["settle"], worst["overshoot"], worst["peak_current"], generations,
+                      ev.simulations + final.simulations + simulations, time.perf_counter() - t0, history,
+                      [names[p] for p in worst["plant"]], broken, sensitivity)
+
+
+def plant_name(spec: DeviceSpec, plant: DeviceSpec) -> str:
+    """A plant in words: "nominal", or the fields it changes with their factor, e.g. "no_load_speed x0.83,
+    gear_friction x1.2"."""
+    changed = [f"{f.name} x{getattr(plant, f.name) / getattr(spec, f.name):.3g}" for f in dataclasses.fields(spec)
+               if isinstance(getattr(spec, f.name), float) and getattr(spec, f.name) != 0
+               and not math.isclose(getattr(plant, f.name), getattr(spec, f.name), rel_tol=1e-9)]
+    return ", ".join(changed) or "nominal"
+
+
+def range_sensitivity(spec: DeviceSpec, goal: TuneGoal, gains, nthread: int = 0, backend=None) -> tuple[list, int]:
+    """Which parameter's range sets each hinge's worst case for these gains: every range's two ends, one at a
+    time (the others nominal). Returns (per hinge {"parameter", "end" ("low"/"high"), "cost_s"}: the end with
+    the highest cost (s, the tuner's), and the simulations run)."""
+    ranges = goal.ranges or tolerance_ranges(spec, goal.tolerance)
+    ends = [(p, end) for p in ranges for end in ("low", "high")]
+    plants = [scaled(spec, {p: float(ranges[p][end == "high"]) / getattr(spec, p)}) for p, end in ends]
+    ev = RobustEvaluator(spec, goal, 1, nthread, gains, backend=backend, plants=plants)
+    cost, _ = ev.costs(*(np.array([[getattr(g, k) for g in gains]]) for k in ("kp", "ki", "kd")))
+    worst = cost[0].argmax(axis=0)  # per hinge, the end
+    return [{"parameter": ends[e][0], "end": ends[e][1], "cost_s": round(float(cost[0, e, h]), 4)}
+            for h, e in enumerate(worst)], ev.simulations
 
 
 def step_report(spec: DeviceSpec, gains, goal: TuneGoal, plant: DeviceSpec | None = None):
