@@ -233,8 +233,14 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
         run_hil(link, spec, read_scenario(tmp_path / "a.toml", spec), train, gains=[soft] * 6)
         run_hil(link, spec, read_scenario(tmp_path / "b.toml", spec), hold, gains=[soft] * 6)
     capsys.readouterr()
-    assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--out", str(cal), "--json", "-"]) == 0
-    res = json.loads(capsys.readouterr().out)
+    assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--out", str(cal), "--json",
+                     str(tmp_path / "cal.json")]) == 0
+    res = json.loads((tmp_path / "cal.json").read_text())
+    # printed for a person: each value and its one interval in the spec file's unit (the backlash in deg, as the
+    # command line gives it), no Hessian
+    text = capsys.readouterr().out
+    [line] = [ln for ln in text.splitlines() if ln.strip().startswith("backlash ")]
+    assert line.count(" deg") == 2 and "interval" in line and "singular values of" not in text
     for name, scale in truth.items():  # what it reports as identifiable, within 20 % of the truth
         if res["parameters"][name]["identifiable"]:
             assert res["scales"][name] == pytest.approx(scale, rel=0.2), res["parameters"]

@@ -21,7 +21,7 @@ from twin.commands.options import (
 )
 from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
-from twin.device.spec_toml import write_spec_toml
+from twin.device.spec_toml import FROM_SI, spec_units, write_spec_toml
 from twin.errors import UserError
 from twin.formats.profile import write_profile_spec
 from twin.formats.run import read_run
@@ -114,13 +114,17 @@ def run(args) -> int:
     if json_to_stdout(args):
         return 0
     print(f"device profile: {out['device_profile']} (prior: {out['prior']})")
-    print(f"fitted in {res.iterations} generations ({res.evaluations} twin replays); x prior value, 95 % interval:")
+    units = spec_units(SPEC_PATH)
+    print(f"fitted in {res.iterations} generations ({res.evaluations} twin replays); each parameter in the spec "
+          "file's unit, its 95 % interval, and both as multiples of the prior:")
     for p, e in res.estimates.items():
-        print(f"  {p:<14} x{e.value / e.prior:.3f}  = {e.value:.6g}  interval x{e.low / e.prior:.3f} .. "
-              f"x{e.high / e.prior:.3f}  {'identifiable' if e.identifiable else 'NOT IDENTIFIABLE'}: {e.note}")
-    print("singular values of the cost's Hessian (log parameters, unit diagonal): "
-          + " ".join(f"{s:.3g}" for s in res.singular_values)
-          + f"; residual autocorrelation {res.autocorrelation_frames:.0f} frames")
+        unit = units.get(p, "")
+        si = FROM_SI.get(unit, lambda v: v)
+        print(f"  {p:<14} {si(e.value):.4g} {unit}  interval {si(e.low):.4g} .. {si(e.high):.4g} {unit}  "
+              f"(x{e.value / e.prior:.3f}, x{e.low / e.prior:.3f} .. x{e.high / e.prior:.3f})  "
+              f"{'identifiable' if e.identifiable else 'NOT IDENTIFIABLE'}: {e.note}")
+    print(f"residual autocorrelation {res.autocorrelation_frames:.0f} frames (the intervals allow for it; the "
+          "Hessian's singular values are in --json)")
     print(f"fit RMSE (training runs, hinge angles): {res.rmse_before:.3f} deg -> {res.rmse_after:.3f} deg")
     if holdout:
         h = out["holdout"]
