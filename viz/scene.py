@@ -31,10 +31,10 @@ def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.nda
                          path: str | Path, title: str = "", notes=(), start_frames: np.ndarray | None = None,
                          window_size=(1200, 900)) -> Path:
     """Write a PNG of the target (grey) and the device's flaps coloured by signed distance to it (mm; below 0,
-    red, inside the target; blue above it), the colour scale symmetric about 0 and running to the largest distance (rounded up
-    to 1, 2 or 5 x 10^k, at least 0.5 mm) so the fit's own spread is seen, and where the flaps lie inside the
-    target, how much and how deep, noted; `notes` (lines of text, e.g. hinge angles) lower left; where
-    start_frames are given, the device where it started, as a black outline.
+    red, inside the target; blue above it), the colour scale symmetric about 0 and running to the largest
+    distance (rounded up to 1, 2 or 5 x 10^k, at least 0.5 mm) so the fit's own spread is seen, and where the
+    flaps lie inside the target, how much and how deep, noted; `notes` (lines of text, e.g. hinge angles)
+    lower left; where start_frames are given, the device where it started, as a black outline.
 
     frames, start_frames: world flap frames (n_flaps, 4, 4), e.g. `Approximation.frames(spec)`; widths: m.
     """
