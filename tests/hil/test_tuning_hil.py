@@ -383,7 +383,7 @@ def test_tune_says_which_limit_it_could_not_keep_on_which_plant(spec):
     assert set(over) <= named
     for line in result.broken:
         h = int(line.split(":")[0].split()[1])
-        assert line.endswith(f" on {result.worst_plant[h]}")
+        assert line.endswith(f"worst on {result.worst_plant[h]})")
         if h in over:
             assert f"overshoots {math.degrees(result.overshoot[h]):.2f} deg (limit 0.05)" in line
     ranges = tolerance_ranges(spec, goal.tolerance)

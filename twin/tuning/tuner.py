@@ -141,7 +141,7 @@ class TuneResult:
     wall_time: float  # s
     history: list[float]  # the best whole candidate's total cost (sum over hinges, s) after each generation
     worst_plant: list[str]  # per hinge, the plant its worst case is on, in words
-    broken: list[str]  # per hinge that breaks a limit on its worst plant: "hinge k: ... on <plant>"
+    broken: list[str]  # per hinge that breaks a limit on a plant: "hinge k: <limits> (over the plants; worst on <plant>)"
     sensitivity: list[dict]  # per hinge, range_sensitivity's row
 
 
@@ -185,12 +185,12 @@ class RobustEvaluator:
         return cost_of(scores, s, g), scores
 
     def evaluate(self, kp, ki, kd):
-        """kp, ki, kd: (population, n_hinges). Returns the worst-plant cost and the scores on that plant, each
-        (population, n), with "plant": the worst plant's index."""
+        """kp, ki, kd: (population, n_hinges). Returns the worst-plant cost and each score's worst over the plants,
+        each (population, n), with "plant": the index of the plant with the highest cost (where a limit is
+        broken, one that breaks it: a broken limit costs more than any kept)."""
         cost, scores = self.costs(kp, ki, kd)
-        plant = cost.argmax(axis=1)  # (P, n)
-        worst = {k: np.take_along_axis(v, plant[:, None], axis=1)[:, 0] for k, v in scores.items()}
-        return cost.max(axis=1), {**worst, "plant": plant}
+        worst = {k: v.max(axis=1) for k, v in scores.items()}
+        return cost.max(axis=1), {**worst, "plant": cost.argmax(axis=1)}
 
 
 _PLANT_BATCHES: dict = {}  # per worker process: (plant, population) -> TwinBatch
@@ -282,7 +282,8 @@ def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, g
     kp, ki, kd = _from_x(x)
     gains = [start[h].replace(kp=float(kp[h]), ki=float(ki[h]), kd=float(kd[h])) for h in range(n)]
     names = [plant_name(spec, p) for p in ev.plants]
-    broken = [f"hinge {h}: " + ", ".join(words) + f" on {names[worst['plant'][h]]}" for h in range(n)
+    broken = [f"hinge {h}: " + ", ".join(words) + f" (over the plants; worst on {names[worst['plant'][h]]})"
+              for h in range(n)
               if (words := broken_limits({k: v[h] for k, v in worst.items()}, spec, goal))]
     sensitivity, simulations = range_sensitivity(spec, goal, gains, nthread, backend)
     return TuneResult(gains, cost, worst["settle"], worst["overshoot"], worst["peak_current"], generations,
