@@ -78,7 +78,7 @@ def cylinder():
     place = trimesh.transformations.translation_matrix([0, 0, -radius]) @ trimesh.transformations.rotation_matrix(
         math.pi / 2, [0, 1, 0])
     mesh = trimesh.creation.cylinder(radius, 0.4, sections=720, transform=place)
-    return radius, mesh, build_fields(mesh, disk_cache=False)
+    return radius, mesh, build_fields(mesh, spacing=0.005, disk_cache=False)  # a smooth 100 mm radius: 5 mm is fine
 
 
 def test_flat_proxy_under_a_cylinder_gets_the_offsets_of_its_geometry(cylinder):
