@@ -15,7 +15,18 @@ from twin.formats.scenario import Scenario
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
 from twin.link.faults import FaultOptions
-from twin.sim.plant import Plant, PlantOptions, PlantRanges, as_twin, draw_plant
+import mujoco
+
+from twin.sim.plant import (
+    COGGING_POLES,
+    RIPPLE_PERIOD,
+    HingeDraw,
+    Plant,
+    PlantOptions,
+    PlantRanges,
+    as_twin,
+    draw_plant,
+)
 from twin.sim.gate import GateRefused, check_move, check_scenario, enforce
 from twin.sim.response import move_report, step_metrics
 from twin.sim.twin import Twin
@@ -137,6 +148,83 @@ def test_the_emulators_plant_is_drawn_within_its_ranges_logged_and_seeded(spec, 
     assert start["options"]["plant"]["speed_scale"] == opt.plant.speed_scale
     assert start["plant"]["no_load_speed"] == pytest.approx(spec.no_load_speed * opt.plant.speed_scale)
     assert start["options"]["faults"]["latency_ms"] == opt.faults.latency_ms
+
+
+def test_the_emulators_hinges_differ_and_keep_effects_the_twin_does_not_model(spec, tmp_path):
+    """Each drawn plant's hinges have their own speed, friction, damping and armature about the shared draw,
+    within the range, and every hinge a friction ripple above zero (an effect the twin does not model), its
+    cogging and its winding's temperature; each hinge's values are in the emulator's log."""
+    ranges = PlantRanges()
+    for seed in range(10):
+        plant, _ = draw_plant(ranges, random.Random(seed), n_hinges=spec.n_hinges)
+        assert len(plant.hinges) == spec.n_hinges
+        scales = np.array([[h.speed, h.friction, h.damping, h.armature] for h in plant.hinges])
+        assert np.all((scales >= 0.85) & (scales <= 1.15)) and np.ptp(scales[:, 0]) > 0.01
+        assert all(0.05 <= h.ripple <= 0.2 and 0.01 <= h.cogging <= 0.05 and 25 <= h.winding_c <= 45
+                   for h in plant.hinges)
+    log = tmp_path / "emu.jsonl"
+    opt = drawn_options(ranges, FaultOptions(), seed=3)
+    Emulator(spec, opt, log_path=str(log)).close()
+    hinges = json.loads(log.read_text().splitlines()[0])["hinges"]
+    speed = [h["no_load_speed"] / (spec.no_load_speed * opt.plant.speed_scale) for h in hinges]
+    assert speed == pytest.approx([h.speed for h in opt.plant.hinges], rel=1e-9)
+
+
+def _coast(plant, ticks):
+    """Ticks with every driver coasting (no current): what moves the flaps is gravity and the plant alone."""
+    off, coast = np.zeros(plant.spec.n_hinges, np.float32), np.zeros(plant.spec.n_hinges, np.uint8)
+    for _ in range(ticks):
+        plant.sense()
+        plant.actuate(off, coast)
+
+
+def test_one_hinges_own_motor_moves_that_hinge_only(spec):
+    """Hinge 0's motor alone made slower (its speed x0.7): driven alike, hinge 0 turns less far than on the
+    plant whose hinges are all the same; hinge 5, on the other chain, turns (nearly) the same."""
+    pwm, brake = np.full(spec.n_hinges, 0.6, np.float32), np.ones(spec.n_hinges, np.uint8)
+    angles = []
+    for first in (HingeDraw(), HingeDraw(speed=0.7)):
+        plant = Plant(spec, PlantOptions(hinges=(first,) + (HingeDraw(),) * (spec.n_hinges - 1)), random.Random(0))
+        for _ in range(60):
+            plant.sense()
+            plant.actuate(pwm, brake)
+        angles.append(plant.angles)
+    # (hinge 5 the same but for the shared pack: hinge 0 draws less current, the bus sags less)
+    assert angles[1][0] < 0.85 * angles[0][0] and angles[1][5] == pytest.approx(angles[0][5], rel=2e-3)
+
+
+def test_cogging_ripple_and_a_warming_winding_are_in_the_plant(spec):
+    """Cogging: with no current, the motor's torque depends on its angle, by its drawn share of the stall
+    torque, COGGING_POLES periods a turn. Ripple: a moving gearbox's extra friction is the drawn share of its
+    Coulomb friction, with the final gear's mesh. The winding: at its power-on temperature, then warmer while
+    the motor is held at stall."""
+    draw = HingeDraw(cogging=0.04, ripple=0.15, ripple_phase=0.3, winding_c=30.0)
+    plant = Plant(spec, PlantOptions(hinges=(draw,) * spec.n_hinges), random.Random(0))
+    m, d, k = plant.model, plant.data, 2
+    g, q = plant.hinges.gear_dof[k], plant.hinges.gear_qadr[k]
+    s = plant.hinge_specs[k]
+    stall = s.motor_constant * s.supply_voltage / s.drive_resistance  # N*m at the motor
+    torques = []
+    for motor_angle in np.linspace(0, 2 * np.pi / COGGING_POLES, 9):
+        d.qpos[q] = motor_angle / s.gear_ratio
+        d.ctrl[:] = 0.0
+        mujoco.mj_forward(m, d)
+        torques.append(d.actuator_force[k])
+    assert np.ptp(torques) == pytest.approx(2 * 0.04 * stall, rel=0.05)  # (the actuator's force: at the motor)
+    assert d.act[m.actuator_actadr[k]] == 30.0
+    d.qvel[g] = 1.0  # rad/s at the gearbox output, well past the Stribeck speed
+    plant.actuate(np.zeros(spec.n_hinges, np.float32), np.zeros(spec.n_hinges, np.uint8))
+    expected = -0.15 * s.gear_friction * math.sin(2 * math.pi * d.qpos[q] / RIPPLE_PERIOD + 0.3)
+    # (the step has moved the joint on: the ripple applied was the one at the tick's start, within a 1e-3 turn)
+    assert d.qfrc_applied[g] == pytest.approx(expected, abs=0.02 * s.gear_friction)
+    plant.hold_hinge(k, 0.0)
+    pwm, brake = np.zeros(spec.n_hinges, np.float32), np.ones(spec.n_hinges, np.uint8)
+    pwm[k] = 1.0
+    for _ in range(2000):  # 2 s at stall against the held flap
+        plant.sense()
+        plant.hold_hinge(k, 0.0)
+        plant.actuate(pwm, brake)
+    assert d.act[m.actuator_actadr[k]] > 30.5
 
 
 def test_missed_encoder_edges_accumulate(spec):

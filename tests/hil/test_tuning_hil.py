@@ -218,11 +218,15 @@ def test_gear_damping_shows_in_the_motion(spec):
 def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     spec = load_spec()
     # known to the test, not to the calibration (latency stays on); soft gains, another recipe than the
-    # calibration scenario's (tests/hil/test_calibration_profile.py)
+    # calibration scenario's (tests/hil/test_calibration_profile.py). Every hinge alike, no cogging, no ripple,
+    # the windings cool at power-on (they still warm as they work): a plant the shared fit can represent. Its
+    # hinges drawn apart, this fit has called a wrong rotor inertia (x2.07 for x1.3) identifiable: per-hinge
+    # calibration is issue 20's, not built yet.
     truth = {"no_load_speed": 0.75, "gear_friction": 1.6, "rotor_inertia": 1.3, "gear_damping": 1.0,
              "backlash": 0.2}
     emu = emulator("--speed-scale", "0.75", "--friction-scale", "1.6", "--armature-scale", "1.3",
-                   "--damping-scale", "1", "--backlash-deg", "0.05")
+                   "--damping-scale", "1", "--backlash-deg", "0.05", "--hinge-scale", "1", "--cogging-pct", "0",
+                   "--ripple-pct", "0", "--winding-c", "25")
     soft = PidGains.from_spec(spec).replace(kp=0.015, ki=0.05, kd=0.0003)  # slow creeps: friction shows in the duty
     train, hold, cal = tmp_path / "train", tmp_path / "hold", tmp_path / "cal.toml"
     (tmp_path / "a.toml").write_text(SCENARIO.format(duration=2.0, t1=0.7, t2=1.4))

@@ -23,6 +23,10 @@ RANGED = {  # PlantRanges field (its option is --field-name) -> what it is
     "armature_scale": "rotor inertia (armature) x",
     "backlash_deg": "backlash between gearbox output and flap, deg",
     "latency_ms": "command latency, ms",
+    "hinge_scale": "each hinge's own x on speed, friction, damping and armature, about the above",
+    "cogging_pct": "each motor's cogging, %% of its stall torque",
+    "ripple_pct": "each gearbox's friction ripple with its final gear's mesh, %% of its Coulomb friction",
+    "winding_c": "each winding's temperature at power-on, deg C (it warms as it works)",
 }
 
 
@@ -123,9 +127,10 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
                           corrupt=args.corrupt, wiring=tuple(args.wiring_fault))
     Miswiring.parse(faults.wiring, spec.n_hinges)  # refused here, naming the fault
     opt = drawn_options(ranges, faults, args.seed, args.watchdog_ms, args.encoder_miss, args.pack_voltage,
-                        args.sketch, args.zeroed)
+                        args.sketch, args.zeroed, spec.n_hinges)
     return dataclasses.replace(opt, host_away_hold_ms=args.host_away_hold_ms,
-                               plant=dataclasses.replace(opt.plant, lying_flat=args.lying_flat))
+                               plant=dataclasses.replace(opt.plant, lying_flat=args.lying_flat,
+                                                         hinges=() if args.ideal else opt.plant.hinges))
 
 
 def run(args) -> int:

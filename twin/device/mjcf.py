@@ -127,8 +127,21 @@ def _chain(spec: DeviceSpec, flaps: list[int], depth: int, root: str) -> str:
     return _flap_body(spec, i, "  " * depth, _chain(spec, rest, depth + 1, root), root)
 
 
-def mjcf(spec: DeviceSpec | None = None, root: str = "fixed") -> str:
-    """MJCF text of the device. root: 'fixed' (held in the world) or 'free' (a freejoint)."""
+def motor_attributes(s: DeviceSpec) -> str:
+    """The dcmotor attributes a spec gives a gearmotor (the device's default class; or one hinge's own, where
+    its motor differs): K, R, rotor armature, viscous damping and LuGre friction, written motor side."""
+    N = s.gear_ratio
+    lugre = _f(s.friction_stiffness / N**2, s.friction_damping / N**2, s.gear_friction / N, s.gear_stiction / N,
+               s.stribeck_speed * N)
+    return (f'motorconst="{_f(s.motor_constant)}" resistance="{_f(s.drive_resistance)}"\n'
+            f'        armature="{_f(s.rotor_inertia)}" damping="{_f(s.gear_damping / N**2)}"\n'
+            f'        lugre="{lugre}"')
+
+
+def mjcf(spec: DeviceSpec | None = None, root: str = "fixed", motors: list[str] | None = None) -> str:
+    """MJCF text of the device. root: 'fixed' (held in the world) or 'free' (a freejoint). motors: per hinge,
+    dcmotor attributes of its own (e.g. `motor_attributes` of that hinge's spec: the emulator's plant, whose
+    hinges differ); None: every hinge the default class's."""
     if root not in ("fixed", "free"):
         raise ValueError(f"root must be 'fixed' or 'free', not {root!r}")
     s = spec or load_spec()
@@ -138,7 +151,9 @@ def mjcf(spec: DeviceSpec | None = None, root: str = "fixed") -> str:
     right = _chain(s, list(range(r + 1, s.n_flaps)), 3, root)
     root_body = _flap_body(s, r, "    ", "\n".join(c for c in (left, right) if c), root)
     hinges = range(s.n_hinges)
-    actuators = "\n".join(f'    <dcmotor name="motor{k}" class="gearmotor" joint="{motor_joint(s, k)}"/>' for k in hinges)
+    extra = [""] * s.n_hinges if motors is None else [" " + m for m in motors]
+    actuators = "\n".join(f'    <dcmotor name="motor{k}" class="gearmotor" joint="{motor_joint(s, k)}"{extra[k]}/>'
+                          for k in hinges)
     sensors = "\n".join(
         f'    <actuatorpos name="encoder{k}" actuator="motor{k}"/>\n'
         f'    <jointpos name="angle{k}" joint="hinge{k}"/>\n'
@@ -188,9 +203,7 @@ def mjcf(spec: DeviceSpec | None = None, root: str = "fixed") -> str:
            current limit); the gearbox's efficiency is applied there too. Friction at the output
            (spec [motor] gear_stiction, gear_friction, stribeck_speed, friction_stiffness,
            friction_damping; gear_damping), written motor side: torque / N, speed * N, stiffness / N^2. -->
-      <dcmotor gear="{_f(N)}" motorconst="{_f(s.motor_constant)}" resistance="{_f(s.drive_resistance)}"
-        armature="{_f(s.rotor_inertia)}" damping="{_f(s.gear_damping / N**2)}"
-        lugre="{_f(s.friction_stiffness / N**2, s.friction_damping / N**2, s.gear_friction / N, s.gear_stiction / N, s.stribeck_speed * N)}"/>
+      <dcmotor gear="{_f(N)}" {motor_attributes(s)}/>
       <default class="gearmotor"/>
       <default class="flap_visual">
         <geom type="box" group="2" contype="0" conaffinity="0" density="0" material="flap"/>
@@ -251,10 +264,12 @@ def mjcf(spec: DeviceSpec | None = None, root: str = "fixed") -> str:
 TABLE_GAP = 1e-4  # m between the flat device's underside and the table under it
 
 
-def load_model(spec: DeviceSpec | None = None, root: str = "fixed", table: bool = False) -> mujoco.MjModel:
+def load_model(spec: DeviceSpec | None = None, root: str = "fixed", table: bool = False,
+               motors: list[str] | None = None) -> mujoco.MjModel:
     """Compile the device model from a spec (the default spec if None). table: a table just under the flat
-    device, which the flaps rest on and cannot fold through (the emulator's lying-flat start)."""
-    text = mjcf(spec, root)
+    device, which the flaps rest on and cannot fold through (the emulator's lying-flat start); motors: as
+    `mjcf`'s."""
+    text = mjcf(spec, root, motors)
     if table:
         z = -((spec or load_spec()).thickness + TABLE_GAP)
         text = text.replace("  <worldbody>\n", '  <worldbody>\n    <geom name="table" type="plane" size="0.5 0.5 0.01" '

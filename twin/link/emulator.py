@@ -56,10 +56,11 @@ class EmulatorOptions:
 
 def drawn_options(ranges: PlantRanges, faults: FaultOptions, seed: int, watchdog_ms: int | None = None,
                   encoder_miss: float = 0.0, pack_voltage: float | None = None, sketch: bool = False,
-                  zeroed: bool = False) -> EmulatorOptions:
+                  zeroed: bool = False, n_hinges: int | None = None) -> EmulatorOptions:
     """An emulated device whose plant and latency are drawn within `ranges` from `seed` (the faults' latency
-    replaced by the drawn one)."""
-    plant, latency = draw_plant(ranges, random.Random(seed), encoder_miss, pack_voltage)
+    replaced by the drawn one); n_hinges: the device's (default the spec's)."""
+    n_hinges = load_spec().n_hinges if n_hinges is None else n_hinges
+    plant, latency = draw_plant(ranges, random.Random(seed), encoder_miss, pack_voltage, n_hinges)
     return EmulatorOptions(plant=plant, faults=dataclasses.replace(faults, latency_ms=latency),
                            watchdog_ms=watchdog_ms, seed=seed, sketch=sketch, zeroed=zeroed)
 
@@ -107,6 +108,8 @@ class Emulator:
         self._log("start", plant={k: getattr(p, k) for k in ("gear_friction", "gear_stiction", "gear_damping",
                                                              "no_load_speed", "rotor_inertia", "backlash",
                                                              "supply_voltage")},
+                  hinges=[{k: getattr(h, k) for k in ("gear_friction", "gear_stiction", "gear_damping", "no_load_speed",
+                                                      "rotor_inertia")} for h in self.plant.hinge_specs],
                   options=dataclasses.asdict(self.opt))
 
     @property

@@ -90,7 +90,7 @@ class TwinBatch:
             for q, a in zip(self.qpos, np.broadcast_to(angles, (self.nsim, self.spec.n_hinges))):
                 place_hinges(q, self.hinges, a)
         self.batch.forward()
-        self._bus[:] = self._params[:, V_PACK]
+        self._bus[:] = self._params[:, 0, V_PACK]
         counts = self._counts_now()
         size = core.library().vrs_core_size()
         self._cores = np.zeros((self.nsim, size), np.uint8)  # one vrs_core per simulation, contiguous

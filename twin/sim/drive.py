@@ -34,12 +34,16 @@ BACKDRIVE_SPEED = 1e-3  # rad/s: below this the gearbox counts as driving (a hel
 DECAY_COAST = 0  # VRS_DECAY_COAST in vrs_core.h
 
 
-def drive_params(spec: DeviceSpec) -> np.ndarray:
-    """The drive model's constants for a spec, as the compiled loops take them (float64)."""
-    p = np.zeros(7)
-    p[V_PACK], p[R_PACK] = spec.supply_voltage, spec.pack_resistance
-    p[K_EMF], p[R_DRIVE] = spec.motor_constant * spec.gear_ratio, spec.drive_resistance
-    p[I_LIMIT], p[ETA], p[ETA_BACK] = spec.driver_current_limit, spec.gearbox_efficiency, spec.backdrive_efficiency
+def drive_params(spec: DeviceSpec, hinges: list[DeviceSpec] | None = None) -> np.ndarray:
+    """The drive model's constants for a spec, as the compiled loops take them: (n_hinges, 7) float64, a row
+    per hinge. hinges: each hinge's own spec where the motors differ (the emulator's plant); the pack's
+    values (V_PACK, R_PACK) are the spec's in every row."""
+    hinges = hinges or [spec] * spec.n_hinges
+    p = np.zeros((len(hinges), 7))
+    p[:, V_PACK], p[:, R_PACK] = spec.supply_voltage, spec.pack_resistance
+    for h, s in enumerate(hinges):
+        p[h, K_EMF], p[h, R_DRIVE] = s.motor_constant * s.gear_ratio, s.drive_resistance
+        p[h, I_LIMIT], p[h, ETA], p[h, ETA_BACK] = s.driver_current_limit, s.gearbox_efficiency, s.backdrive_efficiency
     return p
 
 
@@ -52,17 +56,16 @@ def drive(params, pwm, decay, qvel, gear_dof, ctrl, qfrc_applied, current) -> fl
     MjData arrays (or one batch row), gear_dof the gear joints' dof addresses.
     """
     n = pwm.shape[0]
-    k_emf, r = params[K_EMF], params[R_DRIVE]
     # the bus: V_bus (1 + R_pack sum p^2 / R) = V_pack + R_pack sum p e / R over the windings that conduct
     a, b = 0.0, 0.0
     for h in range(n):
         if pwm[h] != 0.0 or decay[h] != DECAY_COAST:
-            a += pwm[h] * pwm[h] / r
-            b += pwm[h] * k_emf * qvel[gear_dof[h]] / r
-    v_bus = (params[V_PACK] + params[R_PACK] * b) / (1.0 + params[R_PACK] * a)
-    lim = params[I_LIMIT]
+            a += pwm[h] * pwm[h] / params[h, R_DRIVE]
+            b += pwm[h] * params[h, K_EMF] * qvel[gear_dof[h]] / params[h, R_DRIVE]
+    v_bus = (params[0, V_PACK] + params[0, R_PACK] * b) / (1.0 + params[0, R_PACK] * a)
     bus_current = 0.0
     for h in range(n):
+        k_emf, r, lim = params[h, K_EMF], params[h, R_DRIVE], params[h, I_LIMIT]
         w = qvel[gear_dof[h]]
         emf = k_emf * w
         if pwm[h] == 0.0 and decay[h] == DECAY_COAST:
@@ -72,8 +75,8 @@ def drive(params, pwm, decay, qvel, gear_dof, ctrl, qfrc_applied, current) -> fl
         current[h] = i
         ctrl[h] = emf + r * i  # the voltage behind R that gives MuJoCo's dcmotor this current
         torque = k_emf * i  # N*K*I at the output, before the gearbox's losses
-        eff = params[ETA] if torque * w >= 0.0 or abs(w) < BACKDRIVE_SPEED else 1.0 / params[ETA_BACK]
+        eff = params[h, ETA] if torque * w >= 0.0 or abs(w) < BACKDRIVE_SPEED else 1.0 / params[h, ETA_BACK]
         qfrc_applied[gear_dof[h]] = (eff - 1.0) * torque
         bus_current += pwm[h] * i
-    return params[V_PACK] - params[R_PACK] * bus_current
+    return params[0, V_PACK] - params[0, R_PACK] * bus_current
 

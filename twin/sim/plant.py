@@ -9,6 +9,19 @@ shows: edges missed now and then, which accumulate (the count drifts from the sh
 independent +-1 noise. Each firmware tick is `sense()` (positions and sensors at the start of the
 tick, encoder counts) then `actuate(pwm, decay)` (the drive held for the tick's physics steps),
 the same sequence and physics steps as the twin's loop.
+
+A device differs hinge by hinge, and has what the twin leaves out (docs/device.md "The emulator's plant"):
+each hinge's motor and gearbox scaled on its own about the shared draw (`HingeDraw`: speed, friction,
+damping, armature), and three effects the twin's default model does not have, drawn per hinge:
+- cogging: MuJoCo's dcmotor `cogging`, amplitude a share of the motor's stall torque, COGGING_POLES
+  periods per motor revolution;
+- a winding that warms: MuJoCo's dcmotor `thermal` (copper's 0.393 %/K; WINDING_* below), starting at a
+  drawn temperature (a device that has been running); the firmware's current reading stays the drive
+  model's at the cold resistance (MuJoCo applies the hot one to the torque);
+- a friction ripple: the gearbox's Coulomb friction modulated by the final gear's mesh, a share of it,
+  sin(2 pi theta / RIPPLE_PERIOD + phase), added at the gearbox output each tick.
+The twin may gain any of these; `draw_plant` always draws a ripple above zero, so a drawn plant always
+keeps at least one effect the twin does not model.
 """
 
 from __future__ import annotations
@@ -21,11 +34,35 @@ import mujoco
 import numpy as np
 
 from controllers.encoder import counts_from_motor_angles
-from twin.device.mjcf import load_model
+from twin.device.mjcf import load_model, motor_attributes
 from twin.device.spec import DeviceSpec
 from twin.device.variation import SPREAD, scaled
 from twin.sim.drive import drive, drive_params
 from twin.sim.hinges import Hinges, physics_substeps
+
+
+COGGING_POLES = 6  # cogging periods per motor revolution: a 2-pole magnet and a 3-slot armature (an assumption)
+RIPPLE_PERIOD = math.radians(12.0)  # rad of gearbox output: a 30-tooth final gear's mesh (an assumption)
+WINDING_RESISTANCE = 40.0  # K/W, winding to ambient: a 12 mm can motor (an assumption; none is published)
+WINDING_TIMECONST = 30.0  # s, the winding's thermal time constant (an assumption)
+COPPER_TEMPCOEF = 0.00393  # 1/K, copper's resistance
+REFERENCE_C = 25.0  # deg C: where the spec's resistance holds, and the ambient
+
+
+@dataclasses.dataclass(frozen=True)
+class HingeDraw:
+    """One hinge of an emulated plant: x on top of the shared draw (speed, friction, damping, armature), its
+    cogging (a share of the motor's stall torque), friction ripple (a share of the gearbox's Coulomb
+    friction) and its phase (rad), and its winding's temperature at power-on (deg C)."""
+
+    speed: float = 1.0
+    friction: float = 1.0
+    damping: float = 1.0
+    armature: float = 1.0
+    cogging: float = 0.0
+    ripple: float = 0.0
+    ripple_phase: float = 0.0
+    winding_c: float = REFERENCE_C
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,13 +77,16 @@ class PlantOptions:
     encoder_miss: float = 0.0  # probability that the counter misses an edge (they accumulate)
     pack_voltage: float | None = None  # V, the pack's open-circuit voltage (None: the spec's supply_voltage)
     lying_flat: bool = False  # on a table (the flaps cannot fold below it), not held up by the root flap
+    hinges: tuple = ()  # a HingeDraw per hinge (and the winding's warming); empty: every hinge the shared draw's
 
 
 @dataclasses.dataclass(frozen=True)
 class PlantRanges:
     """(low, high) per drawn parameter; low == high fixes it. The defaults are the documented ranges
     (docs/device.md "The emulator's plant"): the device's spread about its spec
-    (twin.device.variation.SPREAD), the backlash from none to the spread's top, the link's latency."""
+    (twin.device.variation.SPREAD), the backlash from none to the spread's top, the link's latency, and per
+    hinge: its own spread about those (micro metal gearmotors of one batch differ by 10-20 %), cogging,
+    friction ripple and the winding's temperature."""
 
     speed_scale: tuple[float, float] = SPREAD["no_load_speed"]
     friction_scale: tuple[float, float] = SPREAD["gear_friction"]
@@ -54,6 +94,10 @@ class PlantRanges:
     armature_scale: tuple[float, float] = SPREAD["rotor_inertia"]
     backlash_deg: tuple[float, float] = (0.0, 0.5)  # deg: SPREAD's top x the spec's 0.25 deg
     latency_ms: tuple[float, float] = (0.0, 3.0)
+    hinge_scale: tuple[float, float] = (0.85, 1.15)  # each hinge's own x on speed, friction, damping, armature
+    cogging_pct: tuple[float, float] = (1.0, 5.0)  # % of the motor's stall torque
+    ripple_pct: tuple[float, float] = (5.0, 20.0)  # % of the gearbox's Coulomb friction
+    winding_c: tuple[float, float] = (25.0, 45.0)  # deg C at power-on
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -67,15 +111,24 @@ class PlantRanges:
 # what a drawn parameter may be at all: a plant the twin's model still simulates (a scale of 0 divides by
 # zero; a backlash of degrees is a broken gearbox, not a tolerance; latency beyond 100 ms is no USB link)
 RANGE_LIMITS = {"speed_scale": (0.1, 10.0), "friction_scale": (0.0, 10.0), "damping_scale": (0.0, 10.0),
-                "armature_scale": (0.1, 10.0), "backlash_deg": (0.0, 5.0), "latency_ms": (0.0, 100.0)}
+                "armature_scale": (0.1, 10.0), "backlash_deg": (0.0, 5.0), "latency_ms": (0.0, 100.0),
+                "hinge_scale": (0.1, 10.0), "cogging_pct": (0.0, 50.0), "ripple_pct": (0.0, 90.0),
+                "winding_c": (-20.0, 120.0)}
+PER_HINGE = ("hinge_scale", "cogging_pct", "ripple_pct", "winding_c")  # drawn for each hinge
 
 
 def draw_plant(ranges: PlantRanges, rng: random.Random, encoder_miss: float = 0.0,
-               pack_voltage: float | None = None) -> tuple[PlantOptions, float]:
-    """A plant drawn uniformly within the ranges, and its command latency (ms)."""
-    v = {f.name: rng.uniform(*getattr(ranges, f.name)) for f in dataclasses.fields(ranges)}
+               pack_voltage: float | None = None, n_hinges: int = 6) -> tuple[PlantOptions, float]:
+    """A plant drawn uniformly within the ranges, each of its n_hinges hinges' own values too, and its
+    command latency (ms)."""
+    shared = [f.name for f in dataclasses.fields(ranges) if f.name not in PER_HINGE]
+    v = {name: rng.uniform(*getattr(ranges, name)) for name in shared}
     latency = v.pop("latency_ms")
-    return PlantOptions(**v, encoder_miss=encoder_miss, pack_voltage=pack_voltage), latency
+    hinges = tuple(HingeDraw(*(rng.uniform(*ranges.hinge_scale) for _ in range(4)),
+                             cogging=rng.uniform(*ranges.cogging_pct) / 100, ripple=rng.uniform(*ranges.ripple_pct) / 100,
+                             ripple_phase=rng.uniform(0.0, 2 * math.pi), winding_c=rng.uniform(*ranges.winding_c))
+                   for _ in range(n_hinges))
+    return PlantOptions(**v, encoder_miss=encoder_miss, pack_voltage=pack_voltage, hinges=hinges), latency
 
 
 def as_twin(spec: DeviceSpec) -> PlantOptions:
@@ -84,11 +137,25 @@ def as_twin(spec: DeviceSpec) -> PlantOptions:
 
 
 def plant_spec(spec: DeviceSpec, opt: PlantOptions) -> DeviceSpec:
-    """The emulated device's physical spec: the twin's, scaled."""
+    """The emulated device's physical spec: the twin's, scaled (what its hinges share)."""
     body = scaled(spec, {"no_load_speed": opt.speed_scale, "gear_friction": opt.friction_scale,
                          "gear_damping": opt.damping_scale, "rotor_inertia": opt.armature_scale})
     return body.replace(backlash=math.radians(opt.backlash_deg),
                         supply_voltage=spec.supply_voltage if opt.pack_voltage is None else opt.pack_voltage)
+
+
+def hinge_specs(body: DeviceSpec, opt: PlantOptions) -> list[DeviceSpec]:
+    """Each hinge's own physical spec: the plant's (plant_spec), scaled by its HingeDraw."""
+    return [scaled(body, {"no_load_speed": h.speed, "gear_friction": h.friction, "gear_damping": h.damping,
+                          "rotor_inertia": h.armature}) for h in opt.hinges] or [body] * body.n_hinges
+
+
+def _motor(s: DeviceSpec, h: HingeDraw) -> str:
+    """One hinge's dcmotor attributes: its own motor and gearbox, its cogging, its winding's warming."""
+    stall = s.motor_constant * s.supply_voltage / s.drive_resistance  # N*m at the motor
+    return (motor_attributes(s) + f' cogging="{h.cogging * stall!r} {COGGING_POLES} 0"'
+            f' thermal="{WINDING_RESISTANCE!r} 0 {WINDING_TIMECONST!r} {COPPER_TEMPCOEF!r} {REFERENCE_C!r} '
+            f'{REFERENCE_C!r}"')
 
 
 class Plant:
@@ -98,13 +165,22 @@ class Plant:
         self.spec = plant_spec(spec, opt)
         self.opt = opt
         self.rng = rng
-        self.model = load_model(self.spec, table=opt.lying_flat)
+        if opt.hinges and len(opt.hinges) != self.spec.n_hinges:
+            raise ValueError(f"the plant draws {len(opt.hinges)} hinges; the device has {self.spec.n_hinges}")
+        self.hinge_specs = hinge_specs(self.spec, opt)
+        motors = [_motor(s, h) for s, h in zip(self.hinge_specs, opt.hinges)] or None
+        self.model = load_model(self.spec, table=opt.lying_flat, motors=motors)
         self.data = mujoco.MjData(self.model)
         self.substeps = physics_substeps(self.spec, self.model)
         n = self.spec.n_hinges
         self.hinges = Hinges(self.model, n)
-        self.params = drive_params(self.spec)
+        self.params = drive_params(self.spec, self.hinge_specs)
         mujoco.mj_resetDataKeyframe(self.model, self.data, self.model.key("flat").id)
+        for k, h in enumerate(opt.hinges):  # each winding at its power-on temperature (the keyframe has 0)
+            self.data.act[self.model.actuator_actadr[k]] = h.winding_c
+        # the friction ripple: per hinge its amplitude (N*m at the gearbox output) and phase
+        self._ripple = np.array([[h.ripple * s.gear_friction, h.ripple_phase]
+                                 for s, h in zip(self.hinge_specs, opt.hinges)]).reshape(-1, 2)
         mujoco.mj_forward(self.model, self.data)
         self.bus = self.spec.supply_voltage  # V, the battery voltage the firmware reads
         self.current = np.zeros(n)  # A, winding current of the last tick
@@ -138,6 +214,11 @@ class Plant:
         d = self.data
         self.bus = drive(self.params, np.asarray(pwm, np.float32), np.asarray(decay, np.uint8), d.qvel,
                          self.hinges.gear_dof, d.ctrl, d.qfrc_applied, self.current)
+        for k, (amplitude, phase) in enumerate(self._ripple):  # friction opposes the motion, rippling with the mesh
+            g = self.hinges.gear_dof[k]
+            theta = d.qpos[self.hinges.gear_qadr[k]]
+            d.qfrc_applied[g] -= amplitude * math.sin(2 * math.pi * theta / RIPPLE_PERIOD + phase) * math.tanh(
+                d.qvel[g] / self.spec.stribeck_speed)
         mujoco.mj_step2(self.model, d)
         for _ in range(self.substeps - 1):
             mujoco.mj_step(self.model, d)
