@@ -3,8 +3,10 @@
 For each seed, the emulator draws its plant within its stated ranges (tests/random_plant.py); the device is
 woken to flat, the calibration scenario (seed 0, for the device's gains) and a held-out one (seed 1) are
 recorded with `vrscroll hil`, and `vrscroll calibrate` fits the first and scores the second. The drawn
-values are read from the emulator's log only to print beside the fit; the floor is the held-out error of
-a twin given the drawn values.
+values are read from the emulator's log only to print beside the fit. Two floors: the held-out error of a
+twin given the drawn values the twin can take (the shared ones: each hinge's own values and the effects the
+twin does not model stay out of it), and the one `vrscroll calibrate` estimates from the run alone (the
+encoder's resolution and the link's timing), with what no parameter explains above it.
 
     python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal]
 """
@@ -71,7 +73,9 @@ def one(seed: int, folder: Path) -> None:
               f"{e['low'] / e['prior']:8.3f}..{e['high'] / e['prior']:<7.3f}  {verdict}")
     print("  held-out RMSE per hinge, deg: before " + " ".join(f"{x:.3f}" for x in h["rmse_before_deg"]))
     print("                                after  " + " ".join(f"{x:.3f}" for x in h["rmse_after_deg"]))
-    print("                     drawn plant (floor) " + " ".join(f"{x:.3f}" for x in floor))
+    print("    twin given the drawn shared values " + " ".join(f"{x:.3f}" for x in floor))
+    print("    floor from the run (encoder, link)  " + " ".join(f"{r['floor_deg']:.3f}" for r in h["per_hinge"]))
+    print("    unexplained after calibration       " + " ".join(f"{r['unexplained_deg']:.3f}" for r in h["per_hinge"]))
     print(f"  overall: {h['overall_before_deg']:.3f} -> {h['overall_after_deg']:.3f} deg "
           f"(floor {float(np.sqrt(np.mean(floor ** 2))):.3f})", flush=True)
 

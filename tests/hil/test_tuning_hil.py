@@ -256,8 +256,19 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     plant = spec.replace(no_load_speed=spec.no_load_speed * 0.75, gear_friction=spec.gear_friction * 1.6,
                          gear_stiction=spec.gear_stiction * 1.6, rotor_inertia=spec.rotor_inertia * 1.3,
                          backlash=math.radians(0.05))
-    floor = float(np.sqrt(np.mean(trace_rmse(read_run(hold, spec), plant, spec) ** 2)))
+    truth_replay = trace_rmse(read_run(hold, spec), plant, spec)  # per hinge, deg: the twin given the truth
+    floor = float(np.sqrt(np.mean(truth_replay ** 2)))
     assert held_out_improved(h, floor, spec), (h, floor)
+    # per hinge: the RMSE splits into the floor the encoder and link set and what no parameter explains; the
+    # floor estimated from the run alone is a lower bound of what the truth itself leaves
+    for rows in (res["per_hinge"], h["per_hinge"]):
+        assert [r["hinge"] for r in rows] == list(range(spec.n_hinges))
+        for r in rows:
+            left = math.sqrt(max(r["rmse_deg"] ** 2 - r["floor_deg"] ** 2, 0.0))
+            assert r["unexplained_deg"] == pytest.approx(left, abs=1e-3) and r["rmse_deg"] > 0
+    for r, truth_deg in zip(h["per_hinge"], truth_replay):
+        assert 0.1 < r["floor_deg"] <= truth_deg + 0.01, (r, truth_deg)
+    assert "what no parameter explains" in text
     calibrated = load_spec(cal)
     assert calibrated.no_load_speed == pytest.approx(res["parameters"]["no_load_speed"]["value"], rel=1e-4)
     assert "calibrated from" in cal.read_text()

@@ -25,7 +25,7 @@ from twin.device.spec_toml import FROM_SI, spec_units, write_spec_toml
 from twin.errors import UserError
 from twin.formats.profile import write_profile_spec
 from twin.formats.run import read_run
-from twin.hil.calibration import calibrate, trace_rmse
+from twin.hil.calibration import calibrate, floor_deg, trace_rmse, unexplained
 
 
 def add_arguments(p) -> None:
@@ -103,11 +103,13 @@ def run(args) -> int:
            "singular_values": [round(s, 4) for s in res.singular_values],
            "autocorrelation_frames": round(res.autocorrelation_frames, 1),
            "fit_rmse_deg": {"before": round(res.rmse_before, 4), "after": round(res.rmse_after, 4)},
+           "per_hinge": _per_hinge(res.hinge_rmse_after, res.hinge_floor),
            "iterations": res.iterations, "replays": res.evaluations}
     if holdout:
         before, after = trace_rmse(holdout, spec, spec), trace_rmse(holdout, res.spec, spec)
         out["holdout"] = {"run": args.holdout, "rmse_before_deg": before.round(4).tolist(),
                           "rmse_after_deg": after.round(4).tolist(),
+                          "per_hinge": _per_hinge(after, floor_deg(holdout, spec)),
                           "overall_before_deg": round(float(np.sqrt(np.mean(before ** 2))), 4),
                           "overall_after_deg": round(float(np.sqrt(np.mean(after ** 2))), 4)}
     write_json(args.json, out)
@@ -126,11 +128,29 @@ def run(args) -> int:
     print(f"residual autocorrelation {res.autocorrelation_frames:.0f} frames (the intervals allow for it; the "
           "Hessian's singular values are in --json)")
     print(f"fit RMSE (training runs, hinge angles): {res.rmse_before:.3f} deg -> {res.rmse_after:.3f} deg")
+    _print_per_hinge("training runs", out["per_hinge"])
     if holdout:
         h = out["holdout"]
         print("held-out RMSE per hinge, deg: before " + " ".join(f"{x:.3f}" for x in h["rmse_before_deg"]))
         print("                              after  " + " ".join(f"{x:.3f}" for x in h["rmse_after_deg"]))
         print(f"held-out RMSE overall (every frame of every hinge), deg: {h['overall_before_deg']:.3f} -> "
               f"{h['overall_after_deg']:.3f}")
+        _print_per_hinge("held-out run", h["per_hinge"])
     print("calibrated spec written to " + ", ".join(written))
     return 0
+
+
+def _per_hinge(rmse, floor) -> list[dict]:
+    """Per hinge: the calibrated twin's RMSE, the floor the encoder and link set, and what neither explains
+    (deg; twin.hil.calibration.floor_deg, unexplained)."""
+    left = unexplained(rmse, floor)
+    return [{"hinge": k, "rmse_deg": round(float(r), 4), "floor_deg": round(float(f), 4),
+             "unexplained_deg": round(float(u), 4)} for k, (r, f, u) in enumerate(zip(rmse, floor, left))]
+
+
+def _print_per_hinge(what: str, rows: list[dict]) -> None:
+    print(f"per hinge, {what}: the calibrated twin's RMSE, the floor the encoder's resolution and the link's "
+          "timing set, and what no parameter explains, deg")
+    for r in rows:
+        print(f"  hinge {r['hinge']}: RMSE {r['rmse_deg']:.3f}  floor {r['floor_deg']:.3f}  "
+              f"unexplained {r['unexplained_deg']:.3f}")

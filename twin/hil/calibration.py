@@ -118,6 +118,33 @@ def trace_rmse(run: Run, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
     return np.sqrt(np.mean((replay(run, plant, spec)[0] - device_angles(run, spec)) ** 2, axis=0))
 
 
+def floor_deg(run: Run, spec: DeviceSpec) -> np.ndarray:
+    """Per hinge, deg: the part of the angle error no parameter removes, from the encoder's resolution and the
+    link's timing alone: twin and device each read a quantised encoder (a count's Delta^2 / 12 each, independent
+    where the angles differ by more than a count), and each target takes effect within a firmware tick of the
+    device's acknowledgement (speed x dt, uniform): sqrt(Delta^2 / 6 + mean(w^2) dt^2 / 12), w the device's
+    hinge speed (rad/s, from its encoder). A lower bound: stick-slip, missed edges and the model's own errors add
+    to it (replaying the emulator's true plant left 0.11-0.19 deg, tests/random_plant.py)."""
+    t, angle = run.device.time, run.device.angle
+    speed = np.diff(angle, axis=0) / np.maximum(np.diff(t), 1e-9)[:, None] if len(t) > 1 else np.zeros((1, angle.shape[1]))
+    delta, dt = spec.rad_per_count, spec.firmware_dt
+    return np.degrees(np.sqrt(delta ** 2 / 6 + np.mean(speed ** 2, axis=0) * dt ** 2 / 12))
+
+
+def unexplained(rmse_deg, floor) -> np.ndarray:
+    """The part of an RMSE (deg) above its floor (deg), in quadrature: what no parameter explains and the
+    encoder and link do not either (0 where the RMSE is at or below the floor)."""
+    return np.sqrt(np.maximum(np.asarray(rmse_deg) ** 2 - np.asarray(floor) ** 2, 0.0))
+
+
+def per_hinge_rmse(runs: list[Run], plant: DeviceSpec, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(RMSE, floor), each per hinge and deg, over every frame of the runs."""
+    n = [len(r.device.time) for r in runs]
+    rmse = np.sqrt(np.average([trace_rmse(r, plant, spec) ** 2 for r in runs], axis=0, weights=n))
+    floor = np.sqrt(np.average([floor_deg(r, spec) ** 2 for r in runs], axis=0, weights=n))
+    return rmse, floor
+
+
 @dataclasses.dataclass
 class Estimate:
     """One parameter after calibration, SI (the spec field's unit)."""
@@ -146,6 +173,8 @@ class CalibrationResult:
     autocorrelation_frames: float  # residual autocorrelation time the intervals allow for, frames
     rmse_before: float  # deg, hinge angles, all training runs, frames and hinges
     rmse_after: float
+    hinge_rmse_after: np.ndarray  # deg per hinge, all training runs (per_hinge_rmse)
+    hinge_floor: np.ndarray  # deg per hinge: floor_deg over the training runs
     iterations: int
     evaluations: int
 
@@ -330,10 +359,11 @@ def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int 
 
     x, estimates = verdicts(grads, Hs, xb, s2, params, prior, max_halfwidth)
     fitted = plant(x)
+    hinge_rmse, hinge_floor = per_hinge_rmse(runs, fitted, base)
     H = Hs.sum(axis=0)
     norms = np.sqrt(np.maximum(np.diag(H), 1e-300))
     sv = np.linalg.svd(H / np.outer(norms, norms), compute_uv=False)
     return CalibrationResult(
         spec=fitted, estimates=estimates, singular_values=[float(v) for v in sv], autocorrelation_frames=tau,
-        rmse_before=angle_rmse(base), rmse_after=angle_rmse(fitted), iterations=generations,
-        evaluations=count[0])
+        rmse_before=angle_rmse(base), rmse_after=angle_rmse(fitted), hinge_rmse_after=hinge_rmse,
+        hinge_floor=hinge_floor, iterations=generations, evaluations=count[0])
