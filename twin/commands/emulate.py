@@ -69,6 +69,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zeroed", action="store_true",
                    help="start with the zero confirmed, as if `vrscroll zero` had run at power-on while the flaps lay "
                         "flat (by default, as a real device, it refuses to move until confirmed)")
+    p.add_argument("--no-warming", action="store_true",
+                   help="the windings keep their power-on temperature (--winding-c) instead of warming as they work")
     p.add_argument("--ideal", action="store_true",
                    help="the twin's own plant: nothing drawn, no latency (the other options still apply)")
 
@@ -130,7 +132,8 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
                         args.sketch, args.zeroed, spec.n_hinges)
     return dataclasses.replace(opt, host_away_hold_ms=args.host_away_hold_ms,
                                plant=dataclasses.replace(opt.plant, lying_flat=args.lying_flat,
-                                                         hinges=() if args.ideal else opt.plant.hinges))
+                                                         hinges=() if args.ideal else opt.plant.hinges,
+                                                         warming=not args.no_warming))
 
 
 def run(args) -> int:

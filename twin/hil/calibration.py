@@ -66,15 +66,16 @@ DUTY_WEIGHT = 20.0  # deg per unit duty: a 0.01 duty error weighs as 0.2 deg (ea
 JACKKNIFE_SEGMENTS = 3  # stretches of a run per hinge the jackknife leaves out: 18 groups for one run
 
 
-def replay(run: Run, plant: DeviceSpec, spec: DeviceSpec | None = None):
+def replay(run: Run, plant: DeviceSpec, spec: DeviceSpec | None = None, hinges=None):
     """The twin's encoder angles (deg, mid-count, as device_angles) and duty at the run's device frame times,
     with `plant` as the physics: the encoder, on the motor, is what the device reports, so the twin is read
-    the same way (its flap angle differs by up to half the backlash, which is outside the loop)."""
+    the same way (its flap angle differs by up to half the backlash, which is outside the loop). hinges:
+    each hinge's own spec, where they differ (a per-hinge calibration's)."""
     spec = spec or plant
     t = run.device.time
     dt = spec.firmware_dt
     end_tick = int(round(t[-1] / dt)) + 1 if len(t) else 1
-    twin = twin_at_start(plant, run.gains, run.start, spec)
+    twin = twin_at_start(plant, run.gains, run.start, spec, hinges)
     traces = [tr for _, tr in replay_targets(twin, run.changes, 0, end_tick)]
     c = np.concatenate([tr.counts for tr in traces])
     d = np.concatenate([tr.duty for tr in traces])
@@ -95,27 +96,27 @@ def window_means(t, x, width: float = DUTY_WINDOW) -> np.ndarray:
     return np.stack([(np.bincount(bins, weights=x[:, k]) / n)[bins] for k in range(x.shape[1])], axis=1)
 
 
-def residual_blocks(run: Run, plant: DeviceSpec, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
+def residual_blocks(run: Run, plant: DeviceSpec, spec: DeviceSpec, hinges=None) -> tuple[np.ndarray, np.ndarray]:
     """The fit's residual for one run, per frame and hinge (frames, n): the angle error (deg), and the
     error of the duty's window mean x DUTY_WEIGHT."""
-    angle, duty = replay(run, plant, spec)
+    angle, duty = replay(run, plant, spec, hinges)
     t = run.device.time
     return angle - device_angles(run, spec), DUTY_WEIGHT * (window_means(t, duty) - window_means(t, run.device.duty))
 
 
-def group_costs(run: Run, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
+def group_costs(run: Run, plant: DeviceSpec, spec: DeviceSpec, hinges=None) -> np.ndarray:
     """The fit's cost (sum of squared residuals, deg^2) for one run, split into groups: each hinge's, in
     JACKKNIFE_SEGMENTS consecutive stretches of the run ((segments x n,)). Their sum is the run's cost; the
     groups are what the intervals' jackknife leaves out one at a time."""
-    sq = sum(b ** 2 for b in residual_blocks(run, plant, spec))
+    sq = sum(b ** 2 for b in residual_blocks(run, plant, spec, hinges))
     return np.stack([c.sum(axis=0) for c in np.array_split(sq, JACKKNIFE_SEGMENTS)]).ravel()
 
 
-def trace_rmse(run: Run, plant: DeviceSpec, spec: DeviceSpec) -> np.ndarray:
+def trace_rmse(run: Run, plant: DeviceSpec, spec: DeviceSpec, hinges=None) -> np.ndarray:
     """Per-hinge RMSE, deg, between the device's hinge angles and the twin's replayed with `plant`.
 
     The overall figure quoted for a run is the RMS of these (every frame of every hinge alike)."""
-    return np.sqrt(np.mean((replay(run, plant, spec)[0] - device_angles(run, spec)) ** 2, axis=0))
+    return np.sqrt(np.mean((replay(run, plant, spec, hinges)[0] - device_angles(run, spec)) ** 2, axis=0))
 
 
 def floor_deg(run: Run, spec: DeviceSpec) -> np.ndarray:
@@ -123,8 +124,9 @@ def floor_deg(run: Run, spec: DeviceSpec) -> np.ndarray:
     link's timing alone: twin and device each read a quantised encoder (a count's Delta^2 / 12 each, independent
     where the angles differ by more than a count), and each target takes effect within a firmware tick of the
     device's acknowledgement (speed x dt, uniform): sqrt(Delta^2 / 6 + mean(w^2) dt^2 / 12), w the device's
-    hinge speed (rad/s, from its encoder). A lower bound: stick-slip, missed edges and the model's own errors add
-    to it (replaying the emulator's true plant left 0.11-0.19 deg, tests/random_plant.py)."""
+    hinge speed (rad/s, from its encoder). An estimate, not a bound: where twin and device agree within a count
+    their roundings agree too and the error is smaller; stick-slip and missed edges add to it. (Replaying the
+    emulator's true plant left 0.10-0.21 deg per hinge where this says 0.12-0.13.)"""
     t, angle = run.device.time, run.device.angle
     speed = np.diff(angle, axis=0) / np.maximum(np.diff(t), 1e-9)[:, None] if len(t) > 1 else np.zeros((1, angle.shape[1]))
     delta, dt = spec.rad_per_count, spec.firmware_dt
@@ -137,10 +139,10 @@ def unexplained(rmse_deg, floor) -> np.ndarray:
     return np.sqrt(np.maximum(np.asarray(rmse_deg) ** 2 - np.asarray(floor) ** 2, 0.0))
 
 
-def per_hinge_rmse(runs: list[Run], plant: DeviceSpec, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
+def per_hinge_rmse(runs: list[Run], plant: DeviceSpec, spec: DeviceSpec, hinges=None) -> tuple[np.ndarray, np.ndarray]:
     """(RMSE, floor), each per hinge and deg, over every frame of the runs."""
     n = [len(r.device.time) for r in runs]
-    rmse = np.sqrt(np.average([trace_rmse(r, plant, spec) ** 2 for r in runs], axis=0, weights=n))
+    rmse = np.sqrt(np.average([trace_rmse(r, plant, spec, hinges) ** 2 for r in runs], axis=0, weights=n))
     floor = np.sqrt(np.average([floor_deg(r, spec) ** 2 for r in runs], axis=0, weights=n))
     return rmse, floor
 
@@ -224,10 +226,10 @@ def quadratic_fit(X: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return coef[:, 1:1 + k], H
 
 
-def prior_spread(param: str) -> float:
-    """The prior's standard deviation of log(value / prior): half the farther end of its SPREAD, so
-    the whole range lies within two of them."""
-    return max(abs(math.log(r)) for r in SPREAD[param]) / 2.0
+def prior_spread(limits) -> float:
+    """The prior's standard deviation of log(value / prior) for a prior range (low, high) x the prior: half
+    the farther end, so the whole range lies within two of them."""
+    return max(abs(math.log(r)) for r in limits) / 2.0
 
 
 def posterior_mode(grad, H, xb, s2: float, spread, held) -> tuple[np.ndarray, np.ndarray]:
@@ -244,13 +246,16 @@ def posterior_mode(grad, H, xb, s2: float, spread, held) -> tuple[np.ndarray, np
     return x, cov
 
 
-def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float = MAX_HALFWIDTH):
+def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float = MAX_HALFWIDTH,
+             ranges: dict | None = None):
     """What the runs show: (x, {parameter: Estimate}), x the log(value / prior) of each parameter (0 where left
     at its prior), from the search's per-group quadratics (quadratic_fit about xb, the best sample) and s2, the
-    residual's variance per independent sample. See `calibrate`."""
+    residual's variance per independent sample. ranges: each parameter's prior range, (low, high) x the prior
+    (default SPREAD: how far a device differs from its spec). See `calibrate`."""
+    ranges = ranges or {p: SPREAD[p] for p in params}
     k, n_groups = len(params), len(grads)
     grad, H = grads.sum(axis=0), Hs.sum(axis=0)
-    spread = np.array([prior_spread(p) for p in params])
+    spread = np.array([prior_spread(ranges[p]) for p in params])
     held, notes = [], {}
     while True:
         x, cov = posterior_mode(grad, H, xb, s2, spread, held)
@@ -271,12 +276,12 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
     F = np.array([i for i in range(k) if i not in held], int)
     if held and len(F):
         S = -cov[np.ix_(F, F)] @ H[np.ix_(F, held)] / (2.0 * s2)  # cov_FF is (A + P)_FF^-1
-        ends = np.log([SPREAD[params[j]] for j in held])  # (held, 2)
+        ends = np.log([ranges[params[j]] for j in held])  # (held, 2)
         lo[F] += np.minimum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
         hi[F] += np.maximum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
     estimates = {}
     for i, p in enumerate(params):
-        lo_p, hi_p = SPREAD[p]
+        lo_p, hi_p = ranges[p]
         if i in F:
             below, above = math.exp(lo[i] - x[i]), math.exp(hi[i] - x[i])
             pinned = bool(max(x[i] - lo[i], hi[i] - x[i]) <= math.log1p(max_halfwidth))
@@ -319,51 +324,137 @@ def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int 
     """
     params = tuple(params)
     prior = {p: float(getattr(base, p)) for p in params}
-    k = len(params)
     count = [0]
 
-    def plant(x):
-        return scaled(base, {p: math.exp(float(xi)) for p, xi in zip(params, x)})
+    def plant(x):  # x (1, k): one value per parameter, shared by every hinge
+        return scaled(base, {p: math.exp(float(xi)) for p, xi in zip(params, x[0])})
 
     def cost(x):
         count[0] += 1
         return np.concatenate([group_costs(r, plant(x), base) for r in runs])
 
+    def residuals(x):
+        return [b for run in runs for b in residual_blocks(run, plant(x), base)]
+
     def angle_rmse(p):
         return float(np.sqrt(np.mean(np.concatenate([trace_rmse(r, p, base) ** 2 for r in runs]))))
 
-    rng = np.random.default_rng(seed)
-    search = CrossEntropy(np.zeros(k), SEARCH_STD, floor=STD_FLOOR, low=-LOG_BOUND, high=LOG_BOUND)
-    first = cost(search.mean)
-    best = (float(first.sum()), search.mean.copy())
-    X, G = [search.mean.copy()], [first]
-    for g in range(generations):
-        pop = search.draw(rng, population, first=best[1])
-        costs = [cost(x) for x in pop[1:]]
-        X.extend(pop[1:])
-        G.extend(costs)
-        c = np.array([best[0]] + [float(gc.sum()) for gc in costs])
-        order = np.argsort(c)
-        if c[order[0]] < best[0]:
-            best = (float(c[order[0]]), pop[order[0]].copy())
-        search.refit(pop[order[:ELITE]])
-        if progress:
-            progress(g, best[0])
-    X, G = np.array(X), np.array(G)
-    near = np.argsort(G.sum(axis=1))[:max(len(G) // 2, 3 * (1 + k + k * (k + 1) // 2))]
-    xb = best[1]
-    grads, Hs = quadratic_fit(X[near] - xb, G[near])
-    tau = autocorrelation_time([b for run in runs for b in residual_blocks(run, plant(xb), base)])
-    m = sum(len(r.device.time) for r in runs) * 2 * base.n_hinges
-    s2 = best[0] * tau / max(m - k, 1)
-
-    x, estimates = verdicts(grads, Hs, xb, s2, params, prior, max_halfwidth)
-    fitted = plant(x)
+    [(x, estimates, H, tau)] = _fit(cost, residuals, runs, [list(range(base.n_hinges))], params, [prior],
+                                    {p: SPREAD[p] for p in params}, population, generations, seed, max_halfwidth,
+                                    progress)
+    fitted = plant(x[None])
     hinge_rmse, hinge_floor = per_hinge_rmse(runs, fitted, base)
-    H = Hs.sum(axis=0)
     norms = np.sqrt(np.maximum(np.diag(H), 1e-300))
     sv = np.linalg.svd(H / np.outer(norms, norms), compute_uv=False)
     return CalibrationResult(
         spec=fitted, estimates=estimates, singular_values=[float(v) for v in sv], autocorrelation_frames=tau,
         rmse_before=angle_rmse(base), rmse_after=angle_rmse(fitted), hinge_rmse_after=hinge_rmse,
         hinge_floor=hinge_floor, iterations=generations, evaluations=count[0])
+
+
+def _fit(cost, residuals, runs, blocks, params, priors, ranges, population, generations, seed, max_halfwidth,
+         progress) -> list:
+    """The search and the verdicts of `calibrate`, for blocks of hinges each with its own values of `params`
+    (one block of every hinge: values shared; a block per hinge: each hinge's own). cost(x) and residuals(x)
+    take x (blocks, k), log(value / prior); cost gives the runs' group costs (group_costs, run after run),
+    residuals their residual_blocks. Each block is ranked, its search distribution refitted and its
+    verdicts made on its own hinges' groups. Returns per block (x (k,), {param: Estimate}, the summed
+    quadratic's Hessian (k, k), the residual's autocorrelation time, frames)."""
+    k, n = len(params), runs[0].device.angle.shape[1]
+    group_hinge = np.concatenate([np.tile(np.arange(n), JACKKNIFE_SEGMENTS) for _ in runs])
+    mine = [np.isin(group_hinge, b) for b in blocks]
+    rng = np.random.default_rng(seed)
+    search = CrossEntropy(np.zeros((len(blocks), k)), SEARCH_STD, floor=STD_FLOOR, low=-LOG_BOUND, high=LOG_BOUND)
+    first = cost(search.mean)
+    best_x, best = search.mean.copy(), np.array([first[m].sum() for m in mine])
+    X, G = [search.mean.copy()], [first]
+    for g in range(generations):
+        pop = search.draw(rng, population, first=best_x)
+        costs = [cost(x) for x in pop[1:]]
+        X.extend(pop[1:])
+        G.extend(costs)
+        for b, m in enumerate(mine):
+            c = np.array([best[b]] + [float(gc[m].sum()) for gc in costs])
+            order = np.argsort(c)
+            if c[order[0]] < best[b]:
+                best[b], best_x[b] = c[order[0]], pop[order[0], b]
+            search.refit(pop[order[:ELITE]], b)
+        if progress:
+            progress(g, float(best.sum()))
+    X, G = np.array(X), np.array(G)
+    frames = sum(len(r.device.time) for r in runs)
+    at_best = residuals(best_x)
+    out = []
+    for b, m in enumerate(mine):
+        near = np.argsort(G[:, m].sum(axis=1))[:max(len(G) // 2, 3 * (1 + k + k * (k + 1) // 2))]
+        grads, Hs = quadratic_fit(X[near, b] - best_x[b], G[near][:, m])
+        tau = autocorrelation_time([r[:, blocks[b]] for r in at_best])
+        s2 = best[b] * tau / max(frames * 2 * len(blocks[b]) - k, 1)
+        x, estimates = verdicts(grads, Hs, best_x[b], s2, params, priors[b], max_halfwidth, ranges)
+        out.append((x, estimates, Hs.sum(axis=0), tau))
+    return out
+
+
+HINGE_PARAMS = ("no_load_speed", "gear_friction", "gear_damping", "rotor_inertia")  # what a hinge's own motor changes
+HINGE_RANGE = (0.8, 1.25)  # x the shared value: how far one hinge's motor and gearbox differ from the others'
+# (an assumption: micro metal gearmotors of one batch commonly differ by 10-20 % in speed and friction)
+
+
+@dataclasses.dataclass
+class HingeCalibration:
+    """Each hinge's own values about a shared calibration (`calibrate_hinges`)."""
+
+    hinges: list  # per hinge, its DeviceSpec (the shared one with its own values)
+    estimates: list  # per hinge, {parameter: Estimate}, the prior the shared value
+    rmse_before: np.ndarray  # deg per hinge, the shared twin, all training runs
+    rmse_after: np.ndarray  # deg per hinge, the per-hinge twin
+    floor: np.ndarray  # deg per hinge (floor_deg)
+    evaluations: int
+
+
+def calibrate_hinges(runs: list[Run], shared: DeviceSpec, params=HINGE_PARAMS, population: int = 24,
+                     generations: int = 8, seed: int = 0, max_halfwidth: float = MAX_HALFWIDTH,
+                     progress=None, shared_estimates: dict | None = None) -> HingeCalibration:
+    """Each hinge's own values of `params` about `shared` (a calibration's spec), where the runs show them:
+    the search and verdicts of `calibrate` with a block per hinge (`_fit`), each hinge ranked and judged on
+    its own stretches of the runs, its prior the shared value within HINGE_RANGE. A hinge's parameter the runs
+    do not show stays at the shared value (left at its prior). All hinges move in every replay, so what one
+    hinge's flaps do to its neighbours is in every score. shared_estimates: the shared calibration's
+    (`calibrate`); a hinge's interval is its own times the shared value's (an error of the shared value is in
+    every hinge's), and it is identifiable only where that product is within x(1 -+ max_halfwidth)."""
+    params = tuple(params)
+    n = shared.n_hinges
+    count = [0]
+
+    def hinges(x):  # x (n, k)
+        return [scaled(shared, {p: math.exp(float(v)) for p, v in zip(params, x[h])}) for h in range(n)]
+
+    def cost(x):
+        count[0] += 1
+        return np.concatenate([group_costs(r, shared, shared, hinges(x)) for r in runs])
+
+    def residuals(x):
+        return [b for run in runs for b in residual_blocks(run, shared, shared, hinges(x))]
+
+    prior = {p: float(getattr(shared, p)) for p in params}
+    fits = _fit(cost, residuals, runs, [[h] for h in range(n)], params, [prior] * n,
+                {p: HINGE_RANGE for p in params}, population, generations, seed, max_halfwidth, progress)
+    fitted = hinges(np.array([x for x, _, _, _ in fits]))
+    before, floor = per_hinge_rmse(runs, shared, shared)
+    after, _ = per_hinge_rmse(runs, shared, shared, fitted)
+    estimates = [{p: _with_shared(e, (shared_estimates or {}).get(p), max_halfwidth) for p, e in est.items()}
+                 for _, est, _, _ in fits]
+    return HingeCalibration(fitted, estimates, before, after, floor, count[0])
+
+
+def _with_shared(own: Estimate, shared: Estimate | None, max_halfwidth: float) -> Estimate:
+    """A hinge's estimate with the shared value's uncertainty: its interval x the shared one's (relative to
+    the shared value), identifiable only where the product is still within x(1 -+ max_halfwidth)."""
+    if shared is None:
+        return own
+    lo, hi = own.low * shared.low / shared.value, own.high * shared.high / shared.value
+    pinned = own.identifiable and max(own.value / lo, hi / own.value) <= 1 + max_halfwidth
+    note = own.note + f"; with the shared value's interval x{lo / own.value:.3f} .. x{hi / own.value:.3f}"
+    if own.identifiable and not pinned:
+        note += ": not identifiable"
+    return Estimate(own.value, own.prior, lo, hi, pinned, note)

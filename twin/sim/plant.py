@@ -77,7 +77,8 @@ class PlantOptions:
     encoder_miss: float = 0.0  # probability that the counter misses an edge (they accumulate)
     pack_voltage: float | None = None  # V, the pack's open-circuit voltage (None: the spec's supply_voltage)
     lying_flat: bool = False  # on a table (the flaps cannot fold below it), not held up by the root flap
-    hinges: tuple = ()  # a HingeDraw per hinge (and the winding's warming); empty: every hinge the shared draw's
+    hinges: tuple = ()  # a HingeDraw per hinge; empty: every hinge the shared draw's, nothing the twin leaves out
+    warming: bool = True  # with hinges: the windings warm as they work (their resistance with them)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -150,12 +151,12 @@ def hinge_specs(body: DeviceSpec, opt: PlantOptions) -> list[DeviceSpec]:
                           "rotor_inertia": h.armature}) for h in opt.hinges] or [body] * body.n_hinges
 
 
-def _motor(s: DeviceSpec, h: HingeDraw) -> str:
+def _motor(s: DeviceSpec, h: HingeDraw, warming: bool) -> str:
     """One hinge's dcmotor attributes: its own motor and gearbox, its cogging, its winding's warming."""
     stall = s.motor_constant * s.supply_voltage / s.drive_resistance  # N*m at the motor
-    return (motor_attributes(s) + f' cogging="{h.cogging * stall!r} {COGGING_POLES} 0"'
-            f' thermal="{WINDING_RESISTANCE!r} 0 {WINDING_TIMECONST!r} {COPPER_TEMPCOEF!r} {REFERENCE_C!r} '
-            f'{REFERENCE_C!r}"')
+    thermal = (f' thermal="{WINDING_RESISTANCE!r} 0 {WINDING_TIMECONST!r} {COPPER_TEMPCOEF!r} {REFERENCE_C!r} '
+               f'{REFERENCE_C!r}"') if warming else ""
+    return motor_attributes(s) + f' cogging="{h.cogging * stall!r} {COGGING_POLES} 0"' + thermal
 
 
 class Plant:
@@ -168,7 +169,7 @@ class Plant:
         if opt.hinges and len(opt.hinges) != self.spec.n_hinges:
             raise ValueError(f"the plant draws {len(opt.hinges)} hinges; the device has {self.spec.n_hinges}")
         self.hinge_specs = hinge_specs(self.spec, opt)
-        motors = [_motor(s, h) for s, h in zip(self.hinge_specs, opt.hinges)] or None
+        motors = [_motor(s, h, opt.warming) for s, h in zip(self.hinge_specs, opt.hinges)] or None
         self.model = load_model(self.spec, table=opt.lying_flat, motors=motors)
         self.data = mujoco.MjData(self.model)
         self.substeps = physics_substeps(self.spec, self.model)
@@ -176,8 +177,8 @@ class Plant:
         self.hinges = Hinges(self.model, n)
         self.params = drive_params(self.spec, self.hinge_specs)
         mujoco.mj_resetDataKeyframe(self.model, self.data, self.model.key("flat").id)
-        for k, h in enumerate(opt.hinges):  # each winding at its power-on temperature (the keyframe has 0)
-            self.data.act[self.model.actuator_actadr[k]] = h.winding_c
+        for k, h in enumerate(opt.hinges if opt.warming else ()):  # each winding at its power-on temperature
+            self.data.act[self.model.actuator_actadr[k]] = h.winding_c  # (the keyframe has 0)
         # the friction ripple: per hinge its amplitude (N*m at the gearbox output) and phase
         self._ripple = np.array([[h.ripple * s.gear_friction, h.ripple_phase]
                                  for s, h in zip(self.hinge_specs, opt.hinges)]).reshape(-1, 2)

@@ -18,7 +18,8 @@ from twin.sim.twin import Twin
 REST = 1.0  # s the twin spends on each leg of the device's history before a run
 
 
-def twin_at_start(plant: DeviceSpec, gains, start: RunStart, spec: DeviceSpec | None = None) -> Twin:
+def twin_at_start(plant: DeviceSpec, gains, start: RunStart, spec: DeviceSpec | None = None,
+                  hinges: list[DeviceSpec] | None = None) -> Twin:
     """A twin at the device's start with the device's recent history, so its firmware state matches.
 
     start: where the device was (twin.formats.run.RunStart), with its state just before.
@@ -28,11 +29,11 @@ def twin_at_start(plant: DeviceSpec, gains, start: RunStart, spec: DeviceSpec | 
     before_*): resting at the device's pose before the run (holding its targets if it was ACTIVE;
     limp and with a fresh PID, as after IDLE, if not), then brought to the start targets (REST s
     each); finally its hinges are put exactly where the device's encoders say (mid-count: the
-    encoder floors), its firmware state kept. plant: the physics; spec: the device's encoder
-    (default: the plant's).
+    encoder floors), its firmware state kept. plant: the physics (hinges: each hinge's own, where they
+    differ); spec: the device's encoder (default: the plant's).
     """
     spec = spec or plant
-    twin = Twin(plant, gains)
+    twin = Twin(plant, gains, hinges=hinges)
 
     def put(counts):
         return np.clip(angle_from_counts(spec, np.asarray(counts) + 0.5), -spec.hinge_limit, spec.hinge_limit)

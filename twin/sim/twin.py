@@ -26,7 +26,7 @@ import numpy as np
 from controllers.core import per_hinge, pid_memory, set_core_gains, start_core, tick_us
 from controllers.encoder import counts_from_motor_angles, target_counts
 from controllers.pid import PidGains
-from twin.device.mjcf import load_model
+from twin.device.mjcf import load_model, motor_attributes
 from twin.device.spec import DeviceSpec, load_spec
 from twin.sim.drive import drive_params
 from twin.sim.hinges import Hinges, contact_free_spreads, physics_substeps, place_hinges
@@ -44,9 +44,13 @@ class Twin:
     """
 
     def __init__(self, spec: DeviceSpec | None = None, gains=None, root: str = "fixed",
-                 model: mujoco.MjModel | None = None, stall_detection: bool = False):
+                 model: mujoco.MjModel | None = None, stall_detection: bool = False,
+                 hinges: list[DeviceSpec] | None = None):
+        """hinges: each hinge's own spec where the device's motors and gearboxes differ (a per-hinge
+        calibration's); their plant fields are used, the rest is `spec`'s."""
         self.spec = spec or load_spec()
-        self.model = model or load_model(self.spec, root)
+        motors = None if hinges is None else [motor_attributes(h) for h in hinges]
+        self.model = model or load_model(self.spec, root, motors=motors)
         self.data = mujoco.MjData(self.model)
         self._free_model = copy.copy(self.model)  # the model with contacts disabled, refreshed every run
         self.root = root
@@ -61,7 +65,7 @@ class Twin:
         self._duty = np.zeros(n, np.float32)
         self._decay = np.zeros(n, np.uint8)
         self._pwm = np.zeros(n, np.float32)
-        self._params = drive_params(self.spec)
+        self._params = drive_params(self.spec, hinges)
         self._bus = np.zeros(1)  # V: the bus voltage the core reads, from the last tick
         self.reset()
         self._run(np.zeros(n), 0.0, False)  # compile the loop now, so moves time only the simulation
