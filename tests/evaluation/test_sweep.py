@@ -166,6 +166,7 @@ def _same(a: dict, b: dict) -> bool:
     return {k: v for k, v in a.items() if k != "time_ms"} == {k: v for k, v in b.items() if k != "time_ms"}
 
 
+@pytest.mark.slow  # Ray's own start takes most of its 22 s: the default suite keeps under 10 minutes on 2 cores
 def test_a_sweep_gives_the_same_records_on_the_local_pool_and_on_ray(tmp_path):
     import ray
 
