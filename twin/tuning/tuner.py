@@ -106,26 +106,32 @@ def cost_of(scores: dict, spec: DeviceSpec, goal: TuneGoal) -> np.ndarray:
     growing with the relative excess over the overshoot, peak current and hold current limits."""
     settle = scores["settle"]
     c = np.where(np.isfinite(settle), settle, goal.duration)
-    peak_limit, hold_limit = current_limits(spec)
-    excess = (np.maximum(0.0, scores["overshoot"] / goal.max_overshoot - 1.0)
-              + np.maximum(0.0, scores["peak_current"] / peak_limit - 1.0)
-              + np.maximum(0.0, scores["hold_current"] / hold_limit - 1.0))
+    excess = sum(np.maximum(0.0, scores[k] / limit - 1.0) for k, limit in limits(spec, goal).items())
     bad = (excess > 0) | ~np.isfinite(settle)
     return c + np.where(bad, goal.duration * (1.0 + 10.0 * excess), 0.0)
 
 
+def limits(spec: DeviceSpec, goal: TuneGoal) -> dict:
+    """Each limit a tuned step keeps, by the step_scores key it bounds: overshoot (rad), peak and holding
+    current (A, the gate's: twin.sim.gate.current_limits)."""
+    peak, hold = current_limits(spec)
+    return {"overshoot": goal.max_overshoot, "peak_current": peak, "hold_current": hold}
+
+
+LIMIT_WORDS = {  # a limit's score in words, in the command line's units
+    "overshoot": lambda x: f"overshoots {math.degrees(x):.2f} deg",
+    "peak_current": lambda x: f"peak current {x:.2f} A",
+    "hold_current": lambda x: f"holding current {x:.2f} A",
+}
+
+
 def broken_limits(scores: dict, spec: DeviceSpec, goal: TuneGoal) -> list[str]:
     """The limits one simulation's hinge breaks, as words: scores are one (simulation, hinge)'s step_scores."""
-    peak_limit, hold_limit = current_limits(spec)
-    out = []
-    if not math.isfinite(scores["settle"]):
-        out.append(f"does not settle within {goal.duration:g} s")
-    if scores["overshoot"] > goal.max_overshoot:
-        out.append(f"overshoots {math.degrees(scores['overshoot']):.2f} deg (limit {math.degrees(goal.max_overshoot):g})")
-    if scores["peak_current"] > peak_limit:
-        out.append(f"peak current {scores['peak_current']:.2f} A (limit {peak_limit:g})")
-    if scores["hold_current"] > hold_limit:
-        out.append(f"holding current {scores['hold_current']:.2f} A (limit {hold_limit:g})")
+    out = [f"does not settle within {goal.duration:g} s"] if not math.isfinite(scores["settle"]) else []
+    for k, limit in limits(spec, goal).items():
+        if scores[k] > limit:
+            shown = math.degrees(limit) if k == "overshoot" else limit
+            out.append(f"{LIMIT_WORDS[k](scores[k])} (limit {shown:g})")
     return out
 
 
