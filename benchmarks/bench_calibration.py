@@ -8,7 +8,11 @@ twin given the drawn values the twin can take (the shared ones: each hinge's own
 twin does not model stay out of it), and the one `vrscroll calibrate` estimates from the run alone (the
 encoder's resolution and the link's timing), with what no parameter explains above it.
 
-    python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal]
+With --scaling: on the first seed's recordings, the wall time of the shared fit (5 parameters), of the
+per-hinge fit with 1, 2 and 4 parameters per hinge (6, 12, 24 values), and of `vrscroll tune` on the
+profile calibrated from them (its plants the corners of the calibrated intervals).
+
+    python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal] [--scaling]
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import argparse
 import contextlib
 import io
 import json
+import os
 import sys
 import tempfile
 import time
@@ -32,7 +37,7 @@ from random_plant import drawn_plant, emulator_args  # noqa: E402
 from twin.cli import main as vrscroll  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
 from twin.formats.run import read_run  # noqa: E402
-from twin.hil.calibration import trace_rmse  # noqa: E402
+from twin.hil.calibration import HINGE_PARAMS, calibrate, calibrate_hinges, trace_rmse  # noqa: E402
 from twin.hil.mirror import mirror  # noqa: E402
 from twin.link.emulator_process import EmulatorProcess  # noqa: E402
 from twin.link.serial_link import Link  # noqa: E402
@@ -47,7 +52,9 @@ def quiet(*args) -> str:
     return out.getvalue()
 
 
-def one(seed: int, folder: Path) -> None:
+def record(seed: int, folder: Path) -> dict:
+    """Record the calibration scenario (train) and a held-out one (hold) on an emulator drawn from seed;
+    the drawn plant."""
     spec = load_spec()
     folder.mkdir(parents=True, exist_ok=True)
     with EmulatorProcess(folder / "emulator.jsonl", "--zeroed", *emulator_args(seed)) as emu:
@@ -58,6 +65,38 @@ def one(seed: int, folder: Path) -> None:
             quiet("scenario", str(folder / f"{name}.toml"), "--serial", emu.port, "--seed", str(s))
             quiet("hil", str(folder / f"{name}.toml"), "--serial", emu.port, "--out", str(folder / name),
                   "--tolerance-deg", "30")
+    return truth
+
+
+def scaling(folder: Path) -> None:
+    """Wall time of calibration against the number of values fitted, and of tune on the calibrated profile."""
+    spec = load_spec()
+    runs, hold = [read_run(folder / "train", spec)], read_run(folder / "hold", spec)
+    t0 = time.perf_counter()
+    shared = calibrate(runs, spec)
+    print(f"scaling (one 7.5 s run, one timing each, this machine):\n"
+          f"  shared fit, {len(shared.estimates)} values: {time.perf_counter() - t0:.1f} s, "
+          f"{shared.evaluations} replays", flush=True)
+    for k in (1, 2, len(HINGE_PARAMS)):
+        t0 = time.perf_counter()
+        hc = calibrate_hinges(runs, shared.spec, params=HINGE_PARAMS[:k], shared_estimates=shared.estimates)
+        wall = time.perf_counter() - t0
+        own = trace_rmse(hold, shared.spec, spec, hc.hinges)
+        print(f"  per hinge, {k} x {spec.n_hinges} = {k * spec.n_hinges} values ({', '.join(HINGE_PARAMS[:k])}): "
+              f"{wall:.1f} s, {hc.evaluations} replays; held-out RMSE {float(np.sqrt(np.mean(own ** 2))):.3f} deg",
+              flush=True)
+    os.environ["VRSCROLL_DEVICES"] = str(folder / "devices")
+    quiet("calibrate", str(folder / "train"), "--device", "scaling")
+    t0 = time.perf_counter()
+    tuned = json.loads(quiet("tune", "--device", "scaling", "--json", "-"))
+    print(f"  tune on the calibrated profile ({len(tuned['goal']['ranges'])} intervals, "
+          f"{2 ** len(tuned['goal']['ranges']) + 1} plants): {time.perf_counter() - t0:.1f} s, "
+          f"{tuned['simulations']} simulations", flush=True)
+
+
+def one(seed: int, folder: Path) -> None:
+    spec = load_spec()
+    truth = record(seed, folder)
     t0 = time.perf_counter()
     cal = json.loads(quiet("calibrate", str(folder / "train"), "--holdout", str(folder / "hold"),
                            "--out", str(folder / "cal.toml"), "--json", "-"))
@@ -84,8 +123,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--out", help="folder for the runs (default: a temporary one)")
+    ap.add_argument("--scaling", action="store_true",
+                    help="instead: wall time against the number of values fitted, on the first seed's runs")
     args = ap.parse_args()
     base = Path(args.out or tempfile.mkdtemp(prefix="bench-cal-"))
+    if args.scaling:
+        if not (base / f"seed{args.seeds[0]}" / "hold").is_dir():
+            record(args.seeds[0], base / f"seed{args.seeds[0]}")
+        scaling(base / f"seed{args.seeds[0]}")
+        return
     for seed in args.seeds:
         one(seed, base / f"seed{seed}")
 

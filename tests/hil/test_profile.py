@@ -70,6 +70,50 @@ def test_a_profiles_gains_are_the_twins(capsys, spec, device_profiles):
     assert not soft_row["settle_time_s"] <= default_row["settle_time_s"] + 0.02, (soft_row, default_row)
 
 
+def _hinge_estimates(spec, slow_hinge: int, speed_scale: float) -> list[dict]:
+    """A per-hinge calibration's "hinges" (profile.json): every hinge at the shared speed but slow_hinge, x scale."""
+    rows = []
+    for k in range(spec.n_hinges):
+        v = spec.no_load_speed * (speed_scale if k == slow_hinge else 1.0)
+        rows.append({"no_load_speed": {"value": v, "prior": spec.no_load_speed, "low": v * 0.95, "high": v * 1.05,
+                                       "identifiable": True, "note": "test"}})
+    return rows
+
+
+def test_a_profile_calibrated_per_hinge_gives_each_hinge_its_own(capsys, spec, device_profiles):
+    """The twin of a profile with per-hinge values (calibrate --per-hinge) moves each hinge with its own motor:
+    the hinge whose motor is slower settles later, the others as on the spec's twin; `device show` lists them."""
+    calibration = {"runs": ["test"], "parameters": {}, "hinges": _hinge_estimates(spec, 4, 0.6)}
+    write_profile_spec("uneven", {}, "test", calibration)
+    hinges = read_profile(device_profiles / "uneven").hinges
+    assert [h.no_load_speed / spec.no_load_speed for h in hinges] == pytest.approx([1, 1, 1, 1, 0.6, 1])
+    targets = ["30"] * spec.n_hinges
+    uneven = json.loads(_run(capsys, "simulate", *targets, "--json", "-", "--device", "uneven")[1])["hinges"]
+    _run(capsys, "device", "select", "none")
+    default = json.loads(_run(capsys, "simulate", *targets, "--json", "-")[1])["hinges"]
+    assert uneven[4]["settle_time_s"] > default[4]["settle_time_s"] + 0.01, (uneven[4], default[4])
+    # hinge 1 shares no flap with hinge 4's (the root flap between hinges 2 and 3 is held): unchanged
+    assert uneven[1]["settle_time_s"] == pytest.approx(default[1]["settle_time_s"], abs=2e-3)
+    assert "hinge 4's own, x the shared value (95 % interval): no_load_speed x0.600" in \
+        _run(capsys, "device", "show", "uneven")[1]
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda rows: rows[:-1], "hinges: expected a list of 6 objects"),
+    (lambda rows: rows[:2] + [{"hinge_limit": rows[2]["no_load_speed"]}] + rows[3:], "hinges[2]: hinge_limit: not a plant"),
+    (lambda rows: rows[:1] + [{"no_load_speed": {**rows[1]["no_load_speed"], "value": -1.0}}] + rows[2:],
+     "hinges[1]: no_load_speed: value -1 is not within"),
+])
+def test_a_damaged_per_hinge_calibration_is_named(capsys, spec, device_profiles, damage, message):
+    _run(capsys, "device", "create", "bad")
+    meta = device_profiles / "bad" / "profile.json"
+    doc = json.loads(meta.read_text())
+    doc["calibration"] = {"runs": [], "parameters": {}, "hinges": damage(_hinge_estimates(spec, 0, 0.9))}
+    meta.write_text(json.dumps(doc))
+    rc, out, err = _run(capsys, "simulate", "0", "0", "0", "0", "0", "0", "--device", "bad")
+    assert rc == 2 and len(err.splitlines()) == 1 and message in err, err
+
+
 @pytest.mark.parametrize("damage, message", [
     (None, "'nope' (given with --device) is not in"),
     ("profile.json", "profile.json: not JSON"),

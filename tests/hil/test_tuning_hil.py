@@ -17,6 +17,7 @@ from random_plant import held_out_improved
 from controllers.encoder import target_counts
 from controllers.pid import PidGains
 from twin.cli import main as vrscroll
+from twin.commands.options import select_profile
 from twin.device.spec import load_spec
 from twin.formats.gains import read_gains, write_gains
 from twin.formats.run import read_run, write_run_meta
@@ -300,11 +301,18 @@ def test_per_hinge_calibration_on_hinges_drawn_apart(emulator, tmp_path, capsys)
     spec = load_spec()
     emu = emulator(*SHARED_PLANT)
     truth = emu.events("start")[0]["hinges"]
-    train, hold, cal = _record(emu, spec, tmp_path)
+    train, hold, _ = _record(emu, spec, tmp_path)
     capsys.readouterr()
-    assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--out", str(cal), "--per-hinge",
+    assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--device", "drawn", "--per-hinge",
                      "--json", str(tmp_path / "cal.json")]) == 0
     fit = json.loads((tmp_path / "cal.json").read_text())["per_hinge_fit"]
+    # kept in the profile where they predict the held-out run no worse: its twin gives each hinge the values fitted
+    kept = select_profile("drawn").hinges
+    shared_rms, own_rms = (math.sqrt(sum(r[k] ** 2 for r in fit["holdout"]) / len(fit["holdout"]))
+                           for k in ("rmse_shared_deg", "rmse_per_hinge_deg"))
+    assert fit["kept"] == (kept is not None) == (own_rms <= shared_rms + 1e-4), (fit["kept"], shared_rms, own_rms)
+    for row, own in zip(fit["hinges"], kept or []):
+        assert all(getattr(own, p) == pytest.approx(e["value"]) for p, e in row["parameters"].items())
     for row, own in zip(fit["hinges"], truth):
         speed = row["parameters"]["no_load_speed"]
         assert speed["low"] <= own["no_load_speed"] <= speed["high"], (row["hinge"], speed, own)

@@ -39,8 +39,8 @@ def add_arguments(p) -> None:
     p.add_argument("--population", type=within(4, MAX_POPULATION, whole=True), default=24, help="twin replays per generation (default %(default)s)")
     p.add_argument("--per-hinge", action="store_true",
                    help="then fit each hinge's own no-load speed, friction, damping and rotor inertia about the "
-                        "shared values, where the runs show them (printed and in --json; not yet kept in the "
-                        "device profile)")
+                        "shared values, where the runs show them: kept in the device profile, whose twin then "
+                        "gives each hinge its own (--out's TOML holds the shared values only)")
     add_json(p, "the result")
     p.add_argument("--incomplete", action="store_true",
                    help="also fit runs that did not complete (killed or interrupted while recorded): what they "
@@ -85,12 +85,21 @@ def run(args) -> int:
     res = calibrate(runs, spec, population=args.population, generations=args.generations,
                     progress=None if json_to_stdout(args) else lambda g, c: print(
                         f"generation {g + 1}/{args.generations}: best cost {c:.4g}", flush=True))
+    hc = hinge_fit = None
+    if args.per_hinge:
+        hc = calibrate_hinges(runs, res.spec, population=args.population, generations=args.generations,
+                              shared_estimates=res.estimates,
+                              progress=None if json_to_stdout(args) else lambda g, c: print(
+                                  f"per hinge, generation {g + 1}/{args.generations}: best cost {c:.4g}", flush=True))
+        hinge_fit = _hinge_fit(hc, holdout, res.spec)
     source = "calibrated from " + ", ".join(str(Path(r).resolve()) for r in args.runs) + " (vrscroll calibrate)"
     fitted = {p: e.value for p, e in res.estimates.items() if e.fitted}
     written = []
     if name:
         calibration = {"runs": [str(Path(r).resolve()) for r in args.runs],
-                       "parameters": {p: e.to_json() for p, e in res.estimates.items()}}
+                       "parameters": {p: e.to_json() for p, e in res.estimates.items()},
+                       **({"hinges": [{p: e.to_json() for p, e in est.items()} for est in hc.estimates]}
+                          if hinge_fit and hinge_fit["kept"] else {})}
         written.append(str(write_profile_spec(name, fitted, source, calibration)))
         set_default(name)
     if args.out or not name:
@@ -116,12 +125,8 @@ def run(args) -> int:
                           "per_hinge": _per_hinge(after, floor_deg(holdout, spec)),
                           "overall_before_deg": round(float(np.sqrt(np.mean(before ** 2))), 4),
                           "overall_after_deg": round(float(np.sqrt(np.mean(after ** 2))), 4)}
-    if args.per_hinge:
-        hc = calibrate_hinges(runs, res.spec, population=args.population, generations=args.generations,
-                              shared_estimates=res.estimates,
-                              progress=None if json_to_stdout(args) else lambda g, c: print(
-                                  f"per hinge, generation {g + 1}/{args.generations}: best cost {c:.4g}", flush=True))
-        out["per_hinge_fit"] = _hinge_fit(hc, holdout, res.spec)
+    if hinge_fit:
+        out["per_hinge_fit"] = hinge_fit
     write_json(args.json, out)
     if json_to_stdout(args):
         return 0
@@ -148,6 +153,11 @@ def run(args) -> int:
         _print_per_hinge("held-out run", h["per_hinge"])
     if args.per_hinge:
         _print_hinge_fit(out["per_hinge_fit"], units)
+        print(("each hinge's own values kept in device profile " + name if name else
+               "each hinge's own values: in --json only (no device profile to keep them in; --device NAME)")
+              if out["per_hinge_fit"]["kept"] else
+              "each hinge's own values NOT kept: they predict the held-out run worse than the shared ones (more "
+              "values fitted to these runs than they show); the profile's twin keeps the shared values")
     print("calibrated spec written to " + ", ".join(written))
     return 0
 
@@ -171,8 +181,10 @@ def _print_per_hinge(what: str, rows: list[dict]) -> None:
 def _hinge_fit(hc, holdout, shared) -> dict:
     """A per-hinge calibration for JSON: per hinge its parameters (Estimate, SI; the prior the shared value),
     the training runs' RMSE with the shared and the per-hinge twin, the floor and what is left unexplained;
-    with a held-out run, the same on it."""
-    out = {"evaluations": hc.evaluations, "hinges": []}
+    with a held-out run, the same on it. "kept": whether the profile keeps them: always without a held-out
+    run; with one, only where each hinge's own values predict it no worse overall than the shared ones
+    (more values fitted to a short run can overfit it)."""
+    out = {"evaluations": hc.evaluations, "hinges": [], "kept": True}
     for k, est in enumerate(hc.estimates):
         out["hinges"].append({"hinge": k, "parameters": {p: e.to_json() for p, e in est.items()},
                               "rmse_shared_deg": round(float(hc.rmse_before[k]), 4),
@@ -186,6 +198,7 @@ def _hinge_fit(hc, holdout, shared) -> dict:
         out["holdout"] = [{"hinge": k, "rmse_shared_deg": round(float(a), 4), "rmse_per_hinge_deg": round(float(b), 4),
                            "floor_deg": round(float(f), 4), "unexplained_deg": round(float(unexplained(b, f)), 4)}
                           for k, (a, b, f) in enumerate(zip(shared_rmse, own, floor))]
+        out["kept"] = bool(np.sqrt(np.mean(own ** 2)) <= np.sqrt(np.mean(shared_rmse ** 2)))
     return out
 
 

@@ -20,6 +20,7 @@ from twin.commands.options import (
     output_file,
     profile_line,
     profile_of,
+    profile_twin,
     write_json,
 )
 from twin.device.kinematics import flap_frames
@@ -70,7 +71,7 @@ def run(args) -> int:
           f"HD {approx.hd * 1e3:.2f} mm; hinges {np.degrees(approx.angles).round(1).tolist()} deg", flush=True)
 
     print("[3/5] validating and simulating the morph on the twin (firmware PID at 1 kHz) ...", flush=True)
-    gate = check_move(spec, np.zeros(spec.n_hinges), approx.angles, profile.gains)
+    gate = check_move(spec, np.zeros(spec.n_hinges), approx.angles, profile.gains, twin=profile_twin(profile))
     trace = gate.prediction
     hinges = move_report(spec, trace) if trace is not None else []
     end_angles = trace.angle[-1] if trace is not None else np.zeros(spec.n_hinges)

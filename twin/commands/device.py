@@ -52,6 +52,10 @@ def run(args) -> int:
         for p, e in profile.calibration["parameters"].items():
             print(f"  {p:<14} {e['value']:.6g}  (prior {e['prior']:.6g}; interval {e['low']:.6g} .. {e['high']:.6g}; "
                   f"{'identifiable' if e['identifiable'] else 'NOT identifiable'}): {e['note']}")
+        for k, row in enumerate(profile.calibration.get("hinges", [])):
+            print(f"  hinge {k}'s own, x the shared value (95 % interval): " + "; ".join(
+                f"{p} x{e['value'] / e['prior']:.3f} (x{e['low'] / e['prior']:.2f} .. x{e['high'] / e['prior']:.2f}"
+                f"{', identifiable' if e['identifiable'] else ''})" for p, e in row.items()))
     else:
         print("not calibrated")
     defaults = spec_sources()

@@ -69,7 +69,8 @@ def _record(args, profile, spec, scenario, gains, out: Path) -> int:
     try:
         with device_session(args, spec, log) as (link, spec):
             run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz, scenario_path=args.scenario,
-                    on_progress=progress, gains=gains, tolerance_deg=args.tolerance_deg, profile=profile.label)
+                    on_progress=progress, gains=gains, tolerance_deg=args.tolerance_deg, profile=profile.label,
+                    hinges=profile.hinges)
     except GainsRestored as exc:
         print(exc.report.text())
         raise UserError(f"refused by the gate: {exc} (the gains of {args.gains or profile.gains_from} were sent, "

@@ -204,6 +204,14 @@ def profile_of(args) -> Profile:
     return profile
 
 
+def profile_twin(profile: Profile, **options):
+    """The twin (twin.sim.twin.Twin) of a device: its profile's spec and gains, each hinge's own plant where it
+    was calibrated per hinge (Profile.hinges). options: Twin's (root, model, stall_detection)."""
+    from twin.sim.twin import Twin  # here, not above: MuJoCo and the compiled loops load in 0.5 s, not for --help
+
+    return Twin(profile.spec, profile.gains, hinges=profile.hinges, **options)
+
+
 def said_by_device(spec, link):
     """The spec with the device's own configuration from its HELLO (twin.hil.device_gains.device_spec), each
     difference said on a line of its own."""

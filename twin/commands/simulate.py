@@ -18,6 +18,7 @@ from twin.commands.options import (
     output_file,
     profile_line,
     profile_of,
+    profile_twin,
     within,
     write_json,
 )
@@ -29,7 +30,6 @@ from twin.morphpatch.surface_metrics import match, match_json
 from twin.sim.gate import check_move
 from twin.sim.response import move_report
 from twin.sim.targets import check_targets
-from twin.sim.twin import Twin
 from viz.traces import hinge_figure
 from viz.viewer import show_move
 
@@ -68,7 +68,7 @@ def run(args) -> int:
     check_targets(spec, targets)
     start = np.zeros(spec.n_hinges) if not args.start else hinge_angles(
         [cell(v, f"--from[{k}]") for k, v in enumerate(args.start.split(","))], spec.n_hinges, spec.hinge_limit, "--from")
-    twin = Twin(spec, profile.gains)
+    twin = profile_twin(profile)
     gate = check_move(spec, start, targets, profile.gains, settle_limit=args.max_time, twin=twin)
     if gate.prediction is None:
         raise UserError(gate.refusal())

@@ -93,8 +93,8 @@ def run(args) -> int:
                       progress=None if quiet else lambda g, c, t: print(
                           f"generation {g + 1}/{args.generations}: worst-plant cost per hinge "
                           + " ".join(f"{x * 1000:5.0f}" for x in c) + f" ms  ({t:.1f} s)", flush=True))
-    rows_before, _ = step_report(spec, before, goal)
-    rows_after, _ = step_report(spec, result.gains, goal)
+    rows_before, _ = step_report(spec, before, goal, hinges=profile.hinges)
+    rows_after, _ = step_report(spec, result.gains, goal, hinges=profile.hinges)
     meta = {"device_profile": profile.label,
             "goal": {"max_overshoot_deg": args.max_overshoot_deg, "step_deg": args.step_deg,
                      "duration_s": args.duration,
@@ -136,15 +136,16 @@ def run(args) -> int:
         raise UserError(f"not pushed to {args.serial}: the tuned gains break a limit on a plant the tuning covered "
                         "(printed above); loosen the goal or narrow the ranges")
     if args.serial:
-        summary["device"] = confirm_on_device(args, spec, result.gains, step, into_profile, quiet=quiet)
+        summary["device"] = confirm_on_device(args, spec, result.gains, step, into_profile, quiet=quiet,
+                                               hinges=profile.hinges)
         summary["gains_files"] = written
     write_json(args.json, summary)
     return 1 if result.broken else 0
 
 
-def confirm_on_device(args, spec, gains, step, pushed, quiet=False) -> list[dict]:
+def confirm_on_device(args, spec, gains, step, pushed, quiet=False, hinges=None) -> list[dict]:
     """Push the gains (all or nothing: twin.hil.device_gains), call pushed() once the device holds them, run the
-    step on the device, print its metrics next to the twin's prediction."""
+    step on the device, print its metrics next to the twin's prediction (hinges: each hinge's own plant)."""
     n = spec.n_hinges
     targets = np.full(n, step)
     try:
@@ -156,7 +157,7 @@ def confirm_on_device(args, spec, gains, step, pushed, quiet=False) -> list[dict
         raise UserError(f"{exc} (the tuned gains are on the device and in its profile)") from None
     except LinkError as exc:
         raise UserError(f"link: {exc} (session log: {args.log})") from None
-    twin = Twin(spec, gains)
+    twin = Twin(spec, gains, hinges=hinges)
     twin.reset(start)
     trace = twin.move_to(targets, max_time=args.duration, stop_when_settled=False)
     pred = move_report(spec, trace)

@@ -6,9 +6,12 @@ knows it after calibration and tuning.
     gains.json     the device's gains, a gains file (optional: the spec's gains when absent)
 
 "calibration" (written by `vrscroll calibrate --device`): {"runs": [folder, ...], "parameters":
-{name: {"value", "prior", "low", "high", "identifiable", "note"}}}, values in SI (the spec's field
-units); low..high is the interval the calibration leaves open (its 95 % interval for a fitted
-parameter, the prior range for one the runs do not show), which `vrscroll tune` tunes over.
+{name: {"value", "prior", "low", "high", "identifiable", "note"}}, "hinges": [{name: {...}}, ...]},
+values in SI (the spec's field units); low..high is the interval the calibration leaves open (its 95 %
+interval for a fitted parameter, the prior range for one the runs do not show), which `vrscroll tune`
+tunes over. "hinges" (optional, `vrscroll calibrate --per-hinge`): per hinge, its own values of the
+parameters a hinge's motor and gearbox change, each about the shared value (its "prior"): the twin of
+the profile (twin.commands.options.profile_twin) gives each hinge its own.
 Where the folders live is twin.device.profile's; which one a command uses, twin.commands.options'.
 """
 
@@ -24,7 +27,7 @@ from twin.checks import json_object, known_keys, number, required_keys
 from twin.device.profile import NO_PROFILE, profile_dir, profiles_dir
 from twin.device.spec import SPEC_PATH, DeviceSpec, load_spec, spec_sources
 from twin.device.spec_toml import write_spec_toml
-from twin.device.variation import PLANT_FIELDS
+from twin.device.variation import PLANT_FIELDS, scaled
 from twin.formats.gains import read_gains, write_gains
 from twin.paths import replacing
 
@@ -55,32 +58,49 @@ class Profile:
             return {}
         return {p: (e["low"], e["high"]) for p, e in self.calibration["parameters"].items()}
 
+    @property
+    def hinges(self) -> list[DeviceSpec] | None:
+        """Each hinge's own spec where calibration fitted per-hinge values (None where it did not): the
+        profile's spec with that hinge's values, the fields that move with one moved alike."""
+        rows = (self.calibration or {}).get("hinges")
+        if not rows:
+            return None
+        return [scaled(self.spec, {p: e["value"] / getattr(self.spec, p) for p, e in row.items()}) for row in rows]
 
-def _calibration(doc, where: str) -> dict:
+
+def _calibration(doc, where: str, n_hinges: int) -> dict:
     if not isinstance(doc, dict):
         raise ValueError(f"{where}: expected an object with runs, parameters")
-    known_keys(doc, ("runs", "parameters"), where)
+    known_keys(doc, ("runs", "parameters", "hinges"), where)
     required_keys(doc, ("runs", "parameters"), where)
     if not isinstance(doc["runs"], list) or not all(isinstance(r, str) for r in doc["runs"]):
         raise ValueError(f"{where}: runs: expected a list of run folders")
-    if not isinstance(doc["parameters"], dict):
-        raise ValueError(f"{where}: parameters: expected an object {{name: {{...}}}}")
-    fields = {f.name for f in dataclasses.fields(DeviceSpec)}
-    for p, e in doc["parameters"].items():
-        w = f"{where}: parameters: {p}"
-        if p not in fields:
-            raise ValueError(f"{w}: not a spec field")
+    _parameters(doc["parameters"], f"{where}: parameters")
+    if "hinges" in doc:
+        if not isinstance(doc["hinges"], list) or len(doc["hinges"]) != n_hinges:
+            raise ValueError(f"{where}: hinges: expected a list of {n_hinges} objects, one per hinge")
+        for k, row in enumerate(doc["hinges"]):
+            _parameters(row, f"{where}: hinges[{k}]")
+    return doc
+
+
+def _parameters(doc, where: str) -> None:
+    """ValueError unless doc is {plant parameter: estimate} with low <= value <= high, all positive."""
+    if not isinstance(doc, dict):
+        raise ValueError(f"{where}: expected an object {{name: {{...}}}}")
+    for p, e in doc.items():
+        w = f"{where}: {p}"
+        if p not in PLANT_FIELDS:
+            raise ValueError(f"{w}: not a plant parameter ({', '.join(PLANT_FIELDS)})")
         if not isinstance(e, dict):
             raise ValueError(f"{w}: expected an object with {', '.join(PARAMETER_KEYS)}")
         known_keys(e, PARAMETER_KEYS, w)
         required_keys(e, PARAMETER_KEYS, w)
-        lo, v, hi = (number(e[k], f"{w}: {k}") for k in ("low", "value", "high"))
-        number(e["prior"], f"{w}: prior")
-        if not lo <= v <= hi:
-            raise ValueError(f"{w}: value {v:g} is not within low {lo:g} .. high {hi:g}")
+        lo, v, hi, prior = (number(e[k], f"{w}: {k}") for k in ("low", "value", "high", "prior"))
+        if not 0 < lo <= v <= hi or prior <= 0:
+            raise ValueError(f"{w}: value {v:g} is not within low {lo:g} .. high {hi:g}, or not positive")
         if not isinstance(e["identifiable"], bool):
             raise ValueError(f"{w}: identifiable: expected true or false")
-    return doc
 
 
 def design_unchanged(spec: DeviceSpec, base: DeviceSpec, where) -> None:
@@ -112,7 +132,7 @@ def read_profile(folder) -> Profile:
     known_keys(meta, ("format", "name", "calibration"), str(meta_path))
     if meta.get("name") != folder.name:
         raise ValueError(f"{meta_path}: name {meta.get('name')!r} is not the folder's, {folder.name!r}")
-    calibration = _calibration(meta["calibration"], f"{meta_path}: calibration") if "calibration" in meta else None
+    calibration = _calibration(meta["calibration"], f"{meta_path}: calibration", load_spec().n_hinges) if "calibration" in meta else None
     if not (folder / SPEC).is_file():
         raise ValueError(f"{folder}: device profile without its {SPEC}")
     spec = load_spec(folder / SPEC)
@@ -127,7 +147,7 @@ def read_profile(folder) -> Profile:
 def _write_meta(folder: Path, calibration: dict | None) -> None:
     doc = {"format": PROFILE_FORMAT, "name": folder.name, **({"calibration": calibration} if calibration else {})}
     if calibration:
-        _calibration(calibration, str(folder / META))
+        _calibration(calibration, str(folder / META), load_spec().n_hinges)
     with replacing(folder / META) as tmp:
         tmp.write_text(json.dumps(doc, indent=2) + "\n")
 

@@ -39,14 +39,15 @@ class GainsRestored(GateRefused):
 
 def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: int = 500,
             scenario_path=None, on_progress=None, settle_limit: float = 2.0, gains=None,
-            tolerance_deg: float = 5.0, profile: str = NO_PROFILE) -> dict:
+            tolerance_deg: float = 5.0, profile: str = NO_PROFILE, hinges=None) -> dict:
     """Play a scenario on the device and the twin; write out_dir/{device,twin}.csv, gains.json, run.json.
 
     gains: optional per-hinge PidGains pushed to the device first (every hinge's checked before any
     is sent); if the gate then refuses the scenario or the move to its start, the device's previous
     gains are restored and GainsRestored is raised. tolerance_deg: the device is e-stopped if it parts from the twin by
     more on its way to the scenario's start (twin.hil.mirror). profile: the device profile's name, recorded
-    in run.json. Returns run.json's content. On
+    in run.json; hinges: each hinge's own plant for the twin (a per-hinge calibration's, Twin's). Returns
+    run.json's content. On
     KeyboardInterrupt the device is e-stopped and both traces stay readable up to that moment.
     """
     out = Path(out_dir)
@@ -76,7 +77,7 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
                        "target_counts": list(prior.targets)},
             "telemetry_hz": telemetry_hz, "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url,
             "device_profile": profile}
-    twin = twin_at_start(spec, gains, run_start(meta))
+    twin = twin_at_start(spec, gains, run_start(meta), hinges=hinges)
 
     dev_w = TraceWriter(out / "device.csv", n)
     twin_w = TraceWriter(out / "twin.csv", n, extra=("true_angle_deg",))
