@@ -12,7 +12,11 @@ With --scaling: on the first seed's recordings, the wall time of the shared fit 
 per-hinge fit with 1, 2 and 4 parameters per hinge (6, 12, 24 values), and of `vrscroll tune` on the
 profile calibrated from them (its plants the corners of the calibrated intervals).
 
-    python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal] [--scaling]
+With --holding: per seed, the calibration scenario recorded and calibrated per hinge into a profile, then
+`vrscroll holding` on the same emulated device: the drawn back-driven efficiency beside the fit and its
+interval, and each hinge's sag over the release on the device and on the twin before and after.
+
+    python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal] [--scaling | --holding]
 """
 
 from __future__ import annotations
@@ -94,6 +98,33 @@ def scaling(folder: Path) -> None:
           f"{tuned['simulations']} simulations", flush=True)
 
 
+def holding(seed: int, folder: Path) -> None:
+    """Calibrate an emulated device per hinge, then measure its holding; the fit beside the drawn value."""
+    spec = load_spec()
+    folder.mkdir(parents=True, exist_ok=True)
+    os.environ["VRSCROLL_DEVICES"] = str(folder / "devices")
+    with EmulatorProcess(folder / "emulator.jsonl", "--zeroed", *emulator_args(seed)) as emu:
+        truth = drawn_plant(emu)["backdrive_efficiency"]
+        with Link(emu.port) as link:
+            assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
+        quiet("scenario", str(folder / "train.toml"), "--serial", emu.port, "--seed", "0")
+        quiet("hil", str(folder / "train.toml"), "--serial", emu.port, "--out", str(folder / "train"),
+              "--tolerance-deg", "30")
+        quiet("calibrate", str(folder / "train"), "--device", f"seed{seed}", "--per-hinge")
+        t0 = time.perf_counter()
+        doc = json.loads(quiet("holding", "--serial", emu.port, "--device", f"seed{seed}", "--tolerance-deg", "30",
+                               "--json", "-"))
+        wall = time.perf_counter() - t0
+    e, sag = doc["backdrive_efficiency"], doc["sag_deg"]
+    print(f"seed {seed}: drawn {truth:.3f}, fitted {e['value']:.3f}, interval {e['low']:.3f} .. {e['high']:.3f} "
+          f"({'holds' if e['low'] <= truth <= e['high'] else 'MISSES'} it; "
+          f"{'identifiable' if e['identifiable'] else 'not identifiable'}); {doc['replays']} twin releases, "
+          f"{wall:.1f} s with the recording")
+    for label, key in (("device", "device"), ("twin before", "twin_before"), ("twin after", "twin_after")):
+        print(f"  sag over the release, {label:<12}" + " ".join(f"{d:7.2f}" for d in sag[key]) + " deg")
+    print("  " + e["note"], flush=True)
+
+
 def one(seed: int, folder: Path) -> None:
     spec = load_spec()
     truth = record(seed, folder)
@@ -125,6 +156,7 @@ def main() -> None:
     ap.add_argument("--out", help="folder for the runs (default: a temporary one)")
     ap.add_argument("--scaling", action="store_true",
                     help="instead: wall time against the number of values fitted, on the first seed's runs")
+    ap.add_argument("--holding", action="store_true", help="instead: calibrate, then measure holding, per seed")
     args = ap.parse_args()
     base = Path(args.out or tempfile.mkdtemp(prefix="bench-cal-"))
     if args.scaling:
@@ -133,7 +165,7 @@ def main() -> None:
         scaling(base / f"seed{args.seeds[0]}")
         return
     for seed in args.seeds:
-        one(seed, base / f"seed{seed}")
+        (holding if args.holding else one)(seed, base / f"seed{seed}")
 
 
 if __name__ == "__main__":

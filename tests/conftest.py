@@ -24,7 +24,7 @@ def spec():
 # The plant the link and HIL tests' emulator has unless a test says otherwise: fixed, not drawn (it is the
 # emulator's default before plants were drawn within ranges); a test's own options come after and win.
 FIXED_PLANT = ("--speed-scale", "0.95", "--friction-scale", "1.25", "--damping-scale", "1.2", "--armature-scale", "1",
-               "--backlash-deg", "0.5", "--latency-ms", "1")
+               "--backlash-deg", "0.5", "--latency-ms", "1", "--backdrive-scale", "1")
 
 
 @pytest.fixture

@@ -34,6 +34,8 @@ COMMANDS = {
     "hil": ("twin.commands.hil", "play a scenario on the device and the twin; traces, metrics, plots, report"),
     "scenario": ("twin.commands.scenario", "write the calibration scenario for the device's gains, to record with hil"),
     "calibrate": ("twin.commands.calibrate", "fit the twin's motor and gearbox parameters to recorded HIL runs"),
+    "holding": ("twin.commands.holding", "what the device does when its drive is cut: releases under gravity, the "
+                                         "gearboxes' back-driven efficiency fitted, the twin's prediction"),
     "redirect": ("twin.commands.redirect", "pen redirection field of an approximation; redirect pen samples (CSV)"),
     "psychometric": ("twin.commands.psychometric", "psychometric fit of redirection trials: CDT and DT with CIs, plot"),
     "serve": ("twin.commands.serve", "the live service for VR applications: pose in, approximation out, lock, pen"),

@@ -37,7 +37,7 @@ def test_device_selects_a_profile_and_it_is_remembered(capsys, spec):
     assert rc == 0 and "bench" in out
     assert "selected: spec defaults" in _run(capsys, "device", "list")[1]
     # a profile whose device is slower: the twin of that profile settles later
-    write_profile_spec("bench", {"no_load_speed": spec.no_load_speed * 0.7}, "test: slower motor", None)
+    write_profile_spec("bench", {"no_load_speed": spec.no_load_speed * 0.7}, "test: slower motor")
     rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-")
     default = json.loads(out)
     assert default["device_profile"] == "spec defaults"
@@ -84,7 +84,7 @@ def test_a_profile_calibrated_per_hinge_gives_each_hinge_its_own(capsys, spec, d
     """The twin of a profile with per-hinge values (calibrate --per-hinge) moves each hinge with its own motor:
     the hinge whose motor is slower settles later, the others as on the spec's twin; `device show` lists them."""
     calibration = {"runs": ["test"], "parameters": {}, "hinges": _hinge_estimates(spec, 4, 0.6)}
-    write_profile_spec("uneven", {}, "test", calibration)
+    write_profile_spec("uneven", {}, "test", calibration=calibration)
     hinges = read_profile(device_profiles / "uneven").hinges
     assert [h.no_load_speed / spec.no_load_speed for h in hinges] == pytest.approx([1, 1, 1, 1, 0.6, 1])
     targets = ["30"] * spec.n_hinges
@@ -192,3 +192,24 @@ def test_a_profile_cannot_change_the_design_the_host_checks_against(capsys, key,
 def test_none_cannot_name_a_profile(capsys):
     rc, _, err = _run(capsys, "device", "create", "none")
     assert rc == 2 and "reserved" in err
+
+
+def test_what_holding_measured_survives_a_later_calibration(spec, device_profiles):
+    """profile.json's parts are each replaced by the command that writes them, the others kept: a calibration
+    after `vrscroll holding` keeps the holding, and a damaged holding is refused naming it."""
+    est = {"value": 0.3, "prior": 0.5, "low": 0.2, "high": 0.45, "identifiable": False, "note": "test"}
+    holding = {"port": "/dev/ttyACM0", "releases": 2, "parameters": {"backdrive_efficiency": est}}
+    write_profile_spec("kept", {"backdrive_efficiency": 0.3}, "test", by="vrscroll holding", holding=holding)
+    calibration = {"runs": ["run"], "parameters": {"gear_friction": {**est, "value": spec.gear_friction,
+                                                                     "prior": spec.gear_friction, "low": 0.001,
+                                                                     "high": 0.01}}}
+    write_profile_spec("kept", {"gear_friction": spec.gear_friction}, "test", calibration=calibration)
+    profile = read_profile(device_profiles / "kept")
+    assert profile.holding == holding and profile.calibration == calibration
+    assert profile.spec.backdrive_efficiency == 0.3
+    meta = device_profiles / "kept" / "profile.json"
+    doc = json.loads(meta.read_text())
+    doc["holding"]["parameters"]["backdrive_efficiency"]["high"] = 0.1
+    meta.write_text(json.dumps(doc))
+    with pytest.raises(ValueError, match=r"holding: parameters: backdrive_efficiency: value 0.3 is not within"):
+        read_profile(device_profiles / "kept")

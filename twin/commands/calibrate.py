@@ -100,7 +100,7 @@ def run(args) -> int:
                        "parameters": {p: e.to_json() for p, e in res.estimates.items()},
                        **({"hinges": [{p: e.to_json() for p, e in est.items()} for est in hc.estimates]}
                           if hinge_fit and hinge_fit["kept"] else {})}
-        written.append(str(write_profile_spec(name, fitted, source, calibration)))
+        written.append(str(write_profile_spec(name, fitted, source, calibration=calibration)))
         set_default(name)
     if args.out or not name:
         out = args.out or "spec.calibrated.toml"

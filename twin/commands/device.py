@@ -58,6 +58,10 @@ def run(args) -> int:
                 f"{', identifiable' if e['identifiable'] else ''})" for p, e in row.items()))
     else:
         print("not calibrated")
+    for p, e in (profile.holding or {}).get("parameters", {}).items():
+        print(f"holding (vrscroll holding, {profile.holding['releases']} release(s) on {profile.holding['port']}): "
+              f"{p} {e['value']:.3g} (prior {e['prior']:.3g}; interval {e['low']:.3g} .. {e['high']:.3g}; "
+              f"{'identifiable' if e['identifiable'] else 'NOT identifiable'})")
     defaults = spec_sources()
     changed = [f for f, s in sources.items() if s != defaults.get(f)]
     print("spec values not the spec's defaults: " + (", ".join(

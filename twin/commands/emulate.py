@@ -27,6 +27,7 @@ RANGED = {  # PlantRanges field (its option is --field-name) -> what it is
     "cogging_pct": "each motor's cogging, %% of its stall torque",
     "ripple_pct": "each gearbox's friction ripple with its final gear's mesh, %% of its Coulomb friction",
     "winding_c": "each winding's temperature at power-on, deg C (it warms as it works)",
+    "backdrive_scale": "the gearboxes' back-driven efficiency x (a load turning the motor; at most 1 in all)",
 }
 
 
@@ -118,7 +119,8 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
     if args.ideal:
         twin = as_twin(spec)
         default = PlantRanges(speed_scale=(1, 1), friction_scale=(1, 1), damping_scale=(1, 1),
-                              armature_scale=(1, 1), backlash_deg=(twin.backlash_deg,) * 2, latency_ms=(0, 0))
+                              armature_scale=(1, 1), backlash_deg=(twin.backlash_deg,) * 2, latency_ms=(0, 0),
+                              backdrive_scale=(1, 1))
     given = {field: _range(_flag(field), getattr(args, field), getattr(default, field)) for field in RANGED}
     try:
         ranges = PlantRanges(**given)

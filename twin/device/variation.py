@@ -14,14 +14,18 @@ import numpy as np
 from twin.device.spec import DeviceSpec
 
 # the spec fields a profile may hold other values of than the spec's: the plant parameters calibration fits
-# (gear_stiction moves with gear_friction). Every other value (hinge range, settle band, flap count, limits)
-# is the device's design, the same for every device built to the spec: a profile that changes one is refused.
-PLANT_FIELDS = ("no_load_speed", "gear_friction", "gear_stiction", "gear_damping", "rotor_inertia", "backlash")
+# (gear_stiction moves with gear_friction), and how the gearbox passes a load that drives it, which a release
+# under gravity measures (`vrscroll holding`, twin.hil.holding). Every other value (hinge range, settle band,
+# flap count, limits) is the device's design, the same for every device built to the spec: a profile that
+# changes one is refused.
+PLANT_FIELDS = ("no_load_speed", "gear_friction", "gear_stiction", "gear_damping", "rotor_inertia", "backlash",
+                "backdrive_efficiency")
 # the spec fields that move with a parameter, in proportion: the static friction keeps its ratio to the
 # Coulomb friction (one gearbox's friction)
 MOVES_WITH = {"gear_friction": ("gear_stiction",)}
-# the plant parameters a device is described by, less those that move with another
-PARAMS = tuple(p for p in PLANT_FIELDS if not any(p in moved for moved in MOVES_WITH.values()))
+HOLDING = ("backdrive_efficiency",)  # measured by a release (twin.hil.holding), not by the HIL runs' fit
+# the plant parameters calibration fits from HIL runs, less those that move with another
+PARAMS = tuple(p for p in PLANT_FIELDS if p not in HOLDING and not any(p in moved for moved in MOVES_WITH.values()))
 # x the spec's value: how far a device may differ from its datasheet (an assumption: the spread of a batch of
 # micro metal gearmotors and of their assembly; the backlash 0.01 .. 0.5 deg about the spec's 0.25 deg: not 0,
 # which the MJCF makes a rigid coupling, another model layout). The emulator draws its plant within it (its
@@ -35,6 +39,12 @@ def scaled(spec: DeviceSpec, scales: dict) -> DeviceSpec:
     (MOVES_WITH) alike unless `scales` names them too."""
     moved = {f: getattr(spec, f) * float(x) for p, x in scales.items() for f in MOVES_WITH.get(p, ())}
     return spec.replace(**(moved | {p: getattr(spec, p) * float(x) for p, x in scales.items()}))
+
+
+def prior_ranges(spec: DeviceSpec) -> dict:
+    """What is known of an uncalibrated device: each parameter within SPREAD of the spec's value,
+    {field: (low, high) SI}."""
+    return {p: (getattr(spec, p) * lo, getattr(spec, p) * hi) for p, (lo, hi) in SPREAD.items()}
 
 
 def tolerance_ranges(spec: DeviceSpec, tolerance: float) -> dict:

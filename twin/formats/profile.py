@@ -1,7 +1,8 @@
 """Device profile folder (docs/formats.md "Device profile"): one researcher's device, as the twin
 knows it after calibration and tuning.
 
-    profile.json   {"format": "vrscroll-profile/1", "name": NAME, "calibration": {...}}  (calibration optional)
+    profile.json   {"format": "vrscroll-profile/1", "name": NAME, "calibration": {...}, "holding": {...}}
+                   (calibration and holding optional)
     spec.toml      the device's spec, a spec TOML: every value with its source ("calibrated from ...")
     gains.json     the device's gains, a gains file (optional: the spec's gains when absent)
 
@@ -12,6 +13,8 @@ interval for a fitted parameter, the prior range for one the runs do not show), 
 tunes over. "hinges" (optional, `vrscroll calibrate --per-hinge`): per hinge, its own values of the
 parameters a hinge's motor and gearbox change, each about the shared value (its "prior"): the twin of
 the profile (twin.commands.options.profile_twin) gives each hinge its own.
+"holding" (written by `vrscroll holding --device`): {"port", "releases": count, "parameters":
+{"backdrive_efficiency": {...}}}, the value also in spec.toml (twin.hil.holding).
 Where the folders live is twin.device.profile's; which one a command uses, twin.commands.options'.
 """
 
@@ -34,6 +37,7 @@ from twin.paths import replacing
 PROFILE_FORMAT = "vrscroll-profile/1"
 META, SPEC, GAINS, WIRING = "profile.json", "spec.toml", "gains.json", "wiring.json"
 PARAMETER_KEYS = ("value", "prior", "low", "high", "identifiable", "note")
+META_PARTS = ("calibration", "holding")  # what profile.json holds beside its format and name
 
 
 @dataclasses.dataclass
@@ -46,6 +50,7 @@ class Profile:
     gains: list[PidGains]  # per hinge
     gains_from: str  # where the gains came from: the profile's gains.json or the spec
     calibration: dict | None  # profile.json's "calibration", if the profile was calibrated
+    holding: dict | None = None  # profile.json's "holding", if a release was measured (`vrscroll holding`)
 
     @property
     def label(self) -> str:
@@ -84,6 +89,15 @@ def _calibration(doc, where: str, n_hinges: int) -> dict:
     return doc
 
 
+def _holding(doc, where: str) -> dict:
+    if not isinstance(doc, dict):
+        raise ValueError(f"{where}: expected an object with port, releases, parameters")
+    known_keys(doc, ("port", "releases", "parameters"), where)
+    required_keys(doc, ("port", "releases", "parameters"), where)
+    _parameters(doc["parameters"], f"{where}: parameters")
+    return doc
+
+
 def _parameters(doc, where: str) -> None:
     """ValueError unless doc is {plant parameter: estimate} with low <= value <= high, all positive."""
     if not isinstance(doc, dict):
@@ -114,7 +128,7 @@ def design_unchanged(spec: DeviceSpec, base: DeviceSpec, where) -> None:
         if isinstance(mine, float) and isinstance(theirs, float) and math.isclose(mine, theirs, rel_tol=1e-9):
             continue
         raise ValueError(f"{where}: {f.name} = {mine!r} is not the spec's {theirs!r}: a profile holds only the "
-                         f"plant parameters calibration fits ({', '.join(PLANT_FIELDS)}); the rest is the "
+                         f"plant parameters calibration and holding fit ({', '.join(PLANT_FIELDS)}); the rest is the "
                          "device's design (models/vrscroll/spec.toml)")
 
 
@@ -129,10 +143,11 @@ def read_profile(folder) -> Profile:
     meta = json_object(meta_path)
     if meta.get("format") != PROFILE_FORMAT:
         raise ValueError(f"{meta_path}: not a {PROFILE_FORMAT} profile (no \"format\": \"{PROFILE_FORMAT}\")")
-    known_keys(meta, ("format", "name", "calibration"), str(meta_path))
+    known_keys(meta, ("format", "name") + META_PARTS, str(meta_path))
     if meta.get("name") != folder.name:
         raise ValueError(f"{meta_path}: name {meta.get('name')!r} is not the folder's, {folder.name!r}")
     calibration = _calibration(meta["calibration"], f"{meta_path}: calibration", load_spec().n_hinges) if "calibration" in meta else None
+    holding = _holding(meta["holding"], f"{meta_path}: holding") if "holding" in meta else None
     if not (folder / SPEC).is_file():
         raise ValueError(f"{folder}: device profile without its {SPEC}")
     spec = load_spec(folder / SPEC)
@@ -141,30 +156,39 @@ def read_profile(folder) -> Profile:
         gains, source = read_gains(folder / GAINS, spec.n_hinges), str(folder / GAINS)
     else:
         gains, source = [PidGains.from_spec(spec)] * spec.n_hinges, "spec"
-    return Profile(folder.name, folder, spec, gains, source, calibration)
+    return Profile(folder.name, folder, spec, gains, source, calibration, holding)
 
 
-def _write_meta(folder: Path, calibration: dict | None) -> None:
-    doc = {"format": PROFILE_FORMAT, "name": folder.name, **({"calibration": calibration} if calibration else {})}
-    if calibration:
-        _calibration(calibration, str(folder / META), load_spec().n_hinges)
+def _write_meta(folder: Path, **parts) -> None:
+    """profile.json with `parts` (calibration, holding: a dict, or None to drop it) in place of those it held,
+    the others kept."""
+    doc = {"format": PROFILE_FORMAT, "name": folder.name}
+    if (folder / META).is_file():
+        doc |= {k: v for k, v in json_object(folder / META).items() if k in META_PARTS}
+    doc |= parts
+    doc = {k: v for k, v in doc.items() if v is not None}
+    if doc.get("calibration"):
+        _calibration(doc["calibration"], str(folder / META), load_spec().n_hinges)
+    if doc.get("holding"):
+        _holding(doc["holding"], str(folder / META))
     with replacing(folder / META) as tmp:
         tmp.write_text(json.dumps(doc, indent=2) + "\n")
 
 
-def write_profile_spec(name: str, values: dict, source: str, calibration: dict | None) -> Path:
+def write_profile_spec(name: str, values: dict, source: str, by: str = "vrscroll calibrate", **parts) -> Path:
     """Create or update the profile called name: its spec.toml gets `values` (field -> SI) with `source`
     (every other value as it was: the profile's own spec, or the spec's defaults for a new profile), and
-    profile.json the calibration. Returns the folder."""
+    profile.json `parts` (calibration, holding: each replaced, the others kept). by: the command writing it.
+    Returns the folder."""
     folder = profile_dir(name)
     folder.mkdir(parents=True, exist_ok=True)
     template = folder / SPEC if (folder / SPEC).is_file() else SPEC_PATH
     with replacing(folder / SPEC) as spec_tmp:
         write_spec_toml(spec_tmp, template, values, source,
-                        header=f"Device profile {name}: the spec of this device, written by `vrscroll calibrate` "
+                        header=f"Device profile {name}: the spec of this device, written by `{by}` "
                                "(docs/tuning-hil-calibration.md).")
         load_spec(spec_tmp)  # what was written reads back, or nothing is replaced
-    _write_meta(folder, calibration)
+    _write_meta(folder, **parts)
     return folder
 
 
@@ -197,7 +221,7 @@ def create_profile(name: str) -> Path:
         raise ValueError(f"{folder}: a device profile {name!r} exists already")
     folder.mkdir(parents=True)
     (folder / SPEC).write_text(Path(SPEC_PATH).read_text())
-    _write_meta(folder, None)
+    _write_meta(folder)
     return folder
 
 

@@ -107,7 +107,7 @@ class Emulator:
         p = self.plant.spec
         self._log("start", plant={k: getattr(p, k) for k in ("gear_friction", "gear_stiction", "gear_damping",
                                                              "no_load_speed", "rotor_inertia", "backlash",
-                                                             "supply_voltage")},
+                                                             "backdrive_efficiency", "supply_voltage")},
                   hinges=[{k: getattr(h, k) for k in ("gear_friction", "gear_stiction", "gear_damping", "no_load_speed",
                                                       "rotor_inertia")} for h in self.plant.hinge_specs],
                   options=dataclasses.asdict(self.opt))

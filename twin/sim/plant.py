@@ -73,6 +73,7 @@ class PlantOptions:
     friction_scale: float = 1.0  # gear_friction and gear_stiction x
     damping_scale: float = 1.0  # gear_damping x
     armature_scale: float = 1.0  # rotor_inertia x
+    backdrive_scale: float = 1.0  # backdrive_efficiency x (at most 1 in all)
     backlash_deg: float = 0.0  # dead zone between gearbox output and flap, deg (full width)
     encoder_miss: float = 0.0  # probability that the counter misses an edge (they accumulate)
     pack_voltage: float | None = None  # V, the pack's open-circuit voltage (None: the spec's supply_voltage)
@@ -99,6 +100,7 @@ class PlantRanges:
     cogging_pct: tuple[float, float] = (1.0, 5.0)  # % of the motor's stall torque
     ripple_pct: tuple[float, float] = (5.0, 20.0)  # % of the gearbox's Coulomb friction
     winding_c: tuple[float, float] = (25.0, 45.0)  # deg C at power-on
+    backdrive_scale: tuple[float, float] = (0.6, 1.4)  # backdrive_efficiency x (0.3-0.7 about the spec's 0.5)
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -114,21 +116,23 @@ class PlantRanges:
 RANGE_LIMITS = {"speed_scale": (0.1, 10.0), "friction_scale": (0.0, 10.0), "damping_scale": (0.0, 10.0),
                 "armature_scale": (0.1, 10.0), "backlash_deg": (0.0, 5.0), "latency_ms": (0.0, 100.0),
                 "hinge_scale": (0.1, 10.0), "cogging_pct": (0.0, 50.0), "ripple_pct": (0.0, 90.0),
-                "winding_c": (-20.0, 120.0)}
+                "winding_c": (-20.0, 120.0), "backdrive_scale": (0.05, 2.0)}
 PER_HINGE = ("hinge_scale", "cogging_pct", "ripple_pct", "winding_c")  # drawn for each hinge
+LAST = ("backdrive_scale",)  # drawn after the hinges: the draws before it are those of a seed before it was added
 
 
 def draw_plant(ranges: PlantRanges, rng: random.Random, encoder_miss: float = 0.0,
                pack_voltage: float | None = None, n_hinges: int = 6) -> tuple[PlantOptions, float]:
     """A plant drawn uniformly within the ranges, each of its n_hinges hinges' own values too, and its
     command latency (ms)."""
-    shared = [f.name for f in dataclasses.fields(ranges) if f.name not in PER_HINGE]
+    shared = [f.name for f in dataclasses.fields(ranges) if f.name not in PER_HINGE + LAST]
     v = {name: rng.uniform(*getattr(ranges, name)) for name in shared}
     latency = v.pop("latency_ms")
     hinges = tuple(HingeDraw(*(rng.uniform(*ranges.hinge_scale) for _ in range(4)),
                              cogging=rng.uniform(*ranges.cogging_pct) / 100, ripple=rng.uniform(*ranges.ripple_pct) / 100,
                              ripple_phase=rng.uniform(0.0, 2 * math.pi), winding_c=rng.uniform(*ranges.winding_c))
                    for _ in range(n_hinges))
+    v.update({name: rng.uniform(*getattr(ranges, name)) for name in LAST})
     return PlantOptions(**v, encoder_miss=encoder_miss, pack_voltage=pack_voltage, hinges=hinges), latency
 
 
@@ -142,6 +146,7 @@ def plant_spec(spec: DeviceSpec, opt: PlantOptions) -> DeviceSpec:
     body = scaled(spec, {"no_load_speed": opt.speed_scale, "gear_friction": opt.friction_scale,
                          "gear_damping": opt.damping_scale, "rotor_inertia": opt.armature_scale})
     return body.replace(backlash=math.radians(opt.backlash_deg),
+                        backdrive_efficiency=min(spec.backdrive_efficiency * opt.backdrive_scale, 1.0),
                         supply_voltage=spec.supply_voltage if opt.pack_voltage is None else opt.pack_voltage)
 
 

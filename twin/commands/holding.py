@@ -1,0 +1,101 @@
+"""`vrscroll holding --serial PORT`: what the device does when its drive is cut. Releases from flat under
+gravity (e-stopped: each winding shorted, the flaps braked by their motors' back-EMF), the gearboxes'
+back-driven efficiency fitted to them, kept in the device profile, and what the twin then says a braked
+device does in the seconds after its drive is cut (twin.hil.holding; docs/tuning-hil-calibration.md)."""
+
+from __future__ import annotations
+
+import math
+
+
+from twin.commands.options import (
+    add_device_option,
+    add_json,
+    add_serial,
+    add_tolerance_deg,
+    device_session,
+    json_to_stdout,
+    profile_line,
+    profile_of,
+    within,
+    write_json,
+)
+from twin.device.variation import prior_ranges
+from twin.errors import UserError
+from twin.formats.profile import write_profile_spec
+from twin.hil.holding import RELEASE_S, braked_sag, fit_backdrive, record_release
+from twin.hil.mirror import DeviceNotReady
+from twin.link.serial_link import LinkError
+from twin.sim.gate import GateRefused
+
+PREDICT_S = (1.0, 5.0)  # s after the drive is cut: what the twin reports
+
+
+def add_arguments(p) -> None:
+    add_serial(p, required=True)
+    p.add_argument("--releases", type=within(1, 10, whole=True), default=2,
+                   help="releases to record and fit (default %(default)s)")
+    p.add_argument("--release-s", type=within(0.1, 2.0, "s"), default=RELEASE_S,
+                   help="s recorded after each e-stop (default %(default)s; longer sags further, up to the hinge "
+                        "range)")
+    add_tolerance_deg(p)
+    p.add_argument("--log", help="session log, JSON lines")
+    add_json(p, "the releases, the fit and the prediction")
+    add_device_option(p)
+
+
+def run(args) -> int:
+    profile = profile_of(args)
+    spec = profile.spec
+    quiet = json_to_stdout(args)
+    if not quiet:
+        print(profile_line(profile))
+    releases = []
+    try:
+        with device_session(args, spec) as (link, spec):
+            for k in range(args.releases):
+                releases.append(record_release(link, spec, args.release_s, args.tolerance_deg))
+                if not quiet:
+                    print(f"release {k + 1}/{args.releases}: {len(releases[-1].t)} frames, sag per hinge "
+                          + " ".join(f"{d:.1f}" for d in releases[-1].angle_deg[-1] - releases[-1].angle_deg[0])
+                          + " deg", flush=True)
+            port = link.url
+    except (GateRefused, DeviceNotReady) as exc:
+        raise UserError(str(exc)) from None
+    except LinkError as exc:
+        raise UserError(f"link: {exc}") from None
+    fit = fit_backdrive(releases, spec, profile.hinges, profile.ranges() or prior_ranges(spec))
+    e = fit.estimate
+    written = None
+    if profile.name:
+        holding = {"port": port, "releases": len(releases), "parameters": {"backdrive_efficiency": e.to_json()}}
+        written = write_profile_spec(profile.name, {"backdrive_efficiency": e.value},
+                                     f"measured by `vrscroll holding` from {len(releases)} release(s) on {port}",
+                                     by="vrscroll holding", holding=holding)
+    fitted = spec.replace(backdrive_efficiency=e.value)
+    hinges = [h.replace(backdrive_efficiency=e.value) for h in profile.hinges] if profile.hinges else None
+    predicted = {f"{s:g}": braked_sag(fitted, s, hinges).round(2).tolist() for s in PREDICT_S}
+    out = {"device_profile": profile.label, "written": str(written) if written else None,
+           "backdrive_efficiency": e.to_json(), "autocorrelation_frames": round(fit.autocorrelation_frames, 1),
+           "replays": fit.replays, "sag_deg": fit.sag_deg,
+           "braked_from_flat_deg": predicted, "releases": [r.to_json() for r in releases]}
+    write_json(args.json, out)
+    if quiet:
+        return 0
+    print(f"backdrive_efficiency {e.value:.3f} (prior {e.prior:.3f}; 95 % interval {e.low:.3f} .. {e.high:.3f}; "
+          f"{'identifiable' if e.identifiable else 'NOT identifiable'}), {fit.replays} twin releases:\n  {e.note}"
+          + ("" if profile.ranges() else "\n  (an uncalibrated profile: the other parameters' ranges are the spec's "
+                                          "spread; `vrscroll calibrate` first narrows them)"))
+    print(f"sag over {args.release_s:g} s per hinge, deg (mean of the releases):")
+    for label, key in (("device", "device"), ("twin before", "twin_before"), ("twin after", "twin_after")):
+        print(f"  {label:<12}" + " ".join(f"{d:7.2f}" for d in fit.sag_deg[key]))
+    print("the twin, braked with its drive cut at flat (root flap held level), hinge angles, deg:")
+    for s, angles in predicted.items():
+        print(f"  after {s} s: " + " ".join(f"{a:7.1f}" for a in angles))
+    limit = math.degrees(spec.hinge_limit)
+    held = [k for k, a in enumerate(predicted[f"{PREDICT_S[0]:g}"]) if abs(a) < 1.0]
+    print(f"holds within 1 deg for {PREDICT_S[0]:g} s: hinges {held or 'none'}; the others sag towards their "
+          f"limits (+-{limit:g} deg) or until a flap rests on something")
+    print(f"kept in device profile {profile.name} ({written})" if written else
+          "not kept: no device profile (--device NAME keeps it)")
+    return 0
