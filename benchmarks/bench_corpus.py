@@ -2,7 +2,8 @@
 mean MSD and HD over seeded starts all round it (exact mesh, mm), whether any anchor crossed the solid, the
 default start outside it; the share of each one's touch surface inside the shape and how deep; how many of
 full's poses have flaps in contact (the gate refuses them), and full's MSD with its angles scaled down until
-none touch (the pose the device could take); ours' time per approximation (median, p99, one core); each shape's field build (s,
+none touch (the pose the device could take); how many poses of full's and ours have a flap through the
+target (twin.morphpatch.refinement.flaps_through: a wall, a plate, a tube); ours' time per approximation (median, p99, one core); each shape's field build (s,
 peak memory of the process, MB) against its face count.
 
     PYTHONPATH=$PWD:$PWD/tests .venv/bin/python benchmarks/bench_corpus.py [--seed 0] [--starts 10] [--out results/corpus]
@@ -30,7 +31,7 @@ from twin.device.spec import load_spec  # noqa: E402
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
 from twin.morphpatch.shapes import mesh_start  # noqa: E402
-from twin.morphpatch.refinement import _uncurled  # noqa: E402
+from twin.morphpatch.refinement import flaps_through, uncurled  # noqa: E402
 from twin.morphpatch.surface_metrics import match  # noqa: E402
 
 def main() -> None:
@@ -57,6 +58,7 @@ def main() -> None:
         per = {v: [] for v in VARIANTS}
         crossings = {v: 0 for v in VARIANTS}
         contact = {v: 0 for v in VARIANTS}
+        through = {v: 0 for v in VARIANTS}
         full_uncurled = []
         for k, start in enumerate(starts(mesh, args.starts, args.seed * 1000 + len(rows))):
             snapped = root_pose(fields, start, spec)[:3, 3]
@@ -67,15 +69,17 @@ def main() -> None:
                     times.append(a.time)
                 per[v].append(match(spec, mesh, a.root_pose, a.angles, a.widths))
                 contact[v] += collides(boxes, a.angles, 0.0)
+                through[v] += flaps_through(fields, spec, a.root_pose, a.angles, a.widths) > 0
                 if v == "full":  # the pose the device could take: its angles scaled down until no flaps touch
-                    full_uncurled.append(match(spec, mesh, a.root_pose, _uncurled(boxes, a.angles), a.widths).msd)
+                    full_uncurled.append(match(spec, mesh, a.root_pose, uncurled(spec, a.angles), a.widths).msd)
                 crossings[v] += crossed(mesh, start[:3, 3], snapped) or crossed(mesh, snapped, a.root_pose[:3, 3])
         for v in VARIANTS:
             m = np.array(per[v])
             row[v] = {"msd_mm": round(float(m[:, 0].mean() * 1e3), 2), "hd_mm": round(float(m[:, 1].mean() * 1e3), 2),
                       "worst_start_msd_mm": round(float(m[:, 0].max() * 1e3), 2), "crossed": crossings[v],
                       "inside_percent": round(float(m[:, 2].mean() * 100), 1),
-                      "inside_depth_mm": round(float(m[:, 3].max() * 1e3), 1), "flaps_in_contact": contact[v]}
+                      "inside_depth_mm": round(float(m[:, 3].max() * 1e3), 1), "flaps_in_contact": contact[v],
+                      "flaps_through_target": through[v]}
         full, ours = np.array(per["full"])[:, 0], np.array(per["refined"])[:, 0]
         row["ours_below_full"] = round(float(1 - ours.mean() / full.mean()), 3)
         row["full_uncurled_msd_mm"] = round(float(np.mean(full_uncurled) * 1e3), 2)
@@ -96,21 +100,25 @@ def main() -> None:
                "shapes_where_ours_is_20pct_below_full_uncurled": sum(r["ours_below_full_uncurled"] >= 0.2 for r in rows
                                                                     if r["full"]["msd_mm"] > 1.0),
                "full_poses_in_flap_contact": sum(r["full"]["flaps_in_contact"] for r in rows),
+               "poses_with_a_flap_through_the_target": {v: sum(r[v]["flaps_through_target"] for r in rows)
+                                                        for v in VARIANTS},
                "shapes_where_full_is_above_1mm": sum(r["full"]["msd_mm"] > 1.0 for r in rows),
                "anchors_that_crossed": sum(r[v]["crossed"] for r in rows for v in VARIANTS)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "corpus.json").write_text(json.dumps({"summary": summary, "shapes": rows}, indent=2) + "\n")
     lines = ["| shape | faces | build s | full MSD / HD mm | no_hcevf | ours | ours below full | worst start | "
-             "full's poses in flap contact | full uncurled MSD | inside % (deepest mm) full / ours |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "full's poses in flap contact | full uncurled MSD | inside % (deepest mm) full / ours | "
+             "poses with a flap through the target, full / ours |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         f, o = r["full"], r["refined"]
         lines.append(f"| {r['shape']} | {r['faces']} | {r['field_build_s']} | {f['msd_mm']} / {f['hd_mm']} | "
                      f"{r['no_hcevf']['msd_mm']} / {r['no_hcevf']['hd_mm']} | {o['msd_mm']} / {o['hd_mm']} | "
                      f"{r['ours_below_full']:.0%} | {r['ours_worse_by_mm']:+.2f} mm | {f['flaps_in_contact']} of "
                      f"{args.starts} | {r['full_uncurled_msd_mm']} | {f['inside_percent']} ({f['inside_depth_mm']}) / "
-                     f"{o['inside_percent']} ({o['inside_depth_mm']}) |")
+                     f"{o['inside_percent']} ({o['inside_depth_mm']}) | {f['flaps_through_target']} / "
+                     f"{o['flaps_through_target']} of {args.starts} |")
     (out / "corpus.md").write_text("\n".join(lines) + "\n")
     print(json.dumps(summary, indent=2))
 

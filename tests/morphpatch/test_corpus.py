@@ -1,5 +1,6 @@
 """Shapes nobody tuned the approximation for (tests/shape_corpus.py): from seeded starts all round each, no
-variant's anchor crosses the solid, and each shape's default start is outside it. The default suite takes a
+variant's anchor crosses the solid, ours passes no more flaps through it than full, and each shape's default
+start is outside it; lowered onto a cup narrower than the device, no variant goes into it. The default suite takes a
 bowl and a cup (the concave families, where crossing is possible); the slow suite the whole corpus, 10 starts
 each. How well each variant fits them is measured, not asserted: benchmarks/bench_corpus.py,
 docs/approximation.md "Shapes nobody tuned for"."""
@@ -10,6 +11,7 @@ import pytest
 from shape_corpus import corpus, crossed, starts
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose
 from twin.morphpatch.fields import build_fields
+from twin.morphpatch.refinement import flaps_through
 from twin.morphpatch.shapes import mesh_start
 
 def check_shapes(spec, shapes, n_starts):
@@ -20,9 +22,30 @@ def check_shapes(spec, shapes, n_starts):
         for start in starts(mesh, n_starts, seed=100 + i):
             snapped = root_pose(fields, start, spec)[:3, 3]
             assert not crossed(mesh, start[:3, 3], snapped), (name, start[:3, 3])
+            through = {}
             for variant in VARIANTS:
-                anchor = approximate(fields, start, spec, variant).root_pose[:3, 3]
-                assert not crossed(mesh, snapped, anchor), (name, variant, start[:3, 3], anchor)
+                a = approximate(fields, start, spec, variant)
+                assert not crossed(mesh, snapped, a.root_pose[:3, 3]), (name, variant, start[:3, 3], a.root_pose)
+                through[variant] = flaps_through(fields, spec, a.root_pose, a.angles, a.widths)
+            assert through["refined"] <= through["full"], (name, start[:3, 3], through)  # ours adds no flap through it
+
+
+CAVITY = 6e-3  # m: an anchor this far inside a cup's convex hull is down in its cavity (the rim is on the hull)
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_lowered_onto_a_cup_narrower_than_the_device_no_variant_goes_into_it(spec, seed):
+    """Cups with a handle, 60-120 mm across (the device 188 x 175 mm), from their default start above the rim:
+    every variant's anchor ends on the rim or the outer wall, not down in the cavity with the flaps through the
+    wall (ours went 12-17 mm into seed 0's cups before its flaps were kept from passing through the target)."""
+    for name, mesh in corpus(seed=seed, families=("cup",)):
+        fields = build_fields(mesh)
+        hull = mesh.convex_hull
+        start = pose_from_mm_deg(mesh_start(mesh))
+        for variant in VARIANTS:
+            anchor = approximate(fields, start, spec, variant).root_pose[:3, 3]
+            depth = -igl.signed_distance(anchor[None], hull.vertices, hull.faces)[0][0]
+            assert depth <= CAVITY, (name, variant, anchor, depth)
 
 
 def test_a_bowl_and_a_cup_nobody_tuned_for(spec):

@@ -29,6 +29,15 @@ Bounds, so every result is a pose the device can take where the user asked for i
   its 155 mm long ends closer; the device is meant to lie on the target, not in it);
 - the anchor keeps to the side the device came from: a step whose straight path crosses the
   target (deeper than PATH_DEPTH, twin.morphpatch.fields) is refused like a collision;
+- no flap passes through the target: walking each flap's centre line (along its hinge axis, the
+  device's whole depth) from either end to its middle, the line may go into the target and stay
+  there (a flap pressed onto it), but not go in and come out through another face (the two faces'
+  normals more than 120 deg apart, THROUGH_COS: a cup's wall, a plate, a torus's tube; not a corner
+  it cuts, which the distances already count); a step that makes more flaps pass through than
+  before is refused like a collision, and a search that ends with more than the pipeline's own
+  pose (its anchor pulled into the ball below) returns that pose instead. Without it, from above a
+  cup narrower than the device, the samples' distances to the inner wall pulled the anchor down
+  into the cavity with the root flap's ends through the wall (issue 22);
 - the anchor stays within ANCHOR_RADIUS of the snapped point (the pipeline's step 1:
   where the user brought the device; unbounded, it drifts up to 150 mm to the easiest
   flat patch, which is not the region the user chose); on the ball's surface, steps
@@ -56,7 +65,7 @@ import numpy as np
 from twin.device.flap_collision import collides, flap_boxes
 from twin.device.kinematics import _chain, hinge_axis_sign, outer_flap
 from twin.device.spec import DeviceSpec
-from twin.morphpatch.fields import Fields, _interpolate, _path_clear
+from twin.morphpatch.fields import PATH_DEPTH, PATH_STEP, Fields, _interpolate, _path_clear
 
 CLEARANCE = 0.0  # m: refined poses keep the flaps out of contact altogether (the gate refuses past 0.1 mm)
 ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
@@ -69,6 +78,8 @@ TOLERANCE = 6e-3
 ANCHOR_DEPTH = 0.5e-3  # m: the anchor may sit this far inside the target, no farther (on the SDF grid)
 TAIL = 0.02  # m: inside the target, a sample's residual grows as S sqrt(1 + (S/TAIL)^2) (module docstring)
 ON_LIMIT = 1e-5  # m: an anchor this close to a bound (its depth, the ball) is on it
+THROUGH_COS = -0.5  # a flap's line leaving the target by a face whose normal is more than 120 deg from the one it
+# entered by has passed through it (a wall, a plate, a tube); a corner it cuts (90 deg) or a face it presses is not
 
 
 def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.ndarray, angles: np.ndarray,
@@ -83,16 +94,34 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
     pose = np.ascontiguousarray(root_pose, dtype=float)
     return _search(fields.grid, device, np.ascontiguousarray(local, dtype=float), pose,
                    np.asarray(angles, float).copy(), np.asarray(widths, float), np.asarray(centre, float),
-                   float(radius))
+                   float(radius), float(spec.depth))
+
+
+def flaps_through(fields: Fields, spec: DeviceSpec, root_pose, angles, widths) -> int:
+    """How many flaps of a pose pass through the target (module docstring; root pose 4x4 m, hinge angles rad,
+    flap widths m): what the refinement does not add to, for any pose."""
+    frames = _chain(_hinges(spec)[1] * np.asarray(angles, float), np.asarray(widths, float), int(spec.root_flap),
+                    np.ascontiguousarray(root_pose, dtype=float))
+    return int(_flaps_through(fields.grid, frames, 0.5 * spec.depth))
+
+
+def uncurled(spec: DeviceSpec, angles) -> np.ndarray:
+    """The hinge angles (rad) if no flaps touch there, else the largest fraction of them at which none do."""
+    return _uncurled(flap_boxes(spec), np.asarray(angles, float))
 
 
 @numba.njit(cache=True)
-def _search(grid, device, local, root_pose, angles, widths, centre, radius):
+def _search(grid, device, local, root_pose, angles, widths, centre, radius, depth):
     """Levenberg-Marquardt within the bounds (module docstring): (root pose 4x4, hinge angles)."""
-    boxes, _, _, limit = device
+    boxes, hinges, root_flap, limit = device
+    sign = hinges[1]
     rot = root_pose[:3, :3].copy()
     angles = _uncurled(boxes, angles)
+    start_angles = angles.copy()
+    half = 0.5 * depth
+    allowed = _flaps_through(grid, _chain(sign * angles, widths, root_flap, root_pose), half)  # the pipeline's
     anchor = _bounded(grid, root_pose[:3, 3].copy(), centre, radius)
+    passing = _flaps_through(grid, _chain(sign * angles, widths, root_flap, _pose(rot, anchor)), half)
     cost, jtj, jtr, s_anchor, g_anchor = _evaluate(grid, device, local, rot, anchor, angles, widths)
     damping = DAMPING
     small = 0
@@ -111,10 +140,14 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius):
         if not _path_clear(grid, anchor, new_anchor):  # through the target: off the side the device came from
             damping *= 4.0
             continue
+        through = _flaps_through(grid, _chain(sign * new_angles, widths, root_flap, _pose(new_rot, new_anchor)), half)
+        if through > passing:  # a flap through the target: refused like a collision
+            damping *= 4.0
+            continue
         trial = _evaluate(grid, device, local, new_rot, new_anchor, new_angles, widths)
         if trial[0] < cost:
             gain = cost - trial[0]
-            rot, anchor, angles = new_rot, new_anchor, new_angles
+            rot, anchor, angles, passing = new_rot, new_anchor, new_angles, through
             cost, jtj, jtr, s_anchor, g_anchor = trial
             damping *= 0.3
             small = small + 1 if gain < TOLERANCE * (cost + gain) else 0
@@ -122,10 +155,47 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius):
                 break
         else:
             damping *= 4.0
+    if passing > allowed:  # the anchor pulled into its ball put flaps through, and no step took them out
+        return root_pose.copy(), start_angles
+    return _pose(rot, anchor), angles
+
+
+@numba.njit(cache=True)
+def _pose(rot, anchor):
+    """The 4x4 pose of a rotation (3, 3) and an anchor (3,)."""
     pose = np.eye(4)
     pose[:3, :3] = rot
     pose[:3, 3] = anchor
-    return pose, angles
+    return pose
+
+
+@numba.njit(cache=True)
+def _flaps_through(grid, frames, half):
+    """How many flaps pass through the target (module docstring): each flap's centre line, y from -+half (m)
+    to 0 in its frame, walked from either end, going into the target (deeper than PATH_DEPTH) and out of it
+    (S above 0) where the normal it leaves by opposes the one it came in by."""
+    count = 0
+    n = int(half / PATH_STEP)
+    for f in range(frames.shape[0]):
+        through = False
+        for end in (-1.0, 1.0):
+            inside = False
+            gin = np.zeros(3)
+            for k in range(n + 1):
+                y = end * half * (1.0 - k / n)
+                x, yy, z = frames[f, 0, 3] + frames[f, 0, 1] * y, frames[f, 1, 3] + frames[f, 1, 1] * y, \
+                    frames[f, 2, 3] + frames[f, 2, 1] * y
+                v, gx, gy, gz = _interpolate(grid, x, yy, z)
+                if not inside and v < -PATH_DEPTH:
+                    inside = True
+                    gin[0], gin[1], gin[2] = gx, gy, gz
+                elif inside and v > 0.0:
+                    inside = False
+                    if gin[0] * gx + gin[1] * gy + gin[2] * gz < THROUGH_COS * math.sqrt(
+                            (gin[0] ** 2 + gin[1] ** 2 + gin[2] ** 2) * (gx * gx + gy * gy + gz * gz)):
+                        through = True
+        count += through
+    return count
 
 
 @numba.njit(cache=True)
