@@ -54,7 +54,7 @@ def test_a_bowl_and_a_cup_nobody_tuned_for(spec):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="issue 22, open: a plate thinner than two grid cells (3 mm grid) is missed "
-                   "by the snap, which passes through it; two of ours' anchors end across from the snapped point "
-                   "(benchmarks/bench_corpus.py, seed 0: 8 of 1200)")
+                   "by the snap, which passes through it; one of ours' anchors ends across from the snapped point "
+                   "(benchmarks/bench_corpus.py, seed 0: 7 of 1200)")
 def test_the_whole_corpus(spec):
     check_shapes(spec, corpus(seed=0), 10)
