@@ -33,7 +33,7 @@ def check_shapes(spec, shapes, n_starts):
 CAVITY = 6e-3  # m: an anchor this far inside a cup's convex hull is down in its cavity (the rim is on the hull)
 
 
-@pytest.mark.parametrize("seed", [0, 3])
+@pytest.mark.parametrize("seed", [pytest.param(0, marks=pytest.mark.slow), 3])  # 0: the cups looked at first
 def test_lowered_onto_a_cup_narrower_than_the_device_no_variant_goes_into_it(spec, seed):
     """Cups with a handle, 60-120 mm across (the device 188 x 175 mm), from their default start above the rim:
     every variant's anchor ends on the rim or the outer wall, not down in the cavity with the flaps through the
