@@ -3,8 +3,9 @@
 The pipeline, in the paper's order (its figure; §3.2):
 
 1. snap: the device moves along its anchor direction (the device's -z from the
-   anchor) until the anchor touches the surface (S = 0 along that line; if the line
-   misses the target, the anchor goes to its closest surface point instead);
+   anchor) until the anchor touches the surface (S = 0 along that line, within
+   SNAP_REACH; if the line misses the target, the anchor goes to its closest surface
+   point instead, sphere tracing down S in steps short of it);
 2. root rotation about the hinge axis y (the paper's "yaw", its Unity axis Z): the
    root flap's SDF gradients, in the root frame, projected onto its x-z plane; the
    root turns by their mean's angle from its normal z;
@@ -69,6 +70,9 @@ from twin.morphpatch.surface_metrics import match
 
 VARIANTS = ("full", "no_hcevf", "refined")
 SNAP_REACH = 0.25  # m, how far along +-z a snap looks for the surface (here, and CBS's press along its normal)
+TRACE_STEPS = 64  # sphere-tracing steps to the closest surface point where the snap's line misses the target
+TRACE_TOLERANCE = 1e-4  # m: a traced point this close to the surface is on it
+TRACE_RELAX = 0.9  # each tracing step goes this share of the distance: short of the surface where S is long
 ROOT_PASSES = 2  # passes of each root rotation step
 HINGE_PASSES = 3  # passes per hinge
 HINGE_TOLERANCE = 1e-3  # rad: a hinge pass that changes the angle less than this ends the hinge
@@ -296,12 +300,14 @@ def _snap(grid, pose):
                 a = j
                 break
     out = pose.copy()
-    if a < 0:  # the line misses the target: go to the closest surface point
-        p = anchor
-        for _ in range(2):
+    if a < 0:  # the line misses the target: go to the closest surface point, sphere tracing down the distance
+        p = anchor  # (steps of TRACE_RELAX x S: beyond the grid S is extrapolated, 3 % long 0.3 m out; a full step
+        for _ in range(TRACE_STEPS):  # from there crossed a 7 mm plate)
             value, gx, gy, gz = _interpolate(grid, p[0], p[1], p[2])
+            if value < TRACE_TOLERANCE:
+                break
             grad = np.array([gx, gy, gz])
-            p = p - value * grad / max(math.sqrt(grad @ grad), 1e-9)
+            p = p - TRACE_RELAX * value * grad / max(math.sqrt(grad @ grad), 1e-9)
         out[:3, 3] = p
         return out
     b = a + 1

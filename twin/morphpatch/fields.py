@@ -68,6 +68,8 @@ MIN_CURVATURE = 1.0 / 0.015  # 1/m: |tr H| of a ridge sharper than a 15 mm radiu
 CURVATURE_SCALE = 0.003  # m: Gaussian sigma over which a ridge's curvature must persist (a few facets' width)
 PATH_DEPTH = 1e-3  # m: an anchor's path may graze the target this deep (the grid's error), no deeper
 PATH_STEP = 1e-3  # m between the samples of such a path
+CHORD_DEPTH = 2e-3  # m: a straight line across the refinement's whole slide may dip this deep (a chord of a curved
+# surface the anchor slid along: 20 mm on a 25 mm radius dips 2 mm), short of the 2.5 mm the exact mesh is held to
 _VERSION = 2  # bump when the stored arrays change meaning
 
 _MEMORY: dict[str, "Fields"] = {}
@@ -172,14 +174,14 @@ def _interpolate(grid, x, y, z):
 
 
 @numba.njit(cache=True)
-def _path_clear(grid, a, b):
-    """Whether the segment a -> b (m) stays out of the target, to PATH_DEPTH, sampled every PATH_STEP: the
+def _path_clear(grid, a, b, depth=PATH_DEPTH):
+    """Whether the segment a -> b (m) stays out of the target, to `depth` (m), sampled every PATH_STEP: the
     approximation's side guarantee (twin.morphpatch.approximation) and the refinement's steps."""
     n = int(math.sqrt((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2 + (b[2] - a[2]) ** 2) / PATH_STEP) + 1
     for k in range(n + 1):
         f = k / n
         if _interpolate(grid, a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]))[0] \
-                < -PATH_DEPTH:
+                < -depth:
             return False
     return True
 

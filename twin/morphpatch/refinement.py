@@ -28,7 +28,10 @@ Bounds, so every result is a pose the device can take where the user asked for i
   squares alone sinks the root flap's middle up to 17 mm into a convex target to bring
   its 155 mm long ends closer; the device is meant to lie on the target, not in it);
 - the anchor keeps to the side the device came from: a step whose straight path crosses the
-  target (deeper than PATH_DEPTH, twin.morphpatch.fields) is refused like a collision;
+  target (deeper than PATH_DEPTH, twin.morphpatch.fields) is refused like a collision, and the
+  result is the last kept state whose anchor the snapped one reaches in a straight line (to
+  CHORD_DEPTH: steps each clear can add up to a line that is not; refusing such steps instead changed where an arch start
+  stopped, 1.34 mm inside the exact mesh);
 - no flap passes through the target: walking each flap's centre line (along its hinge axis, the
   device's whole depth) from either end to its middle, the line may go into the target and stay
   there (a flap pressed onto it), but not go in and come out through another face (the two faces'
@@ -65,7 +68,7 @@ import numpy as np
 from twin.device.flap_collision import collides, flap_boxes
 from twin.device.kinematics import _chain, hinge_axis_sign, outer_flap
 from twin.device.spec import DeviceSpec
-from twin.morphpatch.fields import PATH_DEPTH, PATH_STEP, Fields, _interpolate, _path_clear
+from twin.morphpatch.fields import CHORD_DEPTH, PATH_DEPTH, PATH_STEP, Fields, _interpolate, _path_clear
 
 CLEARANCE = 0.0  # m: refined poses keep the flaps out of contact altogether (the gate refuses past 0.1 mm)
 ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
@@ -122,6 +125,7 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
     allowed = _flaps_through(grid, _chain(sign * angles, widths, root_flap, root_pose), half)  # the pipeline's
     anchor = _bounded(grid, root_pose[:3, 3].copy(), centre, radius)
     passing = _flaps_through(grid, _chain(sign * angles, widths, root_flap, _pose(rot, anchor)), half)
+    kept = (rot, anchor, angles, passing)  # the last state whose anchor the snapped one reaches in a straight line
     cost, jtj, jtr, s_anchor, g_anchor = _evaluate(grid, device, local, rot, anchor, angles, widths)
     damping = DAMPING
     small = 0
@@ -148,6 +152,8 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
         if trial[0] < cost:
             gain = cost - trial[0]
             rot, anchor, angles, passing = new_rot, new_anchor, new_angles, through
+            if _path_clear(grid, centre, anchor, CHORD_DEPTH):
+                kept = (rot, anchor, angles, passing)
             cost, jtj, jtr, s_anchor, g_anchor = trial
             damping *= 0.3
             small = small + 1 if gain < TOLERANCE * (cost + gain) else 0
@@ -155,6 +161,7 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
                 break
         else:
             damping *= 4.0
+    rot, anchor, angles, passing = kept  # each step's path clear, the whole way from the snapped anchor not always
     if passing > allowed:  # the anchor pulled into its ball put flaps through, and no step took them out
         return root_pose.copy(), start_angles
     return _pose(rot, anchor), angles
