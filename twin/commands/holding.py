@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 
-
 from twin.commands.options import (
     add_device_option,
     add_json,
@@ -23,7 +22,7 @@ from twin.commands.options import (
 from twin.device.variation import prior_ranges
 from twin.errors import UserError
 from twin.formats.profile import write_profile_spec
-from twin.hil.holding import RELEASE_S, braked_sag, fit_backdrive, record_release
+from twin.hil.holding import RELEASE_S, braked_sag, fit_backdrive, record_release, with_values
 from twin.hil.mirror import DeviceNotReady
 from twin.link.serial_link import LinkError
 from twin.sim.gate import GateRefused
@@ -72,8 +71,7 @@ def run(args) -> int:
         written = write_profile_spec(profile.name, {"backdrive_efficiency": e.value},
                                      f"measured by `vrscroll holding` from {len(releases)} release(s) on {port}",
                                      by="vrscroll holding", holding=holding)
-    fitted = spec.replace(backdrive_efficiency=e.value)
-    hinges = [h.replace(backdrive_efficiency=e.value) for h in profile.hinges] if profile.hinges else None
+    fitted, hinges = with_values(spec, profile.hinges, {"backdrive_efficiency": e.value})
     predicted = {f"{s:g}": braked_sag(fitted, s, hinges).round(2).tolist() for s in PREDICT_S}
     out = {"device_profile": profile.label, "written": str(written) if written else None,
            "backdrive_efficiency": e.to_json(), "autocorrelation_frames": round(fit.autocorrelation_frames, 1),

@@ -15,14 +15,15 @@ then e-stopped; its telemetry is recorded for RELEASE_S, then the e-stop is clea
 The fit (`fit_backdrive`): backdrive_efficiency, one value for every gearbox, minimising the sum of
 squares of device - twin encoder angle (deg) over every frame and hinge of every release, searched in
 log within BOUNDS (scipy's bounded scalar search). Its 95 % interval is where that sum stays within
-3.84 sigma^2 tau of its least (a profile likelihood: sigma^2 the residual's mean square, at least the
-encoder's quantisation, a count^2 / 12, tau its
-autocorrelation time in frames, twin.hil.calibration.autocorrelation_time, so frames that move together
-count once; never narrower than the search's resolution); an end of BOUNDS inside it is left open. Then
-widened by how far each other parameter would move the fit from either end of what is known of it (a
-calibration's intervals; the spec's spread for an uncalibrated device): the braking torque goes with the
-motor constant squared, so an unidentified no-load speed leaves the efficiency unidentified too. Identifiable as in calibration: the interval within
-x(1 -+ MAX_HALFWIDTH). Angles in deg where they are reported, SI otherwise.
+3.84 sigma^2 tau of its least: a profile likelihood, sigma^2 the residual's mean square (at least the
+encoder's quantisation, a count^2 / 12), tau its autocorrelation time in frames
+(twin.hil.calibration.autocorrelation_time: frames that move together count once), never narrower
+than the search's resolution; an end of BOUNDS inside it is left open. Then widened by how far each
+other parameter would move the fit from either end of what is known of it (a calibration's
+intervals; the spec's spread for an uncalibrated device): the braking torque goes with the motor
+constant squared, so an unidentified no-load speed leaves the efficiency unidentified too.
+Identifiable as in calibration: the interval within x(1 -+ MAX_HALFWIDTH). Angles in deg where they
+are reported, SI otherwise.
 """
 
 from __future__ import annotations
@@ -121,7 +122,7 @@ class HoldingFit:
     replays: int
 
 
-def _with(plant: DeviceSpec, hinges, values: dict):
+def with_values(plant: DeviceSpec, hinges, values: dict):
     """The plant (and each hinge's own spec) with the fields in values (SI; a hinge's own value scaled alike)."""
     scales = {f: v / getattr(plant, f) for f, v in values.items()}  # a field that moves another moves it too
     return scaled(plant, scales), [scaled(h, scales) for h in hinges] if hinges else None
@@ -135,7 +136,7 @@ def fit_backdrive(releases: list[Release], plant: DeviceSpec, hinges=None, range
 
     def residual(x: float, p: DeviceSpec, h) -> list[np.ndarray]:
         count[0] += 1
-        p, h = _with(p, h, {"backdrive_efficiency": math.exp(x)})
+        p, h = with_values(p, h, {"backdrive_efficiency": math.exp(x)})
         return [r.angle_deg - twin_release(p, r, plant, h) for r in releases]
 
     def cost(x: float, p: DeviceSpec = plant, h=hinges) -> float:
@@ -162,7 +163,7 @@ def fit_backdrive(releases: list[Release], plant: DeviceSpec, hinges=None, range
     moved = []
     others = {f: ends for f, ends in (ranges or {}).items() if f != "backdrive_efficiency"}
     for f, ends in others.items():  # each other parameter at either end of its range, the fit again
-        shifts = [best(*_with(plant, hinges, {f: v}))[0] - x for v in ends]
+        shifts = [best(*with_values(plant, hinges, {f: v}))[0] - x for v in ends]
         down, up = down + min(0.0, *shifts), up + max(0.0, *shifts)
         moved.append(f"{f} x{math.exp(min(shifts)):.2f} .. x{math.exp(max(shifts)):.2f}")
     value = math.exp(x)
@@ -173,7 +174,7 @@ def fit_backdrive(releases: list[Release], plant: DeviceSpec, hinges=None, range
             + ("" if identifiable else f": not identifiable (wider than x(1 -+ {MAX_HALFWIDTH:g}) or open at a bound)"))
     estimate = Estimate(value, plant.backdrive_efficiency, low, high, identifiable, note)
     before = [twin_release(plant, r, plant, hinges) for r in releases]
-    fitted, own = _with(plant, hinges, {"backdrive_efficiency": value})
+    fitted, own = with_values(plant, hinges, {"backdrive_efficiency": value})
     after = [twin_release(fitted, r, plant, own) for r in releases]
 
     def sag(traces) -> list[float]:

@@ -30,8 +30,8 @@ Bounds, so every result is a pose the device can take where the user asked for i
 - the anchor keeps to the side the device came from: a step whose straight path crosses the
   target (deeper than PATH_DEPTH, twin.morphpatch.fields) is refused like a collision, and the
   result is the last kept state whose anchor the snapped one reaches in a straight line (to
-  CHORD_DEPTH: steps each clear can add up to a line that is not; refusing such steps instead changed where an arch start
-  stopped, 1.34 mm inside the exact mesh);
+  CHORD_DEPTH: steps each clear can add up to a line that is not; refusing such steps instead
+  changed where an arch start stopped, 1.34 mm inside the exact mesh);
 - no flap passes through the target: walking each flap's centre line (along its hinge axis, the
   device's whole depth) from either end to its middle, the line may go into the target and stay
   there (a flap pressed onto it), but not go in and come out through another face (the two faces'
@@ -93,9 +93,8 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
     stay as given; centre (3,) m: the snapped anchor, which the anchor stays within
     `radius` of. The whole search runs compiled (`_search`).
     """
-    device = (flap_boxes(spec), _hinges(spec), int(spec.root_flap), float(spec.hinge_limit))
     pose = np.ascontiguousarray(root_pose, dtype=float)
-    return _search(fields.grid, device, np.ascontiguousarray(local, dtype=float), pose,
+    return _search(fields.grid, _device(spec), np.ascontiguousarray(local, dtype=float), pose,
                    np.asarray(angles, float).copy(), np.asarray(widths, float), np.asarray(centre, float),
                    float(radius), float(spec.depth))
 
@@ -103,9 +102,13 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
 def flaps_through(fields: Fields, spec: DeviceSpec, root_pose, angles, widths) -> int:
     """How many flaps of a pose pass through the target (module docstring; root pose 4x4 m, hinge angles rad,
     flap widths m): what the refinement does not add to, for any pose."""
-    frames = _chain(_hinges(spec)[1] * np.asarray(angles, float), np.asarray(widths, float), int(spec.root_flap),
-                    np.ascontiguousarray(root_pose, dtype=float))
-    return int(_flaps_through(fields.grid, frames, 0.5 * spec.depth))
+    return int(_through_at(fields.grid, _device(spec), np.asarray(angles, float), np.asarray(widths, float),
+                           np.ascontiguousarray(root_pose, dtype=float), 0.5 * spec.depth))
+
+
+def _device(spec: DeviceSpec) -> tuple:
+    """What the compiled search needs of the device: flap boxes, hinges (`_hinges`), root flap, hinge limit."""
+    return flap_boxes(spec), _hinges(spec), int(spec.root_flap), float(spec.hinge_limit)
 
 
 def uncurled(spec: DeviceSpec, angles) -> np.ndarray:
@@ -116,15 +119,14 @@ def uncurled(spec: DeviceSpec, angles) -> np.ndarray:
 @numba.njit(cache=True)
 def _search(grid, device, local, root_pose, angles, widths, centre, radius, depth):
     """Levenberg-Marquardt within the bounds (module docstring): (root pose 4x4, hinge angles)."""
-    boxes, hinges, root_flap, limit = device
-    sign = hinges[1]
+    boxes, _, _, limit = device
     rot = root_pose[:3, :3].copy()
     angles = _uncurled(boxes, angles)
     start_angles = angles.copy()
     half = 0.5 * depth
-    allowed = _flaps_through(grid, _chain(sign * angles, widths, root_flap, root_pose), half)  # the pipeline's
+    allowed = _through_at(grid, device, angles, widths, root_pose, half)  # the pipeline's pose
     anchor = _bounded(grid, root_pose[:3, 3].copy(), centre, radius)
-    passing = _flaps_through(grid, _chain(sign * angles, widths, root_flap, _pose(rot, anchor)), half)
+    passing = _through_at(grid, device, angles, widths, _pose(rot, anchor), half)
     kept = (rot, anchor, angles, passing)  # the last state whose anchor the snapped one reaches in a straight line
     cost, jtj, jtr, s_anchor, g_anchor = _evaluate(grid, device, local, rot, anchor, angles, widths)
     damping = DAMPING
@@ -144,7 +146,7 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
         if not _path_clear(grid, anchor, new_anchor):  # through the target: off the side the device came from
             damping *= 4.0
             continue
-        through = _flaps_through(grid, _chain(sign * new_angles, widths, root_flap, _pose(new_rot, new_anchor)), half)
+        through = _through_at(grid, device, new_angles, widths, _pose(new_rot, new_anchor), half)
         if through > passing:  # a flap through the target: refused like a collision
             damping *= 4.0
             continue
@@ -174,6 +176,13 @@ def _pose(rot, anchor):
     pose[:3, :3] = rot
     pose[:3, 3] = anchor
     return pose
+
+
+@numba.njit(cache=True)
+def _through_at(grid, device, angles, widths, root_pose, half):
+    """_flaps_through of the device at a pose (root pose 4x4, hinge angles rad, flap widths m)."""
+    _, hinges, root_flap, _ = device
+    return _flaps_through(grid, _chain(hinges[1] * angles, widths, root_flap, root_pose), half)
 
 
 @numba.njit(cache=True)
