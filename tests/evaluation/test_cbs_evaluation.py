@@ -66,6 +66,7 @@ def test_cbs_ends_where_the_firmware_stops_it(spec):
     assert np.all(np.abs(result.angles) <= spec.hinge_limit)
 
 
+@pytest.mark.slow  # suite time: the default suite stays under 10 min on 2 cores (run with -m slow)
 def test_collision_shape_keeps_the_true_shape():
     torus = load_shape("torus")
     parts = convex_parts(torus)

@@ -186,6 +186,7 @@ def test_a_sweep_gives_the_same_records_on_the_local_pool_and_on_ray(tmp_path):
     assert len(rows) == 2 and any(r["pareto"] for r in rows)
 
 
+@pytest.mark.slow  # suite time: the default suite stays under 10 min on 2 cores (run with -m slow)
 def test_an_interrupted_sweep_resumes_losing_and_duplicating_nothing(tmp_path):
     path = _sweep_file(tmp_path / "small.toml", SMALL)
     out = tmp_path / "out"

@@ -71,6 +71,7 @@ def test_wheel_carries_the_data_and_the_firmware(wheel):
         assert needed in names, needed
 
 
+@pytest.mark.slow  # suite time: the default suite stays under 10 min on 2 cores (run with -m slow)
 def test_installed_wheel_runs_from_an_empty_folder(wheel, tmp_path):
     vrscroll = install(wheel, fresh_env(tmp_path / "env"))
     empty = tmp_path / "empty"
