@@ -2,8 +2,10 @@
 
 For each seed, the emulator draws its plant within its stated ranges (tests/random_plant.py); the device is
 woken to flat, the calibration scenario (seed 0, for the device's gains) and a held-out one (seed 1) are
-recorded with `vrscroll hil`, and `vrscroll calibrate` fits the first and scores the second. The drawn
-values are read from the emulator's log only to print beside the fit. Two floors: the held-out error of a
+recorded with `vrscroll hil`, and `vrscroll calibrate --per-hinge` fits the first and scores the second. The
+drawn values are read from the emulator's log only to print beside the fit and to tally, over (hinge,
+parameter), how many intervals hold the drawn value and how many values called identifiable are within 15 %
+of it (issue 20's criteria). Two floors: the held-out error of a
 twin given the drawn values the twin can take (the shared ones: each hinge's own values and the effects the
 twin does not model stay out of it), and the one `vrscroll calibrate` estimates from the run alone (the
 encoder's resolution and the link's timing), with what no parameter explains above it.
@@ -41,7 +43,7 @@ from random_plant import drawn_plant, emulator_args  # noqa: E402
 from twin.cli import main as vrscroll  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
 from twin.formats.run import read_run  # noqa: E402
-from twin.hil.calibration import HINGE_PARAMS, calibrate, calibrate_hinges, trace_rmse  # noqa: E402
+from twin.hil.calibration import HINGE_PARAMS, MAX_HALFWIDTH, calibrate, calibrate_hinges, trace_rmse  # noqa: E402
 from twin.hil.mirror import mirror  # noqa: E402
 from twin.link.emulator_process import EmulatorProcess  # noqa: E402
 from twin.link.serial_link import Link  # noqa: E402
@@ -125,11 +127,14 @@ def holding(seed: int, folder: Path) -> None:
     print("  " + e["note"], flush=True)
 
 
-def one(seed: int, folder: Path) -> None:
+def one(seed: int, folder: Path) -> dict:
+    """Calibrate (shared, then per hinge) on seed's drawn plant and print the fit beside the truth; returns the
+    tally of (hinge, parameter) intervals: how many, how many hold the truth, how many are called identifiable
+    and how many of those are within MAX_HALFWIDTH of the truth."""
     spec = load_spec()
     truth = record(seed, folder)
     t0 = time.perf_counter()
-    cal = json.loads(quiet("calibrate", str(folder / "train"), "--holdout", str(folder / "hold"),
+    cal = json.loads(quiet("calibrate", str(folder / "train"), "--holdout", str(folder / "hold"), "--per-hinge",
                            "--out", str(folder / "cal.toml"), "--json", "-"))
     wall = time.perf_counter() - t0
     floor = trace_rmse(read_run(folder / "hold", spec),
@@ -148,6 +153,39 @@ def one(seed: int, folder: Path) -> None:
     print("    unexplained after calibration       " + " ".join(f"{r['unexplained_deg']:.3f}" for r in h["per_hinge"]))
     print(f"  overall: {h['overall_before_deg']:.3f} -> {h['overall_after_deg']:.3f} deg "
           f"(floor {float(np.sqrt(np.mean(floor ** 2))):.3f})", flush=True)
+    return coverage(cal, drawn_hinges(folder / "emulator.jsonl"), truth)
+
+
+def drawn_hinges(log: Path) -> list[dict]:
+    """Each hinge's drawn values (spec field -> SI), from the emulator's log."""
+    with open(log) as f:
+        return next(e for e in map(json.loads, f) if e.get("event") == "start")["hinges"]
+
+
+def coverage(cal: dict, hinges: list[dict], truth: dict) -> dict:
+    """Per (hinge, parameter) of the per-hinge fit, and the shared parameters no hinge has its own of: whether
+    the interval holds that hinge's drawn value, whether it is called identifiable, and if so whether within
+    MAX_HALFWIDTH of the drawn value. Printed per seed; the tally returned."""
+    rows = []
+    for h in cal["per_hinge_fit"]["hinges"]:
+        for p, e in h["parameters"].items():
+            rows.append((h["hinge"], p, e, hinges[h["hinge"]][p]))
+    rows += [(None, p, e, truth[p]) for p, e in cal["parameters"].items() if p not in HINGE_PARAMS]
+    tally = {"intervals": 0, "hold": 0, "identifiable": 0, "within": 0}
+    for k, p, e, t in rows:
+        tally["intervals"] += 1
+        tally["hold"] += e["low"] <= t <= e["high"]
+        if e["identifiable"]:
+            tally["identifiable"] += 1
+            tally["within"] += abs(e["value"] / t - 1) <= MAX_HALFWIDTH
+            if abs(e["value"] / t - 1) > MAX_HALFWIDTH:
+                print(f"  identifiable but off: hinge {k} {p} fitted {e['value']:.4g}, drawn {t:.4g}")
+        if not e["low"] <= t <= e["high"]:
+            print(f"  interval misses: hinge {k} {p} {e['low']:.4g} .. {e['high']:.4g}, drawn {t:.4g}")
+    print(f"  (hinge, parameter) intervals holding the drawn value: {tally['hold']}/{tally['intervals']}; "
+          f"called identifiable {tally['identifiable']}, within {MAX_HALFWIDTH:.0%} of it {tally['within']}",
+          flush=True)
+    return tally
 
 
 def main() -> None:
@@ -164,8 +202,12 @@ def main() -> None:
             record(args.seeds[0], base / f"seed{args.seeds[0]}")
         scaling(base / f"seed{args.seeds[0]}")
         return
-    for seed in args.seeds:
-        (holding if args.holding else one)(seed, base / f"seed{seed}")
+    tallies = [(holding if args.holding else one)(seed, base / f"seed{seed}") for seed in args.seeds]
+    if not args.holding:
+        total = {k: sum(t[k] for t in tallies) for k in tallies[0]}
+        print(f"over {len(args.seeds)} seeds: intervals holding the drawn value {total['hold']}/{total['intervals']} "
+              f"({total['hold'] / total['intervals']:.1%}); called identifiable {total['identifiable']}, "
+              f"within {MAX_HALFWIDTH:.0%} of the drawn value {total['within']}")
 
 
 if __name__ == "__main__":

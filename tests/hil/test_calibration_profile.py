@@ -39,7 +39,7 @@ def calibrate_and_tune_on_a_drawn_plant(seed, emulator, tmp_path, capsys):
     assert cal["device_profile"] == "drawn"
     assert any(e["value"] != e["prior"] for e in cal["parameters"].values()), cal["parameters"]
     for p, e in cal["parameters"].items():
-        assert e["low"] < e["value"] < e["high"], (p, e)
+        assert e["low"] <= e["value"] <= e["high"] and e["low"] < e["high"], (p, e)  # (at a bound of the search)
         if e["identifiable"]:  # within 20 % of the truth
             assert e["value"] == pytest.approx(truth[p], rel=0.2), (p, e, truth[p])
         else:  # fitted loosely (its interval wider than x(1 -+ 0.15)), or left at its prior: its prior range open

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from twin.device.variation import SPREAD
-from twin.hil.calibration import quadratic_fit, verdicts
+from twin.hil.calibration import fit_blocks, quadratic_fit, verdicts
 
 PARAMS = ("rotor_inertia", "gear_friction")
 PRIOR = {"rotor_inertia": 1e-8, "gear_friction": 4e-3}
@@ -72,3 +72,28 @@ def test_a_sharply_shown_parameter_is_identified_near_its_truth():
     for (p, e), t in zip(est.items(), np.exp(truth)):
         assert e.identifiable and e.value / PRIOR[p] == pytest.approx(t, rel=0.01)
         assert e.low < e.value < e.high
+
+
+def _fit_on(group_cost):
+    """fit_blocks (search, quadratic, verdicts, acceptance) on a cost of two parameters shared by two hinges of
+    one 100-frame run (6 groups), the residual white noise."""
+    noise = [np.random.default_rng(0).normal(size=(100, 2))]
+    [(x, est, _, _)] = fit_blocks(lambda x: np.array([group_cost(x[0], g) for g in range(6)]), lambda x: noise,
+                                  [100], [[0, 1]], PARAMS, [PRIOR], {p: SPREAD[p] for p in PARAMS},
+                                  24, 8, 0, 0.15, None)
+    return x, est
+
+
+def test_a_cost_the_quadratic_cannot_follow_keeps_the_best_sample_not_identified():
+    # friction's cost two wells (log +-0.3) about a hump at its prior: the quadratic fitted over both puts its
+    # mode on the hump, which, replayed, costs far more than the samples in the wells. The best sample is kept,
+    # nothing called identifiable, each interval holding its value and the prior range.
+    x, est = _fit_on(lambda x, g: 1.0 + 50.0 * (x[0] - 0.1) ** 2 + 40.0 * (x[1] ** 2 - 0.09) ** 2)
+    assert abs(abs(x[1]) - 0.3) < 0.1 and abs(x[0] - 0.1) < 0.05
+    for p, e in est.items():
+        assert not e.identifiable and "best of the search's samples" in e.note
+        lo, hi = (PRIOR[p] * r for r in SPREAD[p])
+        assert e.low <= min(lo, e.value) and e.high >= max(hi, e.value)
+    # a cost the quadratic follows keeps its mode, identified
+    x, est = _fit_on(lambda x, g: 1.0 + 50.0 * (x[0] - 0.1) ** 2 + 30.0 * (x[1] - 0.2) ** 2)
+    assert np.allclose(x, [0.1, 0.2], atol=0.02) and all(e.identifiable for e in est.values())

@@ -4,6 +4,7 @@ used, a missing or damaged profile as a one-line error."""
 import json
 import re
 
+import numpy as np
 import pytest
 
 from controllers.pid import PidGains
@@ -11,7 +12,10 @@ from twin.cli import main as vrscroll
 from twin.device.profile import profiles_dir
 from twin.formats.gains import write_gains
 from twin.commands.options import select_profile
+from twin.device.variation import corners, scaled
+from twin.live.morph import TwinMorpher
 from twin.formats.profile import read_profile, write_profile_spec
+from twin.tuning.tuner import RobustEvaluator, TuneGoal
 
 ONE_STEP = """name = "one"
 duration_s = 0.6
@@ -96,6 +100,43 @@ def test_a_profile_calibrated_per_hinge_gives_each_hinge_its_own(capsys, spec, d
     assert uneven[1]["settle_time_s"] == pytest.approx(default[1]["settle_time_s"], abs=2e-3)
     assert "hinge 4's own, x the shared value (95 % interval): no_load_speed x0.600" in \
         _run(capsys, "device", "show", "uneven")[1]
+
+
+def test_tuning_a_profile_calibrated_per_hinge_scores_each_hinge_on_its_own_plant(capsys, spec, device_profiles):
+    """tune's plants give each hinge its own values at its own intervals' corners: hinge 4's motor at x0.6
+    (x0.57 .. x0.63) settles later on every plant than on the shared twin's, hinge 1 as there; `vrscroll tune`
+    on such a profile says it tunes each hinge about its own values."""
+    calibration = {"runs": ["test"], "parameters": {}, "hinges": _hinge_estimates(spec, 4, 0.6)}
+    write_profile_spec("uneven", {}, "test", calibration=calibration)
+    profile = read_profile(device_profiles / "uneven")
+    ranges = {"no_load_speed": (spec.no_load_speed * 0.9, spec.no_load_speed * 1.1)}
+    uneven = TuneGoal(ranges=ranges, hinges=tuple(profile.hinges), hinge_ranges=profile.hinge_ranges())
+    plants = corners(spec, ranges, uneven.hinges, uneven.hinge_ranges)
+    assert [p.hinges[4].no_load_speed / spec.no_load_speed for p in plants] == pytest.approx([0.6, 0.57, 0.63])
+    assert [p.hinges[1].no_load_speed / spec.no_load_speed for p in plants] == pytest.approx([1.0, 0.95, 1.05])
+    assert [p.spec.no_load_speed / spec.no_load_speed for p in plants] == pytest.approx([1.0, 0.9, 1.1])
+    gains = PidGains.from_spec(spec)
+    kp, ki, kd = (np.full((1, spec.n_hinges), getattr(gains, k)) for k in ("kp", "ki", "kd"))
+    own, _ = RobustEvaluator(spec, uneven, 1).costs(kp, ki, kd)  # (1, plant, hinge), s
+    shared, _ = RobustEvaluator(spec, TuneGoal(ranges=ranges), 1).costs(kp, ki, kd)
+    assert np.all(own[0, :, 4] > shared[0, :, 4] + 0.01), (own[0, :, 4], shared[0, :, 4])
+    assert own[0, :, 1] == pytest.approx(shared[0, :, 1], abs=5e-3)
+    out = _run(capsys, "tune", "--device", "uneven", "--population", "4", "--generations", "1")[1]
+    assert "each hinge about its own calibrated values" in out
+
+
+def test_serves_twin_moves_each_hinge_with_its_own_plant(spec):
+    """`vrscroll serve` without a device gates and moves on the profile's twin, each hinge its own plant: hinge
+    4's motor at x0.6 is behind the shared twin's 30 ms into the move, hinge 1 with it."""
+    slow = [scaled(spec, {"no_load_speed": 0.6}) if k == 4 else spec for k in range(spec.n_hinges)]
+    at = {}
+    for name, hinges in (("shared", None), ("own", slow)):
+        morpher = TwinMorpher(spec, hinges=hinges)
+        morpher.open()
+        morpher.on_move = lambda _, trace, name=name: at.__setitem__(name, np.degrees(trace.angle[30]))
+        assert morpher.morph(np.radians([20.0] * spec.n_hinges), lambda event: None).status == "done"
+    assert at["own"][4] < at["shared"][4] - 0.5, at
+    assert at["own"][1] == pytest.approx(at["shared"][1], abs=0.05)
 
 
 @pytest.mark.parametrize("damage, message", [

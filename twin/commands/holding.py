@@ -53,7 +53,7 @@ def run(args) -> int:
     try:
         with device_session(args, spec) as (link, spec):
             for k in range(args.releases):
-                releases.append(record_release(link, spec, args.release_s, args.tolerance_deg))
+                releases.append(record_release(link, spec, args.release_s, args.tolerance_deg, profile.hinges))
                 if not quiet:
                     print(f"release {k + 1}/{args.releases}: {len(releases[-1].t)} frames, sag per hinge "
                           + " ".join(f"{d:.1f}" for d in releases[-1].angle_deg[-1] - releases[-1].angle_deg[0])

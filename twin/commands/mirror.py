@@ -79,7 +79,8 @@ def run(args) -> int:
             if args.override:
                 print("gate override requested: a failed check will be logged and the move sent anyway")
             result = mirror(link, spec, targets, tolerance_deg=args.tolerance_deg, settle_limit=args.settle_limit,
-                            override=args.override, telemetry_hz=args.telemetry_hz, on_frame=show)
+                            override=args.override, telemetry_hz=args.telemetry_hz, on_frame=show,
+                            hinges=profile.hinges)
     except GateRefused as exc:
         print(exc.report.text())
         raise UserError(f"{exc} (nothing was sent; --override to send anyway)") from None

@@ -65,8 +65,8 @@ def run(args) -> int:
     if args.mesh:
         loaded = load_mesh(args.mesh)
         mesh = (loaded.vertices, loaded.faces)
-    morpher = (DeviceMorpher(spec, args.serial, args.log, args.tolerance_deg) if args.serial
-               else TwinMorpher(spec, profile.gains))
+    morpher = (DeviceMorpher(spec, args.serial, args.log, args.tolerance_deg, hinges=profile.hinges) if args.serial
+               else TwinMorpher(spec, profile.gains, hinges=profile.hinges))
     config = ServiceConfig(spec, morpher, host=args.host, listen=args.listen, token=token,
                            allow_remote=args.allow_remote, variant=args.variant, shape=args.shape, mesh=mesh,
                            profile=profile.label)

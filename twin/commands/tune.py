@@ -1,6 +1,7 @@
 """`vrscroll tune`: robust PID gains per hinge on the twin of the device profile in use, over the parameter
-ranges its calibration left open; stored in the profile; with --serial, confirmed on the device. Exit 1 where
-the best gains found still break a limit on some plant (each named; with --serial they are not pushed)."""
+ranges its calibration left open (each hinge about its own values, where calibrated per hinge); stored in the
+profile; with --serial, confirmed on the device. Exit 1 where the best gains found still break a limit on some
+plant (each named; with --serial they are not pushed)."""
 
 from __future__ import annotations
 
@@ -79,14 +80,18 @@ def run(args) -> int:
         raise UserError(f"--step-deg {args.step_deg}: outside the hinge range")
     ranges = profile.ranges() or tolerance_ranges(spec, args.tolerance_pct / 100)
     goal = TuneGoal(max_overshoot=math.radians(args.max_overshoot_deg), tolerance=args.tolerance_pct / 100,
-                    step=step, duration=args.duration, ranges=ranges)
+                    step=step, duration=args.duration, ranges=ranges,
+                    hinges=None if profile.hinges is None else tuple(profile.hinges),
+                    hinge_ranges=profile.hinge_ranges())
     before = profile.gains
     quiet = json_to_stdout(args)
     if not quiet:
         print(profile_line(profile))
         print(("calibrated intervals" if profile.ranges() else f"uncalibrated, +-{args.tolerance_pct:g} %")
               + ": tuned over " + ", ".join(f"{p} {lo:.4g} .. {hi:.4g}" for p, (lo, hi) in ranges.items())
-              + f" ({2 ** len(ranges) + 1} plants: nominal and corners)")
+              + f" ({2 ** len(ranges) + 1} plants: nominal and corners)"
+              + ("; each hinge about its own calibrated values, at its own intervals' corners" if profile.hinges
+                 else ""))
     with make_backend(args.backend, args.workers) if args.backend else contextlib.nullcontext() as backend:
         result = tune(spec, goal, population=args.population, generations=args.generations, seed=args.seed,
                       nthread=args.threads, start=before, backend=backend,

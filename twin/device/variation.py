@@ -8,6 +8,7 @@ corners of a box of ranges (twin.tuning.tuner), a sweep draws its plants with `d
 from __future__ import annotations
 
 import itertools
+from typing import NamedTuple
 
 import numpy as np
 
@@ -55,13 +56,38 @@ def tolerance_ranges(spec: DeviceSpec, tolerance: float) -> dict:
             "gear_friction": (spec.gear_friction * (1 - tolerance), spec.gear_friction * (1 + tolerance))}
 
 
-def corners(spec: DeviceSpec, ranges: dict) -> list[DeviceSpec]:
+class Plant(NamedTuple):
+    """One plant to simulate: the device's spec, and where its hinges differ each hinge's own (a tuple of
+    n_hinges specs, as twin.sim.twin.Twin takes them), else None."""
+
+    spec: DeviceSpec
+    hinges: tuple | None = None
+
+
+def at_ends(spec: DeviceSpec, ranges: dict, ends: dict, hinges=None, hinge_ranges=None) -> Plant:
+    """The plant with each field p of `ends` at one end of its range (ends[p]: 0 low, 1 high). ranges:
+    {field: (low, high) SI} of the shared values. hinges: each hinge's own spec, or None; hinge_ranges: per
+    hinge, {field: (low, high) SI} of its own values where it has any: a hinge goes to its own range's end,
+    or, for a field it has no range of, to the shared range's end as a multiple of the shared value."""
+    shared = scaled(spec, {p: float(ranges[p][e]) / getattr(spec, p) for p, e in ends.items()})
+    if hinges is None:
+        return Plant(shared)
+    own = []
+    for h, hs in enumerate(hinges):
+        mine = hinge_ranges[h] if hinge_ranges else {}
+        own.append(scaled(hs, {p: float(mine[p][e]) / getattr(hs, p) if p in mine
+                               else float(ranges[p][e]) / getattr(spec, p) for p, e in ends.items()}))
+    return Plant(shared, tuple(own))
+
+
+def corners(spec: DeviceSpec, ranges: dict, hinges=None, hinge_ranges=None) -> list[Plant]:
     """The nominal plant, then every corner of the box `ranges` ({field: (low, high) SI}) spans: 2^k plants
-    for k ranges. A field that moves another (MOVES_WITH) moves it in proportion."""
-    plants = [spec]
+    for k ranges, each hinge at its own ranges' corners where hinges and hinge_ranges give them (`at_ends`).
+    A field that moves another (MOVES_WITH) moves it in proportion."""
+    plants = [Plant(spec, None if hinges is None else tuple(hinges))]
     names = list(ranges)
     for corner in itertools.product((0, 1), repeat=len(names)):
-        plants.append(scaled(spec, {p: float(ranges[p][c]) / getattr(spec, p) for p, c in zip(names, corner)}))
+        plants.append(at_ends(spec, ranges, dict(zip(names, corner)), hinges, hinge_ranges))
     return plants
 
 

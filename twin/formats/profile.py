@@ -63,6 +63,12 @@ class Profile:
             return {}
         return {p: (e["low"], e["high"]) for p, e in self.calibration["parameters"].items()}
 
+    def hinge_ranges(self) -> list[dict] | None:
+        """Per hinge, parameter -> (low, high) SI, the intervals of its own values (None where calibration
+        fitted none)."""
+        rows = (self.calibration or {}).get("hinges")
+        return [{p: (e["low"], e["high"]) for p, e in row.items()} for row in rows] if rows else None
+
     @property
     def hinges(self) -> list[DeviceSpec] | None:
         """Each hinge's own spec where calibration fitted per-hinge values (None where it did not): the

@@ -63,6 +63,8 @@ ELITE = 6  # samples per generation the next is drawn about
 STD_FLOOR = 0.02  # log: the search's least spread (2 %: the parameters' own resolution in the cost)
 DUTY_WINDOW = 0.2  # s: the duty is compared as means over windows this long
 DUTY_WEIGHT = 20.0  # deg per unit duty: a 0.01 duty error weighs as 0.2 deg (each about its noise floor)
+ACCEPT_ROUGHNESS = 3.0  # the fitted mode is kept when, replayed, it costs at most this many roughnesses more
+# than the best sample (`fit_blocks`)
 JACKKNIFE_SEGMENTS = 3  # stretches of a run per hinge the jackknife leaves out: 18 groups for one run
 
 
@@ -210,20 +212,34 @@ def autocorrelation_time(blocks) -> float:
     return float(np.average(taus, weights=weights)) if taus else 1.0
 
 
+def _quadratic_terms(X: np.ndarray) -> tuple[np.ndarray, list]:
+    """The least-squares design matrix of a quadratic in X (samples, k): 1, x_i, x_i x_j (halved where i = j),
+    and the (i, j) of each product column."""
+    k = X.shape[1]
+    pairs = [(i, j) for i in range(k) for j in range(i, k)]
+    return np.concatenate([np.ones((len(X), 1)), X, np.stack([X[:, i] * X[:, j] * (0.5 if i == j else 1.0)
+                                                            for i, j in pairs], axis=1)], axis=1), pairs
+
+
 def quadratic_fit(X: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per column of costs C (samples, groups) at points X (samples, k): the gradient g (groups, k) and
     Hessian H (groups, k, k) of the quadratic c0 + g.x + x.H.x / 2 that fits them best in least squares: the
     cost's shape at the scale of the samples, its roughness averaged out. The fit is linear in the costs, so
     the sum over groups is the fit of the summed cost."""
     k = X.shape[1]
-    pairs = [(i, j) for i in range(k) for j in range(i, k)]
-    A = np.concatenate([np.ones((len(X), 1)), X, np.stack([X[:, i] * X[:, j] * (0.5 if i == j else 1.0)
-                                                         for i, j in pairs], axis=1)], axis=1)
+    A, pairs = _quadratic_terms(X)
     coef = np.linalg.lstsq(A, C, rcond=None)[0].T  # (groups, features)
     H = np.zeros((len(coef), k, k))
     for (i, j), h in zip(pairs, coef[:, 1 + k:].T):
         H[:, i, j] = H[:, j, i] = h
     return coef[:, 1:1 + k], H
+
+
+def roughness(X: np.ndarray, c: np.ndarray) -> float:
+    """The RMS of what the best quadratic in X (samples, k) leaves of the costs c (samples,): how far a cost
+    may be from the smooth shape the quadratic fit gives it."""
+    A, _ = _quadratic_terms(X)
+    return float(np.sqrt(np.mean((c - A @ np.linalg.lstsq(A, c, rcond=None)[0]) ** 2)))
 
 
 def prior_spread(limits) -> float:
@@ -285,7 +301,8 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
         if i in F:
             below, above = math.exp(lo[i] - x[i]), math.exp(hi[i] - x[i])
             pinned = bool(max(x[i] - lo[i], hi[i] - x[i]) <= math.log1p(max_halfwidth))
-            low, high = prior[p] * math.exp(lo[i]), prior[p] * math.exp(hi[i])
+            # no wider than the search's bounds: the runs were never compared with a plant beyond them
+            low, high = prior[p] * math.exp(max(lo[i], -LOG_BOUND)), prior[p] * math.exp(min(hi[i], LOG_BOUND))
             note = f"fitted; 95 % interval x{below:.3f} .. x{above:.3f}"
             if not pinned:  # the fit's interval need not hold the truth where model errors load onto it
                 low, high = min(low, prior[p] * lo_p), max(high, prior[p] * hi_p)
@@ -339,9 +356,9 @@ def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int 
     def angle_rmse(p):
         return float(np.sqrt(np.mean(np.concatenate([trace_rmse(r, p, base) ** 2 for r in runs]))))
 
-    [(x, estimates, H, tau)] = _fit(cost, residuals, runs, [list(range(base.n_hinges))], params, [prior],
-                                    {p: SPREAD[p] for p in params}, population, generations, seed, max_halfwidth,
-                                    progress)
+    [(x, estimates, H, tau)] = fit_blocks(cost, residuals, [len(r.device.time) for r in runs],
+                                          [list(range(base.n_hinges))], params, [prior], {p: SPREAD[p] for p in params},
+                                          population, generations, seed, max_halfwidth, progress)
     fitted = plant(x[None])
     hinge_rmse, hinge_floor = per_hinge_rmse(runs, fitted, base)
     norms = np.sqrt(np.maximum(np.diag(H), 1e-300))
@@ -352,16 +369,20 @@ def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int 
         hinge_floor=hinge_floor, iterations=generations, evaluations=count[0])
 
 
-def _fit(cost, residuals, runs, blocks, params, priors, ranges, population, generations, seed, max_halfwidth,
-         progress) -> list:
+def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, population, generations, seed, max_halfwidth,
+               progress) -> list:
     """The search and the verdicts of `calibrate`, for blocks of hinges each with its own values of `params`
     (one block of every hinge: values shared; a block per hinge: each hinge's own). cost(x) and residuals(x)
     take x (blocks, k), log(value / prior); cost gives the runs' group costs (group_costs, run after run),
-    residuals their residual_blocks. Each block is ranked, its search distribution refitted and its
-    verdicts made on its own hinges' groups. Returns per block (x (k,), {param: Estimate}, the summed
-    quadratic's Hessian (k, k), the residual's autocorrelation time, frames)."""
-    k, n = len(params), runs[0].device.angle.shape[1]
-    group_hinge = np.concatenate([np.tile(np.arange(n), JACKKNIFE_SEGMENTS) for _ in runs])
+    residuals their residual_blocks; frames: each run's number of device frames. Each block is ranked, its
+    search distribution refitted and its verdicts made on its own hinges' groups. The quadratic's mode is then
+    replayed and kept only where it costs no more than the best sample plus ACCEPT_ROUGHNESS x the cost's
+    roughness about the quadratic; elsewhere the best sample is kept, not identifiable (`_sample_kept`: on the
+    emulator, the rough cost's quadratic fit, indefinite, put its mode where the replay was no better than
+    the prior). Returns per block (x (k,), {param: Estimate}, the summed quadratic's Hessian (k, k), the
+    residual's autocorrelation time, frames)."""
+    k, n = len(params), sum(len(b) for b in blocks)
+    group_hinge = np.concatenate([np.tile(np.arange(n), JACKKNIFE_SEGMENTS) for _ in frames])
     mine = [np.isin(group_hinge, b) for b in blocks]
     rng = np.random.default_rng(seed)
     search = CrossEntropy(np.zeros((len(blocks), k)), SEARCH_STD, floor=STD_FLOOR, low=-LOG_BOUND, high=LOG_BOUND)
@@ -382,17 +403,51 @@ def _fit(cost, residuals, runs, blocks, params, priors, ranges, population, gene
         if progress:
             progress(g, float(best.sum()))
     X, G = np.array(X), np.array(G)
-    frames = sum(len(r.device.time) for r in runs)
     at_best = residuals(best_x)
+    spread = np.array([prior_spread(ranges[p]) for p in params])
     out = []
     for b, m in enumerate(mine):
         near = np.argsort(G[:, m].sum(axis=1))[:max(len(G) // 2, 3 * (1 + k + k * (k + 1) // 2))]
         grads, Hs = quadratic_fit(X[near, b] - best_x[b], G[near][:, m])
         tau = autocorrelation_time([r[:, blocks[b]] for r in at_best])
-        s2 = best[b] * tau / max(frames * 2 * len(blocks[b]) - k, 1)
+        s2 = best[b] * tau / max(sum(frames) * 2 * len(blocks[b]) - k, 1)
         x, estimates = verdicts(grads, Hs, best_x[b], s2, params, priors[b], max_halfwidth, ranges)
-        out.append((x, estimates, Hs.sum(axis=0), tau))
-    return out
+        out.append([x, estimates, Hs.sum(axis=0), tau, s2])
+    # the acceptance test: each block's mode, replayed, against the best sample by the same posterior cost,
+    # allowing for the cost's roughness (ACCEPT_ROUGHNESS x the RMS of what the quadratic leaves)
+    at_modes = cost(np.array([o[0] for o in out]))
+    for b, m in enumerate(mine):
+        x, estimates, _, _, s2 = out[b]
+
+        def posterior_cost(c, x):
+            return c / (2.0 * s2) + 0.5 * ((x / spread) ** 2).sum(axis=-1)
+
+        sampled = posterior_cost(G[:, m].sum(axis=1), X[:, b])
+        i = int(np.argmin(sampled))
+        near = np.argsort(sampled)[:max(len(G) // 2, 3 * (1 + k + k * (k + 1) // 2))]
+        rough = roughness(X[near, b], sampled[near])
+        if posterior_cost(float(at_modes[m].sum()), x) > sampled[i] + ACCEPT_ROUGHNESS * rough:
+            out[b][:2] = X[i, b], _sample_kept(estimates, X[i, b], priors[b], params, ranges)
+    return [tuple(o[:4]) for o in out]
+
+
+def _sample_kept(estimates: dict, x, prior: dict, params, ranges: dict) -> dict:
+    """The estimates where the quadratic's mode, replayed, cost more than the best sample (the cost too rough
+    at the search's scale for a quadratic to follow): that sample's values (x, log(value / prior)), none
+    identifiable, each interval the quadratic's or the prior range's, whichever is wider (as multiples of its
+    value), about that sample's value, with the prior range, within the search's bounds."""
+    kept = {}
+    for p, xi in zip(params, x):
+        e, value = estimates[p], prior[p] * math.exp(float(xi))
+        lo_p, hi_p = ranges[p]
+        # at least the prior range's width about the value, and the prior range; within the search's bounds
+        low = min(value * min(e.low / e.value, lo_p), prior[p] * lo_p)
+        high = max(value * max(e.high / e.value, hi_p), prior[p] * hi_p)
+        kept[p] = Estimate(value, prior[p], max(low, prior[p] * math.exp(-LOG_BOUND)),
+                           min(high, prior[p] * math.exp(LOG_BOUND)),
+                           False, f"the best of the search's samples (the fitted quadratic's mode, replayed, cost "
+                                  f"more): not identifiable; prior range x{lo_p:g} .. x{hi_p:g} left open")
+    return kept
 
 
 HINGE_PARAMS = ("no_load_speed", "gear_friction", "gear_damping", "rotor_inertia")  # what a hinge's own motor changes
@@ -416,7 +471,7 @@ def calibrate_hinges(runs: list[Run], shared: DeviceSpec, params=HINGE_PARAMS, p
                      generations: int = 8, seed: int = 0, max_halfwidth: float = MAX_HALFWIDTH,
                      progress=None, shared_estimates: dict | None = None) -> HingeCalibration:
     """Each hinge's own values of `params` about `shared` (a calibration's spec), where the runs show them:
-    the search and verdicts of `calibrate` with a block per hinge (`_fit`), each hinge ranked and judged on
+    the search and verdicts of `calibrate` with a block per hinge (`fit_blocks`), each hinge ranked and judged on
     its own stretches of the runs, its prior the shared value within HINGE_RANGE. A hinge's parameter the runs
     do not show stays at the shared value (left at its prior). All hinges move in every replay, so what one
     hinge's flaps do to its neighbours is in every score. shared_estimates: the shared calibration's
@@ -437,8 +492,9 @@ def calibrate_hinges(runs: list[Run], shared: DeviceSpec, params=HINGE_PARAMS, p
         return [b for run in runs for b in residual_blocks(run, shared, shared, hinges(x))]
 
     prior = {p: float(getattr(shared, p)) for p in params}
-    fits = _fit(cost, residuals, runs, [[h] for h in range(n)], params, [prior] * n,
-                {p: HINGE_RANGE for p in params}, population, generations, seed, max_halfwidth, progress)
+    fits = fit_blocks(cost, residuals, [len(r.device.time) for r in runs], [[h] for h in range(n)], params,
+                      [prior] * n, {p: HINGE_RANGE for p in params}, population, generations, seed, max_halfwidth,
+                      progress)
     fitted = hinges(np.array([x for x, _, _, _ in fits]))
     before, floor = per_hinge_rmse(runs, shared, shared)
     after, _ = per_hinge_rmse(runs, shared, shared, fitted)

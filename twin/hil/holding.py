@@ -69,11 +69,13 @@ def _encoder_deg(spec: DeviceSpec, counts) -> np.ndarray:
     return np.degrees(angle_from_counts(spec, np.asarray(counts, float) + 0.5))
 
 
-def record_release(link, spec: DeviceSpec, duration: float = RELEASE_S, tolerance_deg: float = 5.0) -> Release:
-    """Bring the device to POSE, let it rest, e-stop it and record its telemetry for `duration` s, then
-    clear the e-stop (the device IDLE, where it sagged to). DeviceNotReady if it cannot reach the pose."""
+def record_release(link, spec: DeviceSpec, duration: float = RELEASE_S, tolerance_deg: float = 5.0,
+                   hinges=None) -> Release:
+    """Bring the device to POSE (gated on the twin, hinges: each hinge's own plant), let it rest, e-stop it and
+    record its telemetry for `duration` s, then clear the e-stop (the device IDLE, where it sagged to).
+    DeviceNotReady if it cannot reach the pose."""
     n = spec.n_hinges
-    res = mirror(link, spec, np.full(n, POSE), tolerance_deg=tolerance_deg)
+    res = mirror(link, spec, np.full(n, POSE), tolerance_deg=tolerance_deg, hinges=hinges)
     if not res.ok:
         raise DeviceNotReady(f"the device did not reach the release pose: {res.message}")
     state = wait_for_rest(link, spec)

@@ -79,10 +79,11 @@ def wait_for_rest(link: Link, spec: DeviceSpec, timeout: float = 3.0) -> P.State
 
 
 def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, settle_limit: float = 2.0,
-           override: bool = False, telemetry_hz: int = 500, on_frame=None) -> MirrorResult:
+           override: bool = False, telemetry_hz: int = 500, on_frame=None, hinges=None) -> MirrorResult:
     """Gate, send and watch one move (targets in rad). GateRefused if the twin finds it unsafe.
 
-    on_frame(elapsed_s, device_deg, predicted_deg) is called for every telemetry frame.
+    on_frame(elapsed_s, device_deg, predicted_deg) is called for every telemetry frame. hinges: each hinge's
+    own plant for the twin (a per-hinge calibration's, Twin's).
     """
     targets = np.asarray(targets, float)
     state = link.get_state()
@@ -96,7 +97,7 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
                              "clear it first (vrscroll status --clear-fault)")
     gains = device_gains(link, spec.n_hinges)
     state = wait_for_rest(link, spec)
-    twin = Twin(spec, gains)
+    twin = Twin(spec, gains, hinges=hinges)
     for _ in range(3):  # gate from the present state; again if the device moved while the twin simulated
         start = angle_from_counts(spec, state.counts)
         report = check_move(spec, start, targets, gains, settle_limit=settle_limit, twin=twin)

@@ -60,7 +60,8 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
         # the same start on both sides: move the device there (gated), then start the twin where the device
         # is, with the device's history (twin_at_start)
         prior = wait_for_rest(link, spec)
-        res = mirror(link, spec, scenario.start, settle_limit=settle_limit, tolerance_deg=tolerance_deg)
+        res = mirror(link, spec, scenario.start, settle_limit=settle_limit, tolerance_deg=tolerance_deg,
+                     hinges=hinges)
     except GateRefused as exc:
         if previous is None:
             raise

@@ -83,8 +83,9 @@ class DeviceMorpher:
 
     on_move = None
 
-    def __init__(self, spec: DeviceSpec, port: str, log_path=None, tolerance_deg: float = 5.0):
+    def __init__(self, spec: DeviceSpec, port: str, log_path=None, tolerance_deg: float = 5.0, hinges=None):
         self.spec = spec
+        self.hinges = hinges  # each hinge's own plant for the gate's twin (a per-hinge calibration's)
         self.tolerance_deg = tolerance_deg
         self.link = _ReportingLink(port, log_path=log_path, log_telemetry=False, hinges=spec.n_hinges)
         self.name = f"device on {port}"
@@ -111,7 +112,7 @@ class DeviceMorpher:
         self.link.listener = on_log
         try:
             result = mirror(self.link, self.spec, targets, tolerance_deg=self.tolerance_deg,
-                            settle_limit=SETTLE_LIMIT, on_frame=on_frame)
+                            settle_limit=SETTLE_LIMIT, on_frame=on_frame, hinges=self.hinges)
         except GateRefused as exc:
             return MorphOutcome("refused", None, str(exc))
         except DeviceNotReady as exc:
@@ -152,15 +153,16 @@ class TwinMorpher:
 
     on_move = None
 
-    def __init__(self, spec: DeviceSpec, gains=None):
+    def __init__(self, spec: DeviceSpec, gains=None, hinges=None):
         self.spec = spec
         self.gains = gains
+        self.hinges = hinges  # each hinge's own plant (a per-hinge calibration's)
         self.twin = None
         self.angles = np.zeros(spec.n_hinges)
         self.name = "twin (no device attached)"
 
     def open(self) -> None:
-        self.twin = Twin(self.spec, self.gains)
+        self.twin = Twin(self.spec, self.gains, hinges=self.hinges)
 
     def morph(self, targets, emit) -> MorphOutcome:
         report = check_move(self.spec, self.angles, targets, self.gains, settle_limit=SETTLE_LIMIT, twin=self.twin)

@@ -14,7 +14,7 @@ from controllers import core
 from controllers.core import core_state_bytes, per_hinge, set_core_gains, start_core, tick_us
 from controllers.encoder import counts_from_motor_angles, target_counts
 from controllers.pid import PidGains
-from twin.device.mjcf import load_model
+from twin.device.mjcf import load_model, motor_attributes
 from twin.device.spec import DeviceSpec, load_spec
 from twin.sim.drive import V_PACK, drive_params
 from twin.sim.hinges import Hinges, physics_substeps, place_hinges
@@ -25,21 +25,27 @@ class TwinBatch:
     """nsim twins in lockstep on MuJoCo's `Batch` thread pool, one firmware core per simulation.
 
     specs: one plant spec per simulation (e.g. perturbed friction or motor
-    constant for robust tuning); they must share the device's layout. gains: one
-    PidGains for all, or per simulation a sequence of one PidGains per hinge.
+    constant for robust tuning); they must share the device's layout. hinges: per
+    simulation, each hinge's own spec (n_hinges of them, as Twin takes them) or
+    None. gains: one PidGains for all, or per simulation a sequence of one PidGains
+    per hinge.
     """
 
-    def __init__(self, nsim: int, spec: DeviceSpec | None = None, gains=None, specs=None, nthread: int = 0):
+    def __init__(self, nsim: int, spec: DeviceSpec | None = None, gains=None, specs=None, nthread: int = 0,
+                 hinges=None):
         self.spec = spec or load_spec()
         self.nsim = nsim
         n = self.spec.n_hinges
         model = load_model(self.spec)
         self.batch = Batch(model, nsim, nthread=nthread, persistent=True)
         self._models = None
-        if specs is not None:
-            if len(specs) != nsim:
-                raise ValueError(f"expected {nsim} plant specs, got {len(specs)}")
-            self._models = [load_model(p) for p in specs]
+        hinges = [None] * nsim if hinges is None else list(hinges)
+        if specs is not None or any(h is not None for h in hinges):
+            specs = specs or [self.spec] * nsim
+            if len(specs) != nsim or len(hinges) != nsim:
+                raise ValueError(f"expected {nsim} plant specs and hinge lists, got {len(specs)} and {len(hinges)}")
+            self._models = [load_model(p, motors=None if hs is None else [motor_attributes(h) for h in hs])
+                            for p, hs in zip(specs, hinges)]
             self.batch.set_models(self._models)
         self.hinges = Hinges(model, n)
         self.substeps = physics_substeps(self.spec, model)
@@ -52,7 +58,7 @@ class TwinBatch:
         self._duty = np.zeros((nsim, n), np.float32)
         self._decay = np.zeros((nsim, n), np.uint8)
         self._pwm = np.zeros((nsim, n), np.float32)
-        self._params = np.stack([drive_params(p) for p in (specs or [self.spec] * nsim)])
+        self._params = np.stack([drive_params(p, hs) for p, hs in zip(specs or [self.spec] * nsim, hinges)])
         self._bus = np.zeros(nsim)  # V, per simulation
         self.gains = self._per_simulation(gains or PidGains.from_spec(self.spec))
         self.reset()

@@ -54,7 +54,7 @@ from controllers.core import per_hinge
 from controllers.encoder import target_counts
 from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec
-from twin.device.variation import corners, scaled, tolerance_ranges
+from twin.device.variation import Plant, at_ends, corners, tolerance_ranges
 from twin.search import CrossEntropy
 from twin.sim.batch import TwinBatch
 from twin.sim.gate import current_limits
@@ -71,13 +71,16 @@ STD_FLOOR = 0.05  # log gain: the search's least spread (5 %: finer than the enc
 class TuneGoal:
     """What the tuner minimises: worst-plant settle time with overshoot under max_overshoot (rad), over the
     plants `ranges` spans: {spec field: (low, high) SI}, e.g. the intervals calibration left open
-    (twin.formats.profile.Profile.ranges); empty: +-tolerance on motor constant and gear friction."""
+    (twin.formats.profile.Profile.ranges); empty: +-tolerance on motor constant and gear friction. With
+    `hinges`, every plant gives each hinge its own values, at its own intervals' corners (variation.corners)."""
 
     max_overshoot: float = math.radians(1.0)  # rad
     tolerance: float = 0.20  # +- fraction on motor constant and gear friction, where no ranges are given
     step: float = math.radians(30.0)  # rad, every hinge steps from flat to this
     duration: float = 1.0  # s simulated per candidate: the window of the tuner's and the report's metrics
     ranges: dict = dataclasses.field(default_factory=dict)  # spec field -> (low, high), SI
+    hinges: tuple | None = None  # each hinge's own spec (a per-hinge calibration's), or None: all the spec's
+    hinge_ranges: list | None = None  # per hinge, {spec field: (low, high) SI} of its own values' intervals
 
 
 def step_scores(spec: DeviceSpec, out: dict, target: np.ndarray) -> dict:
@@ -159,16 +162,18 @@ class RobustEvaluator:
         """base: the gains whose kp, ki, kd the candidates replace (one PidGains or one per hinge; default the
         spec's): their derivative cutoff, integral limit, deadband and hold band are kept. backend: None runs
         every plant here in one TwinBatch; a twin.evaluation.backends backend runs each plant's batch as a
-        task on its workers (the same numbers). plants: the plants (DeviceSpecs) to evaluate on; default the
-        nominal and the corners of the goal's ranges."""
+        task on its workers (the same numbers). plants: the plants (variation.Plant) to evaluate on; default
+        the nominal and the corners of the goal's ranges."""
         self.spec, self.goal, self.population = spec, goal, population
         self.base = per_hinge(base or PidGains.from_spec(spec), spec.n_hinges)
-        self.plants = plants or corners(spec, goal.ranges or tolerance_ranges(spec, goal.tolerance))
+        self.plants = plants or corners(spec, goal.ranges or tolerance_ranges(spec, goal.tolerance), goal.hinges,
+                                        goal.hinge_ranges)
         self.nplant = len(self.plants)
         self.backend = backend
         if backend is None:  # simulation index = candidate * nplant + plant
-            specs = [p for _ in range(population) for p in self.plants]
-            self.batch = TwinBatch(population * self.nplant, spec, specs=specs, nthread=nthread)
+            every = [p for _ in range(population) for p in self.plants]
+            self.batch = TwinBatch(population * self.nplant, spec, specs=[p.spec for p in every],
+                                   hinges=[p.hinges for p in every], nthread=nthread)
         self.simulations = 0
 
     def costs(self, kp, ki, kd):
@@ -203,12 +208,13 @@ _PLANT_BATCHES: dict = {}  # per worker process: (plant, population) -> TwinBatc
 
 
 def plant_scores(task) -> dict:
-    """A backend task: (spec, plant, goal, candidates) -> step_scores of every candidate on one plant,
-    each (population, n); the firmware is the spec's, the physics the plant's."""
+    """A backend task: (spec, plant, goal, candidates) -> step_scores of every candidate on one plant
+    (variation.Plant), each (population, n); the firmware is the spec's, the physics the plant's."""
     spec, plant, goal, candidates = task
     key = (plant, len(candidates))
     if key not in _PLANT_BATCHES:
-        _PLANT_BATCHES[key] = TwinBatch(len(candidates), spec, specs=[plant] * len(candidates), nthread=1)
+        _PLANT_BATCHES[key] = TwinBatch(len(candidates), spec, specs=[plant.spec] * len(candidates),
+                                        hinges=[plant.hinges] * len(candidates), nthread=1)
     batch = _PLANT_BATCHES[key]
     batch.set_gains(candidates)
     batch.reset()
@@ -297,9 +303,11 @@ def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, g
                       [names[p] for p in worst["plant"]], broken, sensitivity)
 
 
-def plant_name(spec: DeviceSpec, plant: DeviceSpec) -> str:
-    """A plant in words: "nominal", or the fields it changes with their factor, e.g. "no_load_speed x0.83,
-    gear_friction x1.2"."""
+def plant_name(spec: DeviceSpec, plant: Plant) -> str:
+    """A plant in words: "nominal", or the fields its shared spec changes with their factor, e.g.
+    "no_load_speed x0.83, gear_friction x1.2" (each hinge's own values, where it has them, at the same ends
+    of their own ranges)."""
+    plant = plant.spec
     changed = [f"{f.name} x{getattr(plant, f.name) / getattr(spec, f.name):.3g}" for f in dataclasses.fields(spec)
                if isinstance(getattr(spec, f.name), float) and getattr(spec, f.name) != 0
                and not math.isclose(getattr(plant, f.name), getattr(spec, f.name), rel_tol=1e-9)]
@@ -312,7 +320,7 @@ def range_sensitivity(spec: DeviceSpec, goal: TuneGoal, gains, nthread: int = 0,
     the highest cost (s, the tuner's), and the simulations run)."""
     ranges = goal.ranges or tolerance_ranges(spec, goal.tolerance)
     ends = [(p, end) for p in ranges for end in ("low", "high")]
-    plants = [scaled(spec, {p: float(ranges[p][end == "high"]) / getattr(spec, p)}) for p, end in ends]
+    plants = [at_ends(spec, ranges, {p: int(end == "high")}, goal.hinges, goal.hinge_ranges) for p, end in ends]
     ev = RobustEvaluator(spec, goal, 1, nthread, gains, backend=backend, plants=plants)
     cost, _ = ev.costs(*(np.array([[getattr(g, k) for g in gains]]) for k in ("kp", "ki", "kd")))
     worst = cost[0].argmax(axis=0)  # per hinge, the end
