@@ -620,8 +620,9 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
                 c->derated = (uint8_t)(c->derated & ~(1u << k));
         }
         duty_out[k] = c->wiring.flags[k] & VRS_WIRING_MOTOR_REVERSED ? -c->duty[k] : c->duty[k];
-        /* brake (slow decay): duty proportional to voltage while driving, and after an e-stop or a
-         * fault the flaps stop and hold where they are; coast when idle, so they turn by hand */
+        /* brake (slow decay) in every state, IDLE too: duty proportional to voltage while driving, and
+         * at zero duty the flaps hold where they stopped (a coasting device held by its root flap folds
+         * within 0.5 s: docs/firmware.md) */
         decay_out[k] = VRS_DECAY_BRAKE;
     }
     if (c->telemetry_every && c->ticks % c->telemetry_every == 0)
