@@ -14,11 +14,16 @@ With --scaling: on the first seed's recordings, the wall time of the shared fit 
 per-hinge fit with 1, 2 and 4 parameters per hinge (6, 12, 24 values), and of `vrscroll tune` on the
 profile calibrated from them (its plants the corners of the calibrated intervals).
 
+With --repeat N: the shared plant of tests/hil/test_tuning_hil.py's calibration test (every hinge alike, no
+cogging, ripple or warming: a plant the shared fit can represent), recorded N times with that test's recipe
+and calibrated: each recording's held-out RMSE before and after beside the floor the plant's own values
+leave, whether it meets the held-out criterion (tests/random_plant.py), and the verdicts.
+
 With --holding: per seed, the calibration scenario recorded and calibrated per hinge into a profile, then
 `vrscroll holding` on the same emulated device: the drawn back-driven efficiency beside the fit and its
 interval, and each hinge's sag over the release on the device and on the twin before and after.
 
-    python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal] [--scaling | --holding]
+    python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal] [--scaling | --holding | --repeat N]
 """
 
 from __future__ import annotations
@@ -39,7 +44,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from random_plant import drawn_plant, emulator_args  # noqa: E402
+from hil.test_tuning_hil import ALIKE, SHARED_PLANT, record_soft, shared_truth  # noqa: E402
+from random_plant import drawn_plant, emulator_args, held_out_improved  # noqa: E402
 from twin.cli import main as vrscroll  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
 from twin.formats.run import read_run  # noqa: E402
@@ -98,6 +104,27 @@ def scaling(folder: Path) -> None:
     print(f"  tune on the calibrated profile ({len(tuned['goal']['ranges'])} intervals, "
           f"{2 ** len(tuned['goal']['ranges']) + 1} plants): {time.perf_counter() - t0:.1f} s, "
           f"{tuned['simulations']} simulations", flush=True)
+
+
+def repeat(n: int, folder: Path) -> None:
+    """Record the calibration test's shared plant n times and calibrate each recording (module docstring)."""
+    spec = load_spec()
+    met = 0
+    for i in range(n):
+        where = folder / f"recording{i}"
+        where.mkdir(parents=True, exist_ok=True)
+        with EmulatorProcess(where / "emulator.jsonl", "--zeroed", *SHARED_PLANT, *ALIKE) as emu:
+            train, hold, _ = record_soft(emu, spec, where)
+        cal = json.loads(quiet("calibrate", str(train), "--holdout", str(hold), "--json", "-"))
+        floor = float(np.sqrt(np.mean(trace_rmse(read_run(hold, spec), shared_truth(spec), spec) ** 2)))
+        h, ok = cal["holdout"], held_out_improved(cal["holdout"], floor, spec)
+        met += ok
+        verdicts = ", ".join(f"{p} x{e['value'] / e['prior']:.2f} "
+                             + ("identifiable" if e["identifiable"] else "fitted" if e["value"] != e["prior"] else "prior")
+                             for p, e in cal["parameters"].items())
+        print(f"recording {i}: held-out {h['overall_before_deg']:.3f} -> {h['overall_after_deg']:.3f} deg, floor "
+              f"{floor:.3f}: {'meets' if ok else 'MISSES'} the criterion; {verdicts}", flush=True)
+    print(f"{met} of {n} recordings meet the held-out criterion")
 
 
 def holding(seed: int, folder: Path) -> None:
@@ -195,8 +222,13 @@ def main() -> None:
     ap.add_argument("--scaling", action="store_true",
                     help="instead: wall time against the number of values fitted, on the first seed's runs")
     ap.add_argument("--holding", action="store_true", help="instead: calibrate, then measure holding, per seed")
+    ap.add_argument("--repeat", type=int, metavar="N",
+                    help="instead: record and calibrate the calibration test's shared plant N times")
     args = ap.parse_args()
     base = Path(args.out or tempfile.mkdtemp(prefix="bench-cal-"))
+    if args.repeat:
+        repeat(args.repeat, base)
+        return
     if args.scaling:
         if not (base / f"seed{args.seeds[0]}" / "hold").is_dir():
             record(args.seeds[0], base / f"seed{args.seeds[0]}")

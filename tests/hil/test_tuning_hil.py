@@ -34,7 +34,7 @@ from twin.sim.batch import TwinBatch
 from twin.sim.gate import check_move
 from twin.sim.response import move_report, step_metrics
 from twin.sim.twin import Twin
-from twin.device.variation import tolerance_ranges
+from twin.device.variation import scaled, tolerance_ranges
 from twin.tuning.tuner import RobustEvaluator, TuneGoal, chains, step_report, tune
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -216,11 +216,22 @@ def test_gear_damping_shows_in_the_motion(spec):
     assert np.degrees(np.abs(traces[0].angle - traces[1].angle).max()) > 0.1
 
 
-SHARED_PLANT = ("--speed-scale", "0.75", "--friction-scale", "1.6", "--armature-scale", "1.3", "--damping-scale", "1",
-                "--backlash-deg", "0.05")  # the calibration tests' plant, as the emulator's options
+SHARED_SCALES = {"no_load_speed": 0.75, "gear_friction": 1.6, "rotor_inertia": 1.3, "gear_damping": 1.0}
+SHARED_BACKLASH_DEG = 0.05
+OPTION = {"no_load_speed": "--speed-scale", "gear_friction": "--friction-scale", "rotor_inertia": "--armature-scale",
+          "gear_damping": "--damping-scale"}  # the emulator's option for each
+SHARED_PLANT = (*(a for p, x in SHARED_SCALES.items() for a in (OPTION[p], str(x))),
+                "--backlash-deg", str(SHARED_BACKLASH_DEG))  # the calibration tests' plant, as the emulator's options
+# every hinge alike, no cogging, no ripple, windings that do not warm: a plant the shared fit can represent
+ALIKE = ("--hinge-scale", "1", "--cogging-pct", "0", "--ripple-pct", "0", "--winding-c", "25", "--no-warming")
 
 
-def _record(emu, spec, folder):
+def shared_truth(spec):
+    """SHARED_PLANT as a spec: the twin given the emulator's own values."""
+    return scaled(spec, SHARED_SCALES).replace(backlash=math.radians(SHARED_BACKLASH_DEG))
+
+
+def record_soft(emu, spec, folder):
     """Wake the emulated device and record a training run and a held-out one with soft gains (slow creeps:
     friction shows in the duty), another recipe than the calibration scenario's
     (tests/hil/test_calibration_profile.py); returns the two run folders and a path for the calibrated spec."""
@@ -243,11 +254,9 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     # windings that do not warm: a plant the shared fit can represent. With its windings warming, this fit has
     # called a wrong rotor inertia (x1.80 for x1.3) identifiable; with its hinges drawn apart, x2.07: what issue
     # 20 asks calibration to stop doing (test_per_hinge_calibration_on_hinges_drawn_apart).
-    truth = {"no_load_speed": 0.75, "gear_friction": 1.6, "rotor_inertia": 1.3, "gear_damping": 1.0,
-             "backlash": 0.2}
-    emu = emulator(*SHARED_PLANT, "--hinge-scale", "1", "--cogging-pct", "0", "--ripple-pct", "0", "--winding-c", "25",
-                   "--no-warming")
-    train, hold, cal = _record(emu, spec, tmp_path)
+    truth = SHARED_SCALES | {"backlash": math.radians(SHARED_BACKLASH_DEG) / spec.backlash}
+    emu = emulator(*SHARED_PLANT, *ALIKE)
+    train, hold, cal = record_soft(emu, spec, tmp_path)
     capsys.readouterr()
     assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--out", str(cal), "--json",
                      str(tmp_path / "cal.json")]) == 0
@@ -268,10 +277,7 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     # held-out trace error (RMS over every frame of every hinge): at least half of what can go is gone, or the
     # rest is at the floor the emulator's own values leave (tests/random_plant.py)
     h = res["holdout"]
-    plant = spec.replace(no_load_speed=spec.no_load_speed * 0.75, gear_friction=spec.gear_friction * 1.6,
-                         gear_stiction=spec.gear_stiction * 1.6, rotor_inertia=spec.rotor_inertia * 1.3,
-                         backlash=math.radians(0.05))
-    truth_replay = trace_rmse(read_run(hold, spec), plant, spec)  # per hinge, deg: the twin given the truth
+    truth_replay = trace_rmse(read_run(hold, spec), shared_truth(spec), spec)  # per hinge, deg: the twin given the truth
     floor = float(np.sqrt(np.mean(truth_replay ** 2)))
     assert held_out_improved(h, floor, spec), (h, floor)
     # per hinge: the RMSE splits into the floor the encoder and link set and what no parameter explains; the
@@ -301,7 +307,7 @@ def test_per_hinge_calibration_on_hinges_drawn_apart(emulator, tmp_path, capsys)
     spec = load_spec()
     emu = emulator(*SHARED_PLANT)
     truth = emu.events("start")[0]["hinges"]
-    train, hold, _ = _record(emu, spec, tmp_path)
+    train, hold, _ = record_soft(emu, spec, tmp_path)
     capsys.readouterr()
     assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--device", "drawn", "--per-hinge",
                      "--json", str(tmp_path / "cal.json")]) == 0

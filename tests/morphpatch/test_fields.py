@@ -92,7 +92,7 @@ def test_high_curvature_points_lie_on_the_cube_edges(cube):
     assert len(fields.edges) > 12 * 0.2 / GRID_SPACING  # all twelve edges found along their length
 
 
-@pytest.mark.parametrize("name", ["torus", "ellipsoid"])
+@pytest.mark.parametrize("name", [pytest.param("torus", marks=pytest.mark.slow), "ellipsoid"])  # torus: slow suite
 def test_smooth_tessellated_shapes_have_no_high_curvature_points(name):
     """Their true |tr H| stays below 41 1/m (torus: 1/40 mm + 1/140 mm at the outer equator), under
     MIN_CURVATURE; the facet edges' one-cell spikes (52 and 1068 points before) must not count."""

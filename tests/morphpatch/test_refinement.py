@@ -92,6 +92,7 @@ def test_ours_is_well_below_full_on_every_shape(runs):
     assert_well_below_full({name: results for name, (_, _, _, results) in runs.items()})
 
 
+@pytest.mark.slow  # 11 s; the same bounds on the fixture's starts stay in the default suite
 def test_ours_is_well_below_full_from_starts_nobody_tuned_for(spec, runs):
     """The refinement's bounds again, from FRESH_STARTS more starts per shape of a seed nothing else uses. Before,
     the search ended after its first small gain, often a step cut short by the anchor's ball: on the

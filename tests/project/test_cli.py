@@ -33,7 +33,7 @@ def test_model_check_and_help():
         assert out.returncode == 0 and "usage" in out.stdout
 
 
-@pytest.mark.parametrize("variant", ["full", "refined"])
+@pytest.mark.parametrize("variant", [pytest.param("full", marks=pytest.mark.slow), "refined"])  # full: slow suite
 def test_demo_approximates_validates_simulates_and_draws(tmp_path, variant):
     png, js = tmp_path / "demo.png", tmp_path / "demo.json"
     out = vrscroll("demo", "--variant", variant, "--png", str(png), "--json", str(js))
