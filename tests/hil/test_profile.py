@@ -121,8 +121,10 @@ def test_tuning_a_profile_calibrated_per_hinge_scores_each_hinge_on_its_own_plan
     shared, _ = RobustEvaluator(spec, TuneGoal(ranges=ranges), 1).costs(kp, ki, kd)
     assert np.all(own[0, :, 4] > shared[0, :, 4] + 0.01), (own[0, :, 4], shared[0, :, 4])
     assert own[0, :, 1] == pytest.approx(shared[0, :, 1], abs=5e-3)
-    out = _run(capsys, "tune", "--device", "uneven", "--population", "4", "--generations", "1")[1]
+    out = _run(capsys, "tune", "--device", "uneven", "--population", "4", "--generations", "1", "--json", "t.json")[1]
     assert "each hinge about its own calibrated values" in out
+    speeds = [row["no_load_speed"] for row in json.loads(open("t.json").read())["goal"]["hinge_ranges"]]
+    assert speeds[4] == pytest.approx([spec.no_load_speed * 0.57, spec.no_load_speed * 0.63])
 
 
 def test_serves_twin_moves_each_hinge_with_its_own_plant(spec):

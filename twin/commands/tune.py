@@ -103,7 +103,9 @@ def run(args) -> int:
     meta = {"device_profile": profile.label,
             "goal": {"max_overshoot_deg": args.max_overshoot_deg, "step_deg": args.step_deg,
                      "duration_s": args.duration,
-                     "ranges": {p: [float(lo), float(hi)] for p, (lo, hi) in ranges.items()}},
+                     "ranges": {p: [float(lo), float(hi)] for p, (lo, hi) in ranges.items()},
+                     **({"hinge_ranges": [{p: [float(lo), float(hi)] for p, (lo, hi) in row.items()}
+                                          for row in goal.hinge_ranges]} if goal.hinge_ranges else {})},
             "worst_plant_settle_s": [round(float(x), 4) for x in result.settle],
             "worst_plant_overshoot_deg": [round(math.degrees(x), 4) for x in result.overshoot],
             "worst_plant_peak_current_A": [round(float(x), 3) for x in result.peak_current],
