@@ -19,11 +19,15 @@ cogging, ripple or warming: a plant the shared fit can represent), recorded N ti
 and calibrated: each recording's held-out RMSE before and after beside the floor the plant's own values
 leave, whether it meets the held-out criterion (tests/random_plant.py), and the verdicts.
 
+With --effects: per seed, its plant as drawn and with each effect the twin does not model (cogging, the
+friction ripple, the warming winding) taken out, one at a time and all three, each recorded and calibrated
+(shared): which effect moves which fitted value.
+
 With --holding: per seed, the calibration scenario recorded and calibrated per hinge into a profile, then
 `vrscroll holding` on the same emulated device: the drawn back-driven efficiency beside the fit and its
 interval, and each hinge's sag over the release on the device and on the twin before and after.
 
-    python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal] [--scaling | --holding | --repeat N]
+    python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal] [--scaling | --holding | --repeat N | --effects]
 """
 
 from __future__ import annotations
@@ -64,12 +68,12 @@ def quiet(*args) -> str:
     return out.getvalue()
 
 
-def record(seed: int, folder: Path) -> dict:
-    """Record the calibration scenario (train) and a held-out one (hold) on an emulator drawn from seed;
-    the drawn plant."""
+def record(seed: int, folder: Path, extra=()) -> dict:
+    """Record the calibration scenario (train) and a held-out one (hold) on an emulator drawn from seed (extra:
+    more of its options, after the drawn ones); the drawn plant."""
     spec = load_spec()
     folder.mkdir(parents=True, exist_ok=True)
-    with EmulatorProcess(folder / "emulator.jsonl", "--zeroed", *emulator_args(seed)) as emu:
+    with EmulatorProcess(folder / "emulator.jsonl", "--zeroed", *emulator_args(seed), *extra) as emu:
         truth = drawn_plant(emu)
         with Link(emu.port) as link:
             assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
@@ -104,6 +108,25 @@ def scaling(folder: Path) -> None:
     print(f"  tune on the calibrated profile ({len(tuned['goal']['ranges'])} intervals, "
           f"{2 ** len(tuned['goal']['ranges']) + 1} plants): {time.perf_counter() - t0:.1f} s, "
           f"{tuned['simulations']} simulations", flush=True)
+
+
+EFFECTS = {"as drawn": (), "no cogging": ("--cogging-pct", "0"), "no ripple": ("--ripple-pct", "0"),
+           "no warming": ("--no-warming",), "none of them": ("--cogging-pct", "0", "--ripple-pct", "0", "--no-warming")}
+
+
+def effects(seed: int, folder: Path) -> None:
+    """Seed's plant as drawn, and with each effect the twin does not model taken out (the other draws kept):
+    the shared fit beside the drawn values (x the prior; I identifiable, F fitted, P left at its prior)."""
+    for name, extra in EFFECTS.items():
+        where = folder / name.replace(" ", "_")
+        truth = record(seed, where, extra)
+        cal = json.loads(quiet("calibrate", str(where / "train"), "--holdout", str(where / "hold"), "--json", "-"))
+        h = cal["holdout"]
+        print(f"{name:<13} " + ", ".join(
+            f"{p} x{e['value'] / e['prior']:.2f} (drawn x{truth[p] / e['prior']:.2f}) "
+            + ("I" if e["identifiable"] else "F" if e["value"] != e["prior"] else "P")
+            for p, e in cal["parameters"].items())
+            + f"; held-out {h['overall_before_deg']:.3f} -> {h['overall_after_deg']:.3f} deg", flush=True)
 
 
 def repeat(n: int, folder: Path) -> None:
@@ -224,10 +247,17 @@ def main() -> None:
     ap.add_argument("--holding", action="store_true", help="instead: calibrate, then measure holding, per seed")
     ap.add_argument("--repeat", type=int, metavar="N",
                     help="instead: record and calibrate the calibration test's shared plant N times")
+    ap.add_argument("--effects", action="store_true",
+                    help="instead: per seed, the shared fit with each effect the twin does not model taken out")
     args = ap.parse_args()
     base = Path(args.out or tempfile.mkdtemp(prefix="bench-cal-"))
     if args.repeat:
         repeat(args.repeat, base)
+        return
+    if args.effects:
+        for seed in args.seeds:
+            print(f"seed {seed}:", flush=True)
+            effects(seed, base / f"seed{seed}")
         return
     if args.scaling:
         if not (base / f"seed{args.seeds[0]}" / "hold").is_dir():
