@@ -229,7 +229,7 @@ def test_no_off_screen_context_is_one_line_naming_what_to_install(tmp_path):
     assert not (tmp_path / "v.mp4").exists()
 
 
-def test_mirror_simulate_and_a_move_on_a_target_write_rerun_recordings(spec, emulator, tmp_path):
+def test_mirror_simulate_and_a_move_on_a_target_write_rerun_recordings(spec, emulator, tmp_path, capsys):
     # mirror: the device's telemetry and the twin's prediction of the one move
     emu = emulator()
     with Link(emu.port) as link:
@@ -243,12 +243,12 @@ def test_mirror_simulate_and_a_move_on_a_target_write_rerun_recordings(spec, emu
     assert abs(device[-1] - 15) < 1.5 and abs(twin[-1] - 15) < 1.5 and abs(device[0]) < 1.5
     assert ("/hinge2/difference_deg", "Scalars:scalars") in m and ("/hinge5/current_A/device", "Scalars:scalars") in m
     # simulate: the twin alone, its angles those of the reported move
-    out = vrscroll_process("simulate", "20", "0", "0", "0", "0", "-20", "--rerun", tmp_path / "s.rrd", "--json", "-",
-                           "--plot", tmp_path / "s.png")
-    assert out.returncode == 0, out.stderr
+    capsys.readouterr()
+    assert vrscroll(["simulate", "20", "0", "0", "0", "0", "-20", "--rerun", str(tmp_path / "s.rrd"), "--json", "-",
+                     "--plot", str(tmp_path / "s.png")]) == 0
     s = read_rrd(tmp_path / "s.rrd")
     final = [s[(f"/hinge{k}/angle_deg/twin", "Scalars:scalars")][-1][0] for k in range(spec.n_hinges)]
-    assert final == pytest.approx([h["final_deg"] for h in json.loads(out.stdout)["hinges"]], abs=1e-3)
+    assert final == pytest.approx([h["final_deg"] for h in json.loads(capsys.readouterr().out)["hinges"]], abs=1e-3)
     assert not any(k[0].startswith("/world/device") for k in s)  # no device in a twin's move
     # a move on a target (demo's): the target mesh too, coloured by distance to the device where it ended
     from twin.sim.twin import Twin

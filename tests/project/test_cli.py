@@ -5,6 +5,7 @@ import json
 import pytest
 
 from cli import vrscroll
+from twin.cli import main
 
 
 def test_simulate_json_and_trace(tmp_path):
@@ -66,13 +67,13 @@ def test_old_spellings_are_refused_naming_the_new(argv, new):
     assert r.returncode == 2 and new in r.stderr and "Traceback" not in r.stderr, r.stderr
 
 
-def test_json_goes_to_a_file_or_to_standard_output(tmp_path):
+def test_json_goes_to_a_file_or_to_standard_output(tmp_path, capsys):
     to_file = tmp_path / "r.json"
-    r = vrscroll("simulate", "5", "0", "0", "0", "0", "-5", "--json", str(to_file))
-    assert r.returncode == 0 and "device profile:" in r.stdout  # the report, and the JSON beside it
+    assert main(["simulate", "5", "0", "0", "0", "0", "-5", "--json", str(to_file)]) == 0
+    assert "device profile:" in capsys.readouterr().out  # the report, and the JSON beside it
     in_file = json.loads(to_file.read_text())
-    r = vrscroll("simulate", "5", "0", "0", "0", "0", "-5", "--json", "-")
-    on_stdout = json.loads(r.stdout)  # nothing but the JSON
+    assert main(["simulate", "5", "0", "0", "0", "0", "-5", "--json", "-"]) == 0
+    on_stdout = json.loads(capsys.readouterr().out)  # nothing but the JSON
     assert in_file["hinges"] == on_stdout["hinges"]
 
 

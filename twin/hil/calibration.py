@@ -29,7 +29,9 @@ which already includes it).
 
 Search: a cross-entropy method, then a quadratic fitted to the better half of its
 samples (the cost is rough at small scales, where a gradient method stalls: see
-`calibrate`). The parameters are the mode of the runs' likelihood (that quadratic)
+`calibrate`); the quadratic's mode is replayed and kept only where it costs no more
+than the best sample, allowing for the cost's roughness (else the best sample is
+kept, nothing identifiable: `fit_blocks`). The parameters are the mode of the runs' likelihood (that quadratic)
 times a prior about the spec's values (log spread: half the farther end of
 twin.device.variation.SPREAD), so a parameter the runs show little stays near its prior without
 being held there. Each one's 95 % interval is the wider of the posterior's and a
@@ -405,9 +407,14 @@ def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, populati
     X, G = np.array(X), np.array(G)
     at_best = residuals(best_x)
     spread = np.array([prior_spread(ranges[p]) for p in params])
+    n_near = max(len(G) // 2, 3 * (1 + k + k * (k + 1) // 2))  # the samples a quadratic is fitted to
+
+    def posterior_cost(c, x, s2):  # the runs' negative log likelihood (c: cost) plus the prior's, at x (log)
+        return c / (2.0 * s2) + 0.5 * ((x / spread) ** 2).sum(axis=-1)
+
     out = []
     for b, m in enumerate(mine):
-        near = np.argsort(G[:, m].sum(axis=1))[:max(len(G) // 2, 3 * (1 + k + k * (k + 1) // 2))]
+        near = np.argsort(G[:, m].sum(axis=1))[:n_near]
         grads, Hs = quadratic_fit(X[near, b] - best_x[b], G[near][:, m])
         tau = autocorrelation_time([r[:, blocks[b]] for r in at_best])
         s2 = best[b] * tau / max(sum(frames) * 2 * len(blocks[b]) - k, 1)
@@ -418,15 +425,11 @@ def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, populati
     at_modes = cost(np.array([o[0] for o in out]))
     for b, m in enumerate(mine):
         x, estimates, _, _, s2 = out[b]
-
-        def posterior_cost(c, x):
-            return c / (2.0 * s2) + 0.5 * ((x / spread) ** 2).sum(axis=-1)
-
-        sampled = posterior_cost(G[:, m].sum(axis=1), X[:, b])
+        sampled = posterior_cost(G[:, m].sum(axis=1), X[:, b], s2)
         i = int(np.argmin(sampled))
-        near = np.argsort(sampled)[:max(len(G) // 2, 3 * (1 + k + k * (k + 1) // 2))]
+        near = np.argsort(sampled)[:n_near]
         rough = roughness(X[near, b], sampled[near])
-        if posterior_cost(float(at_modes[m].sum()), x) > sampled[i] + ACCEPT_ROUGHNESS * rough:
+        if posterior_cost(float(at_modes[m].sum()), x, s2) > sampled[i] + ACCEPT_ROUGHNESS * rough:
             out[b][:2] = X[i, b], _sample_kept(estimates, X[i, b], priors[b], params, ranges)
     return [tuple(o[:4]) for o in out]
 
