@@ -10,9 +10,10 @@ from random_plant import drawn_plant
 from twin.cli import main as vrscroll
 from twin.commands.options import select_profile
 from twin.device.spec import load_spec
-from twin.hil.holding import Release, fit_backdrive, twin_release
+from twin.hil.holding import Release, fit_backdrive, sag_after_cut, twin_release
 from twin.link import protocol as P
 from twin.link.serial_link import Link
+from twin.sim.twin import Twin
 
 
 def _twin_releases(plant, spec, count=2):
@@ -41,6 +42,20 @@ def test_the_fit_finds_the_value_of_a_plant_it_can_represent():
     assert wide.low <= truth <= wide.high and "no_load_speed" in wide.note
 
 
+def test_unpowered_the_windings_open_whatever_the_firmware_commands(spec):
+    """A pack pulled: the PID, still holding its targets, moves nothing, and without the windings' braking the
+    hinges that carry three flaps fall faster than braked (after an e-stop) and far from where powered ones hold."""
+    powered, cut, braked = (Twin(spec) for _ in range(3))
+    held = np.degrees(powered.hold(0.2).angle[-1])
+    fallen = np.degrees(cut.unpowered(0.2).angle[-1])
+    braked.firmware.estop()
+    slowed = np.degrees(braked.hold(0.2).angle[-1])
+    assert np.abs(held).max() < 1.0, held
+    for k in (2, 3):
+        assert fallen[k] < slowed[k] - 5.0 and fallen[k] < -20.0, (fallen, slowed)
+    assert sag_after_cut(spec, 0.2, braked=False)[2] == pytest.approx(fallen[2], abs=0.5)  # cut by an e-stop first
+
+
 def test_holding_on_an_emulated_device_whose_gearboxes_nobody_told_the_twin(emulator, tmp_path, capsys):
     """The emulator draws its back-driven efficiency (and each hinge's motor, cogging, ripple, warming); from an
     uncalibrated profile `vrscroll holding` releases it twice, keeps the fit in the profile, and its interval
@@ -63,6 +78,9 @@ def test_holding_on_an_emulated_device_whose_gearboxes_nobody_told_the_twin(emul
     assert profile.holding["parameters"]["backdrive_efficiency"]["value"] == pytest.approx(e["value"])
     assert "vrscroll holding" in (profile.folder / "spec.toml").read_text()
     assert "after 1 s:" in text and "kept in device profile bench" in text
+    # and with the pack pulled (windings open): hinges 2 and 3 fold further in 0.5 s than braked in 1 s
+    unpowered, braked = doc["unpowered_from_flat_deg"], doc["braked_from_flat_deg"]
+    assert "pack pulled" in text and all(unpowered["0.5"][k] < braked["1"][k] for k in (2, 3)), (unpowered, braked)
     with Link(emu.port) as link:
         assert link.get_state().state == P.State.IDLE
     capsys.readouterr()

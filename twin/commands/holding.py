@@ -1,7 +1,8 @@
 """`vrscroll holding --serial PORT`: what the device does when its drive is cut. Releases from flat under
 gravity (e-stopped: each winding shorted, the flaps braked by their motors' back-EMF), the gearboxes'
 back-driven efficiency fitted to them, kept in the device profile, and what the twin then says a braked
-device does in the seconds after its drive is cut (twin.hil.holding; docs/tuning-hil-calibration.md)."""
+device does in the seconds after its drive is cut, and an unpowered one (a pack pulled: the windings open)
+(twin.hil.holding; docs/tuning-hil-calibration.md)."""
 
 from __future__ import annotations
 
@@ -22,12 +23,13 @@ from twin.commands.options import (
 from twin.device.variation import prior_ranges
 from twin.errors import UserError
 from twin.formats.profile import write_profile_spec
-from twin.hil.holding import RELEASE_S, braked_sag, fit_backdrive, record_release, with_values
+from twin.hil.holding import RELEASE_S, fit_backdrive, record_release, sag_after_cut, with_values
 from twin.hil.mirror import DeviceNotReady
 from twin.link.serial_link import LinkError
 from twin.sim.gate import GateRefused
 
-PREDICT_S = (1.0, 5.0)  # s after the drive is cut: what the twin reports
+PREDICT_S = (1.0, 5.0)  # s after the drive is cut: what the twin reports, braked
+UNPOWERED_S = (0.1, 0.5)  # s after a pack is pulled: what the twin reports, the windings open
 
 
 def add_arguments(p) -> None:
@@ -72,11 +74,13 @@ def run(args) -> int:
                                      f"measured by `vrscroll holding` from {len(releases)} release(s) on {port}",
                                      by="vrscroll holding", holding=holding)
     fitted, hinges = with_values(spec, profile.hinges, {"backdrive_efficiency": e.value})
-    predicted = {f"{s:g}": braked_sag(fitted, s, hinges).round(2).tolist() for s in PREDICT_S}
+    predicted = {f"{s:g}": sag_after_cut(fitted, s, hinges).round(2).tolist() for s in PREDICT_S}
+    unpowered = {f"{s:g}": sag_after_cut(fitted, s, hinges, braked=False).round(2).tolist() for s in UNPOWERED_S}
     out = {"device_profile": profile.label, "written": str(written) if written else None,
            "backdrive_efficiency": e.to_json(), "autocorrelation_frames": round(fit.autocorrelation_frames, 1),
            "replays": fit.replays, "sag_deg": fit.sag_deg,
-           "braked_from_flat_deg": predicted, "releases": [r.to_json() for r in releases]}
+           "braked_from_flat_deg": predicted, "unpowered_from_flat_deg": unpowered,
+           "releases": [r.to_json() for r in releases]}
     write_json(args.json, out)
     if quiet:
         return 0
@@ -94,6 +98,10 @@ def run(args) -> int:
     held = [k for k, a in enumerate(predicted[f"{PREDICT_S[0]:g}"]) if abs(a) < 1.0]
     print(f"holds within 1 deg for {PREDICT_S[0]:g} s: hinges {held or 'none'}; the others sag towards their "
           f"limits (+-{limit:g} deg) or until a flap rests on something")
+    print("the twin, its pack pulled at flat (no power: the windings open and carry no current, so only the "
+          "gearboxes' friction holds; the efficiency fitted above does not act), hinge angles, deg:")
+    for s, angles in unpowered.items():
+        print(f"  after {s} s: " + " ".join(f"{a:7.1f}" for a in angles))
     print(f"kept in device profile {profile.name} ({written})" if written else
           "not kept: no device profile (--device NAME keeps it)")
     return 0

@@ -186,10 +186,11 @@ def fit_backdrive(releases: list[Release], plant: DeviceSpec, hinges=None, range
     return HoldingFit(estimate, sags, tau, count[0])
 
 
-def braked_sag(plant: DeviceSpec, duration: float, hinges=None) -> np.ndarray:
-    """What the twin says a braked device does when its drive is cut at flat: each hinge's angle (deg) after
-    `duration` s of e-stop from rest at POSE."""
+def sag_after_cut(plant: DeviceSpec, duration: float, hinges=None, braked: bool = True) -> np.ndarray:
+    """What the twin says the device does when its drive is cut at rest at POSE: each hinge's angle (deg)
+    after `duration` s. braked: an e-stop (every winding braked, as the firmware does); else unpowered (a pack
+    pulled: the windings open, nothing but friction and the gearboxes holding the flaps)."""
     twin = Twin(plant, hinges=hinges)
     twin.reset(np.full(plant.n_hinges, POSE))
     twin.firmware.estop()
-    return np.degrees(twin.hold(duration).angle[-1])
+    return np.degrees((twin.hold(duration) if braked else twin.unpowered(duration)).angle[-1])

@@ -14,7 +14,7 @@ import numpy as np
 from controllers import core
 from controllers.encoder import counts_from_motor_angle
 from twin.device.flap_collision import apart
-from twin.sim.drive import drive
+from twin.sim.drive import DECAY_COAST, drive
 
 # MuJoCo's C API and the firmware core's control tick, for the compiled loops
 LIBMUJOCO = ctypes.CDLL(os.path.join(os.path.dirname(mujoco.__file__), f"libmujoco.so.{mujoco.__version__}"))
@@ -51,9 +51,10 @@ def step_model(m, m_free, spreads, qpos, qadr, angles):
 @numba.njit(cache=False)
 def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata, qpos, qvel, ctrl, qfrc,
                    qfrc_applied, enc_adr, qadr, gear_dof, cpr_motor, params, bus, target, counts, duty, decay, pwm,
-                   max_ticks, settle_band, hold_ticks, stop_when_settled, rec_angle, rec_counts, rec_duty,
+                   max_ticks, settle_band, hold_ticks, stop_when_settled, unpowered, rec_angle, rec_counts, rec_duty,
                    rec_current, rec_torque):
-    """Run firmware ticks until settled (if asked) or max_ticks; returns the ticks run.
+    """Run firmware ticks until settled (if asked) or max_ticks; returns the ticks run. unpowered: the drive
+    without power (a pack pulled): zero PWM and the windings open on every hinge, whatever the core commands.
 
     m_free: the model with contacts disabled, stepped where `apart(spreads, hinge angles)` (no spreads: never);
     fw: the core's address; now_us: device time of the first tick (us), dt_us per tick; counts (int32),
@@ -68,6 +69,10 @@ def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata
         mi = step_model(m, m_free, spreads, qpos, qadr, angles)
         mj_step1(mi, d)  # positions, velocities and sensors at the start of the tick
         control_tick(fw, now_us + i * dt_us, sensordata, enc_adr, cpr_motor, bus, counts, duty, decay, pwm)
+        if unpowered:
+            for h in range(n):
+                pwm[h] = 0.0
+                decay[h] = DECAY_COAST
         bus[0] = drive(params, pwm, decay, qvel, gear_dof, ctrl, qfrc_applied, current)
         settled = True
         for h in range(n):

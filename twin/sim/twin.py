@@ -140,7 +140,12 @@ class Twin:
         """Keep the present targets for `duration` seconds."""
         return self._run(self._target * self.spec.rad_per_count, duration, False)
 
-    def _run(self, targets, max_time, stop_when_settled) -> Trace:
+    def unpowered(self, duration: float) -> Trace:
+        """`duration` seconds with the drive unpowered (a pack pulled): zero PWM, every winding open, whatever
+        the firmware commands; the flaps fall as gravity, friction and the gearboxes let them."""
+        return self._run(self._target * self.spec.rad_per_count, duration, False, unpowered=True)
+
+    def _run(self, targets, max_time, stop_when_settled, unpowered: bool = False) -> Trace:
         from twin.sim import kernels  # compiled on first use, not on import
 
         s, m, d, h = self.spec, self.model, self.data, self.hinges
@@ -158,7 +163,7 @@ class Twin:
             self._now_us, tick_us(s), d.sensordata, d.qpos, d.qvel, d.ctrl, d.qfrc_actuator, d.qfrc_applied, h.enc,
             h.qadr, h.gear_dof, float(s.counts_per_motor_rev), self._params, self._bus, self._target, self._counts,
             self._duty, self._decay, self._pwm, ticks, s.settle_band, int(round(s.settle_hold / s.firmware_dt)),
-            stop_when_settled, *rec)
+            stop_when_settled, unpowered, *rec)
         wall = time.perf_counter() - start
         self._now_us = (self._now_us + done * tick_us(s)) & 0xFFFFFFFF
         angle, counts, duty, current, torque = (r[:done] for r in rec)
