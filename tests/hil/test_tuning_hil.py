@@ -204,6 +204,24 @@ def test_hil_command_writes_report(emulator, tmp_path, capsys):
     assert all(m["rmse_deg"] < 1.5 and abs(m["lag_s"]) <= 0.01 for m in metrics)
 
 
+def test_hil_warns_when_the_device_did_not_follow_the_twin(emulator, tmp_path, capsys):
+    """A zero confirmed while the flaps hung from the root flap (bring-up on the emulator as it starts, not lying
+    flat): a fold to -40 deg takes hinges 2-3 past where the flaps can go, the device leaves the twin, and `hil`
+    says so, naming those hinges and what to check, rather than only writing its report."""
+    emu = emulator()
+    time.sleep(1.0)  # the flaps beside the root sag while nothing drives them
+    assert vrscroll(["zero", "--serial", emu.port]) == 0
+    (tmp_path / "fold.toml").write_text('name = "fold"\nduration_s = 0.3\n[[step]]\nt_s = 0.0\n'
+                                        'angles_deg = [-40, -40, -40, -40, -40, -40]\n')
+    capsys.readouterr()
+    assert vrscroll(["hil", str(tmp_path / "fold.toml"), "--serial", emu.port, "--out", str(tmp_path / "run"),
+                     "--tolerance-deg", "90"]) == 0
+    err = capsys.readouterr().err
+    assert "did not follow the twin on hinge(s)" in err and "vrscroll zero" in err, err
+    far = [r["hinge"] for r in json.loads((tmp_path / "run" / "metrics.json").read_text()) if r["rmse_deg"] > 5.0]
+    assert {2, 3} <= set(far) and all(f"{k} (" in err for k in far), (far, err)
+
+
 def test_gear_damping_shows_in_the_motion(spec):
     """The drive train fixes the motor constant by the datasheet's no-load point, so gear damping is
     a loss of its own: more of it slows the hinges (before, K followed the damping and the motion hid it)."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime
+import sys
 from pathlib import Path
 
 from twin.commands.options import (
@@ -19,7 +20,7 @@ from twin.errors import UserError
 from twin.formats.gains import read_gains
 from twin.formats.run import read_run
 from twin.formats.scenario import read_scenario
-from twin.hil.compare import compare, metrics_text
+from twin.hil.compare import compare, metrics_text, not_followed
 from twin.hil.mirror import DeviceNotReady
 from twin.hil.record import GainsRestored, run_hil
 from twin.link.serial_link import LinkError, NackError
@@ -93,6 +94,9 @@ def _record(args, profile, spec, scenario, gains, out: Path) -> int:
     report = write_report(spec, out, rows)
     print(metrics_text(rows))
     print(f"report: {report} (each column defined there)")
+    warning = not_followed(rows)
+    if warning:
+        print(f"vrscroll hil: warning: {warning}", file=sys.stderr)
     if args.rerun:
         from viz.rerun_log import log_run
 

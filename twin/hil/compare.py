@@ -25,6 +25,23 @@ METRICS = (
                                                              "over the steps, deg"),
     ("overshoot_twin_deg", "largest overshoot twin deg", "the same for the twin, deg"),
 )
+# deg: a hinge whose device-twin RMSE over a run is above this did not follow the twin at all (a zero confirmed
+# while the flaps hung, a wiring mistake, a flap that met something): far beyond what calibration explains (an
+# uncalibrated twin's held-out error on the emulator's drawn plants: 0.2-0.9 deg)
+NOT_FOLLOWED_DEG = 5.0
+
+
+def not_followed(rows: list[dict]) -> str | None:
+    """compare()'s rows -> a warning naming the hinges whose RMSE is above NOT_FOLLOWED_DEG and what to check,
+    or None where every hinge followed the twin."""
+    far = [r for r in rows if r["rmse_deg"] > NOT_FOLLOWED_DEG]
+    if not far:
+        return None
+    return ("the device did not follow the twin on hinge(s) " + ", ".join(
+        f"{r['hinge']} ({r['rmse_deg']:.1f} deg RMS)" for r in far) + f", beyond {NOT_FOLLOWED_DEG:g} deg: no "
+            "calibration explains that. Check the zero (confirmed with the flaps lying flat: `vrscroll zero`), the "
+            "wiring (`vrscroll bringup`) and that no flap met something; a run like this one is no use to "
+            "`vrscroll calibrate`")
 
 
 def _lag(t, a, b, max_lag: float = 0.2) -> float:
