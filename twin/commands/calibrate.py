@@ -26,6 +26,7 @@ from twin.errors import UserError
 from twin.formats.profile import write_profile_spec
 from twin.formats.run import read_run
 from twin.hil.calibration import calibrate, calibrate_hinges, floor_deg, trace_rmse, unexplained
+from twin.hil.compare import not_followed
 
 
 def add_arguments(p) -> None:
@@ -82,6 +83,9 @@ def run(args) -> int:
             raise UserError(f"{r.dir}: fewer than 10 device frames; nothing to fit")
         if r.start.before_state is None:
             raise UserError(f"{r.dir}: recorded without the device's state before the run; record it again")
+        warning = not_followed([{"hinge": k, "rmse_deg": float(x)} for k, x in enumerate(trace_rmse(r, spec, spec))])
+        if warning:
+            print(f"vrscroll calibrate: warning: {r.dir}: {warning}", file=sys.stderr)
     res = calibrate(runs, spec, population=args.population, generations=args.generations,
                     progress=None if json_to_stdout(args) else lambda g, c: print(
                         f"generation {g + 1}/{args.generations}: best cost {c:.4g}", flush=True))
