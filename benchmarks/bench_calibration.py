@@ -59,6 +59,11 @@ from twin.link.emulator_process import EmulatorProcess  # noqa: E402
 from twin.link.serial_link import Link  # noqa: E402
 
 
+def verdict(e: dict) -> str:
+    """A parameter's verdict in `calibrate --json`'s terms: identifiable, fitted, or left at its prior."""
+    return "identifiable" if e["identifiable"] else "fitted" if e["value"] != e["prior"] else "prior"
+
+
 def quiet(*args) -> str:
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
@@ -116,7 +121,7 @@ EFFECTS = {"as drawn": (), "no cogging": ("--cogging-pct", "0"), "no ripple": ("
 
 def effects(seed: int, folder: Path) -> None:
     """Seed's plant as drawn, and with each effect the twin does not model taken out (the other draws kept):
-    the shared fit beside the drawn values (x the prior; I identifiable, F fitted, P left at its prior)."""
+    the shared fit beside the drawn values (x the prior, with its verdict)."""
     for name, extra in EFFECTS.items():
         where = folder / name.replace(" ", "_")
         truth = record(seed, where, extra)
@@ -124,7 +129,7 @@ def effects(seed: int, folder: Path) -> None:
         h = cal["holdout"]
         print(f"{name:<13} " + ", ".join(
             f"{p} x{e['value'] / e['prior']:.2f} (drawn x{truth[p] / e['prior']:.2f}) "
-            + ("I" if e["identifiable"] else "F" if e["value"] != e["prior"] else "P")
+            + verdict(e)
             for p, e in cal["parameters"].items())
             + f"; held-out {h['overall_before_deg']:.3f} -> {h['overall_after_deg']:.3f} deg", flush=True)
 
@@ -143,7 +148,7 @@ def repeat(n: int, folder: Path) -> None:
         h, ok = cal["holdout"], held_out_improved(cal["holdout"], floor, spec)
         met += ok
         verdicts = ", ".join(f"{p} x{e['value'] / e['prior']:.2f} "
-                             + ("identifiable" if e["identifiable"] else "fitted" if e["value"] != e["prior"] else "prior")
+                             + verdict(e)
                              for p, e in cal["parameters"].items())
         print(f"recording {i}: held-out {h['overall_before_deg']:.3f} -> {h['overall_after_deg']:.3f} deg, floor "
               f"{floor:.3f}: {'meets' if ok else 'MISSES'} the criterion; {verdicts}", flush=True)
@@ -193,9 +198,8 @@ def one(seed: int, folder: Path) -> dict:
     print(f"seed {seed}: calibrated in {wall:.0f} s ({cal['replays']} replays)")
     print(f"  {'parameter':<14} {'drawn x':>8} {'fitted x':>9} {'95 % interval x':>17}  verdict")
     for p, e in cal["parameters"].items():
-        verdict = "identifiable" if e["identifiable"] else "fitted" if e["value"] != e["prior"] else "prior"
         print(f"  {p:<14} {truth[p] / e['prior']:8.3f} {e['value'] / e['prior']:9.3f} "
-              f"{e['low'] / e['prior']:8.3f}..{e['high'] / e['prior']:<7.3f}  {verdict}")
+              f"{e['low'] / e['prior']:8.3f}..{e['high'] / e['prior']:<7.3f}  {verdict(e)}")
     print("  held-out RMSE per hinge, deg: before " + " ".join(f"{x:.3f}" for x in h["rmse_before_deg"]))
     print("                                after  " + " ".join(f"{x:.3f}" for x in h["rmse_after_deg"]))
     print("    twin given the drawn shared values " + " ".join(f"{x:.3f}" for x in floor))
