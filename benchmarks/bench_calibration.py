@@ -125,7 +125,8 @@ def effects(seed: int, folder: Path) -> None:
     for name, extra in EFFECTS.items():
         where = folder / name.replace(" ", "_")
         truth = record(seed, where, extra)
-        cal = json.loads(quiet("calibrate", str(where / "train"), "--holdout", str(where / "hold"), "--json", "-"))
+        cal = json.loads(quiet("calibrate", str(where / "train"), "--holdout", str(where / "hold"),
+                               "--out", str(where / "cal.toml"), "--json", "-"))
         h = cal["holdout"]
         print(f"{name:<13} " + ", ".join(
             f"{p} x{e['value'] / e['prior']:.2f} (drawn x{truth[p] / e['prior']:.2f}) "
@@ -143,7 +144,8 @@ def repeat(n: int, folder: Path) -> None:
         where.mkdir(parents=True, exist_ok=True)
         with EmulatorProcess(where / "emulator.jsonl", "--zeroed", *SHARED_PLANT, *ALIKE) as emu:
             train, hold, _ = record_soft(emu, spec, where)
-        cal = json.loads(quiet("calibrate", str(train), "--holdout", str(hold), "--json", "-"))
+        cal = json.loads(quiet("calibrate", str(train), "--holdout", str(hold), "--out", str(where / "cal.toml"),
+                               "--json", "-"))
         floor = float(np.sqrt(np.mean(trace_rmse(read_run(hold, spec), shared_truth(spec), spec) ** 2)))
         h, ok = cal["holdout"], held_out_improved(cal["holdout"], floor, spec)
         met += ok
