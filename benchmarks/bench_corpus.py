@@ -1,7 +1,7 @@
 """The approximation on shapes nobody tuned it for (tests/shape_corpus.py, issue 22): per shape and variant the
 mean MSD and HD over seeded starts all round it (exact mesh, mm), whether any anchor crossed the solid, the
 default start outside it; the share of each one's touch surface inside the shape and how deep; how many of
-full's poses have flaps in contact (the gate refuses them), and full's MSD with its angles scaled down until
+full's poses have flaps in contact (the gate refuses them), and full's MSD with its angles unrolled from the tips until
 none touch (the pose the device could take); how many poses of full's and ours have a flap through the
 target (twin.morphpatch.refinement.flaps_through: a wall, a plate, a tube); ours' time per approximation (median, p99, one core); each shape's field build (s,
 peak memory of the process, MB) against its face count.
@@ -70,7 +70,7 @@ def main() -> None:
                 per[v].append(match(spec, mesh, a.root_pose, a.angles, a.widths))
                 contact[v] += collides(boxes, a.angles, 0.0)
                 through[v] += flaps_through(fields, spec, a.root_pose, a.angles, a.widths) > 0
-                if v == "full":  # the pose the device could take: its angles scaled down until no flaps touch
+                if v == "full":  # the pose the device could take: unrolled from its tips until no flaps touch
                     full_uncurled.append(match(spec, mesh, a.root_pose, uncurled(spec, a.angles), a.widths).msd)
                 crossings[v] += crossed(mesh, start[:3, 3], snapped) or crossed(mesh, snapped, a.root_pose[:3, 3])
         for v in VARIANTS:

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from twin.device.flap_collision import flap_overlap
+from twin.device.flap_collision import collides, flap_boxes, flap_overlap
 from twin.device.kinematics import pose_matrix
 from twin.evaluation.starts import approach_starts
 from twin.morphpatch.approximation import VARIANTS, approximate, root_pose
 from twin.morphpatch.fields import build_fields, exact_signed_distance
-from twin.morphpatch.refinement import ANCHOR_RADIUS
+from twin.morphpatch.refinement import ANCHOR_RADIUS, uncurled
 from twin.morphpatch.shapes import load_shape, shape_names, sweep_solid
 from twin.sim.gate import check_move
 from twin.sim.twin import Twin
@@ -134,3 +134,23 @@ def test_ours_unrolls_a_curl_the_pipeline_leaves_in_contact(spec):
     assert flap_overlap(spec, ours.angles) == 0.0
     checks = {c.name: c for c in check_move(spec, np.zeros(spec.n_hinges), ours.angles).checks}
     assert checks["range"].passed and checks["collision"].passed
+
+
+def test_a_curl_into_flap_contact_is_unrolled_from_its_tips(spec):
+    """Curls drawn at random (each hinge 20-90 deg, one sign, into contact): unrolled, the flaps are apart, no
+    hinge turns more or the other way, and the two hinges beside the root flap keep their angles wherever the
+    outer ones alone part the flaps (scaling every angle down together, as before, fails this)."""
+    boxes = flap_boxes(spec)
+    rng = np.random.default_rng(2026)
+    inner = [spec.root_flap - 1, spec.root_flap]
+    tried = 0
+    while tried < 20:
+        curled = np.radians(rng.uniform(20, 90, spec.n_hinges)) * rng.choice([-1.0, 1.0])
+        if not collides(boxes, curled, 0.0):
+            continue
+        tried += 1
+        a = uncurled(spec, curled)
+        assert not collides(boxes, a, 0.0), np.degrees(curled)
+        assert np.all(a * curled >= 0) and np.all(np.abs(a) <= np.abs(curled)), (np.degrees(curled), np.degrees(a))
+        if not collides(boxes, np.where(np.isin(np.arange(spec.n_hinges), inner), curled, 0.0), 0.0):
+            np.testing.assert_array_equal(a[inner], curled[inner])

@@ -47,9 +47,13 @@ Bounds, so every result is a pose the device can take where the user asked for i
   slide along it, and one that still leaves the ball is cut back to it;
 - hinge angles are clipped inside +-spec.hinge_limit;
 - no flap-on-flap contact (twin.device.flap_collision, the gate's check): a step into
-  contact is refused like one that does not lower the sum; a pipeline result that is
-  in contact already (it curls 188 mm of flaps round a thin cylinder's 126 mm
-  circumference) is first unrolled, all its angles scaled down together, until it is not.
+  contact is tried again with the hinges it curled further held where they are, until a
+  step is kept (at the contact the sum mostly wants more curl, and refusing the whole step
+  ended the search there: on issue 22's tori, ours stayed at the unrolled start); where
+  holding them leaves no expected gain, they are let go and such a step is refused like one
+  that does not lower the sum. A pipeline result that is in contact already (it curls 188 mm
+  of flaps round a thin cylinder's 126 mm circumference, the tips meet under a torus's tube)
+  is first unrolled from its tips (`_uncurled`), until it is not.
 A step is kept only when it lowers the sum, so the result is never worse than its start
 on the grid's objective. The search ends when the model expects a gain below TOLERANCE of
 the sum, or after two kept steps in a row that each gained less: one small kept step is
@@ -112,16 +116,17 @@ def _device(spec: DeviceSpec) -> tuple:
 
 
 def uncurled(spec: DeviceSpec, angles) -> np.ndarray:
-    """The hinge angles (rad) if no flaps touch there, else the largest fraction of them at which none do."""
-    return _uncurled(flap_boxes(spec), np.asarray(angles, float))
+    """The hinge angles (rad) if no flaps touch there, else the least unrolled from the tips at which none do
+    (`_uncurled`)."""
+    return _uncurled(flap_boxes(spec), np.asarray(angles, float), int(spec.root_flap))
 
 
 @numba.njit(cache=True)
 def _search(grid, device, local, root_pose, angles, widths, centre, radius, depth):
     """Levenberg-Marquardt within the bounds (module docstring): (root pose 4x4, hinge angles)."""
-    boxes, _, _, limit = device
+    boxes, _, root_flap, limit = device
     rot = root_pose[:3, :3].copy()
-    angles = _uncurled(boxes, angles)
+    angles = _uncurled(boxes, angles, root_flap)
     start_angles = angles.copy()
     half = 0.5 * depth
     allowed = _through_at(grid, device, angles, widths, root_pose, half)  # the pipeline's pose
@@ -131,15 +136,27 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
     cost, jtj, jtr, s_anchor, g_anchor = _evaluate(grid, device, local, rot, anchor, angles, widths)
     damping = DAMPING
     small = 0
+    frozen = np.zeros(len(angles), np.bool_)  # hinges a refused step curled into contact, held until a step is kept
+    may_hold = True
     for _ in range(MAX_STEPS):
         basis = _free_directions(jtr, s_anchor, g_anchor, anchor, centre, radius)
+        for k in np.flatnonzero(frozen):
+            basis[6 + k, :] = 0.0
         lhs = basis.T @ jtj @ basis
         step = -basis @ np.linalg.solve(lhs + damping * np.diag(np.diag(lhs) + 1e-12), basis.T @ jtr)
         if -(2.0 * jtr @ step + step @ jtj @ step) < TOLERANCE * cost:  # the model expects no real gain
-            break
+            if not frozen.any():
+                break
+            frozen[:] = False  # ... without the held hinges: let them go, and refuse as before until a step is kept
+            may_hold = False
+            continue
         new_angles = np.minimum(np.maximum(angles + step[6:], -limit), limit)
-        if collides(boxes, new_angles, CLEARANCE):  # refused like a step that does not lower the sum
-            damping *= 4.0
+        if collides(boxes, new_angles, CLEARANCE):  # refused; the hinges it curled further are held, and
+            curling = frozen | (np.abs(new_angles) > np.abs(angles))  # the step tried again without them
+            if may_hold and (curling & ~frozen).any():
+                frozen = curling
+                continue
+            damping *= 4.0  # else refused like a step that does not lower the sum
             continue
         new_rot = _rodrigues(step[3:6].copy()) @ rot
         new_anchor = _bounded(grid, anchor + step[:3], centre, radius)
@@ -154,11 +171,14 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
         if trial[0] < cost:
             gain = cost - trial[0]
             rot, anchor, angles, passing = new_rot, new_anchor, new_angles, through
+            held = frozen.any()  # a small gain with hinges held is not the search's end: they are let go now
+            frozen[:] = False
+            may_hold = True
             if _path_clear(grid, centre, anchor, CHORD_DEPTH):
                 kept = (rot, anchor, angles, passing)
             cost, jtj, jtr, s_anchor, g_anchor = trial
             damping *= 0.3
-            small = small + 1 if gain < TOLERANCE * (cost + gain) else 0
+            small = small + 1 if gain < TOLERANCE * (cost + gain) and not held else 0
             if small == 2:
                 break
         else:
@@ -215,18 +235,55 @@ def _flaps_through(grid, frames, half):
 
 
 @numba.njit(cache=True)
-def _uncurled(boxes, angles):
-    """The angles if no flaps collide there, else the largest fraction of them (bisection) at which none do."""
+def _uncurled(boxes, angles, root_flap):
+    """The angles if no flaps collide there, else angles unrolled from the tips until none do, outermost hinges
+    first: for the outermost hinges (one per side), the largest fraction of their angles (bisection) at which
+    no flaps collide, turning the left one, the right one or both, whichever changes the angles least; where
+    none does, those hinges go flat and the next ones in are tried. Curled flaps meet at their tips, so the
+    inner hinges keep their fit (scaling every angle down together cost torus starts of issue 22's corpus
+    up to 5 mm of MSD)."""
     if not collides(boxes, angles, CLEARANCE):
         return angles
+    a = angles.copy()
+    n = len(a)
+    for level in range(max(root_flap, n - root_flap), 0, -1):  # hinges `level` flaps out from the root flap
+        left, right = root_flap - level, root_flap + level - 1  # hinge k joins flaps k and k + 1
+        best, best_change = a, -1.0
+        for which in range(3):  # the left hinge, the right one, both
+            turned = np.zeros(n, np.bool_)
+            if which != 1 and left >= 0:
+                turned[left] = True
+            if which != 0 and right < n:
+                turned[right] = True
+            if not turned.any():
+                continue
+            flat = np.where(turned, 0.0, a)
+            if collides(boxes, flat, CLEARANCE):
+                continue
+            trial = _apart_way(boxes, flat, a)
+            change = np.abs(trial - a).sum()
+            if best_change < 0.0 or change < best_change:
+                best, best_change = trial, change
+        if best_change >= 0.0:
+            return best
+        for k in (left, right):  # no turn of these alone parts the flaps: flat, and the next ones in
+            if 0 <= k < n:
+                a[k] = 0.0
+    return a
+
+
+@numba.njit(cache=True)
+def _apart_way(boxes, apart, to):
+    """The hinge angles (rad) farthest along the straight way from `apart` (no flaps in contact) to `to` at which
+    no flaps are in contact (bisection, to 1/4096 of the way)."""
     lo, hi = 0.0, 1.0
     for _ in range(12):
         mid = (lo + hi) / 2
-        if not collides(boxes, mid * angles, CLEARANCE):
+        if not collides(boxes, apart + mid * (to - apart), CLEARANCE):
             lo = mid
         else:
             hi = mid
-    return lo * angles
+    return apart + lo * (to - apart)
 
 
 @numba.njit(cache=True)
