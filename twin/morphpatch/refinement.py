@@ -46,14 +46,16 @@ Bounds, so every result is a pose the device can take where the user asked for i
   flat patch, which is not the region the user chose); on the ball's surface, steps
   slide along it, and one that still leaves the ball is cut back to it;
 - hinge angles are clipped inside +-spec.hinge_limit;
-- no flap-on-flap contact (twin.device.flap_collision, the gate's check): a step into
-  contact is tried again with the hinges it curled further held where they are, until a
-  step is kept (at the contact the sum mostly wants more curl, and refusing the whole step
-  ended the search there: on issue 22's tori, ours stayed at the unrolled start); where
-  holding them leaves no expected gain, they are let go and such a step is refused like one
-  that does not lower the sum. A pipeline result that is in contact already (it curls 188 mm
-  of flaps round a thin cylinder's 126 mm circumference, the tips meet under a torus's tube)
-  is first unrolled from its tips (`_uncurled`), until it is not.
+- no flap-on-flap contact (twin.device.flap_collision, the gate's check): a pipeline result
+  that is in contact already (it curls 188 mm of flaps round a thin cylinder's 126 mm
+  circumference, the tips meet under a torus's tube) is first unrolled from its tips
+  (`_uncurled`), until it is not. Such a search starts at the contact, where the sum mostly
+  wants more curl: a step into contact is tried again with the hinges it curled further held
+  where they are, until a step is kept (refusing the whole step ended the search where it
+  began: on issue 22's tori, ours stayed at the unrolled start); where holding them leaves no
+  expected gain, they are let go. Elsewhere, and then, a step into contact is refused like one
+  that does not lower the sum (holding hinges in every search also let the anchor into a
+  cup's cavity, 11 mm inside its hull, and across a bowl's wall on the exact mesh).
 A step is kept only when it lowers the sum, so the result is never worse than its start
 on the grid's objective. The search ends when the model expects a gain below TOLERANCE of
 the sum, or after two kept steps in a row that each gained less: one small kept step is
@@ -126,6 +128,7 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
     """Levenberg-Marquardt within the bounds (module docstring): (root pose 4x4, hinge angles)."""
     boxes, _, root_flap, limit = device
     rot = root_pose[:3, :3].copy()
+    unrolled = collides(boxes, angles, CLEARANCE)  # the pipeline's pose in flap contact: the search starts at it
     angles = _uncurled(boxes, angles, root_flap)
     start_angles = angles.copy()
     half = 0.5 * depth
@@ -137,7 +140,7 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
     damping = DAMPING
     small = 0
     frozen = np.zeros(len(angles), np.bool_)  # hinges a refused step curled into contact, held until a step is kept
-    may_hold = True
+    may_hold = unrolled  # only a search that starts unrolled at the contact holds hinges (module docstring)
     for _ in range(MAX_STEPS):
         basis = _free_directions(jtr, s_anchor, g_anchor, anchor, centre, radius)
         for k in np.flatnonzero(frozen):
@@ -173,7 +176,7 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
             rot, anchor, angles, passing = new_rot, new_anchor, new_angles, through
             held = frozen.any()  # a small gain with hinges held is not the search's end: they are let go now
             frozen[:] = False
-            may_hold = True
+            may_hold = unrolled
             if _path_clear(grid, centre, anchor, CHORD_DEPTH):
                 kept = (rot, anchor, angles, passing)
             cost, jtj, jtr, s_anchor, g_anchor = trial
