@@ -53,8 +53,8 @@ Bounds, so every result is a pose the device can take where the user asked for i
   wants more curl: a step into contact is tried again with the hinges it curled further held
   where they are, until a step is kept (refusing the whole step ended the search where it
   began: on issue 22's tori, ours stayed at the unrolled start); where holding them leaves no
-  expected gain, they are let go. Elsewhere, and then, a step into contact is refused like one
-  that does not lower the sum (holding hinges in every search also let the anchor into a
+  expected gain, they are let go. In every other search, and in that one once they are let go,
+  a step into contact is refused like one that does not lower the sum (holding hinges in every search also let the anchor into a
   cup's cavity, 11 mm inside its hull, and across a bowl's wall on the exact mesh).
 A step is kept only when it lowers the sum, so the result is never worse than its start
 on the grid's objective. The search ends when the model expects a gain below TOLERANCE of
@@ -118,7 +118,7 @@ def _device(spec: DeviceSpec) -> tuple:
 
 
 def uncurled(spec: DeviceSpec, angles) -> np.ndarray:
-    """The hinge angles (rad) if no flaps touch there, else the least unrolled from the tips at which none do
+    """The hinge angles (rad) if no flaps touch there, else the angles unrolled from the tips until none do
     (`_uncurled`)."""
     return _uncurled(flap_boxes(spec), np.asarray(angles, float), int(spec.root_flap))
 
