@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from cli import vrscroll
+from random_plant import emulator_args
 from twin.hil.bringup import bring_up
 from twin.hil.mirror import mirror
 from twin.link import protocol as P
@@ -55,6 +56,22 @@ def test_bringup_names_the_fault_stores_the_correction_and_moves_right(emulator,
     assert "move     every hinge to 10 deg: settled" in r.stdout and "bring-up done" in r.stdout
     wiring = [e for e in dev.events("rx") if e["msg"] == "SET_WIRING"][-1]
     assert wiring["encoder"] != [0, 1, 2, 3, 4, 5] or any(wiring["flags"])
+
+
+@pytest.mark.parametrize("plant", [["--ideal"], emulator_args(61)], ids=["spec", "drawn"])
+def test_lying_flat_the_hinges_that_lift_three_flaps_answer_too(emulator, plant):
+    """Lying flat, as bring-up asks, hinges 2 and 3 lift three flaps each way: the first pulse moved them 1-18
+    counts, and bring-up called their encoders dead on the spec's plant and on every drawn one tried. Stronger
+    pulses follow where no encoder answers: every hinge answers and the wiring is stored."""
+    dev = emulator(*plant, "--lying-flat")
+    r = vrscroll("bringup", "--serial", dev.port)
+    assert r.returncode == 0, r.stderr
+    assert "no encoder answered" not in r.stdout + r.stderr
+    stored = [e for e in dev.events("rx") if e["msg"] == "SET_WIRING"]
+    assert len(stored) == 2 and stored[-1]["encoder"] == [0, 1, 2, 3, 4, 5]
+    pulses = [e for e in dev.events("rx") if e["msg"] == "PULSE"]
+    stronger = {e["hinge"] for e in pulses if abs(e["duty"]) > abs(pulses[0]["duty"])}  # the outer ones answer
+    assert len({e["hinge"] for e in pulses}) == 6 and stronger and stronger <= {2, 3}, stronger  # at the first
 
 
 def test_a_dead_encoder_is_named_and_nothing_stored(emulator):

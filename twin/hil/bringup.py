@@ -2,7 +2,8 @@
 
 `bring_up(link, spec)` measures the wiring as it is (the device's correction set to the identity first):
 for each hinge, a short low-duty pulse of its motor each way, open loop (PULSE), and the encoder input that
-answers. The encoder that moves most between the two pulses is the hinge's (another hinge's: the cables
+answers; where none answers, stronger and longer pulses, up to the firmware's largest (PULSES: lying flat,
+the hinges beside the root flap lift three flaps, and the first pulse barely moves them). The encoder that moves most between the two pulses is the hinge's (another hinge's: the cables
 are crossed); its sign says whether the motor turns the encoder up for positive drive; its size, against
 the spec's no-load speed, whether the counts per degree are plausible. A motor that turns no encoder is a
 dead encoder or an unconnected motor: named, nothing stored. Whether the encoder or the motor is the one
@@ -23,8 +24,11 @@ from twin.errors import UserError
 from twin.link import protocol as P
 from twin.link.serial_link import Link
 
-PULSE_DUTY = 0.2  # duty of a bring-up pulse
-PULSE_S = 0.05  # s a pulse lasts
+# (duty, s) of the bring-up pulses, each tried only where none before moved an encoder by MIN_SHARE of the
+# first's no-load reach: lying flat, hinges 2-3 of the emulator's drawn plants moved 1-18 counts at the first
+# two and 40-126 at the last, where the outer hinges move 143-269 (so each hinge starts at the first)
+PULSES = ((0.2, 0.05), (0.3, 0.1), (P.PULSE_MAX_DUTY, 0.15))
+PULSE_DUTY, PULSE_S = PULSES[0]
 SETTLE_S = 0.1  # s waited after a pulse before the counts are read
 MIN_SHARE = 0.15  # the answering encoder must move at least this share of what the spec's no-load speed gives
 MAX_SHARE = 1.6  # ... and at most this share (more: counts per degree unlike the spec's)
@@ -53,16 +57,16 @@ class HingeCheck:
             (P.WIRING_MOTOR_REVERSED if self.motor_reversed else 0)
 
 
-def pulse_counts(spec: DeviceSpec) -> float:
+def pulse_counts(spec: DeviceSpec, duty: float = PULSE_DUTY, seconds: float = PULSE_S) -> float:
     """|counts| a pulse turns the output at the spec's no-load speed (rad/s at duty 1): an upper bound."""
-    return spec.no_load_speed * PULSE_DUTY * PULSE_S / spec.rad_per_count
+    return spec.no_load_speed * duty * seconds / spec.rad_per_count
 
 
-def _measure(link: Link, hinge: int, duty: float) -> np.ndarray:
-    """Each encoder input's change over one pulse of hinge's motor at duty."""
+def _measure(link: Link, hinge: int, duty: float, seconds: float) -> np.ndarray:
+    """Each encoder input's change over one pulse of hinge's motor at duty for seconds."""
     before = np.asarray(link.get_state().counts)
-    link.pulse(hinge, duty, PULSE_S)
-    time.sleep(PULSE_S + SETTLE_S)
+    link.pulse(hinge, duty, seconds)
+    time.sleep(seconds + SETTLE_S)
     return np.asarray(link.get_state().counts) - before
 
 
@@ -74,14 +78,19 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
     if abs(state.counts[hinge]) > far:  # the gate of a pulse: its farthest reach stays inside the range
         raise BringupError(f"hinge {hinge}: at {state.counts[hinge]} counts, too near its range for a pulse; "
                            "lay the device flat first")
-    swing = (_measure(link, hinge, PULSE_DUTY) - _measure(link, hinge, -PULSE_DUTY)) / 2  # sagging cancels
-    j = int(np.argmax(np.abs(swing)))
-    moved = float(abs(swing[j]))
-    if moved < MIN_SHARE * expected:
+    for duty, seconds in PULSES:  # stronger only while no encoder answers: a hinge that lifts flaps
+        swing = (_measure(link, hinge, duty, seconds) - _measure(link, hinge, -duty, seconds)) / 2  # sagging cancels
+        j = int(np.argmax(np.abs(swing)))
+        moved = float(abs(swing[j]))
+        if moved >= MIN_SHARE * expected:
+            break
+    else:
         return HingeCheck(hinge, hinge, False, False, moved, expected,
-                          f"hinge {hinge}: its motor was pulsed and no encoder answered ({moved:.0f} counts, "
-                          f"expected up to {expected:.0f}): a dead encoder (power, A/B wires) or a motor not "
+                          f"hinge {hinge}: its motor was pulsed and no encoder answered ({moved:.0f} counts at "
+                          f"duty {duty:g} for {seconds:g} s; at duty {PULSE_DUTY:g} for {PULSE_S:g} s it turns "
+                          f"up to {expected:.0f} unloaded): a dead encoder (power, A/B wires) or a motor not "
                           f"connected to bridge {hinge}")
+    expected = pulse_counts(spec, duty, seconds)  # the pulse that answered: its reach unloaded
     notes = []
     if j != hinge:
         notes.append(f"hinge {hinge}: its motor turns encoder input {j}: the encoder cables of hinges {hinge} and "

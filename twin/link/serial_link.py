@@ -300,7 +300,8 @@ class Link:
             raise ValueError(f"a pulse is at most duty {P.PULSE_MAX_DUTY} for {P.PULSE_MAX_MS} ms; "
                              f"asked duty {duty} for {duration_s} s")
         self.moved = True
-        return self.request(P.Pulse(hinge, round(duty * P.DUTY_SCALE), round(duration_s * 1000)))
+        # toward zero on the wire: rounded to nearest, PULSE_MAX_DUTY itself comes back over the firmware's bound
+        return self.request(P.Pulse(hinge, int(duty * P.DUTY_SCALE), round(duration_s * 1000)))
 
     def get_wiring(self) -> P.WiringReply:
         return self.request(P.GetWiring())
