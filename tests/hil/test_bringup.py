@@ -74,6 +74,17 @@ def test_lying_flat_the_hinges_that_lift_three_flaps_answer_too(emulator, plant)
     assert len({e["hinge"] for e in pulses}) == 6 and stronger and stronger <= {2, 3}, stronger  # at the first
 
 
+def test_lying_flat_a_dead_encoder_beside_the_root_is_named_not_taken_for_a_neighbour(emulator):
+    """Hinge 2's encoder dead, lying flat: its strongest pulse lifts three flaps and turns hinge 1's encoder
+    from beside. Bring-up names hinge 2 and stores nothing, rather than reading hinge 1's input for both."""
+    dev = emulator("--ideal", "--lying-flat", "--wiring-fault", "encoder-dead:2")
+    r = vrscroll("bringup", "--serial", dev.port)
+    assert r.returncode == 2
+    assert "nothing stored" in r.stderr and "hinge 2 " in r.stderr, r.stderr
+    stored = [e for e in dev.events("rx") if e["msg"] == "SET_WIRING"]
+    assert len(stored) == 1 and stored[0]["encoder"] == [0, 1, 2, 3, 4, 5]
+
+
 def test_a_dead_encoder_is_named_and_nothing_stored(emulator):
     dev = emulator("--ideal", "--wiring-fault", "encoder-dead:5")
     r = vrscroll("bringup", "--serial", dev.port)

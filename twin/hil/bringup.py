@@ -24,9 +24,11 @@ from twin.errors import UserError
 from twin.link import protocol as P
 from twin.link.serial_link import Link
 
-# (duty, s) of the bring-up pulses, each tried only where none before moved an encoder by MIN_SHARE of the
-# first's no-load reach: lying flat, hinges 2-3 of the emulator's drawn plants moved 1-18 counts at the first
-# two and 40-126 at the last, where the outer hinges move 143-269 (so each hinge starts at the first)
+# (duty, s) of the bring-up pulses, each tried only where none before moved the hinge's own encoder input most
+# and by MIN_SHARE of the first's no-load reach: lying flat, hinges 2-3 of the emulator's drawn plants moved
+# 1-18 counts at the first two and 40-126 at the last, where the outer hinges move 143-269 (so each hinge
+# starts at the first); at the second, a neighbour back-driven by the lift moved up to twice as far as the
+# hinge itself, so another input answering is taken (cables crossed) only at the last
 PULSES = ((0.2, 0.05), (0.3, 0.1), (P.PULSE_MAX_DUTY, 0.15))
 PULSE_DUTY, PULSE_S = PULSES[0]
 SETTLE_S = 0.1  # s waited after a pulse before the counts are read
@@ -78,13 +80,13 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
     if abs(state.counts[hinge]) > far:  # the gate of a pulse: its farthest reach stays inside the range
         raise BringupError(f"hinge {hinge}: at {state.counts[hinge]} counts, too near its range for a pulse; "
                            "lay the device flat first")
-    for duty, seconds in PULSES:  # stronger only while no encoder answers: a hinge that lifts flaps
+    for duty, seconds in PULSES:  # stronger while no encoder answers, or another input than the hinge's own
         swing = (_measure(link, hinge, duty, seconds) - _measure(link, hinge, -duty, seconds)) / 2  # sagging cancels
         j = int(np.argmax(np.abs(swing)))
         moved = float(abs(swing[j]))
-        if moved >= MIN_SHARE * expected:
+        if moved >= MIN_SHARE * expected and j == hinge:
             break
-    else:
+    if moved < MIN_SHARE * expected:
         return HingeCheck(hinge, hinge, False, False, moved, expected,
                           f"hinge {hinge}: its motor was pulsed and no encoder answered ({moved:.0f} counts at "
                           f"duty {duty:g} for {seconds:g} s; at duty {PULSE_DUTY:g} for {PULSE_S:g} s it turns "
@@ -144,8 +146,14 @@ def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCh
         checks.append(c)
     dead = [c.note for c in checks if "no encoder answered" in c.note]
     inputs = [c.encoder for c in checks]
-    if sorted(inputs) != list(range(n)):
-        dead.append(f"encoder inputs {inputs}: two hinges answer on one input; check each motor's bridge wires")
+    for i in sorted({i for i in inputs if inputs.count(i) > 1}):
+        both = [c.hinge for c in checks if c.encoder == i]
+        beside = ", ".join(str(h) for h in both if h != i)
+        dead.append(f"hinges {', '.join(map(str, both))} each turn encoder input {i}: hinge {beside} moved it from "
+                    f"beside, through the flaps (its own encoder dead, or its motor on another bridge); check that "
+                    f"hinge's encoder power and A/B wires, and each motor's bridge wires")
+    if not dead and sorted(inputs) != list(range(n)):
+        dead.append(f"encoder inputs {inputs}: not one per hinge; check each motor's bridge wires")
     if dead:
         raise BringupError("nothing stored: " + "; ".join(dead))
     link.set_wiring(inputs, [c.flags for c in checks])
