@@ -58,7 +58,8 @@ def test_bringup_names_the_fault_stores_the_correction_and_moves_right(emulator,
     assert wiring["encoder"] != [0, 1, 2, 3, 4, 5] or any(wiring["flags"])
 
 
-@pytest.mark.parametrize("plant", [["--ideal"], emulator_args(61)], ids=["spec", "drawn"])
+@pytest.mark.parametrize("plant", [["--ideal"], pytest.param(emulator_args(61), marks=pytest.mark.slow)],
+                         ids=["spec", "drawn"])
 def test_lying_flat_the_hinges_that_lift_three_flaps_answer_too(emulator, plant):
     """Lying flat, as bring-up asks, hinges 2 and 3 lift three flaps each way: the first pulse moved them 1-18
     counts, and bring-up called their encoders dead on the spec's plant and on every drawn one tried. Stronger

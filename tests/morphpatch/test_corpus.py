@@ -60,6 +60,7 @@ def test_the_whole_corpus(spec):
     check_shapes(spec, corpus(seed=0), 10)
 
 
+@pytest.mark.slow  # 9 s: the default suite keeps the unrolling's own test (test_refinement.py)
 def test_on_tori_whose_full_pose_presses_flaps_together_ours_refines_from_it_unrolled(spec):
     """Seed 7's tori whose tube full wraps until its tips meet (torus_0 and torus_2; the gate refuses such a
     pose): ours unrolls full's pose and refines on from there. On every torus_0 start it ends at least 1 %
