@@ -69,11 +69,12 @@ def main() -> None:
                 if v == "refined":
                     times.append(a.time)
                 per[v].append(match(spec, mesh, a.root_pose, a.angles, a.widths))
-                contact[v] += collides(boxes, a.angles, 0.0)
+                touching = collides(boxes, a.angles, 0.0)
+                contact[v] += touching
                 through[v] += flaps_through(fields, spec, a.root_pose, a.angles, a.widths) > 0
                 if v == "full":  # the pose the device could take: unrolled from its tips until no flaps touch
                     full_uncurled.append(match(spec, mesh, a.root_pose, uncurled(spec, a.angles), a.widths).msd)
-                    full_apart.append(not collides(boxes, a.angles, 0.0))
+                    full_apart.append(not touching)
                 crossings[v] += crossed(mesh, start[:3, 3], snapped) or crossed(mesh, snapped, a.root_pose[:3, 3])
         for v in VARIANTS:
             m = np.array(per[v])

@@ -9,9 +9,9 @@ import igl
 import pytest
 
 from shape_corpus import corpus, crossed, starts
+from twin.device.flap_collision import collides, flap_boxes
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose
 from twin.morphpatch.fields import build_fields
-from twin.device.flap_collision import collides, flap_boxes
 from twin.morphpatch.refinement import flaps_through, uncurled
 from twin.morphpatch.shapes import mesh_start
 from twin.morphpatch.surface_metrics import match
