@@ -44,7 +44,9 @@ virtual object, backs out along +z; the commands refuse such a start.) What it d
 wider than a cavity it is lowered into (a cup from above its opening) can still rest
 its anchor inside it (docs/approximation.md, "Starts and the approached side").
 Variant "refined" (ours, beyond the paper) is "full" followed by a bounded local
-least-squares refinement of the root pose and hinge angles (twin.morphpatch.refinement).
+least-squares refinement of the root pose and hinge angles (twin.morphpatch.refinement),
+and, where it promises better, a second one from full's pose with the root turned a quarter
+about its normal (`_refined`).
 SI units throughout (m, rad, s); `Approximation.to_json` gives mm and degrees.
 """
 
@@ -64,7 +66,7 @@ from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_f
 from twin.device.spec import DeviceSpec, load_spec
 from twin.formats.target import APPROXIMATION_KEYS, OPTIONAL_KEYS, approximation_fields
 from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate, _path_clear
-from twin.morphpatch.refinement import refine
+from twin.morphpatch.refinement import flaps_through, objective, refine, uncurled
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
 from twin.morphpatch.surface_metrics import match
 
@@ -78,6 +80,12 @@ HINGE_PASSES = 3  # passes per hinge
 HINGE_TOLERANCE = 1e-3  # rad: a hinge pass that changes the angle less than this ends the hinge
 PRINCIPAL_MIN = 0.2  # the in-plane gradients' anisotropy (0..1) below which step 4 does nothing
 PRINCIPAL_MIN_TILT = math.radians(3)  # ... or their RMS tilt from the normal below which it does nothing
+# ours also refines from the pipeline's pose with the root turned by TURN (rad) about its normal, where the
+# objective there is at most TURN_TRIED times the objective where the first refinement ended (`_refined`): the
+# local search keeps the direction step 4 gave the row, which on a cup or a plate's edge can lie along the side
+# the row cannot curl round (docs/approximation.md, "Turned starts")
+TURN = math.pi / 2
+TURN_TRIED = 1.0
 WIDTH_RANGE = (0.5, 1.5)  # flap widths stay within these multiples of the pitch
 
 
@@ -228,9 +236,36 @@ def approximate(fields: Fields, start, spec: DeviceSpec | None = None, variant: 
         widths = _scale_flaps(fields.edge_grid, pose, angles, widths, lay.edge_y, lay.flap_order, lay.hinge_sign,
                               spec.root_flap, WIDTH_RANGE[0] * spec.flap_pitch, WIDTH_RANGE[1] * spec.flap_pitch)
     if variant == "refined":
-        local = np.stack([lay.flap.local(w) for w in widths])
-        pose, angles = refine(fields, spec, local, pose, angles, widths, snapped[:3, 3])
+        pose, angles, widths = _refined(fields, spec, lay, snapped[:3, 3], pose, angles, widths)
     return Approximation(pose, angles, widths, time.perf_counter() - t0, variant)
+
+
+def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angles, widths):
+    """Ours: the refinement (twin.morphpatch.refinement) from the pipeline's pose and, where the objective at
+    that pose with the root turned by TURN about its normal (steps 6-7 redone there) is at most TURN_TRIED
+    times the objective where the first refinement ended, from that turned pose too; of the results the one
+    the objective prefers (root pose 4x4, hinge angles rad, widths m). A turned result with more flaps
+    through the target than the pipeline's pose is not taken."""
+    local = lay.flap.local(widths)
+    p, a = refine(fields, spec, local, pose, angles, widths, centre)
+    cost = objective(fields, spec, local, p, a, widths)
+    turned = pose.copy()
+    turned[:3, :3] = pose[:3, :3] @ _rot(2, TURN)
+    pitch = np.full(spec.n_flaps, spec.flap_pitch)
+    turned_angles = _align_hinges(fields.grid, turned, lay.flap_points, pitch, lay.hinge_order, lay.hinge_outer,
+                                  lay.hinge_sign, spec.root_flap, spec.hinge_limit)
+    turned_widths = _scale_flaps(fields.edge_grid, turned, turned_angles, pitch, lay.edge_y, lay.flap_order,
+                                 lay.hinge_sign, spec.root_flap, WIDTH_RANGE[0] * spec.flap_pitch,
+                                 WIDTH_RANGE[1] * spec.flap_pitch)
+    turned_local = lay.flap.local(turned_widths)
+    if objective(fields, spec, turned_local, turned, uncurled(spec, turned_angles), turned_widths) > TURN_TRIED * cost:
+        return p, a, widths
+    tp, ta = refine(fields, spec, turned_local, turned, turned_angles, turned_widths, centre)
+    if objective(fields, spec, turned_local, tp, ta, turned_widths) >= cost or \
+            flaps_through(fields, spec, tp, ta, turned_widths) > flaps_through(fields, spec, pose, uncurled(spec, angles),
+                                                                            widths):
+        return p, a, widths
+    return tp, ta, turned_widths
 
 
 def root_pose(fields: Fields, start, spec: DeviceSpec) -> np.ndarray:

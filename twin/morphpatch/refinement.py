@@ -105,6 +105,14 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
                    float(radius), float(spec.depth))
 
 
+def objective(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose, angles, widths) -> float:
+    """The refinement's objective at a pose, sum of r(S)^2 (m^2; module docstring): what it lowers, and what
+    picks among its results from different starts."""
+    return float(_cost(fields.grid, _device(spec), np.ascontiguousarray(local, dtype=float),
+                       np.ascontiguousarray(root_pose[:3, :3], dtype=float), np.array(root_pose[:3, 3], float),
+                       np.asarray(angles, float), np.asarray(widths, float)))
+
+
 def flaps_through(fields: Fields, spec: DeviceSpec, root_pose, angles, widths) -> int:
     """How many flaps of a pose pass through the target (module docstring; root pose 4x4 m, hinge angles rad,
     flap widths m): what the refinement does not add to, for any pose."""
@@ -112,6 +120,7 @@ def flaps_through(fields: Fields, spec: DeviceSpec, root_pose, angles, widths) -
                            np.ascontiguousarray(root_pose, dtype=float), 0.5 * spec.depth))
 
 
+@lru_cache(maxsize=8)
 def _device(spec: DeviceSpec) -> tuple:
     """What the compiled search needs of the device: flap boxes, hinges (`_hinges`), root flap, hinge limit."""
     return flap_boxes(spec), _hinges(spec), int(spec.root_flap), float(spec.hinge_limit)
@@ -120,7 +129,7 @@ def _device(spec: DeviceSpec) -> tuple:
 def uncurled(spec: DeviceSpec, angles) -> np.ndarray:
     """The hinge angles (rad) if no flaps touch there, else the angles unrolled from the tips until none do
     (`_uncurled`)."""
-    return _uncurled(flap_boxes(spec), np.asarray(angles, float), int(spec.root_flap))
+    return _uncurled(_device(spec)[0], np.asarray(angles, float), int(spec.root_flap))
 
 
 @numba.njit(cache=True)
@@ -166,12 +175,14 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
         if not _path_clear(grid, anchor, new_anchor):  # through the target: off the side the device came from
             damping *= 4.0
             continue
-        through = _through_at(grid, device, new_angles, widths, _pose(new_rot, new_anchor), half)
+        lower = _cost(grid, device, local, new_rot, new_anchor, new_angles, widths) < cost
+        through = _through_at(grid, device, new_angles, widths, _pose(new_rot, new_anchor), half) \
+            if lower else passing  # (the costlier checks only for a step that lowers the sum)
         if through > passing:  # a flap through the target: refused like a collision
             damping *= 4.0
             continue
-        trial = _evaluate(grid, device, local, new_rot, new_anchor, new_angles, widths)
-        if trial[0] < cost:
+        if lower:
+            trial = _evaluate(grid, device, local, new_rot, new_anchor, new_angles, widths)
             gain = cost - trial[0]
             rot, anchor, angles, passing = new_rot, new_anchor, new_angles, through
             held = frozen.any()  # a small gain with hinges held is not the search's end: they are let go now
@@ -350,6 +361,29 @@ def _evaluate(grid, device, local, rot, anchor, angles, widths):
     return cost, jtj, jtr, v, np.array([gx, gy, gz])
 
 
+@numba.njit(cache=True)
+def _cost(grid, device, local, rot, anchor, angles, widths):
+    """The sum of r(S)^2 (m^2) at one state, without its derivatives: what a trial step is judged by."""
+    _, hinges, root_flap, _ = device
+    frames = _chain(hinges[1] * angles, widths, root_flap, _pose(rot, anchor))
+    cost = 0.0
+    for f in range(local.shape[0]):
+        for p in range(local.shape[1]):
+            x, y, z = _placed(frames[f], local[f, p])
+            r = _interpolate(grid, x, y, z)[0]
+            t = min(r, 0.0) / TAIL
+            cost += r * r * (1.0 + t * t)
+    return cost
+
+
+@numba.njit(cache=True)
+def _placed(frame, q):
+    """A point q (3,) of a flap's frame (4x4) in the world, as three scalars (m)."""
+    return (frame[0, 3] + frame[0, 0] * q[0] + frame[0, 1] * q[1] + frame[0, 2] * q[2],
+            frame[1, 3] + frame[1, 0] * q[0] + frame[1, 1] * q[1] + frame[1, 2] * q[2],
+            frame[2, 3] + frame[2, 0] * q[0] + frame[2, 1] * q[1] + frame[2, 2] * q[2])
+
+
 @lru_cache(maxsize=8)
 def _hinges(spec: DeviceSpec) -> tuple:
     """Per spec: which flaps each hinge turns (n_flaps, n_hinges), each hinge's axis sign, its inner flap,
@@ -380,10 +414,7 @@ def _normal_equations(grid, frames, local, moved, axes, on_axis, anchor):
     cost = 0.0
     for f in range(n_flaps):
         for p in range(local.shape[1]):
-            lx, ly, lz = local[f, p, 0], local[f, p, 1], local[f, p, 2]
-            x = frames[f, 0, 3] + frames[f, 0, 0] * lx + frames[f, 0, 1] * ly + frames[f, 0, 2] * lz
-            y = frames[f, 1, 3] + frames[f, 1, 0] * lx + frames[f, 1, 1] * ly + frames[f, 1, 2] * lz
-            z = frames[f, 2, 3] + frames[f, 2, 0] * lx + frames[f, 2, 1] * ly + frames[f, 2, 2] * lz
+            x, y, z = _placed(frames[f], local[f, p])
             r, gx, gy, gz = _interpolate(grid, x, y, z)
             t = min(r, 0.0) / TAIL  # the residual r k and its derivative d (module docstring)
             k = math.sqrt(1.0 + t * t)

@@ -35,9 +35,10 @@ class Layout:
     u: np.ndarray
     y: np.ndarray
 
-    def local(self, width: float) -> np.ndarray:
-        """Points (M, 3) in the flap's frame for a flap of this width, m."""
-        return np.stack([self.u * width, self.y, np.zeros_like(self.y)], axis=1)
+    def local(self, width) -> np.ndarray:
+        """Points in the flap's frame for a flap of this width, m: (M, 3), or (n, M, 3) for n widths (m)."""
+        u = self.u * np.asarray(width, float)[..., None]
+        return np.stack([u, np.broadcast_to(self.y, u.shape), np.zeros(u.shape)], axis=-1)
 
 
 def _count(length: float, spacing: float) -> int:
