@@ -229,15 +229,22 @@ def approximate(fields: Fields, start, spec: DeviceSpec | None = None, variant: 
         slid = _hcevf_translation(fields.grid, fields.edge_grid, pose, lay.edge_points)
         if _path_clear(fields.grid, snapped[:3, 3], slid[:3, 3]):
             pose = slid
-    widths = np.full(spec.n_flaps, spec.flap_pitch)
-    angles = _align_hinges(fields.grid, pose, lay.flap_points, widths, lay.hinge_order, lay.hinge_outer,
-                           lay.hinge_sign, spec.root_flap, spec.hinge_limit)
-    if variant != "no_hcevf":
-        widths = _scale_flaps(fields.edge_grid, pose, angles, widths, lay.edge_y, lay.flap_order, lay.hinge_sign,
-                              spec.root_flap, WIDTH_RANGE[0] * spec.flap_pitch, WIDTH_RANGE[1] * spec.flap_pitch)
+    angles, widths = _hinges_and_widths(fields, spec, lay, pose, variant != "no_hcevf")
     if variant == "refined":
         pose, angles, widths = _refined(fields, spec, lay, snapped[:3, 3], pose, angles, widths)
     return Approximation(pose, angles, widths, time.perf_counter() - t0, variant)
+
+
+def _hinges_and_widths(fields: Fields, spec: DeviceSpec, lay: _Layouts, pose, hcevf: bool = True):
+    """Steps 6-7 at a root pose: the hinge angles (rad), then with `hcevf` the HCEVF flap widths (m; else the
+    pitch)."""
+    widths = np.full(spec.n_flaps, spec.flap_pitch)
+    angles = _align_hinges(fields.grid, pose, lay.flap_points, widths, lay.hinge_order, lay.hinge_outer,
+                           lay.hinge_sign, spec.root_flap, spec.hinge_limit)
+    if hcevf:
+        widths = _scale_flaps(fields.edge_grid, pose, angles, widths, lay.edge_y, lay.flap_order, lay.hinge_sign,
+                              spec.root_flap, WIDTH_RANGE[0] * spec.flap_pitch, WIDTH_RANGE[1] * spec.flap_pitch)
+    return angles, widths
 
 
 def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angles, widths):
@@ -251,12 +258,7 @@ def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angl
     cost = objective(fields, spec, local, p, a, widths)
     turned = pose.copy()
     turned[:3, :3] = pose[:3, :3] @ _rot(2, TURN)
-    pitch = np.full(spec.n_flaps, spec.flap_pitch)
-    turned_angles = _align_hinges(fields.grid, turned, lay.flap_points, pitch, lay.hinge_order, lay.hinge_outer,
-                                  lay.hinge_sign, spec.root_flap, spec.hinge_limit)
-    turned_widths = _scale_flaps(fields.edge_grid, turned, turned_angles, pitch, lay.edge_y, lay.flap_order,
-                                 lay.hinge_sign, spec.root_flap, WIDTH_RANGE[0] * spec.flap_pitch,
-                                 WIDTH_RANGE[1] * spec.flap_pitch)
+    turned_angles, turned_widths = _hinges_and_widths(fields, spec, lay, turned)
     turned_local = lay.flap.local(turned_widths)
     if objective(fields, spec, turned_local, turned, uncurled(spec, turned_angles), turned_widths) > TURN_TRIED * cost:
         return p, a, widths
