@@ -18,7 +18,6 @@ from twin.link.faults import FaultOptions
 import mujoco
 
 from twin.sim.plant import (
-    COGGING_POLES,
     RIPPLE_PERIOD,
     HingeDraw,
     Plant,
@@ -60,7 +59,9 @@ def test_the_flap_wanders_in_the_backlash_while_the_encoder_is_still(spec):
 def test_static_friction_holds_below_it_and_slides_above_it(spec):
     """At zero duty (IDLE: the core brakes, and a shorted winding resists only motion), a torque on the flap
     between the Coulomb and the static friction leaves the hinge where it is (past its backlash); one above
-    the static friction starts it, and it keeps turning, slowed by the winding."""
+    the static friction starts it, and it keeps turning, slowed by the winding. (No cogging: its detents hold
+    too, which is not what is tested here.)"""
+    spec = spec.replace(cogging=0.0)
     moved = {}
     for torque in (0.6 * spec.gear_stiction, 1.3 * spec.gear_stiction):
         twin = Twin(spec)
@@ -195,7 +196,7 @@ def test_one_hinges_own_motor_moves_that_hinge_only(spec):
 
 def test_cogging_ripple_and_a_warming_winding_are_in_the_plant(spec):
     """Cogging: with no current, the motor's torque depends on its angle, by its drawn share of the stall
-    torque, COGGING_POLES periods a turn. Ripple: a moving gearbox's extra friction is the drawn share of its
+    torque, the spec's cogging_periods a turn. Ripple: a moving gearbox's extra friction is the drawn share of its
     Coulomb friction, with the final gear's mesh. The winding: at its power-on temperature, then warmer while
     the motor is held at stall."""
     draw = HingeDraw(cogging=0.04, ripple=0.15, ripple_phase=0.3, winding_c=30.0)
@@ -205,7 +206,7 @@ def test_cogging_ripple_and_a_warming_winding_are_in_the_plant(spec):
     s = plant.hinge_specs[k]
     stall = s.motor_constant * s.supply_voltage / s.drive_resistance  # N*m at the motor
     torques = []
-    for motor_angle in np.linspace(0, 2 * np.pi / COGGING_POLES, 9):
+    for motor_angle in np.linspace(0, 2 * np.pi / s.cogging_periods, 9):
         d.qpos[q] = motor_angle / s.gear_ratio
         d.ctrl[:] = 0.0
         mujoco.mj_forward(m, d)
@@ -230,7 +231,7 @@ def test_cogging_ripple_and_a_warming_winding_are_in_the_plant(spec):
 def test_missed_encoder_edges_accumulate(spec):
     """The emulated encoder misses edges now and then, as a counter does at speed: the count falls behind the
     shaft by the edges missed so far, in the direction of travel, and never comes back by itself."""
-    plant = Plant(spec, PlantOptions(encoder_miss=0.02), random.Random(1))
+    plant = Plant(spec.replace(cogging=0.0), PlantOptions(encoder_miss=0.02), random.Random(1))  # (no detent's bounce)
     pwm = np.zeros(spec.n_hinges, np.float32)
     pwm[5] = 0.5
     brake = np.ones(spec.n_hinges, np.uint8)

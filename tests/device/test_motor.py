@@ -79,8 +79,9 @@ def test_stall_torque_and_current_at_rated_voltage(spec):
 def test_reported_current_and_applied_torque_agree_driving_and_back_driven(spec):
     """At random operating points (PWM, speed either way, pack voltage, the current limit reached or not)
     the torque the simulation applies through the gearbox equals current x K x N x efficiency within 2 %:
-    eta driving, 1 / eta_back when the flap drives the motor. Friction is off, so the torque is the gearbox's."""
-    spec = spec.replace(gear_friction=0.0, gear_stiction=0.0, gear_damping=0.0, friction_stiffness=0.0)
+    eta driving, 1 / eta_back when the flap drives the motor. Friction and cogging are off, so the torque is
+    the gearbox's."""
+    spec = spec.replace(gear_friction=0.0, gear_stiction=0.0, gear_damping=0.0, friction_stiffness=0.0, cogging=0.0)
     m = load_model(spec)
     d = mujoco.MjData(m)
     h = Hinges(m, spec.n_hinges)

@@ -1,19 +1,25 @@
-"""Calibration and tuning on a plant nobody told the twin (the stated ranges): the emulator draws its
-plant within its stated ranges from a seed; the drawn values stay in its log, read here only to judge."""
+"""Calibration and tuning on plants nobody told the twin (issue 20): the emulator draws its plant within its
+stated ranges from a seed, each hinge its own values and the effects the twin leaves out; the drawn values stay
+in its log, read here only to judge (random_plant.judged: every interval against the drawn value, every value
+called identifiable within 15 % of it; the held-out criterion against the twin given the drawn shared values)."""
 
 import json
 
 import numpy as np
 import pytest
 
-from random_plant import drawn_plant, emulator_args, held_out_improved
+from hil.test_tuning_hil import record_soft
+from random_plant import drawn_hinges, drawn_plant, emulator_args, held_out_improved, judged
+from twin.commands.options import select_profile
 from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
 from twin.formats.run import read_run
-from twin.device.variation import SPREAD
 from twin.hil.calibration import trace_rmse
 from twin.hil.mirror import mirror
 from twin.link.serial_link import Link
+
+COVERAGE = 0.95  # of (seed, hinge, parameter) intervals must hold the drawn value
+SETTLE_AGREEMENT = 0.15  # the device settles within this share of the twin's prediction, every hinge
 
 
 def _json(capsys, *args):
@@ -21,50 +27,83 @@ def _json(capsys, *args):
     return json.loads(capsys.readouterr().out)
 
 
-def calibrate_and_tune_on_a_drawn_plant(seed, emulator, tmp_path, capsys):
+def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, tune: bool) -> tuple[dict, list[str]]:
+    """Record the calibration scenario and a held-out one on the plant drawn from `seed`, calibrate per hinge
+    into a device profile, and (tune) tune on it and push the gains. Tuning pushes only gains that keep every
+    limit on every plant of the calibrated intervals; where none do, it must say which limit it broke on which
+    plant and which parameter's range set the worst case, and push nothing ("refused" in the tally). Returns
+    the judged tally and what failed, in words: a value called identifiable off the drawn one, the held-out
+    criterion, a pushed gain's overshoot or a settle time the twin did not predict, a refusal that does not say
+    why."""
     spec = load_spec()
+    folder.mkdir()
     emu = emulator(*emulator_args(seed))
-    truth = drawn_plant(emu)
-    with Link(emu.port) as link:  # wake the device: from its limp boot pose to flat, allowing for its difference
-        assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
-    train, hold = tmp_path / "train", tmp_path / "hold"
-    # the calibration scenario, for the gains the device has (read from it), and a held-out one
-    for name, s in (("train", 0), ("hold", 1)):
-        assert vrscroll(["scenario", str(tmp_path / f"{name}.toml"), "--serial", emu.port,
-                         "--seed", str(s)]) == 0
-        assert vrscroll(["hil", str(tmp_path / f"{name}.toml"), "--serial", emu.port, "--out", str(tmp_path / name),
-                         "--tolerance-deg", "30"]) == 0
+    truth, hinges = drawn_plant(emu), drawn_hinges(emu)
+    if tune:  # the calibration scenario (7.5 s), for the gains the device has (read from it), and a held-out one
+        with Link(emu.port) as link:  # wake the device: from its limp boot pose to flat, allowing for its difference
+            assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
+        for name, s in (("train", 0), ("hold", 1)):
+            assert vrscroll(["scenario", str(folder / f"{name}.toml"), "--serial", emu.port, "--seed", str(s)]) == 0
+            assert vrscroll(["hil", str(folder / f"{name}.toml"), "--serial", emu.port, "--out", str(folder / name),
+                             "--tolerance-deg", "30"]) == 0
+    else:  # the default suite's: two 2 s runs with soft gains (slow creeps: friction shows in the duty)
+        record_soft(emu, spec, folder)
     capsys.readouterr()
-    cal = _json(capsys, "calibrate", str(train), "--holdout", str(hold), "--device", "drawn", "--json", "-")
-    assert cal["device_profile"] == "drawn"
-    assert any(e["value"] != e["prior"] for e in cal["parameters"].values()), cal["parameters"]
-    for p, e in cal["parameters"].items():
-        assert e["low"] <= e["value"] <= e["high"] and e["low"] < e["high"], (p, e)  # (at a bound of the search)
-        if e["identifiable"]:  # within 20 % of the truth
-            assert e["value"] == pytest.approx(truth[p], rel=0.2), (p, e, truth[p])
-        else:  # fitted loosely (its interval wider than x(1 -+ 0.15)), or left at its prior: its prior range open
-            lo, hi = (e["prior"] * r for r in SPREAD[p])
-            assert e["low"] <= lo * (1 + 1e-9) and e["high"] >= hi * (1 - 1e-9), (p, e)
-    # held-out error: at least half of what can go is gone, or the rest is at the floor (held_out_improved)
-    h = cal["holdout"]
-    run = read_run(hold, spec)
-    floor = trace_rmse(run, spec.replace(**{k: v for k, v in truth.items() if k != "supply_voltage"}), spec)
+    device = f"drawn{seed}"
+    cal = _json(capsys, "calibrate", str(folder / "train"), "--holdout", str(folder / "hold"), "--device", device,
+                "--per-hinge", "--json", "-")
+    # each hinge's own values kept in the profile where they predict the held-out run no worse than the shared
+    fit, kept = cal["per_hinge_fit"], select_profile(device).hinges
+    shared_rms, own_rms = (float(np.sqrt(np.mean([r[k] ** 2 for r in fit["holdout"]])))
+                           for k in ("rmse_shared_deg", "rmse_per_hinge_deg"))
+    assert fit["kept"] == (kept is not None) == (own_rms <= shared_rms + 1e-4), (fit["kept"], shared_rms, own_rms)
+    for row, own in zip(fit["hinges"], kept or []):
+        assert all(getattr(own, p) == pytest.approx(e["value"]) for p, e in row["parameters"].items())
+    tally = judged(cal, hinges, truth)
+    failed = [f"seed {seed}: {m}" for m in tally.pop("misses") if "identifiable" in m]
+    floor = trace_rmse(read_run(folder / "hold", spec),
+                       spec.replace(**{k: v for k, v in truth.items() if k != "supply_voltage"}), spec)
     floor = float(np.sqrt(np.mean(floor ** 2)))
-    assert held_out_improved(h, floor, spec), (h, floor)
-    # tuned on the calibrated twin over its intervals, pushed to the device: the overshoot limit holds and
-    # the device settles within 15 % of the twin's prediction on every hinge
-    tuned = _json(capsys, "tune", "--population", "16", "--generations", "5", "--threads", "2",
-                  "--serial", emu.port, "--log", str(tmp_path / "tune.jsonl"), "--json", "-")
-    assert tuned["device_profile"] == "drawn"
-    for r in tuned["device"]:
-        assert r["device_overshoot_deg"] <= 1.0, tuned["device"]
-        assert r["device_settle_s"] == pytest.approx(r["twin_settle_s"], rel=0.15), tuned["device"]
-    return cal, tuned, truth, floor
+    if not held_out_improved(cal["holdout"], floor, spec):
+        failed.append(f"seed {seed}: held-out {cal['holdout']['overall_before_deg']} -> "
+                      f"{cal['holdout']['overall_after_deg']} deg, floor {floor:.4f}")
+    if tune:  # tuned on the calibrated twin over its intervals, pushed to the device where they keep every limit
+        rc = vrscroll(["tune", "--device", device, "--population", "16", "--generations", "5", "--threads", "2",
+                       "--serial", emu.port, "--json", str(folder / "tune.json")])
+        tuned = json.loads((folder / "tune.json").read_text())
+        tally["refused"] = int(rc != 0)
+        if rc != 0 and not (tuned["limits_broken"] and tuned["worst_case_range"] and "device" not in tuned):
+            failed.append(f"seed {seed}: tune failed ({rc}) without naming the limit it broke and the range")
+        for r in tuned.get("device", []):
+            if r["device_overshoot_deg"] > 1.0:
+                failed.append(f"seed {seed}: hinge {r['hinge']} overshoots {r['device_overshoot_deg']} deg")
+            if abs(r["device_settle_s"] / r["twin_settle_s"] - 1) > SETTLE_AGREEMENT:
+                failed.append(f"seed {seed}: hinge {r['hinge']} settles in {r['device_settle_s']} s, the twin "
+                              f"predicted {r['twin_settle_s']} s")
+    emu.stop()  # (one emulator at a time: each runs in real time)
+    return tally, failed
 
 
-# slow, and not yet reliable enough for the default suite: seed 1 failed 2 of its last 3 runs (once a pushed
-# gain overshot 1.2 deg against the 1 deg limit); docs/tuning-hil-calibration.md "Measured"
+def judge_seeds(seeds, emulator, tmp_path, capsys, tune: bool) -> None:
+    """Every seed's plant calibrated (and tuned): the intervals hold the drawn values COVERAGE of the time over
+    all of them, and nothing in `calibrated_on_a_drawn_plant`'s list failed on any."""
+    total, failed = {}, []
+    for seed in seeds:
+        tally, why = calibrated_on_a_drawn_plant(seed, emulator, tmp_path / f"seed{seed}", capsys, tune)
+        total = {k: total.get(k, 0) + v for k, v in tally.items()}
+        failed += why
+    print(f"over {len(seeds)} drawn plants: {total}")  # (with -s: how many intervals held, tunings refused)
+    assert total["hold"] >= COVERAGE * total["intervals"], total
+    assert not failed, failed
+
+
+def test_calibration_on_two_drawn_plants(emulator, tmp_path, capsys):
+    """Issue 20's criteria on two plants, calibration only, on short runs (the slow test's are the calibration
+    scenario's, and it tunes too): plants drawn with each hinge's own speed, friction, damping and inertia,
+    cogging at any phase, friction ripple and warming windings, never told to the twin."""
+    judge_seeds((21, 22), emulator, tmp_path, capsys, tune=False)
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [1, 2, 3, 4])
-def test_calibration_and_tuning_on_drawn_plants(seed, emulator, tmp_path, capsys):
-    calibrate_and_tune_on_a_drawn_plant(seed, emulator, tmp_path, capsys)
+def test_calibration_and_tuning_on_twenty_drawn_plants(emulator, tmp_path, capsys):
+    judge_seeds(range(1, 21), emulator, tmp_path, capsys, tune=True)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from twin.device.variation import SPREAD
-from twin.hil.calibration import fit_blocks, quadratic_fit, verdicts
+from twin.hil.calibration import bounded_fit, fit_blocks, quadratic_fit, verdicts
 
 PARAMS = ("rotor_inertia", "gear_friction")
 PRIOR = {"rotor_inertia": 1e-8, "gear_friction": 4e-3}
@@ -97,3 +97,54 @@ def test_a_cost_the_quadratic_cannot_follow_keeps_the_best_sample_not_identified
     # a cost the quadratic follows keeps its mode, identified
     x, est = _fit_on(lambda x, g: 1.0 + 50.0 * (x[0] - 0.1) ** 2 + 30.0 * (x[1] - 0.2) ** 2)
     assert np.allclose(x, [0.1, 0.2], atol=0.02) and all(e.identifiable for e in est.values())
+
+
+def test_bounded_fit_recovers_the_terms_of_parameters_held_while_the_search_ran():
+    # a quadratic in five parameters, two of them held at 0 while the free ones' quadratic was fitted: the
+    # samples where they vary give their gradient, their Hessian and their products with the free ones exactly
+    rng = np.random.default_rng(0)
+    free, held = [0, 2, 4], [1, 3]
+    H = rng.normal(size=(5, 5))
+    H = H @ H.T
+    g = rng.normal(size=5)
+
+    def cost(X):
+        return (3.0 + X @ g + 0.5 * np.einsum("si,ij,sj->s", X, H, X))[:, None]
+
+    searched = rng.normal(size=(100, 5))
+    searched[:, held] = 0.0
+    g_free, H_free = quadratic_fit(searched[:, free], cost(searched))
+    varied = rng.normal(size=(60, 5))
+    grads, Hs = bounded_fit(varied, cost(varied), g_free, H_free, free, held)
+    assert np.allclose(grads[0], g) and np.allclose(Hs[0], H)
+
+
+def test_a_bounded_parameter_widens_what_it_trades_with_and_only_that():
+    # the runs show friction + 0.9 cogging (log) sharply, and inertia on its own; the device's cogging is x1.5
+    # the twin's nominal. A twin without the cogging as a parameter puts its share into friction and calls that
+    # identifiable, 44 % off; bounded (held at its nominal, sampled within its range after the search), friction's
+    # interval allows for it anywhere there: it holds the truth and is not called identifiable. Inertia, which
+    # trades with nothing, stays identified near its truth either way.
+    truth = np.log([0.9, 1.2, 1.5])
+    prior = PRIOR | {"cogging": 0.03}
+    ranges = {p: SPREAD[p] for p in PARAMS} | {"cogging": (1 / 3, 5 / 3)}
+    noise = [np.random.default_rng(0).normal(size=(100, 2))]
+
+    def group_costs(x):  # x (3,): the device's cost, six groups alike
+        d = x - truth
+        return np.full(6, 1.0 + 300.0 * d[0] ** 2 + 300.0 * (d[1] + 0.9 * d[2]) ** 2)
+
+    for params, bounded in ((PARAMS, ()), (PARAMS + ("cogging",), (2,))):
+        [(x, est, _, _)] = fit_blocks(lambda x: group_costs(np.append(x[0], 0.0)[:3]), lambda x: noise, [100],
+                                      [[0, 1]], params, [prior], ranges, 24, 8, 0, 0.15, None, bounded=bounded)
+        friction, inertia = est["gear_friction"], est["rotor_inertia"]
+        assert inertia.identifiable and inertia.value / PRIOR["rotor_inertia"] == pytest.approx(0.9, rel=0.03)
+        true_friction = PRIOR["gear_friction"] * 1.2
+        if bounded:
+            assert friction.low <= true_friction <= friction.high and not friction.identifiable, friction
+            assert est["cogging"].value == prior["cogging"] and "bounded" in est["cogging"].note
+            # what the twin, its cogging at the nominal, needs to reproduce the runs stays narrow (what tuning covers)
+            low, high = friction.runs_range
+            assert low <= friction.value <= high and high / low < 1.35 < friction.high / friction.low, friction
+        else:
+            assert friction.identifiable and not friction.low <= true_friction <= friction.high, friction

@@ -17,7 +17,6 @@ from random_plant import held_out_improved
 from controllers.encoder import target_counts
 from controllers.pid import PidGains
 from twin.cli import main as vrscroll
-from twin.commands.options import select_profile
 from twin.device.spec import load_spec
 from twin.formats.gains import read_gains, write_gains
 from twin.formats.run import read_run, write_run_meta
@@ -250,8 +249,8 @@ ALIKE = ("--hinge-scale", "1", "--cogging-pct", "0", "--ripple-pct", "0", "--win
 
 
 def shared_truth(spec):
-    """SHARED_PLANT as a spec: the twin given the emulator's own values."""
-    return scaled(spec, SHARED_SCALES).replace(backlash=math.radians(SHARED_BACKLASH_DEG))
+    """SHARED_PLANT, ALIKE, as a spec: the twin given the emulator's own values (no cogging: ALIKE has none)."""
+    return scaled(spec, SHARED_SCALES).replace(backlash=math.radians(SHARED_BACKLASH_DEG), cogging=0.0)
 
 
 def record_soft(emu, spec, folder):
@@ -323,41 +322,6 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     assert "calibrated from" in cal.read_text()
 
 
-
-def test_per_hinge_calibration_on_hinges_drawn_apart(emulator, tmp_path, capsys):
-    """The emulator draws each hinge's own speed, friction, damping and inertia (x0.85-1.15 about the shared
-    values) and the effects the twin does not model (cogging, friction ripple, a warming winding), never told
-    to the twin. Calibrated with --per-hinge: each hinge's speed interval holds that hinge's truth, every
-    value called identifiable is within 15 % of it, and on the held-out run the twin with each hinge's own
-    values is no further from the device than the one with the shared values (within 10 %). (What it does not yet do, issue 20: hold
-    the truth in 95 % of the intervals of the other parameters; docs/tuning-hil-calibration.md.)"""
-    spec = load_spec()
-    emu = emulator(*SHARED_PLANT)
-    truth = emu.events("start")[0]["hinges"]
-    train, hold, _ = record_soft(emu, spec, tmp_path)
-    capsys.readouterr()
-    assert vrscroll(["calibrate", str(train), "--holdout", str(hold), "--device", "drawn", "--per-hinge",
-                     "--json", str(tmp_path / "cal.json")]) == 0
-    fit = json.loads((tmp_path / "cal.json").read_text())["per_hinge_fit"]
-    # kept in the profile where they predict the held-out run no worse: its twin gives each hinge the values fitted
-    kept = select_profile("drawn").hinges
-    shared_rms, own_rms = (math.sqrt(sum(r[k] ** 2 for r in fit["holdout"]) / len(fit["holdout"]))
-                           for k in ("rmse_shared_deg", "rmse_per_hinge_deg"))
-    assert fit["kept"] == (kept is not None) == (own_rms <= shared_rms + 1e-4), (fit["kept"], shared_rms, own_rms)
-    for row, own in zip(fit["hinges"], kept or []):
-        assert all(getattr(own, p) == pytest.approx(e["value"]) for p, e in row["parameters"].items())
-    for row, own in zip(fit["hinges"], truth):
-        speed = row["parameters"]["no_load_speed"]
-        assert speed["low"] <= own["no_load_speed"] <= speed["high"], (row["hinge"], speed, own)
-        for p, e in row["parameters"].items():
-            if e["identifiable"]:
-                assert e["low"] <= own[p] <= e["high"] and e["value"] == pytest.approx(own[p], rel=0.15), (p, e)
-    shared = np.array([r["rmse_shared_deg"] for r in fit["holdout"]])
-    own = np.array([r["rmse_per_hinge_deg"] for r in fit["holdout"]])
-    # (on runs this short, 2 s, 24 values fitted can overfit: no worse than the shared by more than 10 %; on the
-    # calibration scenario's 7.5 s, 10-31 % better on five drawn plants: docs/tuning-hil-calibration.md)
-    assert np.sqrt(np.mean(own ** 2)) <= 1.1 * np.sqrt(np.mean(shared ** 2)), (shared, own)
-    assert "with each hinge's own" in capsys.readouterr().out
 
 ONE_STEP = """name = "one"
 duration_s = 1.0

@@ -116,6 +116,7 @@ def run(args) -> int:
     out = {"device_profile": name or profile.label, "prior": "spec defaults" if new else profile.label,
            "written": written,
            "parameters": {p: e.to_json() for p, e in res.estimates.items()},
+           "bounded": {p: e.to_json() for p, e in res.bounded.items()},
            "scales": {k: round(v, 4) for k, v in res.scales.items()},
            "singular_values": [round(s, 4) for s in res.singular_values],
            "autocorrelation_frames": round(res.autocorrelation_frames, 1),
@@ -144,6 +145,10 @@ def run(args) -> int:
         print(f"  {p:<14} {si(e.value):.4g} {unit}  interval {si(e.low):.4g} .. {si(e.high):.4g} {unit}  "
               f"(x{e.value / e.prior:.3f}, x{e.low / e.prior:.3f} .. x{e.high / e.prior:.3f})  "
               f"{'identifiable' if e.identifiable else 'NOT IDENTIFIABLE'}: {e.note}")
+    for p, e in res.bounded.items():
+        unit = units.get(p, "")
+        print(f"  {p:<14} {e.value:.4g} {unit}  bounded within {e.low:.4g} .. {e.high:.4g} {unit} "
+              f"(x{e.low / e.prior:.3g} .. x{e.high / e.prior:.3g}), not fitted: {e.note}")
     print(f"residual autocorrelation {res.autocorrelation_frames:.0f} frames (the intervals allow for it; the "
           "Hessian's singular values are in --json)")
     print(f"fit RMSE (training runs, hinge angles): {res.rmse_before:.3f} deg -> {res.rmse_after:.3f} deg")

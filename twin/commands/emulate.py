@@ -24,7 +24,7 @@ RANGED = {  # PlantRanges field (its option is --field-name) -> what it is
     "backlash_deg": "backlash between gearbox output and flap, deg",
     "latency_ms": "command latency, ms",
     "hinge_scale": "each hinge's own x on speed, friction, damping and armature, about the above",
-    "cogging_pct": "each motor's cogging, %% of its stall torque",
+    "cogging_pct": "each motor's cogging, %% of its stall torque (its phase against the encoder drawn too)",
     "ripple_pct": "each gearbox's friction ripple with its final gear's mesh, %% of its Coulomb friction",
     "winding_c": "each winding's temperature at power-on, deg C (it warms as it works)",
     "backdrive_scale": "the gearboxes' back-driven efficiency x (a load turning the motor; at most 1 in all)",

@@ -129,13 +129,13 @@ def _chain(spec: DeviceSpec, flaps: list[int], depth: int, root: str) -> str:
 
 def motor_attributes(s: DeviceSpec) -> str:
     """The dcmotor attributes a spec gives a gearmotor (the device's default class; or one hinge's own, where
-    its motor differs): K, R, rotor armature, viscous damping and LuGre friction, written motor side."""
+    its motor differs): K, R, rotor armature, viscous damping, LuGre friction and cogging, written motor side."""
     N = s.gear_ratio
     lugre = _f(s.friction_stiffness / N**2, s.friction_damping / N**2, s.gear_friction / N, s.gear_stiction / N,
                s.stribeck_speed * N)
     return (f'motorconst="{_f(s.motor_constant)}" resistance="{_f(s.drive_resistance)}"\n'
             f'        armature="{_f(s.rotor_inertia)}" damping="{_f(s.gear_damping / N**2)}"\n'
-            f'        lugre="{lugre}"')
+            f'        lugre="{lugre}" cogging="{_f(s.cogging_torque, s.cogging_periods, s.cogging_phase)}"')
 
 
 def mjcf(spec: DeviceSpec | None = None, root: str = "fixed", motors: list[str] | None = None) -> str:

@@ -54,6 +54,9 @@ class DeviceSpec:
     gear_damping: float  # N*m*s/rad at the output
     friction_stiffness: float  # N*m/rad at the output (LuGre bristles)
     friction_damping: float  # N*m*s/rad at the output (LuGre bristles)
+    cogging: float  # the cogging torque's amplitude, a share of the motor's stall torque at the supply voltage
+    cogging_periods: int  # cogging periods per motor revolution
+    cogging_phase: float  # rad: the cogging torque is cogging_torque x sin(cogging_periods x motor angle + this)
     backlash: float  # rad, full width of the dead zone between gearbox output and flap
     # encoder
     counts_per_motor_rev: int
@@ -128,6 +131,11 @@ class DeviceSpec:
     def drive_resistance(self) -> float:
         """Ohm in each motor's circuit: the winding and the driver's two conducting FETs."""
         return self.resistance + self.driver_on_resistance
+
+    @property
+    def cogging_torque(self) -> float:
+        """N*m at the motor: the cogging's amplitude, `cogging` x the motor's stall torque at the supply voltage."""
+        return self.cogging * self.motor_constant * self.supply_voltage / self.drive_resistance
 
     @property
     def firmware_dt(self) -> float:

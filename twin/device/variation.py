@@ -15,18 +15,30 @@ import numpy as np
 from twin.device.spec import DeviceSpec
 
 # the spec fields a profile may hold other values of than the spec's: the plant parameters calibration fits
-# (gear_stiction moves with gear_friction), and how the gearbox passes a load that drives it, which a release
-# under gravity measures (`vrscroll holding`, twin.hil.holding). Every other value (hinge range, settle band,
-# flap count, limits) is the device's design, the same for every device built to the spec: a profile that
-# changes one is refused.
+# (gear_stiction moves with gear_friction), how the gearbox passes a load that drives it, which a release
+# under gravity measures (`vrscroll holding`, twin.hil.holding), and what the runs cannot show (the cogging,
+# where its detents sit, the winding's resistance: a user who measures them may set them). Every other value
+# (hinge range, settle band, flap count, limits) is the device's design, the same for every device built to
+# the spec: a profile that changes one is refused.
 PLANT_FIELDS = ("no_load_speed", "gear_friction", "gear_stiction", "gear_damping", "rotor_inertia", "backlash",
-                "backdrive_efficiency")
+                "backdrive_efficiency", "cogging", "cogging_phase", "resistance")
 # the spec fields that move with a parameter, in proportion: the static friction keeps its ratio to the
 # Coulomb friction (one gearbox's friction)
 MOVES_WITH = {"gear_friction": ("gear_stiction",)}
 HOLDING = ("backdrive_efficiency",)  # measured by a release (twin.hil.holding), not by the HIL runs' fit
-# the plant parameters calibration fits from HIL runs, less those that move with another
-PARAMS = tuple(p for p in PLANT_FIELDS if p not in HOLDING and not any(p in moved for moved in MOVES_WITH.values()))
+# x the spec's value: what calibration bounds but does not fit (twin.hil.calibration), the runs cannot show it
+# apart from the parameters it trades with: the cogging (its period spans 2 encoder counts, so the device's own
+# sensor sees it as drag, as friction; the spec's 3 % of the stall torque about 1-5 %), the winding's resistance
+# (from the datasheet's, at 25 deg C, to a winding 60 K warmer: copper's 0.393 %/K; a device that has been
+# running, a motor that works hard), and the gearbox's back-driven efficiency (a flap falling under gravity
+# drives its motor: it moves as a faster motor would; `vrscroll holding` measures it, the HIL runs do not show
+# it apart; 0.3-0.7 about the spec's 0.5, at most 1). Each widens the fitted parameters' intervals by what it
+# could move them.
+BOUNDED = {"cogging": (1 / 3, 5 / 3), "resistance": (1.0, 1.25), "backdrive_efficiency": (0.6, 1.4)}
+# the plant parameters calibration fits from HIL runs: less those that move with another, the holding's, the
+# bounded ones, and where the cogging's detents sit (a period spans 2 encoder counts: no run shows it)
+PARAMS = tuple(p for p in PLANT_FIELDS if p not in HOLDING + tuple(BOUNDED) + ("cogging_phase",)
+               and not any(p in moved for moved in MOVES_WITH.values()))
 # x the spec's value: how far a device may differ from its datasheet (an assumption: the spread of a batch of
 # micro metal gearmotors and of their assembly; the backlash 0.01 .. 0.5 deg about the spec's 0.25 deg: not 0,
 # which the MJCF makes a rigid coupling, another model layout). The emulator draws its plant within it (its
@@ -46,6 +58,13 @@ def prior_ranges(spec: DeviceSpec) -> dict:
     """What is known of an uncalibrated device: each parameter within SPREAD of the spec's value,
     {field: (low, high) SI}."""
     return {p: (getattr(spec, p) * lo, getattr(spec, p) * hi) for p, (lo, hi) in SPREAD.items()}
+
+
+def bounded_ranges(spec: DeviceSpec) -> dict:
+    """BOUNDED about the spec's values, {field: (low, high) x the value}: a back-driven efficiency at most 1 (a
+    gearbox passes no more than it is given)."""
+    return {p: (lo, min(hi, 1.0 / spec.backdrive_efficiency) if p == "backdrive_efficiency" else hi)
+            for p, (lo, hi) in BOUNDED.items()}
 
 
 def tolerance_ranges(spec: DeviceSpec, tolerance: float) -> dict:

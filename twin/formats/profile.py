@@ -7,10 +7,13 @@ knows it after calibration and tuning.
     gains.json     the device's gains, a gains file (optional: the spec's gains when absent)
 
 "calibration" (written by `vrscroll calibrate --device`): {"runs": [folder, ...], "parameters":
-{name: {"value", "prior", "low", "high", "identifiable", "note"}}, "hinges": [{name: {...}}, ...]},
-values in SI (the spec's field units); low..high is the interval the calibration leaves open (its 95 %
-interval for a fitted parameter, the prior range for one the runs do not show), which `vrscroll tune`
-tunes over. "hinges" (optional, `vrscroll calibrate --per-hinge`): per hinge, its own values of the
+{name: {"value", "prior", "low", "high", "identifiable", "note", "runs_low", "runs_high"}}, "hinges":
+[{name: {...}}, ...]}, values in SI (the spec's field units); low..high is the interval the calibration
+leaves open for the device (its 95 % interval for a fitted parameter, widened by what the bounded parameters
+could move it, and the prior range where it is not identifiable); runs_low..runs_high (optional: a
+calibration of before they were kept has none) is the twin's values that reproduce the runs with the
+bounded parameters at the profile's values, which `vrscroll tune` tunes over (low..high without them).
+"hinges" (optional, `vrscroll calibrate --per-hinge`): per hinge, its own values of the
 parameters a hinge's motor and gearbox change, each about the shared value (its "prior"): the twin of
 the profile (twin.commands.options.profile_twin) gives each hinge its own.
 "holding" (written by `vrscroll holding --device`): {"port", "releases": count, "parameters":
@@ -37,6 +40,7 @@ from twin.paths import replacing
 PROFILE_FORMAT = "vrscroll-profile/1"
 META, SPEC, GAINS, WIRING = "profile.json", "spec.toml", "gains.json", "wiring.json"
 PARAMETER_KEYS = ("value", "prior", "low", "high", "identifiable", "note")
+RUNS_KEYS = ("runs_low", "runs_high")  # optional (a calibration before they were kept has neither): what tuning covers
 META_PARTS = ("calibration", "holding")  # what profile.json holds beside its format and name
 
 
@@ -58,16 +62,18 @@ class Profile:
         return self.name or NO_PROFILE
 
     def ranges(self) -> dict:
-        """parameter -> (low, high) SI, the intervals calibration left open ({} when not calibrated)."""
+        """parameter -> (low, high) SI, what tuning covers: the twin's values that reproduce the calibration's
+        runs (runs_low .. runs_high; low .. high where the calibration kept no such interval) ({} when not
+        calibrated)."""
         if not self.calibration:
             return {}
-        return {p: (e["low"], e["high"]) for p, e in self.calibration["parameters"].items()}
+        return {p: _runs_range(e) for p, e in self.calibration["parameters"].items()}
 
     def hinge_ranges(self) -> list[dict] | None:
-        """Per hinge, parameter -> (low, high) SI, the intervals of its own values (None where calibration
+        """Per hinge, parameter -> (low, high) SI, as `ranges` for its own values (None where calibration
         fitted none)."""
         rows = (self.calibration or {}).get("hinges")
-        return [{p: (e["low"], e["high"]) for p, e in row.items()} for row in rows] if rows else None
+        return [{p: _runs_range(e) for p, e in row.items()} for row in rows] if rows else None
 
     @property
     def hinges(self) -> list[DeviceSpec] | None:
@@ -104,6 +110,12 @@ def _holding(doc, where: str) -> dict:
     return doc
 
 
+def _runs_range(e: dict) -> tuple[float, float]:
+    """An estimate's interval of the twin's values that reproduce the runs, SI: runs_low .. runs_high, or low ..
+    high where it has none."""
+    return e.get("runs_low", e["low"]), e.get("runs_high", e["high"])
+
+
 def _parameters(doc, where: str) -> None:
     """ValueError unless doc is {plant parameter: estimate} with low <= value <= high, all positive."""
     if not isinstance(doc, dict):
@@ -114,11 +126,17 @@ def _parameters(doc, where: str) -> None:
             raise ValueError(f"{w}: not a plant parameter ({', '.join(PLANT_FIELDS)})")
         if not isinstance(e, dict):
             raise ValueError(f"{w}: expected an object with {', '.join(PARAMETER_KEYS)}")
-        known_keys(e, PARAMETER_KEYS, w)
+        known_keys(e, PARAMETER_KEYS + RUNS_KEYS, w)
         required_keys(e, PARAMETER_KEYS, w)
         lo, v, hi, prior = (number(e[k], f"{w}: {k}") for k in ("low", "value", "high", "prior"))
         if not 0 < lo <= v <= hi or prior <= 0:
             raise ValueError(f"{w}: value {v:g} is not within low {lo:g} .. high {hi:g}, or not positive")
+        if any(k in e for k in RUNS_KEYS):
+            required_keys(e, RUNS_KEYS, w)
+            runs_lo, runs_hi = (number(e[k], f"{w}: {k}") for k in RUNS_KEYS)
+            if not (0 < runs_lo <= v * (1 + 1e-9) and v <= runs_hi * (1 + 1e-9)):
+                raise ValueError(f"{w}: value {v:g} is not within runs_low {runs_lo:g} .. runs_high {runs_hi:g}, "
+                                 f"or not positive")
         if not isinstance(e["identifiable"], bool):
             raise ValueError(f"{w}: identifiable: expected true or false")
 

@@ -24,8 +24,12 @@ Parameters (PARAMS; each fitted as log(value / prior), within x1/3 .. x3):
     gear_damping    viscous loss at the output
     rotor_inertia   the armature, reflected by gear_ratio^2 (most of a hinge's inertia)
     backlash        the dead zone between gearbox output and flap, outside the loop
-Not fitted: latency (the HIL run aligns each target with the device's own ACK time,
-which already includes it).
+Bounded, not fitted (twin.device.variation.BOUNDED): the cogging, the winding's
+resistance and the gearbox's back-driven efficiency move the traces as the fitted
+parameters do and no run tells them apart; each is held at the profile's value and
+the fitted parameters' intervals are widened by what it could do within its range
+(`bounded_fit`). Not fitted: latency (the HIL run aligns each target with the
+device's own ACK time, which already includes it).
 
 Search: a cross-entropy method, then a quadratic fitted to the better half of its
 samples (the cost is rough at small scales, where a gradient method stalls: see
@@ -52,7 +56,7 @@ import numpy as np
 
 from controllers.encoder import angle_from_counts
 from twin.device.spec import DeviceSpec
-from twin.device.variation import PARAMS, SPREAD, scaled
+from twin.device.variation import PARAMS, SPREAD, bounded_ranges, scaled
 from twin.formats.run import Run
 from twin.search import CrossEntropy
 from twin.sim.replay import replay_targets, twin_at_start
@@ -67,6 +71,7 @@ DUTY_WINDOW = 0.2  # s: the duty is compared as means over windows this long
 DUTY_WEIGHT = 20.0  # deg per unit duty: a 0.01 duty error weighs as 0.2 deg (each about its noise floor)
 ACCEPT_ROUGHNESS = 3.0  # the fitted mode is kept when, replayed, it costs at most this many roughnesses more
 # than the best sample (`fit_blocks`)
+BOUNDED_SAMPLES = 2  # x the population: the replays that show how the bounded parameters trade with the fitted
 JACKKNIFE_SEGMENTS = 3  # stretches of a run per hinge the jackknife leaves out: 18 groups for one run
 
 
@@ -161,20 +166,31 @@ class Estimate:
     high: float
     identifiable: bool  # fitted, and its interval within x(1 -+ MAX_HALFWIDTH)
     note: str  # why it is or is not fitted, in words
+    # the twin's values that reproduce the runs, the bounded parameters at the profile's values (what tuning
+    # covers): low .. high less what the bounded ones could move it and the prior range kept open with it
+    runs_low: float | None = None  # None: low .. high
+    runs_high: float | None = None
 
     @property
     def fitted(self) -> bool:
         """Whether calibration moved it from its prior (a parameter left at its prior is exactly its prior)."""
         return self.value != self.prior
 
+    @property
+    def runs_range(self) -> tuple[float, float]:
+        """(low, high) SI of the twin's values that reproduce the runs (runs_low .. runs_high)."""
+        return (self.low if self.runs_low is None else self.runs_low,
+                self.high if self.runs_high is None else self.runs_high)
+
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        return {k: v for k, v in dataclasses.asdict(self).items() if v is not None}
 
 
 @dataclasses.dataclass
 class CalibrationResult:
     spec: DeviceSpec  # calibrated
     estimates: dict  # parameter -> Estimate
+    bounded: dict  # parameter -> Estimate (at its prior, its prior range): held, the intervals allow for it
     singular_values: list  # of the cost's Hessian in log parameters, scaled to a unit diagonal
     autocorrelation_frames: float  # residual autocorrelation time the intervals allow for, frames
     rmse_before: float  # deg, hinge angles, all training runs, frames and hinges
@@ -237,6 +253,33 @@ def quadratic_fit(X: np.ndarray, C: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return coef[:, 1:1 + k], H
 
 
+def bounded_fit(X: np.ndarray, C: np.ndarray, g: np.ndarray, H: np.ndarray, free: list, bounded: list):
+    """`quadratic_fit` extended to parameters held at their prior while the search ran: per column of costs C
+    (samples, groups) at points X (samples, k) where they vary, what the quadratic in the free ones (g (groups,
+    len(free)), H (groups, len(free), len(free)), fitted where the held ones were at 0) leaves is fitted by the
+    held ones' own terms and their products with the free ones. The free ones' quadratic is kept as it was.
+    Returns the gradient (groups, k) and Hessian (groups, k, k) in all k."""
+    XF, XD = X[:, free], X[:, bounded]
+    kf, kd = len(free), len(bounded)
+    own = [(i, j) for i in range(kd) for j in range(i, kd)]
+    A = np.concatenate([np.ones((len(X), 1)), XD,
+                        np.stack([XD[:, i] * XD[:, j] * (0.5 if i == j else 1.0) for i, j in own], axis=1),
+                        np.stack([XF[:, i] * XD[:, j] for i in range(kf) for j in range(kd)], axis=1)], axis=1)
+    known = XF @ g.T + 0.5 * np.einsum("si,gij,sj->sg", XF, H, XF)
+    coef = np.linalg.lstsq(A, C - known, rcond=None)[0].T  # (groups, features)
+    grads, Hs = np.zeros((len(coef), X.shape[1])), np.zeros((len(coef), X.shape[1], X.shape[1]))
+    grads[:, free], grads[:, bounded] = g, coef[:, 1:1 + kd]
+    for a, i in enumerate(free):
+        Hs[:, i, free] = H[:, a]
+    for n, (i, j) in enumerate(own):
+        Hs[:, bounded[i], bounded[j]] = Hs[:, bounded[j], bounded[i]] = coef[:, 1 + kd + n]
+    cross = coef[:, 1 + kd + len(own):].reshape(len(coef), kf, kd)
+    for a, i in enumerate(free):
+        for c, j in enumerate(bounded):
+            Hs[:, i, j] = Hs[:, j, i] = cross[:, a, c]
+    return grads, Hs
+
+
 def roughness(X: np.ndarray, c: np.ndarray) -> float:
     """The RMS of what the best quadratic in X (samples, k) leaves of the costs c (samples,): how far a cost
     may be from the smooth shape the quadratic fit gives it."""
@@ -265,16 +308,20 @@ def posterior_mode(grad, H, xb, s2: float, spread, held) -> tuple[np.ndarray, np
 
 
 def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float = MAX_HALFWIDTH,
-             ranges: dict | None = None):
+             ranges: dict | None = None, bounded=()):
     """What the runs show: (x, {parameter: Estimate}), x the log(value / prior) of each parameter (0 where left
     at its prior), from the search's per-group quadratics (quadratic_fit about xb, the best sample) and s2, the
     residual's variance per independent sample. ranges: each parameter's prior range, (low, high) x the prior
-    (default SPREAD: how far a device differs from its spec). See `calibrate`."""
+    (default SPREAD: how far a device differs from its spec). bounded: the indices of parameters held at their
+    prior from the start (BOUNDED: the runs cannot show them), each widening the others' intervals by what it
+    could move them within its range. See `calibrate`."""
     ranges = ranges or {p: SPREAD[p] for p in params}
     k, n_groups = len(params), len(grads)
     grad, H = grads.sum(axis=0), Hs.sum(axis=0)
     spread = np.array([prior_spread(ranges[p]) for p in params])
-    held, notes = [], {}
+    held = list(bounded)
+    notes = {params[i]: "bounded, not fitted: the runs cannot show it apart from the parameters it trades with; "
+                        "the others' intervals allow for it anywhere in its range" for i in bounded}
     while True:
         x, cov = posterior_mode(grad, H, xb, s2, spread, held)
         # the jackknife: the mode with each group's cost left out, spread about their mean
@@ -289,14 +336,20 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
                             f"x{math.exp(1.96 * sigma[i]):.2f}, the hinges disagreeing beyond its prior; left at its prior")
         held.append(i)
     # each fitted parameter's interval (log, about x), widened by how far it would move were the held ones
-    # anywhere in their prior ranges (the mode moves by -(A + P)_FF^-1 A_FD dx_D)
+    # anywhere in their prior ranges (the mode moves by -(A + P)_FF^-1 A_FD dx_D); the runs' interval (what the
+    # twin with the bounded ones at their values may be) by the others held only
     lo, hi = x - 1.96 * sigma, x + 1.96 * sigma
+    runs_lo, runs_hi = lo.copy(), hi.copy()
     F = np.array([i for i in range(k) if i not in held], int)
     if held and len(F):
         S = -cov[np.ix_(F, F)] @ H[np.ix_(F, held)] / (2.0 * s2)  # cov_FF is (A + P)_FF^-1
         ends = np.log([ranges[params[j]] for j in held])  # (held, 2)
-        lo[F] += np.minimum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
-        hi[F] += np.maximum(S * ends[:, 0], S * ends[:, 1]).sum(axis=1)
+        moves = np.minimum(S * ends[:, 0], S * ends[:, 1]), np.maximum(S * ends[:, 0], S * ends[:, 1])
+        lo[F] += moves[0].sum(axis=1)
+        hi[F] += moves[1].sum(axis=1)
+        shown = [n for n, j in enumerate(held) if j not in bounded]
+        runs_lo[F] += moves[0][:, shown].sum(axis=1)
+        runs_hi[F] += moves[1][:, shown].sum(axis=1)
     estimates = {}
     for i, p in enumerate(params):
         lo_p, hi_p = ranges[p]
@@ -305,12 +358,16 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
             pinned = bool(max(x[i] - lo[i], hi[i] - x[i]) <= math.log1p(max_halfwidth))
             # no wider than the search's bounds: the runs were never compared with a plant beyond them
             low, high = prior[p] * math.exp(max(lo[i], -LOG_BOUND)), prior[p] * math.exp(min(hi[i], LOG_BOUND))
+            runs = (prior[p] * math.exp(max(runs_lo[i], -LOG_BOUND)), prior[p] * math.exp(min(runs_hi[i], LOG_BOUND)))
             note = f"fitted; 95 % interval x{below:.3f} .. x{above:.3f}"
             if not pinned:  # the fit's interval need not hold the truth where model errors load onto it
                 low, high = min(low, prior[p] * lo_p), max(high, prior[p] * hi_p)
                 note += (f", wider than x(1 -+ {max_halfwidth:g}): not identifiable; the fitted value kept, its "
                          f"prior range x{lo_p:g} .. x{hi_p:g} left open with it")
-            estimates[p] = Estimate(prior[p] * math.exp(x[i]), prior[p], low, high, pinned, note)
+            if bounded:
+                note += (f"; the twin's value that reproduces the runs (the bounded ones at their values) "
+                         f"x{runs[0] / prior[p]:.3f} .. x{runs[1] / prior[p]:.3f}")
+            estimates[p] = Estimate(prior[p] * math.exp(x[i]), prior[p], low, high, pinned, note, *runs)
         else:
             estimates[p] = Estimate(prior[p], prior[p], prior[p] * lo_p, prior[p] * hi_p, False,
                                     notes[p] + f"; prior range x{lo_p:g} .. x{hi_p:g}")
@@ -318,7 +375,8 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
 
 
 def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int = 24, generations: int = 8,
-              seed: int = 0, max_halfwidth: float = MAX_HALFWIDTH, progress=None) -> CalibrationResult:
+              seed: int = 0, max_halfwidth: float = MAX_HALFWIDTH, progress=None,
+              bounded: dict | None = None) -> CalibrationResult:
     """Fit `params` (log(value / base value), within x1/3 .. x3) to the runs' device traces (angles and duty),
     and say what the runs show.
 
@@ -339,9 +397,15 @@ def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int 
     parameter is identifiable when its interval is within x(1 -+ max_halfwidth); otherwise it keeps its
     fitted value, said so, with its prior range left open as well as its interval (a model error can load
     onto a loosely shown parameter and pull its interval off the truth: backlash, on the emulator's plants).
+    bounded ({field: (low, high) x the prior}; default twin.device.variation.bounded_ranges): what the runs
+    cannot show apart from `params` (the cogging, the winding's resistance, the back-driven efficiency): held at
+    its prior, sampled within its range about where the search ended, each fitted parameter's interval widened
+    by how far it would move were these anywhere in their ranges.
     progress(generation, best cost) is called as the search goes.
     """
-    params = tuple(params)
+    fitted_params = tuple(params)
+    bounded = bounded_ranges(base) if bounded is None else bounded
+    params = fitted_params + tuple(bounded)
     prior = {p: float(getattr(base, p)) for p in params}
     count = [0]
 
@@ -359,20 +423,23 @@ def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int 
         return float(np.sqrt(np.mean(np.concatenate([trace_rmse(r, p, base) ** 2 for r in runs]))))
 
     [(x, estimates, H, tau)] = fit_blocks(cost, residuals, [len(r.device.time) for r in runs],
-                                          [list(range(base.n_hinges))], params, [prior], {p: SPREAD[p] for p in params},
-                                          population, generations, seed, max_halfwidth, progress)
+                                          [list(range(base.n_hinges))], params, [prior],
+                                          {p: SPREAD[p] for p in fitted_params} | dict(bounded), population,
+                                          generations, seed, max_halfwidth, progress,
+                                          bounded=range(len(fitted_params), len(params)))
     fitted = plant(x[None])
     hinge_rmse, hinge_floor = per_hinge_rmse(runs, fitted, base)
     norms = np.sqrt(np.maximum(np.diag(H), 1e-300))
     sv = np.linalg.svd(H / np.outer(norms, norms), compute_uv=False)
     return CalibrationResult(
-        spec=fitted, estimates=estimates, singular_values=[float(v) for v in sv], autocorrelation_frames=tau,
+        spec=fitted, estimates={p: estimates[p] for p in fitted_params},
+        bounded={p: estimates[p] for p in bounded}, singular_values=[float(v) for v in sv], autocorrelation_frames=tau,
         rmse_before=angle_rmse(base), rmse_after=angle_rmse(fitted), hinge_rmse_after=hinge_rmse,
         hinge_floor=hinge_floor, iterations=generations, evaluations=count[0])
 
 
 def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, population, generations, seed, max_halfwidth,
-               progress) -> list:
+               progress, bounded=()) -> list:
     """The search and the verdicts of `calibrate`, for blocks of hinges each with its own values of `params`
     (one block of every hinge: values shared; a block per hinge: each hinge's own). cost(x) and residuals(x)
     take x (blocks, k), log(value / prior); cost gives the runs' group costs (group_costs, run after run),
@@ -381,7 +448,9 @@ def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, populati
     replayed and kept only where it costs no more than the best sample plus ACCEPT_ROUGHNESS x the cost's
     roughness about the quadratic; elsewhere the best sample is kept, not identifiable (`_sample_kept`: on the
     emulator, the rough cost's quadratic fit, indefinite, put its mode where the replay was no better than
-    the prior). Returns per block (x (k,), {param: Estimate}, the summed quadratic's Hessian (k, k), the
+    the prior). bounded: the indices of parameters held at their prior (`verdicts`): the search leaves them
+    there, then BOUNDED_SAMPLES x population more replays about where it ended draw each anywhere in its prior
+    range, so that the quadratic holds how they trade with the others. Returns per block (x (k,), {param: Estimate}, the summed quadratic's Hessian (k, k), the
     residual's autocorrelation time, frames)."""
     k, n = len(params), sum(len(b) for b in blocks)
     group_hinge = np.concatenate([np.tile(np.arange(n), JACKKNIFE_SEGMENTS) for _ in frames])
@@ -391,8 +460,10 @@ def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, populati
     first = cost(search.mean)
     best_x, best = search.mean.copy(), np.array([first[m].sum() for m in mine])
     X, G = [search.mean.copy()], [first]
+    bounded = list(bounded)
     for g in range(generations):
         pop = search.draw(rng, population, first=best_x)
+        pop[:, :, bounded] = 0.0  # the search moves the fitted parameters only
         costs = [cost(x) for x in pop[1:]]
         X.extend(pop[1:])
         G.extend(costs)
@@ -404,52 +475,69 @@ def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, populati
             search.refit(pop[order[:ELITE]], b)
         if progress:
             progress(g, float(best.sum()))
+    searched = len(X)
+    if bounded:  # then how the bounded ones trade with the others: samples about where the search ended, each
+        # bounded one anywhere in its range
+        ends = np.log([ranges[params[i]] for i in bounded])
+        extra = search.draw(rng, BOUNDED_SAMPLES * population)
+        extra[:, :, bounded] = rng.uniform(ends[:, 0], ends[:, 1], (len(extra), len(blocks), len(bounded)))
+        X.extend(extra)
+        G.extend(cost(x) for x in extra)
     X, G = np.array(X), np.array(G)
     at_best = residuals(best_x)
     spread = np.array([prior_spread(ranges[p]) for p in params])
-    n_near = max(len(G) // 2, 3 * (1 + k + k * (k + 1) // 2))  # the samples a quadratic is fitted to
+    free = [i for i in range(k) if i not in bounded]
+    n_near = max(searched // 2, 3 * (1 + len(free) * (len(free) + 3) // 2))  # the searched samples a quadratic is
+    # fitted to, those nearest the best
 
     def posterior_cost(c, x, s2):  # the runs' negative log likelihood (c: cost) plus the prior's, at x (log)
         return c / (2.0 * s2) + 0.5 * ((x / spread) ** 2).sum(axis=-1)
 
     out = []
     for b, m in enumerate(mine):
-        near = np.argsort(G[:, m].sum(axis=1))[:n_near]
-        grads, Hs = quadratic_fit(X[near, b] - best_x[b], G[near][:, m])
+        near = np.argsort(G[:searched, m].sum(axis=1))[:n_near]
+        grads, Hs = quadratic_fit(X[near][:, b, free] - best_x[b, free], G[near][:, m])
+        if bounded:  # the bounded ones' terms, from the samples where they vary
+            grads, Hs = bounded_fit(X[searched:, b] - best_x[b], G[searched:][:, m], grads, Hs, free, bounded)
         tau = autocorrelation_time([r[:, blocks[b]] for r in at_best])
         s2 = best[b] * tau / max(sum(frames) * 2 * len(blocks[b]) - k, 1)
-        x, estimates = verdicts(grads, Hs, best_x[b], s2, params, priors[b], max_halfwidth, ranges)
+        x, estimates = verdicts(grads, Hs, best_x[b], s2, params, priors[b], max_halfwidth, ranges, bounded)
         out.append([x, estimates, Hs.sum(axis=0), tau, s2])
     # the acceptance test: each block's mode, replayed, against the best sample by the same posterior cost,
     # allowing for the cost's roughness (ACCEPT_ROUGHNESS x the RMS of what the quadratic leaves)
     at_modes = cost(np.array([o[0] for o in out]))
     for b, m in enumerate(mine):
         x, estimates, _, _, s2 = out[b]
-        sampled = posterior_cost(G[:, m].sum(axis=1), X[:, b], s2)
+        sampled = posterior_cost(G[:searched, m].sum(axis=1), X[:searched, b], s2)  # (the bounded at their prior)
         i = int(np.argmin(sampled))
         near = np.argsort(sampled)[:n_near]
         rough = roughness(X[near, b], sampled[near])
         if posterior_cost(float(at_modes[m].sum()), x, s2) > sampled[i] + ACCEPT_ROUGHNESS * rough:
-            out[b][:2] = X[i, b], _sample_kept(estimates, X[i, b], priors[b], params, ranges)
+            out[b][:2] = X[i, b], _sample_kept(estimates, X[i, b], priors[b], params, ranges, bounded)
     return [tuple(o[:4]) for o in out]
 
 
-def _sample_kept(estimates: dict, x, prior: dict, params, ranges: dict) -> dict:
+def _sample_kept(estimates: dict, x, prior: dict, params, ranges: dict, bounded=()) -> dict:
     """The estimates where the quadratic's mode, replayed, cost more than the best sample (the cost too rough
     at the search's scale for a quadratic to follow): that sample's values (x, log(value / prior)), none
     identifiable, each interval the quadratic's or the prior range's, whichever is wider (as multiples of its
-    value), about that sample's value, with the prior range, within the search's bounds."""
-    kept = {}
+    value), about that sample's value, within the search's bounds, joined with the prior range; the runs'
+    interval alike, not joined with it. The bounded ones (indices) keep their estimates (at their prior)."""
+    kept = {params[i]: estimates[params[i]] for i in bounded}
     for p, xi in zip(params, x):
+        if p in kept:
+            continue
         e, value = estimates[p], prior[p] * math.exp(float(xi))
         lo_p, hi_p = ranges[p]
-        # at least the prior range's width about the value, and the prior range; within the search's bounds
-        low = min(value * min(e.low / e.value, lo_p), prior[p] * lo_p)
-        high = max(value * max(e.high / e.value, hi_p), prior[p] * hi_p)
-        kept[p] = Estimate(value, prior[p], max(low, prior[p] * math.exp(-LOG_BOUND)),
-                           min(high, prior[p] * math.exp(LOG_BOUND)),
-                           False, f"the best of the search's samples (the fitted quadratic's mode, replayed, cost "
-                                  f"more): not identifiable; prior range x{lo_p:g} .. x{hi_p:g} left open")
+        # at least the prior range's width about the value, within the search's bounds, and the prior range (which
+        # may reach past them: the backlash's)
+        low = min(max(value * min(e.low / e.value, lo_p), prior[p] * math.exp(-LOG_BOUND)), prior[p] * lo_p)
+        high = max(min(value * max(e.high / e.value, hi_p), prior[p] * math.exp(LOG_BOUND)), prior[p] * hi_p)
+        runs = (max(value * min(e.runs_range[0] / e.value, lo_p), prior[p] * math.exp(-LOG_BOUND)),
+                min(value * max(e.runs_range[1] / e.value, hi_p), prior[p] * math.exp(LOG_BOUND)))
+        kept[p] = Estimate(value, prior[p], low, high, False,
+                           f"the best of the search's samples (the fitted quadratic's mode, replayed, cost more): not "
+                           f"identifiable; prior range x{lo_p:g} .. x{hi_p:g} left open", *runs)
     return kept
 
 
@@ -508,12 +596,15 @@ def calibrate_hinges(runs: list[Run], shared: DeviceSpec, params=HINGE_PARAMS, p
 
 def _with_shared(own: Estimate, shared: Estimate | None, max_halfwidth: float) -> Estimate:
     """A hinge's estimate with the shared value's uncertainty: its interval x the shared one's (relative to
-    the shared value), identifiable only where the product is still within x(1 -+ max_halfwidth)."""
+    the shared value), identifiable only where the product is still within x(1 -+ max_halfwidth); its runs'
+    interval x the shared runs' interval alike."""
     if shared is None:
         return own
     lo, hi = own.low * shared.low / shared.value, own.high * shared.high / shared.value
+    runs = (own.runs_range[0] * shared.runs_range[0] / shared.value,
+            own.runs_range[1] * shared.runs_range[1] / shared.value)
     pinned = own.identifiable and max(own.value / lo, hi / own.value) <= 1 + max_halfwidth
     note = own.note + f"; with the shared value's interval x{lo / own.value:.3f} .. x{hi / own.value:.3f}"
     if own.identifiable and not pinned:
         note += ": not identifiable"
-    return Estimate(own.value, own.prior, lo, hi, pinned, note)
+    return Estimate(own.value, own.prior, lo, hi, pinned, note, *runs)

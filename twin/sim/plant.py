@@ -13,8 +13,9 @@ the same sequence and physics steps as the twin's loop.
 A device differs hinge by hinge, and has what the twin leaves out (docs/device.md "The emulator's plant"):
 each hinge's motor and gearbox scaled on its own about the shared draw (`HingeDraw`: speed, friction,
 damping, armature), and three effects the twin's default model does not have, drawn per hinge:
-- cogging: MuJoCo's dcmotor `cogging`, amplitude a share of the motor's stall torque, COGGING_POLES
-  periods per motor revolution;
+- cogging: MuJoCo's dcmotor `cogging` (twin.device.mjcf), its amplitude a share of the motor's stall torque
+  drawn per hinge (the spec's `cogging` is the twin's nominal), the spec's `cogging_periods` per motor
+  revolution, its phase against the encoder's edges drawn per hinge (the twin's puts the detents mid-count);
 - a winding that warms: MuJoCo's dcmotor `thermal` (copper's 0.393 %/K; WINDING_* below), starting at a
   drawn temperature (a device that has been running); the firmware's current reading stays the drive
   model's at the cold resistance (MuJoCo applies the hot one to the torque);
@@ -41,7 +42,6 @@ from twin.sim.drive import drive, drive_params
 from twin.sim.hinges import Hinges, physics_substeps
 
 
-COGGING_POLES = 6  # cogging periods per motor revolution: a 2-pole magnet and a 3-slot armature (an assumption)
 RIPPLE_PERIOD = math.radians(12.0)  # rad of gearbox output: a 30-tooth final gear's mesh (an assumption)
 WINDING_RESISTANCE = 40.0  # K/W, winding to ambient: a 12 mm can motor (an assumption; none is published)
 WINDING_TIMECONST = 30.0  # s, the winding's thermal time constant (an assumption)
@@ -52,8 +52,9 @@ REFERENCE_C = 25.0  # deg C: where the spec's resistance holds, and the ambient
 @dataclasses.dataclass(frozen=True)
 class HingeDraw:
     """One hinge of an emulated plant: x on top of the shared draw (speed, friction, damping, armature), its
-    cogging (a share of the motor's stall torque), friction ripple (a share of the gearbox's Coulomb
-    friction) and its phase (rad), and its winding's temperature at power-on (deg C)."""
+    cogging (a share of the motor's stall torque) and the cogging's phase against the encoder (rad at the
+    motor x the spec's cogging_periods), friction ripple (a share of the gearbox's Coulomb friction) and its
+    phase (rad), and its winding's temperature at power-on (deg C)."""
 
     speed: float = 1.0
     friction: float = 1.0
@@ -63,6 +64,7 @@ class HingeDraw:
     ripple: float = 0.0
     ripple_phase: float = 0.0
     winding_c: float = REFERENCE_C
+    cogging_phase: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,7 +96,8 @@ class PlantRanges:
     friction_scale: tuple[float, float] = SPREAD["gear_friction"]
     damping_scale: tuple[float, float] = SPREAD["gear_damping"]
     armature_scale: tuple[float, float] = SPREAD["rotor_inertia"]
-    backlash_deg: tuple[float, float] = (0.0, 0.5)  # deg: SPREAD's top x the spec's 0.25 deg
+    backlash_deg: tuple[float, float] = (0.01, 0.5)  # deg: SPREAD x the spec's 0.25 deg (less is no backlash to
+    # a 0.3 deg count, and the MJCF makes 0 a rigid coupling: calibration's prior starts there too)
     latency_ms: tuple[float, float] = (0.0, 3.0)
     hinge_scale: tuple[float, float] = (0.85, 1.15)  # each hinge's own x on speed, friction, damping, armature
     cogging_pct: tuple[float, float] = (1.0, 5.0)  # % of the motor's stall torque
@@ -133,6 +136,8 @@ def draw_plant(ranges: PlantRanges, rng: random.Random, encoder_miss: float = 0.
                              ripple_phase=rng.uniform(0.0, 2 * math.pi), winding_c=rng.uniform(*ranges.winding_c))
                    for _ in range(n_hinges))
     v.update({name: rng.uniform(*getattr(ranges, name)) for name in LAST})
+    # where each rotor's cogging sits against its encoder's edges: anywhere (drawn after the rest, as LAST)
+    hinges = tuple(dataclasses.replace(h, cogging_phase=rng.uniform(0.0, 2 * math.pi)) for h in hinges)
     return PlantOptions(**v, encoder_miss=encoder_miss, pack_voltage=pack_voltage, hinges=hinges), latency
 
 
@@ -158,10 +163,9 @@ def hinge_specs(body: DeviceSpec, opt: PlantOptions) -> list[DeviceSpec]:
 
 def _motor(s: DeviceSpec, h: HingeDraw, warming: bool) -> str:
     """One hinge's dcmotor attributes: its own motor and gearbox, its cogging, its winding's warming."""
-    stall = s.motor_constant * s.supply_voltage / s.drive_resistance  # N*m at the motor
     thermal = (f' thermal="{WINDING_RESISTANCE!r} 0 {WINDING_TIMECONST!r} {COPPER_TEMPCOEF!r} {REFERENCE_C!r} '
                f'{REFERENCE_C!r}"') if warming else ""
-    return motor_attributes(s) + f' cogging="{h.cogging * stall!r} {COGGING_POLES} 0"' + thermal
+    return motor_attributes(s.replace(cogging=h.cogging, cogging_phase=h.cogging_phase)) + thermal
 
 
 class Plant:
