@@ -205,6 +205,9 @@ def one(seed: int, folder: Path) -> dict:
               f"{e['low'] / e['prior']:8.3f}..{e['high'] / e['prior']:<7.3f}  {verdict(e)}")
     print("  held-out RMSE per hinge, deg: before " + " ".join(f"{x:.3f}" for x in h["rmse_before_deg"]))
     print("                                after  " + " ".join(f"{x:.3f}" for x in h["rmse_after_deg"]))
+    fit = cal["per_hinge_fit"]
+    own = f"each hinge's own ({'kept' if fit['kept'] else 'not kept'})"
+    print(f"{own:>37}  " + " ".join(f"{r['rmse_per_hinge_deg']:.3f}" for r in fit["holdout"]))
     print("    twin given the drawn shared values " + " ".join(f"{x:.3f}" for x in floor))
     print("    floor from the run (encoder, link)  " + " ".join(f"{r['floor_deg']:.3f}" for r in h["per_hinge"]))
     print("    unexplained after calibration       " + " ".join(f"{r['unexplained_deg']:.3f}" for r in h["per_hinge"]))

@@ -146,6 +146,10 @@ def test_serves_twin_moves_each_hinge_with_its_own_plant(spec):
     (lambda rows: rows[:2] + [{"hinge_limit": rows[2]["no_load_speed"]}] + rows[3:], "hinges[2]: hinge_limit: not a plant"),
     (lambda rows: rows[:1] + [{"no_load_speed": {**rows[1]["no_load_speed"], "value": -1.0}}] + rows[2:],
      "hinges[1]: no_load_speed: value -1 is not within"),
+    (lambda rows: rows[:3] + [{"no_load_speed": {**rows[3]["no_load_speed"], "runs_low": 1.0}}] + rows[4:],
+     "hinges[3]: no_load_speed: missing"),  # one end of the runs' interval without the other
+    (lambda rows: rows[:3] + [{"no_load_speed": {**rows[3]["no_load_speed"], "runs_low": 1e3, "runs_high": 2e3}}]
+     + rows[4:], "hinges[3]: no_load_speed: value"),
 ])
 def test_a_damaged_per_hinge_calibration_is_named(capsys, spec, device_profiles, damage, message):
     _run(capsys, "device", "create", "bad")

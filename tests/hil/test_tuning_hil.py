@@ -277,9 +277,10 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     spec = load_spec()
     # known to the test, not to the calibration (latency stays on); soft gains, another recipe than the
     # calibration scenario's (tests/hil/test_calibration_profile.py). Every hinge alike, no cogging, no ripple,
-    # windings that do not warm: a plant the shared fit can represent. With its windings warming, this fit has
-    # called a wrong rotor inertia (x1.80 for x1.3) identifiable; with its hinges drawn apart, x2.07: what issue
-    # 20 asks calibration to stop doing (test_per_hinge_calibration_on_hinges_drawn_apart).
+    # windings that do not warm: a plant the shared fit can represent (the twin's nominal cogging within what
+    # calibration bounds). With its windings warming, this fit has called a wrong rotor inertia (x1.80 for x1.3)
+    # identifiable; with its hinges drawn apart, x2.07: what issue 20 asked calibration to stop doing
+    # (tests/hil/test_calibration_profile.py).
     truth = SHARED_SCALES | {"backlash": math.radians(SHARED_BACKLASH_DEG) / spec.backlash}
     emu = emulator(*SHARED_PLANT, *ALIKE)
     train, hold, cal = record_soft(emu, spec, tmp_path)

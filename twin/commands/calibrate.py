@@ -146,9 +146,9 @@ def run(args) -> int:
               f"(x{e.value / e.prior:.3f}, x{e.low / e.prior:.3f} .. x{e.high / e.prior:.3f})  "
               f"{'identifiable' if e.identifiable else 'NOT IDENTIFIABLE'}: {e.note}")
     for p, e in res.bounded.items():
-        unit = units.get(p, "")
-        print(f"  {p:<14} {e.value:.4g} {unit}  bounded within {e.low:.4g} .. {e.high:.4g} {unit} "
-              f"(x{e.low / e.prior:.3g} .. x{e.high / e.prior:.3g}), not fitted: {e.note}")
+        unit = f" {units[p]}" if units.get(p, "1") != "1" else ""
+        print(f"  {p:<14} {e.value:.4g}{unit}  within {e.low:.4g} .. {e.high:.4g}{unit} "
+              f"(x{e.low / e.prior:.3g} .. x{e.high / e.prior:.3g}): {e.note}")
     print(f"residual autocorrelation {res.autocorrelation_frames:.0f} frames (the intervals allow for it; the "
           "Hessian's singular values are in --json)")
     print(f"fit RMSE (training runs, hinge angles): {res.rmse_before:.3f} deg -> {res.rmse_after:.3f} deg")

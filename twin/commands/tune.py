@@ -87,8 +87,9 @@ def run(args) -> int:
     quiet = json_to_stdout(args)
     if not quiet:
         print(profile_line(profile))
-        print(("calibrated intervals" if profile.ranges() else f"uncalibrated, +-{args.tolerance_pct:g} %")
-              + ": tuned over " + ", ".join(f"{p} {lo:.4g} .. {hi:.4g}" for p, (lo, hi) in ranges.items())
+        print(("calibrated: the twin's values that reproduce its runs" if profile.ranges()
+               else f"uncalibrated, +-{args.tolerance_pct:g} %")
+              + " (SI): tuned over " + ", ".join(f"{p} {lo:.4g} .. {hi:.4g}" for p, (lo, hi) in ranges.items())
               + f" ({2 ** len(ranges) + 1} plants: nominal and corners)"
               + ("; each hinge about its own calibrated values, at its own intervals' corners" if profile.hinges
                  else ""))

@@ -320,8 +320,8 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
     grad, H = grads.sum(axis=0), Hs.sum(axis=0)
     spread = np.array([prior_spread(ranges[p]) for p in params])
     held = list(bounded)
-    notes = {params[i]: "bounded, not fitted: the runs cannot show it apart from the parameters it trades with; "
-                        "the others' intervals allow for it anywhere in its range" for i in bounded}
+    notes = {params[i]: "bounded, not fitted: the runs cannot show it apart from the parameters it trades with, "
+                        "and the others' intervals allow for it anywhere in its range" for i in bounded}
     while True:
         x, cov = posterior_mode(grad, H, xb, s2, spread, held)
         # the jackknife: the mode with each group's cost left out, spread about their mean
@@ -370,7 +370,7 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
             estimates[p] = Estimate(prior[p] * math.exp(x[i]), prior[p], low, high, pinned, note, *runs)
         else:
             estimates[p] = Estimate(prior[p], prior[p], prior[p] * lo_p, prior[p] * hi_p, False,
-                                    notes[p] + f"; prior range x{lo_p:g} .. x{hi_p:g}")
+                                    notes[p] + f"; prior range x{lo_p:.3g} .. x{hi_p:.3g}")
     return x, estimates
 
 
@@ -450,8 +450,8 @@ def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, populati
     emulator, the rough cost's quadratic fit, indefinite, put its mode where the replay was no better than
     the prior). bounded: the indices of parameters held at their prior (`verdicts`): the search leaves them
     there, then BOUNDED_SAMPLES x population more replays about where it ended draw each anywhere in its prior
-    range, so that the quadratic holds how they trade with the others. Returns per block (x (k,), {param: Estimate}, the summed quadratic's Hessian (k, k), the
-    residual's autocorrelation time, frames)."""
+    range, so that the quadratic holds how they trade with the others (`bounded_fit`). Returns per block (x (k,),
+    {param: Estimate}, the summed quadratic's Hessian (k, k), the residual's autocorrelation time, frames)."""
     k, n = len(params), sum(len(b) for b in blocks)
     group_hinge = np.concatenate([np.tile(np.arange(n), JACKKNIFE_SEGMENTS) for _ in frames])
     mine = [np.isin(group_hinge, b) for b in blocks]
