@@ -37,6 +37,7 @@ def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, tune: bool) -> t
     predict (an overshoot over the limit, a settle time off the twin's by more than SETTLE_AGREEMENT)."""
     spec = load_spec()
     folder.mkdir()
+    assert vrscroll(["device", "select", "none"]) == 0  # a new device: not the last seed's profile (its gains)
     emu = emulator(*emulator_args(seed))
     truth, hinges = drawn_plant(emu), drawn_hinges(emu)
     if tune:  # the calibration scenario (7.5 s), for the gains the device has (read from it), and a held-out one
