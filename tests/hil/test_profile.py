@@ -84,6 +84,24 @@ def _hinge_estimates(spec, slow_hinge: int, speed_scale: float) -> list[dict]:
     return rows
 
 
+def test_a_profile_written_before_the_spec_gained_an_entry_takes_the_specs(capsys, spec, device_profiles):
+    """A profile's spec.toml from before the spec had cogging (this round's entries) still loads, the new
+    entries the spec's; a calibration into it keeps its own values and reads back."""
+    _run(capsys, "device", "create", "old")
+    path = device_profiles / "old" / "spec.toml"
+    text = path.read_text()
+    old = "\n".join(line for line in text.splitlines() if not line.startswith("cogging"))
+    assert old != text.rstrip("\n")
+    path.write_text(old.replace("value = 0.004,", "value = 0.005,", 1) + "\n")  # its own friction
+    rc, out, err = _run(capsys, "device", "show", "old")
+    assert rc == 0, err
+    profile = read_profile(device_profiles / "old")
+    assert profile.spec.cogging == spec.cogging and profile.spec.gear_friction == pytest.approx(0.005)
+    write_profile_spec("old", {"no_load_speed": spec.no_load_speed * 0.9}, "test")
+    again = read_profile(device_profiles / "old")
+    assert again.spec.gear_friction == pytest.approx(0.005) and again.spec.cogging_phase == spec.cogging_phase
+
+
 def test_a_profile_calibrated_per_hinge_gives_each_hinge_its_own(capsys, spec, device_profiles):
     """The twin of a profile with per-hinge values (calibrate --per-hinge) moves each hinge with its own motor:
     the hinge whose motor is slower settles later, the others as on the spec's twin; `device show` lists them."""

@@ -150,14 +150,15 @@ class DeviceSpec:
         return dataclasses.replace(self, **changes)
 
 
-def load_spec(path: str | Path = SPEC_PATH) -> DeviceSpec:
-    """Read a spec TOML (twin.device.spec_toml); every DeviceSpec field must be there exactly once."""
-    return DeviceSpec(**read_spec_toml(path, _NAMES)[0])
+def load_spec(path: str | Path = SPEC_PATH, defaults: DeviceSpec | None = None) -> DeviceSpec:
+    """Read a spec TOML (twin.device.spec_toml); every DeviceSpec field must be there exactly once, but for those
+    `defaults` gives (a device profile written before an entry was added takes the spec's)."""
+    return DeviceSpec(**read_spec_toml(path, _NAMES, dataclasses.asdict(defaults) if defaults else None)[0])
 
 
-def spec_sources(path: str | Path = SPEC_PATH) -> dict[str, str]:
-    """Field name -> where its value came from (paper, datasheet, assumption)."""
-    return read_spec_toml(path, _NAMES)[1]
+def spec_sources(path: str | Path = SPEC_PATH, defaults: DeviceSpec | None = None) -> dict[str, str]:
+    """Field name -> where its value came from (paper, datasheet, assumption), as `load_spec` reads it."""
+    return read_spec_toml(path, _NAMES, dataclasses.asdict(defaults) if defaults else None)[1]
 
 
 _NAMES = tuple(f.name for f in dataclasses.fields(DeviceSpec))

@@ -31,8 +31,9 @@ FIELD = {
 }
 
 
-def read_spec_toml(path, fields) -> tuple[dict, dict]:
-    """(field -> value in SI, field -> source) from a spec TOML whose entries are exactly `fields`.
+def read_spec_toml(path, fields, fallback: dict | None = None) -> tuple[dict, dict]:
+    """(field -> value in SI, field -> source) from a spec TOML whose entries are exactly `fields`; fallback
+    (field -> SI) stands in for entries the file lacks (a device profile written before they were added).
 
     ValueError naming the file and the key for a missing, unknown or repeated entry, a word where a
     number goes, NaN or inf, or an entry without its unit or source.
@@ -56,6 +57,8 @@ def read_spec_toml(path, fields) -> tuple[dict, dict]:
             number(value, f"{where}: value")
             values[field] = value_in_si(value, entry["unit"])
             sources[field] = str(entry["source"])
+    for field in (set(fields) - values.keys()) & (fallback or {}).keys():
+        values[field], sources[field] = fallback[field], "the spec's: this file was written before it had this entry"
     missing, unknown = set(fields) - values.keys(), values.keys() - set(fields)
     if missing or unknown:
         raise ValueError(f"{path}: missing {sorted(missing)}, unknown {sorted(unknown)}")

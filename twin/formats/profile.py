@@ -174,7 +174,7 @@ def read_profile(folder) -> Profile:
     holding = _holding(meta["holding"], f"{meta_path}: holding") if "holding" in meta else None
     if not (folder / SPEC).is_file():
         raise ValueError(f"{folder}: device profile without its {SPEC}")
-    spec = load_spec(folder / SPEC)
+    spec = load_spec(folder / SPEC, defaults=load_spec())  # (one written before an entry was added: the spec's)
     design_unchanged(spec, load_spec(), folder / SPEC)
     if (folder / GAINS).is_file():
         gains, source = read_gains(folder / GAINS, spec.n_hinges), str(folder / GAINS)
@@ -211,7 +211,7 @@ def write_profile_spec(name: str, values: dict, source: str, by: str = "vrscroll
         write_spec_toml(spec_tmp, template, values, source,
                         header=f"Device profile {name}: the spec of this device, written by `{by}` "
                                "(docs/tuning-hil-calibration.md).")
-        load_spec(spec_tmp)  # what was written reads back, or nothing is replaced
+        load_spec(spec_tmp, defaults=load_spec())  # what was written reads back, or nothing is replaced
     _write_meta(folder, **parts)
     return folder
 
@@ -251,4 +251,4 @@ def create_profile(name: str) -> Path:
 
 def spec_source_of(profile: Profile) -> dict:
     """field -> where its value came from, for the profile's spec."""
-    return spec_sources(profile.folder / SPEC) if profile.folder else spec_sources()
+    return spec_sources(profile.folder / SPEC, defaults=load_spec()) if profile.folder else spec_sources()
