@@ -21,7 +21,7 @@ from twin.commands.options import (
 )
 from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
-from twin.device.spec_toml import FROM_SI, spec_units, write_spec_toml
+from twin.device.spec_toml import shown, spec_units, value_in_unit, write_spec_toml
 from twin.errors import UserError
 from twin.formats.profile import write_profile_spec
 from twin.formats.run import read_run
@@ -141,13 +141,12 @@ def run(args) -> int:
           "file's unit, its 95 % interval, and both as multiples of the prior:")
     for p, e in res.estimates.items():
         unit = units.get(p, "")
-        si = FROM_SI.get(unit, lambda v: v)
-        print(f"  {p:<14} {si(e.value):.4g} {unit}  interval {si(e.low):.4g} .. {si(e.high):.4g} {unit}  "
+        print(f"  {p:<14} {shown(e.value, unit)}  interval {value_in_unit(e.low, unit):.4g} .. {shown(e.high, unit)}  "
               f"(x{e.value / e.prior:.3f}, x{e.low / e.prior:.3f} .. x{e.high / e.prior:.3f})  "
               f"{'identifiable' if e.identifiable else 'NOT IDENTIFIABLE'}: {e.note}")
     for p, e in res.bounded.items():
-        unit = f" {units[p]}" if units.get(p, "1") != "1" else ""
-        print(f"  {p:<14} {e.value:.4g}{unit}  within {e.low:.4g} .. {e.high:.4g}{unit} "
+        unit = units.get(p, "")
+        print(f"  {p:<14} {shown(e.value, unit)}  within {value_in_unit(e.low, unit):.4g} .. {shown(e.high, unit)} "
               f"(x{e.low / e.prior:.3g} .. x{e.high / e.prior:.3g}): {e.note}")
     print(f"residual autocorrelation {res.autocorrelation_frames:.0f} frames (the intervals allow for it; the "
           "Hessian's singular values are in --json)")
@@ -216,10 +215,8 @@ def _print_hinge_fit(fit: dict, units: dict) -> None:
     for h in fit["hinges"]:
         cells = []
         for p, e in h["parameters"].items():
-            unit = units.get(p, "")
-            si = FROM_SI.get(unit, lambda v: v)
             verdict = "identifiable" if e["identifiable"] else "fitted" if e["value"] != e["prior"] else "shared"
-            cells.append(f"{p} {si(e['value']):.4g} {unit} (x{e['value'] / e['prior']:.3f}, "
+            cells.append(f"{p} {shown(e['value'], units.get(p, ''))} (x{e['value'] / e['prior']:.3f}, "
                          f"x{e['low'] / e['prior']:.2f} .. x{e['high'] / e['prior']:.2f}, {verdict})")
         print(f"  hinge {h['hinge']}: " + "; ".join(cells))
     for label, rows in (("training runs", fit["hinges"]), ("held-out run", fit.get("holdout", []))):

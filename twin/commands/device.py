@@ -7,7 +7,8 @@ import math
 
 from twin.commands.options import select_profile
 from twin.device.profile import NO_PROFILE, default_name, profile_names, profiles_dir, set_default
-from twin.device.spec import spec_sources
+from twin.device.spec import SPEC_PATH, spec_sources
+from twin.device.spec_toml import shown, spec_units, value_in_unit
 from twin.formats.profile import create_profile, spec_source_of
 
 
@@ -47,10 +48,13 @@ def run(args) -> int:
     for k, g in enumerate(profile.gains):
         print(f"  hinge {k}: kp {g.kp:g} ki {g.ki:g} kd {g.kd:g}")
     sources = spec_source_of(profile)
+    units = spec_units(SPEC_PATH)  # each value in the unit the spec file gives it in
     if profile.calibration:
         print("calibration from " + ", ".join(profile.calibration["runs"]) + ":")
         for p, e in profile.calibration["parameters"].items():
-            print(f"  {p:<14} {e['value']:.6g}  (prior {e['prior']:.6g}; interval {e['low']:.6g} .. {e['high']:.6g}; "
+            u = units.get(p, "")
+            print(f"  {p:<14} {shown(e['value'], u, '.6g')}  (prior {shown(e['prior'], u, '.6g')}; interval "
+                  f"{value_in_unit(e['low'], u):.6g} .. {shown(e['high'], u, '.6g')}; "
                   f"{'identifiable' if e['identifiable'] else 'NOT identifiable'}): {e['note']}")
         for k, row in enumerate(profile.calibration.get("hinges", [])):
             print(f"  hinge {k}'s own, x the shared value (95 % interval): " + "; ".join(
@@ -59,12 +63,15 @@ def run(args) -> int:
     else:
         print("not calibrated")
     for p, e in (profile.holding or {}).get("parameters", {}).items():
+        u = units.get(p, "")
         print(f"holding (vrscroll holding, {profile.holding['releases']} release(s) on {profile.holding['port']}): "
-              f"{p} {e['value']:.3g} (prior {e['prior']:.3g}; interval {e['low']:.3g} .. {e['high']:.3g}; "
+              f"{p} {shown(e['value'], u, '.3g')} (prior {shown(e['prior'], u, '.3g')}; interval "
+              f"{value_in_unit(e['low'], u):.3g} .. {shown(e['high'], u, '.3g')}; "
               f"{'identifiable' if e['identifiable'] else 'NOT identifiable'})")
     defaults = spec_sources()
     changed = [f for f, s in sources.items() if s != defaults.get(f)]
     print("spec values not the spec's defaults: " + (", ".join(
-        f"{f} = {getattr(profile.spec, f):.6g} ({sources[f]})" for f in changed) if changed else "none"))
+        f"{f} = {shown(getattr(profile.spec, f), units.get(f, ''), '.6g')} ({sources[f]})" for f in changed)
+        if changed else "none"))
     print(f"hinge limit {math.degrees(profile.spec.hinge_limit):g} deg, {profile.spec.n_hinges} hinges")
     return 0

@@ -70,6 +70,16 @@ def value_in_si(value, unit: str):
     return TO_SI.get(unit, lambda v: v)(value)
 
 
+def value_in_unit(value, unit: str):
+    """A value in SI, in a spec TOML unit (rad -> deg, rad/s -> rpm where the unit says so)."""
+    return FROM_SI.get(unit, lambda v: v)(value)
+
+
+def shown(value, unit: str, fmt: str = ".4g") -> str:
+    """A value in SI as text in a spec TOML unit, the unit after it (none for "1" or no unit)."""
+    return f"{value_in_unit(value, unit):{fmt}}" + (f" {unit}" if unit not in ("", "1") else "")
+
+
 def spec_units(path) -> dict[str, str]:
     """DeviceSpec field -> the unit a spec TOML (one read_spec_toml accepts) gives its value in."""
     raw = parse_toml(read_text(path), str(path))
@@ -86,7 +96,7 @@ def write_spec_toml(path, template, values: dict, source: str, header: str = "")
         if field not in entries:
             raise ValueError(f"{template}: no entry for {field}")
         entry = entries[field]
-        v = FROM_SI.get(entry["unit"], lambda x: x)(value)
+        v = value_in_unit(value, entry["unit"])
         entry["value"] = int(round(v)) if isinstance(entry["value"].unwrap(), int) else float(f"{v:.6g}")
         entry["source"] = source
     text = tomlkit.dumps(doc)

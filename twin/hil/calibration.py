@@ -359,7 +359,7 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
             # no wider than the search's bounds: the runs were never compared with a plant beyond them
             low, high = prior[p] * math.exp(max(lo[i], -LOG_BOUND)), prior[p] * math.exp(min(hi[i], LOG_BOUND))
             runs = (prior[p] * math.exp(max(runs_lo[i], -LOG_BOUND)), prior[p] * math.exp(min(runs_hi[i], LOG_BOUND)))
-            note = f"fitted; 95 % interval x{below:.3f} .. x{above:.3f}"
+            note = f"fitted; the fit's own 95 % interval x{below:.3f} .. x{above:.3f} of the fitted value"
             if not pinned:  # the fit's interval need not hold the truth where model errors load onto it
                 low, high = min(low, prior[p] * lo_p), max(high, prior[p] * hi_p)
                 note += (f", wider than x(1 -+ {max_halfwidth:g}): not identifiable; the fitted value kept, its "
