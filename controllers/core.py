@@ -28,7 +28,7 @@ from twin.errors import UserError
 from twin.paths import cache_dir
 
 FIRMWARE_DIR = Path(__file__).resolve().parent / "firmware"
-FIRMWARE_VERSION = (0, 2, 0)  # major, minor, patch: reported in HELLO_REPLY and STATE
+FIRMWARE_VERSION = (0, 3, 0)  # major, minor, patch: reported in HELLO_REPLY and STATE
 WARNINGS = ("-std=c99", "-Wall", "-Wextra", "-Werror")
 LIBRARY_FLAGS = (*WARNINGS, "-O2", "-shared", "-fPIC")
 TX_CHUNK = 4096  # VRS_TX_CAP: everything queued fits in one read

@@ -379,6 +379,8 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         out[8] = c->zero_confirmed;
         out[9] = c->derated;
         put_positions(c, out + 10);
+        for (k = 0; k < nh; k++)  /* what the PID holds a load with, hidden at rest (its duty is off) */
+            out[10 + 2 * nh + k] = (uint32_t)(int32_t)duty_to_wire(c->pid[k].integral);
         reply(c, id, seq, crc, VRS_MSG_STATE, out, nh);
         return;
     case VRS_MSG_SET_TARGETS:

@@ -93,7 +93,8 @@ def refusals(spec):
 
 
 _DEVICE_MESSAGES = [P.Ack(3, 5), P.NackMsg(3, 4, 1), P.HelloReply((0, 1, 0), 1, 6, 1000, 200, 500),
-                    P.StateMsg((0, 1, 0), 0, 0, 255, 1, 0, (0,) * 6, (0,) * 6), P.GainsReply(0, P.Gains(*[1] * 7)),
+                    P.StateMsg((0, 1, 0), 0, 0, 255, 1, 0, (0,) * 6, (0,) * 6, (0,) * 6),
+                    P.GainsReply(0, P.Gains(*[1] * 7)),
                     P.WiringReply((0, 1, 2, 3, 4, 5), (0,) * 6),
                     P.Telemetry(1, 0, 0, 255, (0,) * 6, (0,) * 6, (0,) * 6, (0,) * 6)]
 
@@ -276,7 +277,21 @@ def test_hello_and_state_report_the_config_and_the_tick(spec):
     c.rx(b"\x01\x02\x00", 0)
     c.tick(5000, [1, 2, 3, 4, 5, 6])
     assert ask(c, P.GetState(), 2, 6000)[1] == P.StateMsg(core.FIRMWARE_VERSION, P.State.IDLE, 0, 0xFF, 6000, 1,
-                                                          (1, 2, 3, 4, 5, 6), (0,) * 6, zero_confirmed=1)
+                                                          (1, 2, 3, 4, 5, 6), (0,) * 6, (0,) * 6,
+                                                          zero_confirmed=1)
+
+
+def test_state_reports_the_integral_the_pid_holds_each_hinge_with(spec):
+    """At rest within the hold band the PID's duty is off and its integral frozen: only STATE shows it."""
+    c = make(spec, watchdog_ms=0)
+    c.set_targets([0, 10, -10, 0, 0, 0], 0)
+    for k in range(200):  # hinges 1 and 2 held 10 counts off their targets: their integrals wind up, opposite
+        c.tick(k * 1000, [0, 0, 0, 0, 0, 0])
+    held = core.pid_memory(c).integral.copy()
+    assert held[1] > 0 > held[2] and held[0] == 0
+    state = ask(c, P.GetState(), 3, 200_000)[1]
+    assert state.integral == tuple(int(round(float(x) * P.DUTY_SCALE)) for x in held)
+    assert state.integral_duty == pytest.approx(held, abs=1 / P.DUTY_SCALE)
 
 
 def test_telemetry_at_the_set_rate_with_the_counts_the_pid_used(spec):

@@ -6,6 +6,7 @@ device on /dev/ttyACM0.
 """
 
 import json
+import re
 import time
 
 import numpy as np
@@ -83,6 +84,17 @@ def test_cli_mirror_and_status(emulator, tmp_path, capsys):
     assert vrscroll(["status", "--serial", emu.port]) == 0
     out = capsys.readouterr().out
     assert f"firmware {'.'.join(map(str, FIRMWARE_VERSION))}" in out and "angles" in out and "faults" in out
+    assert re.search(r"^integral( +-?\d+\.\d){6}  % duty", out, re.M), out
+
+
+def test_a_device_of_another_protocol_version_is_named_as_such(emulator, monkeypatch):
+    """A host and a device flashed apart (a version-3 device, a host that speaks 2): the device refuses every
+    frame with a NACK in its own version, which the host cannot decode; it says so, not just "no reply"."""
+    emu = emulator()
+    monkeypatch.setattr(P, "PROTOCOL_VERSION", P.PROTOCOL_VERSION - 1)
+    with pytest.raises(LinkTimeout, match=rf"answers in protocol version {P.PROTOCOL_VERSION + 1}, this host "
+                                          rf"speaks {P.PROTOCOL_VERSION}: flash the firmware this host ships"):
+        Link(emu.port).open()
 
 
 def test_device_refuses_out_of_range_targets_itself(emulator, spec):

@@ -292,6 +292,14 @@ def test_bad_run_folders_are_refused(tmp_path):
     with pytest.raises(ValueError, match="start_counts: expected 6 whole encoder counts"):
         read_run(run, SPEC)
     meta["start_counts"] = [0] * 6
+    for bad in ([0.1] * 5, [0.1] * 5 + [1.5], [0.1] * 5 + [None], [0.1] * 5 + [True]):
+        meta["start_integral_duty"] = bad
+        (run / "run.json").write_text(json.dumps(meta))
+        with pytest.raises(ValueError, match="start_integral_duty: expected 6 duties, numbers from -1 to 1"):
+            read_run(run, SPEC)
+    meta["start_integral_duty"] = [0.25, -0.5, 0, 1, -1, 0.125]
+    (run / "run.json").write_text(json.dumps(meta))
+    assert read_run(run, SPEC).start.integral.tolist() == meta["start_integral_duty"]
     meta["changes"] = []
     (run / "run.json").write_text(json.dumps(meta))
     with pytest.raises(ValueError, match=r"r/run.json: changes: expected a list .* at least the first target's"):

@@ -57,7 +57,8 @@ json_values = st.recursive(st.one_of(numbers, st.text(max_size=8)),
                            max_leaves=30)
 KEYS = ["angles_deg", "root_position_mm", "root_quat_wxyz", "widths_mm", "variant", "kp", "ki", "kd", "hinges",
         "name", "duration_s", "step", "t_s", "shapes", "starts", "design", "plants", "draws", "count", "value",
-        "scenario", "status", "changes", "start_counts", "start_target_counts", "format", "calibration"]
+        "scenario", "status", "changes", "start_counts", "start_target_counts", "start_integral_duty", "format",
+        "calibration"]
 objects = st.dictionaries(st.sampled_from(KEYS), json_values, max_size=6)
 
 

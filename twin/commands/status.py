@@ -87,6 +87,8 @@ def _report(spec, profile, s, info, held, port) -> None:
     print("angles   " + " ".join(f"{a:7.1f}" for a in deg) + "  deg")
     print("targets  " + " ".join(f"{a:7.1f}" for a in tgt) + "  deg")
     print("counts   " + " ".join(f"{c:7d}" for c in s.counts))
+    print("integral " + " ".join(f"{x * 100:7.1f}" for x in s.integral_duty)
+          + "  % duty (what each PID holds its load with)")
     other = [k for k, (a, b) in enumerate(zip(held, profile.gains)) if a != P.Gains.from_pid(b)]
     print(f"gains    {'as' if not other else 'NOT as'} {profile.label}'s ({profile.gains_from})"
           + (f" on hinges {other}" if other else ""))

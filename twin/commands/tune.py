@@ -23,6 +23,8 @@ from twin.commands.options import (
     within,
     write_json,
 )
+from twin.device.spec import SPEC_PATH
+from twin.device.spec_toml import shown, spec_units, value_in_unit
 from twin.device.variation import tolerance_ranges
 from twin.errors import UserError
 from twin.evaluation.backends import BACKENDS, make_backend
@@ -33,7 +35,7 @@ from twin.hil.mirror import DeviceNotReady, device_step
 from twin.link.serial_link import LinkError
 from twin.sim.gate import GateRefused
 from twin.sim.response import move_report, step_metrics
-from twin.sim.twin import Twin
+from twin.sim.replay import twin_at_start
 from twin.tuning.tuner import TuneGoal, step_report, tune
 
 
@@ -86,10 +88,12 @@ def run(args) -> int:
     before = profile.gains
     quiet = json_to_stdout(args)
     if not quiet:
+        units = spec_units(SPEC_PATH)
         print(profile_line(profile))
         print(("calibrated: the twin's values that reproduce its runs" if profile.ranges()
                else f"uncalibrated, +-{args.tolerance_pct:g} %")
-              + " (SI): tuned over " + ", ".join(f"{p} {lo:.4g} .. {hi:.4g}" for p, (lo, hi) in ranges.items())
+              + ": tuned over " + ", ".join(f"{p} {value_in_unit(lo, units.get(p, '')):.4g} .. "
+                                           f"{shown(hi, units.get(p, ''))}" for p, (lo, hi) in ranges.items())
               + f" ({2 ** len(ranges) + 1} plants: nominal and corners)"
               + ("; each hinge about its own calibrated values, at its own intervals' corners" if profile.hinges
                  else ""))
@@ -165,8 +169,7 @@ def confirm_on_device(args, spec, gains, step, pushed, quiet=False, hinges=None)
         raise UserError(f"{exc} (the tuned gains are on the device and in its profile)") from None
     except LinkError as exc:
         raise UserError(f"link: {exc} (session log: {args.log})") from None
-    twin = Twin(spec, gains, hinges=hinges)
-    twin.reset(start)
+    twin = twin_at_start(spec, gains, start, hinges=hinges)  # where the device is, with the integral it holds
     trace = twin.move_to(targets, max_time=args.duration, stop_when_settled=False)
     pred = move_report(spec, trace)
     band = math.degrees(spec.settle_band * spec.rad_per_count)

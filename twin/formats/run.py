@@ -16,6 +16,7 @@ reports take.
 from __future__ import annotations
 
 import dataclasses
+import math
 import json
 from pathlib import Path
 
@@ -28,8 +29,8 @@ from twin.formats.gains import read_gains
 from twin.formats.trace import Recording, read_trace
 from twin.paths import replacing
 
-RUN_KEYS = ("scenario", "start_counts", "start_target_counts", "before", "telemetry_hz", "firmware_dt_s", "changes",
-            "status", "port", "device_t0_us", "device_rows", "twin_rows", "device_profile")
+RUN_KEYS = ("scenario", "start_counts", "start_target_counts", "start_integral_duty", "before", "telemetry_hz",
+            "firmware_dt_s", "changes", "status", "port", "device_t0_us", "device_rows", "twin_rows", "device_profile")
 BEFORE_KEYS = ("state", "counts", "target_counts")
 COMPLETE = "complete"
 
@@ -43,6 +44,7 @@ class RunStart:
     before_state: str | None = None  # its state just before the run's first move ("ACTIVE", "IDLE", ...)
     before_counts: np.ndarray | None = None  # its counts then
     before_target_counts: np.ndarray | None = None  # its targets then
+    integral: np.ndarray | None = None  # each hinge's PID integral at the start, duty (None: not reported)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,8 +66,10 @@ def run_start(meta: dict) -> RunStart:
     """The start of a run from its run.json (checked by read_run_meta, or being written by the recorder)."""
     before = meta.get("before") or {}
     counts = {k: np.asarray(before[k], np.int64) if k in before else None for k in ("counts", "target_counts")}
+    integral = meta.get("start_integral_duty")
     return RunStart(np.asarray(meta["start_counts"], np.int64), np.asarray(meta["start_target_counts"], np.int64),
-                    before.get("state"), counts["counts"], counts["target_counts"])
+                    before.get("state"), counts["counts"], counts["target_counts"],
+                    None if integral is None else np.asarray(integral, float))
 
 
 def run_changes(meta: dict) -> list:
@@ -87,6 +91,13 @@ def _counts(value, n: int, where: str) -> list[int]:
     return value
 
 
+def _duties(value, n: int, where: str) -> None:
+    if not isinstance(value, list) or len(value) != n or not all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) and -1 <= x <= 1
+            for x in value):
+        raise ValueError(f"{where}: expected {n} duties, numbers from -1 to 1, got {value!r}")
+
+
 def read_run_meta(run_dir, spec: DeviceSpec) -> dict:
     """run.json, checked: its keys, the hinge count of every list, the angles within the hinge range."""
     path = Path(run_dir) / "run.json"
@@ -96,6 +107,8 @@ def read_run_meta(run_dir, spec: DeviceSpec) -> dict:
     n = spec.n_hinges
     _counts(meta["start_counts"], n, f"{path}: start_counts")
     _counts(meta["start_target_counts"], n, f"{path}: start_target_counts")
+    if "start_integral_duty" in meta:
+        _duties(meta["start_integral_duty"], n, f"{path}: start_integral_duty")
     if "before" in meta:
         before = meta["before"]
         if not isinstance(before, dict):

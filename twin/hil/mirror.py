@@ -22,6 +22,7 @@ import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
 from twin.device.spec import DeviceSpec
+from twin.formats.run import run_start
 from twin.formats.trace import Recording
 from twin.hil.device_gains import device_gains
 from twin.link import protocol as P
@@ -78,6 +79,15 @@ def wait_for_rest(link: Link, spec: DeviceSpec, timeout: float = 3.0) -> P.State
     raise DeviceNotReady(f"the device is still moving after {timeout:.0f} s; nothing was sent")
 
 
+def start_meta(prior: P.StateMsg, state: P.StateMsg) -> dict:
+    """run.json's entries for where the device is at a run's start (state: its counts, targets and PID
+    integral) and was just before it (prior); twin.formats.run.run_start reads them."""
+    return {"start_counts": list(state.counts), "start_target_counts": list(state.targets),
+            "start_integral_duty": [round(x, 6) for x in state.integral_duty],
+            "before": {"state": P.enum_name(P.State, prior.state), "counts": list(prior.counts),
+                       "target_counts": list(prior.targets)}}
+
+
 def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, settle_limit: float = 2.0,
            override: bool = False, telemetry_hz: int = 500, on_frame=None, hinges=None) -> MirrorResult:
     """Gate, send and watch one move (targets in rad). GateRefused if the twin finds it unsafe.
@@ -100,7 +110,8 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
     twin = Twin(spec, gains, hinges=hinges)
     for _ in range(3):  # gate from the present state; again if the device moved while the twin simulated
         start = angle_from_counts(spec, state.counts)
-        report = check_move(spec, start, targets, gains, settle_limit=settle_limit, twin=twin)
+        report = check_move(spec, start, targets, gains, settle_limit=settle_limit, twin=twin,
+                            integral=state.integral_duty)
         link.log("gate", **report.to_dict())
         now = link.get_state()
         if np.abs(np.asarray(now.counts) - state.counts).max() <= REST_COUNTS:
@@ -209,15 +220,16 @@ def _recording(spec: DeviceSpec, rows) -> Recording | None:
 def device_step(link: Link, spec: DeviceSpec, targets, settle_limit: float = 2.0):
     """Bring the device to flat, then step to targets (rad), both gated through `mirror`.
 
-    Returns (t s, angle deg (frames, n), start angle rad, the step's MirrorResult): the device's
-    encoder angles from the moment the step took effect until it settled (or mirror gave up).
+    Returns (t s, angle deg (frames, n), where the step started (twin.formats.run.RunStart: for
+    twin.sim.replay.twin_at_start), the step's MirrorResult): the device's encoder angles from the moment
+    the step took effect until it settled (or mirror gave up).
     """
     n = spec.n_hinges
+    prior = wait_for_rest(link, spec)
     res = mirror(link, spec, np.zeros(n), settle_limit=settle_limit)
     if not res.ok:
         raise RuntimeError(f"device did not reach flat: {res.message}")
-    state = wait_for_rest(link, spec)
-    start = angle_from_counts(spec, state.counts)
+    start = run_start(start_meta(prior, wait_for_rest(link, spec)))
     ts, ys = [], []
     res = mirror(link, spec, targets, settle_limit=settle_limit, tolerance_deg=30.0,
                  on_frame=lambda t, dev, pred: (ts.append(t), ys.append(np.array(dev))))

@@ -26,7 +26,7 @@ from twin.formats.run import run_start, write_run_meta
 from twin.formats.scenario import Scenario
 from twin.formats.trace import TraceWriter
 from twin.hil.device_gains import device_gains, push_gains, restore_gains
-from twin.hil.mirror import faults_text, mirror, wait_for_rest
+from twin.hil.mirror import faults_text, mirror, start_meta, wait_for_rest
 from twin.link import protocol as P
 from twin.sim.gate import GateRefused, check_scenario, enforce
 from twin.sim.replay import replay_targets, twin_at_start
@@ -73,10 +73,8 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
         shutil.copy(scenario_path, out / ("scenario" + Path(scenario_path).suffix))
     write_gains(out / "gains.json", gains, {"source": f"read from the device at {link.url}"})
     state = wait_for_rest(link, spec)
-    meta = {"scenario": scenario.name, "start_counts": list(state.counts), "start_target_counts": list(state.targets),
-            "before": {"state": P.enum_name(P.State, prior.state), "counts": list(prior.counts),
-                       "target_counts": list(prior.targets)},
-            "telemetry_hz": telemetry_hz, "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url,
+    meta = {"scenario": scenario.name, **start_meta(prior, state), "telemetry_hz": telemetry_hz,
+            "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url,
             "device_profile": profile}
     twin = twin_at_start(spec, gains, run_start(meta), hinges=hinges)
 

@@ -22,7 +22,8 @@ import struct
 
 from controllers.pid import PidGains
 
-PROTOCOL_VERSION = 2  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING
+PROTOCOL_VERSION = 3  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING;
+# 3: STATE carries each hinge's PID integral
 MAX_FRAME = 512  # bytes of decoded payload (header + body + crc); longer is garbage
 DUTY_SCALE = 32767  # duty [-1, 1] on the wire as int16 duty * 32767
 GAIN_SCALE = 10_000_000  # kp, ki, kd on the wire as int32 gain * 1e7
@@ -129,6 +130,14 @@ def enum_name(kind, value: int) -> str:
 
 class ProtocolError(ValueError):
     """A frame that cannot be decoded (bad COBS, CRC, length, version or id)."""
+
+
+class VersionError(ProtocolError):
+    """An intact frame (its CRC good) of another protocol version: `version`, the one its sender speaks."""
+
+    def __init__(self, version: int):
+        self.version = version
+        super().__init__(f"protocol version {version}, expected {PROTOCOL_VERSION}")
 
 
 # ---- checksum and framing -----------------------------------------------------------
@@ -360,7 +369,7 @@ class HelloReply:
 
 @dataclasses.dataclass(frozen=True)
 class StateMsg:
-    """Device -> host: state, faults, counts and targets at device time `time_us`."""
+    """Device -> host: state, faults, counts, targets and PID integrals at device time `time_us`."""
 
     MSG = MsgId.STATE
     firmware: tuple[int, int, int]
@@ -371,8 +380,14 @@ class StateMsg:
     rx_bad_frames: int
     counts: tuple[int, ...]
     targets: tuple[int, ...]
+    integral: tuple[int, ...]  # each hinge's PID integral, duty * DUTY_SCALE: the effort it holds a load with
     zero_confirmed: int = 0  # 1 once CONFIRM_ZERO was heard since the start
     derated: int = 0  # bit k: hinge k's duty held to its continuous rating by the I2t protection
+
+    @property
+    def integral_duty(self) -> tuple[float, ...]:
+        """Each hinge's PID integral, duty (-1 to 1)."""
+        return tuple(x / DUTY_SCALE for x in self.integral)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -482,7 +497,7 @@ LAYOUTS = {
                                            ("wiring_set", "B"))),
     MsgId.STATE: Layout(StateMsg, (("firmware", "3B"), ("state", "B"), ("faults", "H"), ("fault_hinge", "B"),
                                    ("time_us", "I"), ("rx_bad_frames", "I"), ("zero_confirmed", "B"), ("derated", "B")),
-                        (("counts", "i"), ("targets", "i"))),
+                        (("counts", "i"), ("targets", "i"), ("integral", "h"))),
     MsgId.GAINS: Layout(GainsReply, (("hinge", "B"), ("gains", "gains"))),
     MsgId.TELEMETRY: Layout(Telemetry, (("time_us", "I"), ("state", "B"), ("faults", "H"), ("fault_hinge", "B")),
                             (("counts", "i"), ("targets", "i"), ("duty", "h"), ("current_ma", "h"))),
@@ -563,7 +578,7 @@ def decode_frame(frame: bytes) -> tuple[int, object]:
         raise ProtocolError("CRC mismatch")
     version, mid, seq = _HEADER.unpack(body[:_HEADER.size])
     if version != PROTOCOL_VERSION:
-        raise ProtocolError(f"protocol version {version}, expected {PROTOCOL_VERSION}")
+        raise VersionError(version)
     return seq, _decode_body(mid, body[_HEADER.size:])
 
 
@@ -582,6 +597,7 @@ class Decoder:
         self.bad_frames = 0
         self.good_frames = 0
         self.last_error = ""
+        self.other_version = None  # the version of the last intact frame of another protocol version
 
     def feed(self, data: bytes) -> list[tuple[int, object]]:
         out = []
@@ -604,6 +620,8 @@ class Decoder:
                     self.good_frames += 1
                 except (ProtocolError, struct.error, IndexError) as exc:
                     self._bad(str(exc))
+                    if isinstance(exc, VersionError):
+                        self.other_version = exc.version
             self._buf = bytearray()
             start = end + 1
 

@@ -238,7 +238,10 @@ class Link:
                     break
             else:
                 self.log("timeout", msg=msg.MSG.name, seq=seq)
-                echo = (" (only the host's own frames came back: a looped-back line, not a device?)"
+                other = self.decoder.other_version
+                echo = (f" (the device answers in protocol version {other}, this host speaks {P.PROTOCOL_VERSION}: "
+                        "flash the firmware this host ships, docs/firmware.md 'Flashing')" if other is not None else
+                        " (only the host's own frames came back: a looped-back line, not a device?)"
                         if self.echoes else "")
                 raise LinkTimeout(f"{self.url}: no reply to {msg.MSG.name} after {retries + 1} tries "
                                   f"of {timeout * 1000:.0f} ms{echo}")

@@ -121,14 +121,15 @@ def flap_contacts(model: mujoco.MjModel, data: mujoco.MjData, hinge_qadr, angles
 
 def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float = 2.0,
                collision_step: float = 0.005, peak_current_limit: float | None = None,
-               hold_current_limit: float | None = None, twin: Twin | None = None) -> GateReport:
-    """Simulate start -> targets (rad) on the twin with the device's gains (one PidGains or one per hinge)."""
+               hold_current_limit: float | None = None, twin: Twin | None = None, integral=None) -> GateReport:
+    """Simulate start -> targets (rad) on the twin with the device's gains (one PidGains or one per hinge),
+    from the PID integral the device holds (duty per hinge, its STATE's; default none)."""
     start = np.asarray(start, float)
     targets = np.asarray(targets, float)
     checks = [_range_check(spec, [targets])]
     if not checks[0].passed:
         return GateReport(start, targets, checks, None)
-    twin = _twin_at(spec, start, gains, twin)
+    twin = _twin_at(spec, start, gains, twin, integral)
     trace = twin.move_to(targets, max_time=settle_limit, stop_when_settled=True)
     moved = _heat(twin)
     hold = twin.hold(spec.settle_hold)  # keep simulating: the hold current is what the device draws at rest
@@ -181,13 +182,14 @@ def _range_check(spec: DeviceSpec, steps) -> Check:
     return Check("range", float(far[i, k]) <= lim + 1e-9, float(far[i, k]), lim, "deg", detail)
 
 
-def _twin_at(spec: DeviceSpec, start, gains, twin: Twin | None) -> Twin:
-    """A twin (the given one, or a new one) with the device's gains, holding the start angles (rad)."""
+def _twin_at(spec: DeviceSpec, start, gains, twin: Twin | None, integral=None) -> Twin:
+    """A twin (the given one, or a new one) with the device's gains, holding the start angles (rad) with
+    the PID integral given (duty per hinge; default none)."""
     if twin is None:
         twin = Twin(spec, gains if isinstance(gains, PidGains) or gains is None else list(gains))
     else:
         twin.set_gains(PidGains.from_spec(spec) if gains is None else gains)
-    twin.reset(np.clip(start, -spec.hinge_limit, spec.hinge_limit))
+    twin.reset(np.clip(start, -spec.hinge_limit, spec.hinge_limit), integral)
     return twin
 
 

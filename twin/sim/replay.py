@@ -29,8 +29,9 @@ def twin_at_start(plant: DeviceSpec, gains, start: RunStart, spec: DeviceSpec | 
     before_*): resting at the device's pose before the run (holding its targets if it was ACTIVE;
     limp and with a fresh PID, as after IDLE, if not), then brought to the start targets (REST s
     each); finally its hinges are put exactly where the device's encoders say (mid-count: the
-    encoder floors), its firmware state kept. plant: the physics (hinges: each hinge's own, where they
-    differ); spec: the device's encoder (default: the plant's).
+    encoder floors), its firmware state kept. Where the device reported its PID integral (start.integral,
+    from STATE since protocol 3), the twin is put there with it instead. plant: the physics (hinges: each
+    hinge's own, where they differ); spec: the device's encoder (default: the plant's).
     """
     spec = spec or plant
     twin = Twin(plant, gains, hinges=hinges)
@@ -38,6 +39,9 @@ def twin_at_start(plant: DeviceSpec, gains, start: RunStart, spec: DeviceSpec | 
     def put(counts):
         return np.clip(angle_from_counts(spec, np.asarray(counts) + 0.5), -spec.hinge_limit, spec.hinge_limit)
 
+    if start.integral is not None:  # the device said what its PID holds: no history to guess it from
+        twin.reset(put(start.counts), start.integral)
+        return twin
     twin.reset(put(start.before_counts))
     if start.before_state == "ACTIVE":
         twin.move_to(angle_from_counts(spec, start.before_target_counts), max_time=REST, stop_when_settled=False)

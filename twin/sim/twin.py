@@ -71,8 +71,9 @@ class Twin:
         self._run(np.zeros(n), 0.0, False)  # compile the loop now, so moves time only the simulation
 
     # ---- state ---------------------------------------------------------------
-    def reset(self, angles=None) -> None:
-        """Back to the `flat` keyframe (or given hinge angles, rad); the firmware restarted, holding there."""
+    def reset(self, angles=None, integral=None) -> None:
+        """Back to the `flat` keyframe (or given hinge angles, rad); the firmware restarted, holding there,
+        its PID integral per hinge `integral` (duty, as a device's STATE reports it; default none)."""
         mujoco.mj_resetDataKeyframe(self.model, self.data, self.model.key("flat").id)
         if angles is not None:
             place_hinges(self.data.qpos, self.hinges, check_targets(self.spec, angles))
@@ -80,6 +81,8 @@ class Twin:
         self._bus[0] = self.spec.supply_voltage
         self._target[:] = self.counts
         self.firmware = start_core(self.spec, self.gains, self._target, self.stall_detection)
+        if integral is not None:
+            self.pid.integral[:] = integral
         self._now_us = 0
 
     def set_gains(self, gains) -> None:
