@@ -17,6 +17,7 @@ from websockets.asyncio.client import connect
 
 from twin.cli import main as vrscroll
 from twin.live.client import LiveClient, LiveError
+from twin.live.morph import TwinMorpher
 from twin.live.messages import (MAX_CONTROL_BYTES, MAX_DATAGRAM_BYTES, ProtocolError, parse_control,
                                 parse_datagram, sample_datagram)
 from twin.live.player import stroke
@@ -29,6 +30,8 @@ from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import load_shape
 from twin.morphpatch.surface_metrics import msd_hd, point_distances
 from twin.perception.thresholds import load_thresholds
+from twin.sim.response import move_report
+from twin.sim.twin import Twin
 
 CYLINDER_START = ([10.0, 0.0, 190.0], [1.0, 0.0, 0.0, 0.0])  # mm, above the cylinder's top, level
 
@@ -119,6 +122,23 @@ def test_frame_estimates_agree_with_the_exact_metrics(spec):
     msd, share = frame_estimates(spec, build_fields(load_shape("cylinder")), thresholds, lifted, np.zeros(6),
                                  np.full(7, spec.flap_pitch))
     assert msd > 0.05 and share == 0.0
+
+
+def test_the_twin_without_a_device_is_one_device_across_morphs(spec):
+    """The service's twin, with no device attached, keeps what its last morph left the PID holding (the
+    integral, frozen at rest as a device's): a morph from there is predicted as a twin that made both moves
+    in one run. Started empty, each morph's prediction came 4-12 ms sooner."""
+    first, second = np.radians([-20, -30, -40, -40, -30, -20]), np.radians([20, 30, 40, 40, 30, 20])
+    one = Twin(spec)
+    one.move_to(first, max_time=2.0)
+    one.hold(spec.settle_hold)
+    both = [r["settle_time_s"] for r in move_report(spec, one.move_to(second, max_time=2.0))]
+    morpher, moves = TwinMorpher(spec), []
+    morpher.open()
+    morpher.on_move = lambda _, trace: moves.append(trace)
+    for targets in (first, second):
+        assert morpher.morph(targets, lambda message: None).status == "done"
+    assert [r["settle_time_s"] for r in move_report(spec, moves[-1])] == pytest.approx(both, abs=0.002)
 
 
 def test_bad_command_lines_are_one_line_errors(capsys):

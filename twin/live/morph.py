@@ -159,13 +159,15 @@ class TwinMorpher:
         self.hinges = hinges  # each hinge's own plant (a per-hinge calibration's)
         self.twin = None
         self.angles = np.zeros(spec.n_hinges)
+        self.integral = None  # the PID integral per hinge its last morph left (duty), as a device holds it
         self.name = "twin (no device attached)"
 
     def open(self) -> None:
         self.twin = Twin(self.spec, self.gains, hinges=self.hinges)
 
     def morph(self, targets, emit) -> MorphOutcome:
-        report = check_move(self.spec, self.angles, targets, self.gains, settle_limit=SETTLE_LIMIT, twin=self.twin)
+        report = check_move(self.spec, self.angles, targets, self.gains, settle_limit=SETTLE_LIMIT, twin=self.twin,
+                            integral=self.integral)
         emit({"type": "gate", **report.to_dict()})
         if not report.passed:
             return MorphOutcome("refused", None, report.refusal())
@@ -179,6 +181,7 @@ class TwinMorpher:
             emit({"type": "progress", "elapsed_s": round(k * step, 4), "source": "twin",
                   "angles_deg": angles, "predicted_deg": angles})
         self.angles = trace.angle[-1].copy()
+        self.integral = self.twin.pid.integral.copy()
         if self.on_move is not None:
             self.on_move(None, trace)
         return MorphOutcome("done", self.angles.copy(), f"the twin's settle time {report.settle_time:.3f} s",
