@@ -27,14 +27,14 @@ def _json(capsys, *args):
     return json.loads(capsys.readouterr().out)
 
 
-def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, tune: bool) -> tuple[dict, list[str], list[str]]:
-    """Record the calibration scenario and a held-out one on the plant drawn from `seed`, calibrate per hinge
-    into a device profile, and (tune) tune on it and push the gains. Tuning pushes only gains that keep every
+def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, tune: bool) -> tuple[dict, list[str]]:
+    """Record a training run and a held-out one on the plant drawn from `seed`, calibrate per hinge into a
+    device profile, and (tune) tune on it and push the gains. Tuning pushes only gains that keep every
     limit on every plant of the calibrated intervals; where none do, it must say which limit it broke on which
     plant and which parameter's range set the worst case, and push nothing ("refused" in the tally). Returns
-    the judged tally, what failed in words (a value called identifiable off the drawn one, the held-out
-    criterion, a refusal that does not say why) and, apart, what the pushed gains did that the twin did not
-    predict (an overshoot over the limit, a settle time off the twin's by more than SETTLE_AGREEMENT)."""
+    the judged tally and what failed in words (a value called identifiable off the drawn one, the held-out
+    criterion, a refusal that does not say why, pushed gains that overshoot the limit or settle off the
+    twin's prediction by more than SETTLE_AGREEMENT)."""
     spec = load_spec()
     folder.mkdir()
     assert vrscroll(["device", "select", "none"]) == 0  # a new device: not the last seed's profile (its gains)
@@ -61,7 +61,6 @@ def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, tune: bool) -> t
     for row, own in zip(fit["hinges"], kept or []):
         assert all(getattr(own, p) == pytest.approx(e["value"]) for p, e in row["parameters"].items())
     tally = judged(cal, hinges, truth)
-    unpredicted = []
     failed = [f"seed {seed}: {m}" for m in tally.pop("misses") if "identifiable" in m]
     floor = trace_rmse(read_run(folder / "hold", spec),
                        spec.replace(**{k: v for k, v in truth.items() if k != "supply_voltage"}), spec)
@@ -78,35 +77,33 @@ def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, tune: bool) -> t
             failed.append(f"seed {seed}: tune failed ({rc}) without naming the limit it broke and the range")
         for r in tuned.get("device", []):
             if r["device_overshoot_deg"] > 1.0:
-                unpredicted.append(f"seed {seed}: hinge {r['hinge']} overshoots {r['device_overshoot_deg']} deg")
+                failed.append(f"seed {seed}: hinge {r['hinge']} overshoots {r['device_overshoot_deg']} deg")
             if abs(r["device_settle_s"] / r["twin_settle_s"] - 1) > SETTLE_AGREEMENT:
-                unpredicted.append(f"seed {seed}: hinge {r['hinge']} settles in {r['device_settle_s']} s, the twin "
+                failed.append(f"seed {seed}: hinge {r['hinge']} settles in {r['device_settle_s']} s, the twin "
                               f"predicted {r['twin_settle_s']} s")
     emu.stop()  # (one emulator at a time: each runs in real time)
-    return tally, failed, unpredicted
+    return tally, failed
 
 
 def judge_seeds(seeds, emulator, tmp_path, capsys, tune: bool) -> None:
     """Every seed's plant calibrated (and tuned): the intervals hold the drawn values COVERAGE of the time over
-    all of them, and nothing in `calibrated_on_a_drawn_plant`'s list failed on any. What pushed gains did that
-    the twin did not predict is issue 20's open part: the test is then marked an expected failure, naming it."""
-    total, failed, unpredicted = {}, [], []
+    all of them, and nothing in `calibrated_on_a_drawn_plant`'s list failed on any."""
+    total, failed = {}, []
     for seed in seeds:
-        tally, why, surprise = calibrated_on_a_drawn_plant(seed, emulator, tmp_path / f"seed{seed}", capsys, tune)
+        tally, why = calibrated_on_a_drawn_plant(seed, emulator, tmp_path / f"seed{seed}", capsys, tune)
         total = {k: total.get(k, 0) + v for k, v in tally.items()}
         failed += why
-        unpredicted += surprise
     print(f"over {len(seeds)} drawn plants: {total}")  # (with -s: how many intervals held, tunings refused)
     assert total["hold"] >= COVERAGE * total["intervals"], total
     assert not failed, failed
-    if unpredicted:  # docs/tuning-hil-calibration.md "Tuned and pushed"
-        pytest.xfail("issue 20, open: pushed gains the twin did not predict: " + "; ".join(unpredicted))
 
 
 def test_calibration_on_two_drawn_plants(emulator, tmp_path, capsys):
-    """Issue 20's criteria on two plants, calibration only, on short runs (the slow test's are the calibration
-    scenario's, and it tunes too): plants drawn with each hinge's own speed, friction, damping and inertia,
-    cogging at any phase, friction ripple and warming windings, never told to the twin."""
+    """Issue 20's calibration criteria on two plants, on short runs (the slow test's are the calibration
+    scenario's, and it tunes and pushes too: a twin calibrated on these 2 s runs predicted a pushed step's settle
+    time 17 % off on one hinge in one of two tries, docs/tuning-hil-calibration.md "Tuned and pushed"): plants
+    drawn with each hinge's own speed, friction, damping and inertia, cogging at any phase, friction ripple and
+    warming windings, never told to the twin."""
     judge_seeds((21, 22), emulator, tmp_path, capsys, tune=False)
 
 

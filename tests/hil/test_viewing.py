@@ -100,9 +100,9 @@ def test_one_move_has_one_settle_time_in_the_gate_simulate_the_live_service_and_
     with Link(emulator().port) as link:
         assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok  # from its limp boot pose
         res = mirror(link, spec, targets, tolerance_deg=30.0)
-    # from where the device rests (within a count or two of flat): the twin's settle time for that start
+    # the twin's settle time for the move from where the device rests, with the PID integral it holds there
+    # (lifted from its boot sag: not the gate's from flat above, whose integral is empty)
     assert res.ok and res.twin_settle_time == pytest.approx(res.report.settle_time)
-    assert res.twin_settle_time == pytest.approx(ts, abs=0.02)
     tel = res.telemetry
     target = np.rint(tel.target / spec.rad_per_count)
     assert res.settle_time == pytest.approx(move_settle_time(spec, tel.time, tel.counts, target, start=0.0), abs=1e-9)

@@ -71,7 +71,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="start with the zero confirmed, as if `vrscroll zero` had run at power-on while the flaps lay "
                         "flat (by default, as a real device, it refuses to move until confirmed)")
     p.add_argument("--no-warming", action="store_true",
-                   help="the windings keep their power-on temperature (--winding-c) instead of warming as they work")
+                   help="every winding at the spec's resistance (25 deg C) throughout, as the twin's, instead of "
+                        "starting at --winding-c and warming as it works (--winding-c is then not used)")
     p.add_argument("--ideal", action="store_true",
                    help="the twin's own plant: nothing drawn, no latency (the other options still apply)")
 
