@@ -16,8 +16,8 @@ reports take.
 from __future__ import annotations
 
 import dataclasses
-import math
 import json
+import math
 from pathlib import Path
 
 import numpy as np
