@@ -21,7 +21,7 @@ from twin.commands.options import (
 )
 from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
-from twin.device.spec_toml import shown, spec_units, value_in_unit, write_spec_toml
+from twin.device.spec_toml import shown, shown_range, spec_units, write_spec_toml
 from twin.errors import UserError
 from twin.formats.profile import write_profile_spec
 from twin.formats.run import read_run
@@ -141,12 +141,12 @@ def run(args) -> int:
           "file's unit, its 95 % interval, and both as multiples of the prior:")
     for p, e in res.estimates.items():
         unit = units.get(p, "")
-        print(f"  {p:<14} {shown(e.value, unit)}  interval {value_in_unit(e.low, unit):.4g} .. {shown(e.high, unit)}  "
+        print(f"  {p:<14} {shown(e.value, unit)}  interval {shown_range(e.low, e.high, unit)}  "
               f"(x{e.value / e.prior:.3f}, x{e.low / e.prior:.3f} .. x{e.high / e.prior:.3f})  "
               f"{'identifiable' if e.identifiable else 'NOT IDENTIFIABLE'}: {e.note}")
     for p, e in res.bounded.items():
         unit = units.get(p, "")
-        print(f"  {p:<14} {shown(e.value, unit)}  within {value_in_unit(e.low, unit):.4g} .. {shown(e.high, unit)} "
+        print(f"  {p:<14} {shown(e.value, unit)}  within {shown_range(e.low, e.high, unit)} "
               f"(x{e.low / e.prior:.3g} .. x{e.high / e.prior:.3g}): {e.note}")
     print(f"residual autocorrelation {res.autocorrelation_frames:.0f} frames (the intervals allow for it; the "
           "Hessian's singular values are in --json)")

@@ -8,7 +8,7 @@ import math
 from twin.commands.options import select_profile
 from twin.device.profile import NO_PROFILE, default_name, profile_names, profiles_dir, set_default
 from twin.device.spec import SPEC_PATH, spec_sources
-from twin.device.spec_toml import shown, spec_units, value_in_unit
+from twin.device.spec_toml import shown, shown_range, spec_units
 from twin.formats.profile import create_profile, spec_source_of
 
 
@@ -54,7 +54,7 @@ def run(args) -> int:
         for p, e in profile.calibration["parameters"].items():
             u = units.get(p, "")
             print(f"  {p:<14} {shown(e['value'], u, '.6g')}  (prior {shown(e['prior'], u, '.6g')}; interval "
-                  f"{value_in_unit(e['low'], u):.6g} .. {shown(e['high'], u, '.6g')}; "
+                  f"{shown_range(e['low'], e['high'], u, '.6g')}; "
                   f"{'identifiable' if e['identifiable'] else 'NOT identifiable'}): {e['note']}")
         for k, row in enumerate(profile.calibration.get("hinges", [])):
             print(f"  hinge {k}'s own, x the shared value (95 % interval): " + "; ".join(
@@ -66,7 +66,7 @@ def run(args) -> int:
         u = units.get(p, "")
         print(f"holding (vrscroll holding, {profile.holding['releases']} release(s) on {profile.holding['port']}): "
               f"{p} {shown(e['value'], u, '.3g')} (prior {shown(e['prior'], u, '.3g')}; interval "
-              f"{value_in_unit(e['low'], u):.3g} .. {shown(e['high'], u, '.3g')}; "
+              f"{shown_range(e['low'], e['high'], u, '.3g')}; "
               f"{'identifiable' if e['identifiable'] else 'NOT identifiable'})")
     defaults = spec_sources()
     changed = [f for f, s in sources.items() if s != defaults.get(f)]

@@ -24,7 +24,7 @@ from twin.commands.options import (
     write_json,
 )
 from twin.device.spec import SPEC_PATH
-from twin.device.spec_toml import shown, spec_units, value_in_unit
+from twin.device.spec_toml import shown_range, spec_units
 from twin.device.variation import tolerance_ranges
 from twin.errors import UserError
 from twin.evaluation.backends import BACKENDS, make_backend
@@ -92,8 +92,8 @@ def run(args) -> int:
         print(profile_line(profile))
         print(("calibrated: the twin's values that reproduce its runs" if profile.ranges()
                else f"uncalibrated, +-{args.tolerance_pct:g} %")
-              + ": tuned over " + ", ".join(f"{p} {value_in_unit(lo, units.get(p, '')):.4g} .. "
-                                           f"{shown(hi, units.get(p, ''))}" for p, (lo, hi) in ranges.items())
+              + ": tuned over " + ", ".join(f"{p} {shown_range(lo, hi, units.get(p, ''))}"
+                                           for p, (lo, hi) in ranges.items())
               + f" ({2 ** len(ranges) + 1} plants: nominal and corners)"
               + ("; each hinge about its own calibrated values, at its own intervals' corners" if profile.hinges
                  else ""))

@@ -80,6 +80,11 @@ def shown(value, unit: str, fmt: str = ".4g") -> str:
     return f"{value_in_unit(value, unit):{fmt}}" + (f" {unit}" if unit not in ("", "1") else "")
 
 
+def shown_range(low, high, unit: str, fmt: str = ".4g") -> str:
+    """Two values in SI as "low .. high unit" in a spec TOML unit (as `shown`)."""
+    return f"{value_in_unit(low, unit):{fmt}} .. {shown(high, unit, fmt)}"
+
+
 def spec_units(path) -> dict[str, str]:
     """DeviceSpec field -> the unit a spec TOML (one read_spec_toml accepts) gives its value in."""
     raw = parse_toml(read_text(path), str(path))
