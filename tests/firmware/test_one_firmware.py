@@ -8,9 +8,12 @@ from controllers.encoder import target_counts
 from controllers.pid import PidGains
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions
+from twin.device.variation import scaled
+from twin.formats.run import RunStart
 from twin.link.faults import FaultOptions
 from twin.sim.plant import as_twin
 from twin.sim.batch import TwinBatch
+from twin.sim.replay import replay_batch, replay_targets, twin_at_start
 from twin.sim.targets import TargetError
 from twin.sim.twin import Twin
 
@@ -42,6 +45,31 @@ def test_twin_batch_and_emulator_agree_to_the_count(spec, timestep):
     for i in range(2):
         np.testing.assert_array_equal(batch["counts"][:, i], single.counts)
     np.testing.assert_array_equal(emulated, single.counts)
+
+
+@pytest.mark.parametrize("reported", [True, False], ids=["integral reported", "history replayed"])
+def test_a_recorded_run_replays_alike_on_the_single_and_the_batch_twin(spec, reported):
+    """Calibration replays a run on many candidate plants at once (replay_batch), `vrscroll hil` on one twin as
+    the telemetry comes in (twin_at_start, replay_targets): from the same start, with the integral the device
+    reported or with the history before it, on plants that differ (one with each hinge its own motor), they
+    agree to the count and the duty, tick by tick."""
+    counts = target_counts(spec, np.radians([5.0, -3.0, 12.0, -12.0, 4.0, 0.0]))
+    start = RunStart(counts, counts, "ACTIVE", counts + 40, counts + 60,
+                     np.linspace(-0.2, 0.3, spec.n_hinges) if reported else None)
+    changes = [(0.0, np.radians([5.0, -3.0, 12.0, -12.0, 4.0, 0.0])), (0.0304, np.radians(MOVE_DEG) / 3),
+               (0.2, np.radians(MOVE_DEG) / 2)]
+    plants = [spec, scaled(spec, {"gear_friction": 1.3, "no_load_speed": 0.8}), spec]
+    hinges = [None, None, [scaled(spec, {"rotor_inertia": 0.8 + 0.1 * k}) for k in range(spec.n_hinges)]]
+    gains = PidGains.from_spec(spec)
+    ticks = 400
+    batch_counts, batch_duty = replay_batch(plants, gains, start, changes, ticks, spec, hinges, nthread=2)
+    for i, (plant, own) in enumerate(zip(plants, hinges)):
+        twin = twin_at_start(plant, gains, start, spec, own)
+        traces = [tr for _, tr in replay_targets(twin, changes, 0, ticks)]
+        np.testing.assert_array_equal(batch_counts[:, i], np.concatenate([tr.counts for tr in traces]))
+        np.testing.assert_array_equal(batch_duty[:, i], np.concatenate([tr.duty for tr in traces]))
+    assert not np.array_equal(batch_counts[:, 0], batch_counts[:, 1])  # the plants differ, and it shows
+    assert not np.array_equal(batch_counts[:, 0], batch_counts[:, 2])
 
 
 def test_the_twins_firmware_faults_as_the_devices_does(spec):

@@ -78,8 +78,8 @@ def _fit_on(group_cost):
     """fit_blocks (search, quadratic, verdicts, acceptance) on a cost of two parameters shared by two hinges of
     one 100-frame run (6 groups), the residual white noise."""
     noise = [np.random.default_rng(0).normal(size=(100, 2))]
-    [(x, est, _, _)] = fit_blocks(lambda x: np.array([group_cost(x[0], g) for g in range(6)]), lambda x: noise,
-                                  [100], [[0, 1]], PARAMS, [PRIOR], {p: SPREAD[p] for p in PARAMS},
+    [(x, est, _, _)] = fit_blocks(lambda X: np.array([[group_cost(x[0], g) for g in range(6)] for x in X]),
+                                  lambda x: noise, [100], [[0, 1]], PARAMS, [PRIOR], {p: SPREAD[p] for p in PARAMS},
                                   24, 8, 0, 0.15, None)
     return x, est
 
@@ -135,8 +135,8 @@ def test_a_bounded_parameter_widens_what_it_trades_with_and_only_that():
         return np.full(6, 1.0 + 300.0 * d[0] ** 2 + 300.0 * (d[1] + 0.9 * d[2]) ** 2)
 
     for params, bounded in ((PARAMS, ()), (PARAMS + ("cogging",), (2,))):
-        [(x, est, _, _)] = fit_blocks(lambda x: group_costs(np.append(x[0], 0.0)[:3]), lambda x: noise, [100],
-                                      [[0, 1]], params, [prior], ranges, 24, 8, 0, 0.15, None, bounded=bounded)
+        [(x, est, _, _)] = fit_blocks(lambda X: np.array([group_costs(np.append(x[0], 0.0)[:3]) for x in X]),
+                                      lambda x: noise, [100], [[0, 1]], params, [prior], ranges, 24, 8, 0, 0.15, None, bounded=bounded)
         friction, inertia = est["gear_friction"], est["rotor_inertia"]
         assert inertia.identifiable and inertia.value / PRIOR["rotor_inertia"] == pytest.approx(0.9, rel=0.03)
         true_friction = PRIOR["gear_friction"] * 1.2

@@ -12,6 +12,7 @@ from twin.commands.options import (
     add_device_option,
     add_json,
     add_refused,
+    add_threads,
     json_to_stdout,
     output_file,
     select_profile,
@@ -38,6 +39,7 @@ def add_arguments(p) -> None:
     p.add_argument("--generations", type=within(1, MAX_GENERATIONS, whole=True), default=8,
                    help="cross-entropy generations of the search (default %(default)s)")
     p.add_argument("--population", type=within(4, MAX_POPULATION, whole=True), default=24, help="twin replays per generation (default %(default)s)")
+    add_threads(p)
     p.add_argument("--per-hinge", action="store_true",
                    help="then fit each hinge's own no-load speed, friction, damping and rotor inertia about the "
                         "shared values, where the runs show them: kept in the device profile, whose twin then "
@@ -86,13 +88,13 @@ def run(args) -> int:
         warning = not_followed([{"hinge": k, "rmse_deg": float(x)} for k, x in enumerate(trace_rmse(r, spec, spec))])
         if warning:
             print(f"vrscroll calibrate: warning: {r.dir}: {warning}", file=sys.stderr)
-    res = calibrate(runs, spec, population=args.population, generations=args.generations,
+    res = calibrate(runs, spec, population=args.population, generations=args.generations, nthread=args.threads,
                     progress=None if json_to_stdout(args) else lambda g, c: print(
                         f"generation {g + 1}/{args.generations}: best cost {c:.4g}", flush=True))
     hc = hinge_fit = None
     if args.per_hinge:
         hc = calibrate_hinges(runs, res.spec, population=args.population, generations=args.generations,
-                              shared_estimates=res.estimates,
+                              shared_estimates=res.estimates, nthread=args.threads,
                               progress=None if json_to_stdout(args) else lambda g, c: print(
                                   f"per hinge, generation {g + 1}/{args.generations}: best cost {c:.4g}", flush=True))
         hinge_fit = _hinge_fit(hc, holdout, res.spec)

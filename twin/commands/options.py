@@ -95,6 +95,15 @@ def add_json(p, what: str) -> None:
                    help=f"write {what} as JSON to FILE; - prints it on standard output instead of the report")
 
 
+MAX_THREADS = 256  # MuJoCo thread-pool threads a command may ask for
+
+
+def add_threads(p) -> None:
+    """--threads N: the batch twin's threads on MuJoCo's thread pool (0: every core)."""
+    p.add_argument("--threads", type=within(0, MAX_THREADS, whole=True), default=0,
+                   help="simulation threads (default: all cores)")
+
+
 def add_rerun(p) -> None:
     """--rerun FILE.rrd: a Rerun recording of what the command ran (viz.rerun_log; the `rerun` extra)."""
     p.add_argument("--rerun", metavar="FILE.rrd", type=output_file,

@@ -14,6 +14,7 @@ from controllers.encoder import target_counts
 from twin.commands.options import (
     add_device_option,
     add_json,
+    add_threads,
     add_serial,
     json_to_stdout,
     output_file,
@@ -53,7 +54,7 @@ def add_arguments(p) -> None:
     p.add_argument("--population", type=within(4, 1000, whole=True), default=32, help="candidates per generation (default %(default)s)")
     p.add_argument("--generations", type=within(1, 100, whole=True), default=8, help="cross-entropy generations (default %(default)s)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--threads", type=int, default=0, help="simulation threads (default: all cores)")
+    add_threads(p)
     p.add_argument("--backend", choices=BACKENDS,
                    help="run each plant's batch as a task on local worker processes or on Ray (RAY_ADDRESS, or a "
                         "local Ray; the ray extra) (default: every plant in one batch here, on --threads)")

@@ -59,7 +59,7 @@ from twin.device.spec import DeviceSpec
 from twin.device.variation import PARAMS, SPREAD, bounded_ranges, scaled
 from twin.formats.run import Run
 from twin.search import CrossEntropy
-from twin.sim.replay import replay_targets, twin_at_start
+from twin.sim.replay import replay_batch
 
 LOG_BOUND = math.log(3.0)
 MAX_HALFWIDTH = 0.15  # a parameter is identifiable when its 95 % interval is within x(1 -+ this) of its value
@@ -75,21 +75,19 @@ BOUNDED_SAMPLES = 2  # x the population: the replays that show how the bounded p
 JACKKNIFE_SEGMENTS = 3  # stretches of a run per hinge the jackknife leaves out: 18 groups for one run
 
 
-def replay(run: Run, plant: DeviceSpec, spec: DeviceSpec | None = None, hinges=None):
+def replays(run: Run, plants: list[DeviceSpec], spec: DeviceSpec, hinges=None, nthread: int = 0):
     """The twin's encoder angles (deg, mid-count, as device_angles) and duty at the run's device frame times,
-    with `plant` as the physics: the encoder, on the motor, is what the device reports, so the twin is read
-    the same way (its flap angle differs by up to half the backlash, which is outside the loop). hinges:
-    each hinge's own spec, where they differ (a per-hinge calibration's)."""
-    spec = spec or plant
+    one twin per plant (the physics), each (plants, frames, n): the encoder, on the motor, is what the device
+    reports, so the twin is read the same way (its flap angle differs by up to half the backlash, which is
+    outside the loop). hinges: per plant, each hinge's own specs where they differ (a per-hinge
+    calibration's), or None. The plants run together on the batch twin (twin.sim.replay.replay_batch), on
+    nthread of MuJoCo's threads (0: every core)."""
     t = run.device.time
     dt = spec.firmware_dt
     end_tick = int(round(t[-1] / dt)) + 1 if len(t) else 1
-    twin = twin_at_start(plant, run.gains, run.start, spec, hinges)
-    traces = [tr for _, tr in replay_targets(twin, run.changes, 0, end_tick)]
-    c = np.concatenate([tr.counts for tr in traces])
-    d = np.concatenate([tr.duty for tr in traces])
-    idx = np.clip(np.rint(t / dt).astype(int), 0, max(len(c) - 1, 0))
-    return np.degrees(angle_from_counts(spec, c[idx] + 0.5)), d[idx]
+    counts, duty = replay_batch(plants, run.gains, run.start, run.changes, end_tick, spec, hinges, nthread)
+    idx = np.clip(np.rint(t / dt).astype(int), 0, len(counts) - 1)
+    return np.degrees(angle_from_counts(spec, counts[idx] + 0.5)).swapaxes(0, 1), duty[idx].swapaxes(0, 1)
 
 
 def device_angles(run: Run, spec: DeviceSpec) -> np.ndarray:
@@ -98,34 +96,39 @@ def device_angles(run: Run, spec: DeviceSpec) -> np.ndarray:
 
 
 def window_means(t, x, width: float = DUTY_WINDOW) -> np.ndarray:
-    """x (frames, hinges) replaced at each frame by its mean over the frame's window of `width` s of t (s)."""
+    """x (..., frames, hinges) replaced at each frame by its mean over the frame's window of `width` s of t (s)."""
     bins = np.floor(np.asarray(t) / width).astype(int)
     bins -= bins.min()
     n = np.maximum(np.bincount(bins), 1)
-    return np.stack([(np.bincount(bins, weights=x[:, k]) / n)[bins] for k in range(x.shape[1])], axis=1)
+    x = np.asarray(x)
+    flat = np.moveaxis(x, -2, 0).reshape(len(bins), -1)
+    means = np.stack([(np.bincount(bins, weights=col) / n)[bins] for col in flat.T], axis=1)
+    return np.moveaxis(means.reshape(np.moveaxis(x, -2, 0).shape), 0, -2)
 
 
-def residual_blocks(run: Run, plant: DeviceSpec, spec: DeviceSpec, hinges=None) -> tuple[np.ndarray, np.ndarray]:
-    """The fit's residual for one run, per frame and hinge (frames, n): the angle error (deg), and the
-    error of the duty's window mean x DUTY_WEIGHT."""
-    angle, duty = replay(run, plant, spec, hinges)
+def residual_blocks(run: Run, plants: list[DeviceSpec], spec: DeviceSpec, hinges=None,
+                    nthread: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """The fit's residual for one run, per plant (`replays`), frame and hinge (plants, frames, n): the angle
+    error (deg), and the error of the duty's window mean x DUTY_WEIGHT."""
+    angle, duty = replays(run, plants, spec, hinges, nthread)
     t = run.device.time
     return angle - device_angles(run, spec), DUTY_WEIGHT * (window_means(t, duty) - window_means(t, run.device.duty))
 
 
-def group_costs(run: Run, plant: DeviceSpec, spec: DeviceSpec, hinges=None) -> np.ndarray:
-    """The fit's cost (sum of squared residuals, deg^2) for one run, split into groups: each hinge's, in
-    JACKKNIFE_SEGMENTS consecutive stretches of the run ((segments x n,)). Their sum is the run's cost; the
-    groups are what the intervals' jackknife leaves out one at a time."""
-    sq = sum(b ** 2 for b in residual_blocks(run, plant, spec, hinges))
-    return np.stack([c.sum(axis=0) for c in np.array_split(sq, JACKKNIFE_SEGMENTS)]).ravel()
+def group_costs(run: Run, plants: list[DeviceSpec], spec: DeviceSpec, hinges=None, nthread: int = 0) -> np.ndarray:
+    """The fit's cost (sum of squared residuals, deg^2) for one run and each plant (`replays`), split into
+    groups: each hinge's, in JACKKNIFE_SEGMENTS consecutive stretches of the run ((plants, segments x n)). Their
+    sum is the run's cost; the groups are what the intervals' jackknife leaves out one at a time."""
+    sq = sum(b ** 2 for b in residual_blocks(run, plants, spec, hinges, nthread))
+    return np.stack([c.sum(axis=1) for c in np.array_split(sq, JACKKNIFE_SEGMENTS, axis=1)], axis=1).reshape(len(sq), -1)
 
 
 def trace_rmse(run: Run, plant: DeviceSpec, spec: DeviceSpec, hinges=None) -> np.ndarray:
     """Per-hinge RMSE, deg, between the device's hinge angles and the twin's replayed with `plant`.
 
     The overall figure quoted for a run is the RMS of these (every frame of every hinge alike)."""
-    return np.sqrt(np.mean((replay(run, plant, spec, hinges)[0] - device_angles(run, spec)) ** 2, axis=0))
+    angle = replays(run, [plant], spec, [hinges])[0][0]
+    return np.sqrt(np.mean((angle - device_angles(run, spec)) ** 2, axis=0))
 
 
 def floor_deg(run: Run, spec: DeviceSpec) -> np.ndarray:
@@ -376,7 +379,7 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
 
 def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int = 24, generations: int = 8,
               seed: int = 0, max_halfwidth: float = MAX_HALFWIDTH, progress=None,
-              bounded: dict | None = None) -> CalibrationResult:
+              bounded: dict | None = None, nthread: int = 0) -> CalibrationResult:
     """Fit `params` (log(value / base value), within x1/3 .. x3) to the runs' device traces (angles and duty),
     and say what the runs show.
 
@@ -401,7 +404,8 @@ def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int 
     cannot show apart from `params` (the cogging, the winding's resistance, the back-driven efficiency): held at
     its prior, sampled within its range about where the search ended, each fitted parameter's interval widened
     by how far it would move were these anywhere in their ranges.
-    progress(generation, best cost) is called as the search goes.
+    progress(generation, best cost) is called as the search goes. Each generation's replays run together on
+    the batch twin, on nthread of MuJoCo's threads (0: every core).
     """
     fitted_params = tuple(params)
     bounded = bounded_ranges(base) if bounded is None else bounded
@@ -412,17 +416,18 @@ def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int 
     def plant(x):  # x (1, k): one value per parameter, shared by every hinge
         return scaled(base, {p: math.exp(float(xi)) for p, xi in zip(params, x[0])})
 
-    def cost(x):
-        count[0] += 1
-        return np.concatenate([group_costs(r, plant(x), base) for r in runs])
+    def costs(X):  # X (m, 1, k)
+        count[0] += len(X)
+        plants = [plant(x) for x in X]
+        return np.concatenate([group_costs(r, plants, base, nthread=nthread) for r in runs], axis=1)
 
     def residuals(x):
-        return [b for run in runs for b in residual_blocks(run, plant(x), base)]
+        return [b[0] for run in runs for b in residual_blocks(run, [plant(x)], base, nthread=nthread)]
 
     def angle_rmse(p):
         return float(np.sqrt(np.mean(np.concatenate([trace_rmse(r, p, base) ** 2 for r in runs]))))
 
-    [(x, estimates, H, tau)] = fit_blocks(cost, residuals, [len(r.device.time) for r in runs],
+    [(x, estimates, H, tau)] = fit_blocks(costs, residuals, [len(r.device.time) for r in runs],
                                           [list(range(base.n_hinges))], params, [prior],
                                           {p: SPREAD[p] for p in fitted_params} | dict(bounded), population,
                                           generations, seed, max_halfwidth, progress,
@@ -438,12 +443,12 @@ def calibrate(runs: list[Run], base: DeviceSpec, params=PARAMS, population: int 
         hinge_floor=hinge_floor, iterations=generations, evaluations=count[0])
 
 
-def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, population, generations, seed, max_halfwidth,
+def fit_blocks(costs, residuals, frames, blocks, params, priors, ranges, population, generations, seed, max_halfwidth,
                progress, bounded=()) -> list:
     """The search and the verdicts of `calibrate`, for blocks of hinges each with its own values of `params`
-    (one block of every hinge: values shared; a block per hinge: each hinge's own). cost(x) and residuals(x)
-    take x (blocks, k), log(value / prior); cost gives the runs' group costs (group_costs, run after run),
-    residuals their residual_blocks; frames: each run's number of device frames. Each block is ranked, its
+    (one block of every hinge: values shared; a block per hinge: each hinge's own). costs(X) takes samples X
+    (m, blocks, k), log(value / prior), and gives each one's runs' group costs (group_costs, run after run;
+    (m, groups)); residuals(x) takes one (blocks, k) and gives its runs' residual_blocks; frames: each run's number of device frames. Each block is ranked, its
     search distribution refitted and its verdicts made on its own hinges' groups. The quadratic's mode is then
     replayed and kept only where it costs no more than the best sample plus ACCEPT_ROUGHNESS x the cost's
     roughness about the quadratic; elsewhere the best sample is kept, not identifiable (`_sample_kept`: on the
@@ -457,18 +462,18 @@ def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, populati
     mine = [np.isin(group_hinge, b) for b in blocks]
     rng = np.random.default_rng(seed)
     search = CrossEntropy(np.zeros((len(blocks), k)), SEARCH_STD, floor=STD_FLOOR, low=-LOG_BOUND, high=LOG_BOUND)
-    first = cost(search.mean)
+    first = costs(search.mean[None])[0]
     best_x, best = search.mean.copy(), np.array([first[m].sum() for m in mine])
     X, G = [search.mean.copy()], [first]
     bounded = list(bounded)
     for g in range(generations):
         pop = search.draw(rng, population, first=best_x)
         pop[:, :, bounded] = 0.0  # the search moves the fitted parameters only
-        costs = [cost(x) for x in pop[1:]]
+        drawn = costs(pop[1:])
         X.extend(pop[1:])
-        G.extend(costs)
+        G.extend(drawn)
         for b, m in enumerate(mine):
-            c = np.array([best[b]] + [float(gc[m].sum()) for gc in costs])
+            c = np.array([best[b]] + [float(gc[m].sum()) for gc in drawn])
             order = np.argsort(c)
             if c[order[0]] < best[b]:
                 best[b], best_x[b] = c[order[0]], pop[order[0], b]
@@ -482,7 +487,7 @@ def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, populati
         extra = search.draw(rng, BOUNDED_SAMPLES * population)
         extra[:, :, bounded] = rng.uniform(ends[:, 0], ends[:, 1], (len(extra), len(blocks), len(bounded)))
         X.extend(extra)
-        G.extend(cost(x) for x in extra)
+        G.extend(costs(extra))
     X, G = np.array(X), np.array(G)
     at_best = residuals(best_x)
     spread = np.array([prior_spread(ranges[p]) for p in params])
@@ -505,7 +510,7 @@ def fit_blocks(cost, residuals, frames, blocks, params, priors, ranges, populati
         out.append([x, estimates, Hs.sum(axis=0), tau, s2])
     # the acceptance test: each block's mode, replayed, against the best sample by the same posterior cost,
     # allowing for the cost's roughness (ACCEPT_ROUGHNESS x the RMS of what the quadratic leaves)
-    at_modes = cost(np.array([o[0] for o in out]))
+    at_modes = costs(np.array([o[0] for o in out])[None])[0]
     for b, m in enumerate(mine):
         x, estimates, _, _, s2 = out[b]
         sampled = posterior_cost(G[:searched, m].sum(axis=1), X[:searched, b], s2)  # (the bounded at their prior)
@@ -560,14 +565,15 @@ class HingeCalibration:
 
 def calibrate_hinges(runs: list[Run], shared: DeviceSpec, params=HINGE_PARAMS, population: int = 24,
                      generations: int = 8, seed: int = 0, max_halfwidth: float = MAX_HALFWIDTH,
-                     progress=None, shared_estimates: dict | None = None) -> HingeCalibration:
+                     progress=None, shared_estimates: dict | None = None, nthread: int = 0) -> HingeCalibration:
     """Each hinge's own values of `params` about `shared` (a calibration's spec), where the runs show them:
     the search and verdicts of `calibrate` with a block per hinge (`fit_blocks`), each hinge ranked and judged on
     its own stretches of the runs, its prior the shared value within HINGE_RANGE. A hinge's parameter the runs
     do not show stays at the shared value (left at its prior). All hinges move in every replay, so what one
     hinge's flaps do to its neighbours is in every score. shared_estimates: the shared calibration's
     (`calibrate`); a hinge's interval is its own times the shared value's (an error of the shared value is in
-    every hinge's), and it is identifiable only where that product is within x(1 -+ max_halfwidth)."""
+    every hinge's), and it is identifiable only where that product is within x(1 -+ max_halfwidth). nthread: as
+    `calibrate`'s."""
     params = tuple(params)
     n = shared.n_hinges
     count = [0]
@@ -575,15 +581,16 @@ def calibrate_hinges(runs: list[Run], shared: DeviceSpec, params=HINGE_PARAMS, p
     def hinges(x):  # x (n, k)
         return [scaled(shared, {p: math.exp(float(v)) for p, v in zip(params, x[h])}) for h in range(n)]
 
-    def cost(x):
-        count[0] += 1
-        return np.concatenate([group_costs(r, shared, shared, hinges(x)) for r in runs])
+    def costs(X):  # X (m, n, k)
+        count[0] += len(X)
+        each = [hinges(x) for x in X]
+        return np.concatenate([group_costs(r, [shared] * len(X), shared, each, nthread) for r in runs], axis=1)
 
     def residuals(x):
-        return [b for run in runs for b in residual_blocks(run, shared, shared, hinges(x))]
+        return [b[0] for run in runs for b in residual_blocks(run, [shared], shared, [hinges(x)], nthread)]
 
     prior = {p: float(getattr(shared, p)) for p in params}
-    fits = fit_blocks(cost, residuals, [len(r.device.time) for r in runs], [[h] for h in range(n)], params,
+    fits = fit_blocks(costs, residuals, [len(r.device.time) for r in runs], [[h] for h in range(n)], params,
                       [prior] * n, {p: HINGE_RANGE for p in params}, population, generations, seed, max_halfwidth,
                       progress)
     fitted = hinges(np.array([x for x, _, _, _ in fits]))

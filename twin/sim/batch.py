@@ -11,7 +11,7 @@ import numpy as np
 from mujoco.batch import Batch
 
 from controllers import core
-from controllers.core import core_state_bytes, per_hinge, set_core_gains, start_core, tick_us
+from controllers.core import core_state_bytes, per_hinge, pid_memory, set_core_gains, start_core, tick_us
 from controllers.encoder import counts_from_motor_angles, target_counts
 from controllers.pid import PidGains
 from twin.device.mjcf import load_model, motor_attributes
@@ -89,8 +89,9 @@ class TwinBatch:
             raise ValueError(f"expected gains for {self.nsim} simulations, got {len(gains)}")
         return [per_hinge(g, self.spec.n_hinges) for g in gains]
 
-    def reset(self, angles=None) -> None:
-        """All simulations back to flat (or to angles, rad, shape (nsim, n_hinges)); their firmware restarted."""
+    def reset(self, angles=None, integral=None) -> None:
+        """All simulations back to flat (or to angles, rad, (nsim, n_hinges) or one row for all); their firmware
+        restarted, holding there, its PID integral per hinge `integral` (duty, the same shapes; default none)."""
         self.batch.reset(keyframe=0, stage=mujoco.mjtStage.mjSTAGE_NONE.value)
         if angles is not None:
             for q, a in zip(self.qpos, np.broadcast_to(angles, (self.nsim, self.spec.n_hinges))):
@@ -100,9 +101,21 @@ class TwinBatch:
         counts = self._counts_now()
         size = core.library().vrs_core_size()
         self._cores = np.zeros((self.nsim, size), np.uint8)  # one vrs_core per simulation, contiguous
+        integral = None if integral is None else np.broadcast_to(integral, (self.nsim, self.spec.n_hinges))
         for i in range(self.nsim):
-            self._cores[i] = core_state_bytes(start_core(self.spec, self.gains[i], counts[i]))
+            fw = start_core(self.spec, self.gains[i], counts[i])
+            if integral is not None:
+                pid_memory(fw).integral[:] = integral[i]
+            self._cores[i] = core_state_bytes(fw)
         self._now_us = 0
+
+    @property
+    def integral(self) -> np.ndarray:
+        """Each simulation's firmware PID integral per hinge (duty, (nsim, n_hinges)), a copy."""
+        lib, base, size = core.library(), self._cores.ctypes.data, self._cores.shape[1]
+        n = self.spec.n_hinges
+        return np.array([[m.integral for m in (core.PidState * n).from_address(lib.vrs_pid_memory(base + i * size))]
+                         for i in range(self.nsim)])
 
     def _counts_now(self) -> np.ndarray:
         return counts_from_motor_angles(self.sensordata[:, self.hinges.enc], self.spec.counts_per_motor_rev)
