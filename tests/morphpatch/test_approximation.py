@@ -21,7 +21,7 @@ HCEVF_MARGIN = 0.5e-3  # m: "full" may be at most this much worse than "no_hcevf
 
 def fields_of(name, spacing=0.003):
     mesh = load_shape(name)
-    return mesh, build_fields(mesh, spacing=spacing, disk_cache=False)
+    return mesh, build_fields(mesh, spacing=spacing)
 
 
 def level(x, y, z):

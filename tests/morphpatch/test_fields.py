@@ -23,13 +23,13 @@ def near_surface_points(mesh, n=4000, seed=0):
 @pytest.fixture(scope="module")
 def stairs():
     mesh = load_shape("stairs")
-    return mesh, build_fields(mesh, disk_cache=False)
+    return mesh, build_fields(mesh)
 
 
 @pytest.fixture(scope="module")
 def cube():
     mesh = load_shape("cube")
-    return mesh, build_fields(mesh, disk_cache=False)
+    return mesh, build_fields(mesh)
 
 
 @pytest.mark.parametrize("name", ["stairs", "cube"])
@@ -96,7 +96,7 @@ def test_high_curvature_points_lie_on_the_cube_edges(cube):
 def test_smooth_tessellated_shapes_have_no_high_curvature_points(name):
     """Their true |tr H| stays below 41 1/m (torus: 1/40 mm + 1/140 mm at the outer equator), under
     MIN_CURVATURE; the facet edges' one-cell spikes (52 and 1068 points before) must not count."""
-    fields = build_fields(load_shape(name), disk_cache=False)
+    fields = build_fields(load_shape(name))
     assert len(fields.edges) == 0
 
 
@@ -127,6 +127,7 @@ def test_hcevf_points_to_the_nearest_edge_within_the_threshold(cube):
 
 def test_fields_are_cached_in_memory_and_on_disk(tmp_path, monkeypatch):
     monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
+    monkeypatch.setattr(module, "_MEMORY", {})  # (the session's cache stays for the other tests)
     mesh = trimesh.creation.box((0.05, 0.05, 0.05))
     first = build_fields(mesh, spacing=0.005, margin=0.02)
     assert build_fields(mesh, spacing=0.005, margin=0.02) is first
@@ -142,7 +143,7 @@ def test_fields_are_cached_in_memory_and_on_disk(tmp_path, monkeypatch):
 def test_a_damaged_cache_file_is_built_again_with_a_notice(tmp_path, monkeypatch, capsys, damage):
     """Once a BadZipFile/EOFError on every later run, until the file was deleted by hand."""
     monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path))
-    module._MEMORY.clear()
+    monkeypatch.setattr(module, "_MEMORY", {})
     mesh = trimesh.creation.icosphere(2, 0.03)
     first = build_fields(mesh, spacing=0.005, margin=0.02)
     [path] = (tmp_path / "fields").glob("*.npz")
@@ -163,6 +164,7 @@ def test_a_long_field_build_shows_its_progress(monkeypatch, capsys):
     (here made 0 s, and the chunks small, so that a small build reports)."""
     monkeypatch.setattr(module, "PROGRESS_AFTER", 0.0)
     monkeypatch.setattr(module, "CHUNK", 2000)
+    monkeypatch.setattr(module, "_MEMORY", {})
     mesh = trimesh.creation.box((0.04, 0.04, 0.04))
     chunked = build_fields(mesh, spacing=0.004, margin=0.02, disk_cache=False)
     lines = capsys.readouterr().err.splitlines()

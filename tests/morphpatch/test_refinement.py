@@ -32,7 +32,7 @@ def runs(spec):
     out = {}
     for name in shape_names():
         mesh = load_shape(name)
-        fields = build_fields(mesh, disk_cache=False)
+        fields = build_fields(mesh)  # (the session's cache: conftest's VRSCROLL_CACHE)
         starts = approach_starts(mesh, STARTS, seed=SEED)
         out[name] = (mesh, fields, starts, {v: [approximate(fields, s, spec, v).measured(spec, mesh) for s in starts]
                                             for v in VARIANTS})
