@@ -19,6 +19,15 @@ from twin.link.serial_link import Link
 
 COVERAGE = 0.95  # of (seed, hinge, parameter) intervals must hold the drawn value
 SETTLE_AGREEMENT = 0.15  # the device settles within this share of the twin's prediction, every hinge
+# how much each suite spends on a plant: the held-out scenario's cycles, calibrate's and tune's search options,
+# and how many plants tune must push to at least (it refuses where no gains keep the limit on every plant of the
+# intervals: 4 of 20 in each of two slow runs). The slow test's are the commands' defaults (tune's a larger search
+# than its default); the default suite's are smaller so that two plants fit its time: what is judged is that the
+# calibrated twin predicts the device and the pushed gains keep the limit, not how good the gains are. With two
+# plants, a refusal on both can happen (a named refusal is a pass), so there the push is not required.
+SLOW = {"hold_cycles": 2, "calibrate": [], "tune": ["--population", "16", "--generations", "5"], "min_pushed": 10}
+DEFAULT = {"hold_cycles": 1, "calibrate": ["--population", "16", "--generations", "6"],
+           "tune": ["--population", "8", "--generations", "3"], "min_pushed": 0}
 
 
 def _json(capsys, *args):
@@ -26,11 +35,10 @@ def _json(capsys, *args):
     return json.loads(capsys.readouterr().out)
 
 
-def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, tune: tuple[int, int]) -> tuple[dict, list[str]]:
+def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, effort: dict) -> tuple[dict, list[str]]:
     """Record the calibration scenario and a held-out one on the plant drawn from `seed`, calibrate per hinge
-    into a device profile, tune on it (tune: the search's population and generations) and push the gains.
-    Tuning pushes only gains that keep every
-    limit on every plant of the calibrated intervals; where none do, it must say which limit it broke on which
+    into a device profile, tune on it and push the gains (effort: SLOW or DEFAULT). Tuning pushes only gains
+    that keep every limit on every plant of the calibrated intervals; where none do, it must say which limit it broke on which
     plant and which parameter's range set the worst case, and push nothing ("refused" in the tally). Returns
     the judged tally and what failed in words (a value called identifiable off the drawn one, the held-out
     criterion, a refusal that does not say why, pushed gains that overshoot the limit or settle off the
@@ -40,17 +48,18 @@ def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, tune: tuple[int,
     assert vrscroll(["device", "select", "none"]) == 0  # a new device: not the last seed's profile (its gains)
     emu = emulator(*emulator_args(seed))
     truth, hinges = drawn_plant(emu), drawn_hinges(emu)
-    # the calibration scenario (7.5 s), for the gains the device has (read from it), and a held-out one
+    # the calibration scenario (2 cycles, 7.5 s), for the gains the device has (read from it), and a held-out one
     with Link(emu.port) as link:  # wake the device: from its limp boot pose to flat, allowing for its difference
         assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
-    for name, s in (("train", 0), ("hold", 1)):
-        assert vrscroll(["scenario", str(folder / f"{name}.toml"), "--serial", emu.port, "--seed", str(s)]) == 0
+    for name, s, cycles in (("train", 0, 2), ("hold", 1, effort["hold_cycles"])):
+        assert vrscroll(["scenario", str(folder / f"{name}.toml"), "--serial", emu.port, "--seed", str(s),
+                         "--cycles", str(cycles)]) == 0
         assert vrscroll(["hil", str(folder / f"{name}.toml"), "--serial", emu.port, "--out", str(folder / name),
                          "--tolerance-deg", "30"]) == 0
     capsys.readouterr()
     device = f"drawn{seed}"
     cal = _json(capsys, "calibrate", str(folder / "train"), "--holdout", str(folder / "hold"), "--device", device,
-                "--per-hinge", "--json", "-")
+                "--per-hinge", *effort["calibrate"], "--json", "-")
     # each hinge's own values kept in the profile where they predict the held-out run no worse than the shared
     fit, kept = cal["per_hinge_fit"], select_profile(device).hinges
     shared_rms, own_rms = (float(np.sqrt(np.mean([r[k] ** 2 for r in fit["holdout"]])))
@@ -67,9 +76,8 @@ def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, tune: tuple[int,
         failed.append(f"seed {seed}: held-out {cal['holdout']['overall_before_deg']} -> "
                       f"{cal['holdout']['overall_after_deg']} deg, floor {floor:.4f}")
     # tuned on the calibrated twin over its intervals, pushed to the device where they keep every limit
-    population, generations = tune
-    rc = vrscroll(["tune", "--device", device, "--population", str(population), "--generations", str(generations),
-                   "--threads", "2", "--serial", emu.port, "--json", str(folder / "tune.json")])
+    rc = vrscroll(["tune", "--device", device, *effort["tune"], "--threads", "2", "--serial", emu.port,
+                   "--json", str(folder / "tune.json")])
     tuned = json.loads((folder / "tune.json").read_text())
     tally["refused"] = int(rc != 0)
     if rc != 0 and not (tuned["limits_broken"] and tuned["worst_case_range"] and "device" not in tuned):
@@ -84,29 +92,28 @@ def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, tune: tuple[int,
     return tally, failed
 
 
-def judge_seeds(seeds, emulator, tmp_path, capsys, tune: tuple[int, int]) -> None:
+def judge_seeds(seeds, emulator, tmp_path, capsys, effort: dict) -> None:
     """Every seed's plant calibrated and tuned: the intervals hold the drawn values COVERAGE of the time over
-    all of them, gains were pushed on at least one, and nothing in `calibrated_on_a_drawn_plant`'s list failed
-    on any."""
+    all of them, gains were pushed to at least effort's min_pushed, and nothing in `calibrated_on_a_drawn_plant`'s
+    list failed on any."""
     total, failed = {}, []
     for seed in seeds:
-        tally, why = calibrated_on_a_drawn_plant(seed, emulator, tmp_path / f"seed{seed}", capsys, tune)
+        tally, why = calibrated_on_a_drawn_plant(seed, emulator, tmp_path / f"seed{seed}", capsys, effort)
         total = {k: total.get(k, 0) + v for k, v in tally.items()}
         failed += why
     print(f"over {len(seeds)} drawn plants: {total}")  # (with -s: how many intervals held, tunings refused)
     assert total["hold"] >= COVERAGE * total["intervals"], total
-    assert total["refused"] < len(seeds), total  # gains were pushed somewhere: the settle criterion was judged
+    assert len(seeds) - total["refused"] >= effort["min_pushed"], total
     assert not failed, failed
 
 
 def test_calibration_and_tuning_on_two_drawn_plants(emulator, tmp_path, capsys):
     """Issue 20's criteria on two plants: plants drawn with each hinge's own speed, friction, damping and
-    inertia, cogging at any phase, friction ripple and warming windings, never told to the twin. The tuning's
-    search is smaller than the slow test's (8 x 3 against 16 x 5): what is judged is that the pushed gains keep
-    the limit and settle as the calibrated twin predicts, not how good they are."""
-    judge_seeds((21, 22), emulator, tmp_path, capsys, tune=(8, 3))
+    inertia, cogging at any phase, friction ripple and warming windings, never told to the twin. With less
+    effort than the slow test's (DEFAULT)."""
+    judge_seeds((21, 22), emulator, tmp_path, capsys, DEFAULT)
 
 
 @pytest.mark.slow
 def test_calibration_and_tuning_on_twenty_drawn_plants(emulator, tmp_path, capsys):
-    judge_seeds(range(1, 21), emulator, tmp_path, capsys, tune=(16, 5))
+    judge_seeds(range(1, 21), emulator, tmp_path, capsys, SLOW)
