@@ -38,10 +38,10 @@ def _json(capsys, *args):
 def calibrated_on_a_drawn_plant(seed, emulator, folder, capsys, effort: dict) -> tuple[dict, list[str]]:
     """Record the calibration scenario and a held-out one on the plant drawn from `seed`, calibrate per hinge
     into a device profile, tune on it and push the gains (effort: SLOW or DEFAULT). Tuning pushes only gains
-    that keep every limit on every plant of the calibrated intervals; where none do, it must say which limit it broke on which
-    plant and which parameter's range set the worst case, and push nothing ("refused" in the tally). Returns
-    the judged tally and what failed in words (a value called identifiable off the drawn one, the held-out
-    criterion, a refusal that does not say why, pushed gains that overshoot the limit or settle off the
+    that keep every limit on every plant of the calibrated intervals; where none do, it must say which limit it
+    broke on which plant and which parameter's range set the worst case, and push nothing ("refused" in the
+    tally). Returns the judged tally and what failed in words (a value called identifiable off the drawn one, the
+    held-out criterion, a refusal that does not say why, pushed gains that overshoot the limit or settle off the
     twin's prediction by more than SETTLE_AGREEMENT)."""
     spec = load_spec()
     folder.mkdir()

@@ -121,6 +121,7 @@ def test_a_picture_or_file_into_a_folder_is_refused(tmp_path):
     (["simulate", "1", "0", "0", "0", "0", "0", "--max-time", "1e9"], "--max-time"),  # 10^12 ticks of trace
     (["simulate", "1", "0", "0", "0", "0", "0", "--max-time", "nan"], "--max-time"),
     (["tune", "--duration", "1e9"], "--duration"), (["tune", "--population", "0"], "--population"),
+    (["tune", "--threads", "-1"], "--threads"), (["calibrate", "run", "--threads", "100000"], "--threads"),
     (["mirror", "--angles", "0,0,0,0,0,0", "--serial", "x", "--tolerance-deg", "-5"], "--tolerance-deg"),
     (["redirect", "a.json", "--sigma-mm", "inf"], "--sigma-mm"),
 ])

@@ -120,7 +120,8 @@ def group_costs(run: Run, plants: list[DeviceSpec], spec: DeviceSpec, hinges=Non
     groups: each hinge's, in JACKKNIFE_SEGMENTS consecutive stretches of the run ((plants, segments x n)). Their
     sum is the run's cost; the groups are what the intervals' jackknife leaves out one at a time."""
     sq = sum(b ** 2 for b in residual_blocks(run, plants, spec, hinges, nthread))
-    return np.stack([c.sum(axis=1) for c in np.array_split(sq, JACKKNIFE_SEGMENTS, axis=1)], axis=1).reshape(len(sq), -1)
+    segments = [c.sum(axis=1) for c in np.array_split(sq, JACKKNIFE_SEGMENTS, axis=1)]  # each (plants, n)
+    return np.stack(segments, axis=1).reshape(len(sq), -1)
 
 
 def trace_rmse(run: Run, plant: DeviceSpec, spec: DeviceSpec, hinges=None) -> np.ndarray:
@@ -448,8 +449,9 @@ def fit_blocks(costs, residuals, frames, blocks, params, priors, ranges, populat
     """The search and the verdicts of `calibrate`, for blocks of hinges each with its own values of `params`
     (one block of every hinge: values shared; a block per hinge: each hinge's own). costs(X) takes samples X
     (m, blocks, k), log(value / prior), and gives each one's runs' group costs (group_costs, run after run;
-    (m, groups)); residuals(x) takes one (blocks, k) and gives its runs' residual_blocks; frames: each run's number of device frames. Each block is ranked, its
-    search distribution refitted and its verdicts made on its own hinges' groups. The quadratic's mode is then
+    (m, groups)); residuals(x) takes one (blocks, k) and gives its runs' residual_blocks; frames: each run's
+    number of device frames. Each block is ranked, its search distribution refitted and its verdicts made on
+    its own hinges' groups. The quadratic's mode is then
     replayed and kept only where it costs no more than the best sample plus ACCEPT_ROUGHNESS x the cost's
     roughness about the quadratic; elsewhere the best sample is kept, not identifiable (`_sample_kept`: on the
     emulator, the rough cost's quadratic fit, indefinite, put its mode where the replay was no better than
