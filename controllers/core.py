@@ -375,8 +375,14 @@ def set_core_gains(fw: Core, gains: list[PidGains]) -> None:
 
 def pid_memory(fw: Core) -> np.recarray:
     """A live view of the core's PID memory per hinge: fields prev (counts), rate (counts/s), integral (duty)."""
-    mem = (PidState * fw.n).from_address(fw.lib.vrs_pid_memory(fw.address))
-    mem.owner = fw  # the view keeps the core's memory alive
+    return pid_memory_at(fw.address, fw.n, fw)
+
+
+def pid_memory_at(address: int, n: int, owner) -> np.recarray:
+    """pid_memory of the n-hinge core at `address` (a vrs_core in memory `owner` holds: a Core, or the batch
+    twin's array of cores); the view keeps `owner` alive."""
+    mem = (PidState * n).from_address(library().vrs_pid_memory(address))
+    mem.owner = owner
     return np.ctypeslib.as_array(mem).view(np.recarray)
 
 

@@ -11,7 +11,8 @@ import numpy as np
 from mujoco.batch import Batch
 
 from controllers import core
-from controllers.core import core_state_bytes, per_hinge, pid_memory, set_core_gains, start_core, tick_us
+from controllers.core import (core_state_bytes, per_hinge, pid_memory, pid_memory_at, set_core_gains, start_core,
+                              tick_us)
 from controllers.encoder import counts_from_motor_angles, target_counts
 from controllers.pid import PidGains
 from twin.device.mjcf import load_model, motor_attributes
@@ -112,9 +113,8 @@ class TwinBatch:
     @property
     def integral(self) -> np.ndarray:
         """Each simulation's firmware PID integral per hinge (duty, (nsim, n_hinges)), a copy."""
-        lib, base, size = core.library(), self._cores.ctypes.data, self._cores.shape[1]
-        n = self.spec.n_hinges
-        return np.array([[m.integral for m in (core.PidState * n).from_address(lib.vrs_pid_memory(base + i * size))]
+        base, size = self._cores.ctypes.data, self._cores.shape[1]
+        return np.array([pid_memory_at(base + i * size, self.spec.n_hinges, self._cores).integral
                          for i in range(self.nsim)])
 
     def _counts_now(self) -> np.ndarray:
