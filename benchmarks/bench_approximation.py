@@ -5,7 +5,7 @@
 Runs on one core (numba's and BLAS's threads pinned to 1 before import). Per shape:
 the time to build its fields (no cache), the grid's SDF error against libigl's exact
 signed distance at 4000 points -10..+30 mm off the surface, and the approximation's
-time over `--starts` seeded starts (twin.starts) for each variant, plus MSD and HD
+time over `--starts` seeded starts (twin.evaluation.starts) for each variant, plus MSD and HD
 (mm, exact mesh). Then each variant's median and p99 time per approximation over all shapes
 and starts, in the same run ("refined", ours, includes the pipeline it starts from).
 """

@@ -2,8 +2,7 @@
 
 1. C alone: a driver built with the core (-O2) runs vrs_tick on a moving plant in batches of
    ticks; the median and p99 of the batches' ns per tick, telemetry off and at 500 Hz.
-2. Called from numba's nopython code by address, as the twin's loop calls it, beside the numba
-   PID it replaces (controllers.pid.pid_update, while it exists).
+2. Called from numba's nopython code by address, as the twin's loop calls it.
 
     .venv/bin/python benchmarks/bench_firmware.py
 """
@@ -61,39 +60,14 @@ def from_numba(n_ticks: int, repeats: int) -> dict:
         t = time.perf_counter()
         _run_c(lib.vrs_tick, c.address, counts, duty, decay, n_ticks, (r + 1) * n_ticks * 1000)
         times.append((time.perf_counter() - t) / n_ticks * 1e9)
-    out = {"c_step_from_numba_ns": round(float(np.median(times)), 1)}
-    try:
-        from controllers.pid import gains_table, pid_update
-    except ImportError:
-        return out
-    g = gains_table(PidGains.from_spec(spec), 6, spec.firmware_dt)
-
-    @numba.njit
-    def run_numba(n, target, counts, prev, rate, integral, duty):
-        pos = counts.astype(np.float64)
-        for _ in range(n):
-            pid_update(target, counts, prev, rate, integral, g, 0.001, duty)
-            for i in range(6):
-                pos[i] += duty[i] * 5.0
-                counts[i] = int(pos[i])
-
-    args = (np.array([300, 200, 100, 0, -100, -200], np.int64), np.zeros(6, np.int64), np.zeros(6, np.int64),
-            np.zeros(6), np.zeros(6), np.zeros(6))
-    run_numba(10, *args)
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        run_numba(n_ticks, *args)
-        times.append((time.perf_counter() - t) / n_ticks * 1e9)
-    out["numba_pid_ns"] = round(float(np.median(times)), 1)
-    return out
+    return {"c_step_from_numba_ns": round(float(np.median(times)), 1)}
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--batches", type=int, default=400, help="batches of ticks for the C driver (default 400)")
     p.add_argument("--per-batch", type=int, default=1000, help="ticks per batch (default 1000)")
-    p.add_argument("--repeats", type=int, default=20, help="repeats of the numba runs (default 20)")
+    p.add_argument("--repeats", type=int, default=20, help="repeats of the run from numba (default 20)")
     args = p.parse_args(argv)
     print("command:", " ".join([Path(sys.executable).name, *sys.argv]))
     print("machine:", platform.machine(), platform.processor() or "", "| compiler:", core.compiler())

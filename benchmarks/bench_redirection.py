@@ -10,7 +10,7 @@ thresholds, and the time per pen sample two ways: one sample per call, as a 360 
 tracker delivers them (median and p99 over `--calls` calls), and in batches of 10 000.
 Not a speed, but measured here on the same fields: how far the virtual pen moves for a
 0.5 mm pen step across hinges and off the device's edges, blurred and raw
-(twin.redirection.largest_virtual_step).
+(twin.morphpatch.redirection.largest_virtual_step).
 """
 
 import os

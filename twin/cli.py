@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import select
 import signal
 import sys
 
-from twin.commands.options import refuse_renamed
+from twin import gl_problem
+from twin.commands.options import HelpFormatter, join_negative_values, refuse_renamed
 from twin.errors import UserError
 
 # command name -> (module, one-line help)
@@ -47,6 +50,13 @@ COMMANDS = {
 }
 
 
+def _stdout_gone() -> bool:
+    """Whether standard output is a pipe whose reader has closed it (poll reports an error on its write end)."""
+    poll = select.poll()
+    poll.register(sys.stdout.fileno(), select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poll.poll(0))
+
+
 def _terminated(signum, frame):
     raise KeyboardInterrupt
 
@@ -56,12 +66,17 @@ def main(argv=None) -> int:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     argv = sys.argv[1:] if argv is None else list(argv)
     chosen = next((a for a in argv if not a.startswith("-")), None)
+    problem = gl_problem() if chosen in COMMANDS else None  # every command imports MuJoCo, which would fail first
+    if problem:
+        print(f"vrscroll {chosen}: error: {problem}", file=sys.stderr)
+        return 2
     for name, (module, help_text) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
+        p = sub.add_parser(name, help=help_text, description=help_text, formatter_class=HelpFormatter)
         p.set_defaults(_module=module)
         if name == chosen:  # only the command being run is imported: fast start, and one broken command breaks only itself
             importlib.import_module(module).add_arguments(p)
             refuse_renamed(p)
+            argv = join_negative_values(p, argv)
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, already printed): the status, as for any command
@@ -69,6 +84,12 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGTERM, _terminated)  # SIGTERM as Ctrl-C: a session with the device e-stops it
     try:
         return importlib.import_module(args._module).run(args) or 0
+    except BrokenPipeError as exc:  # the reader went away (`vrscroll status | head`): end quietly, as a shell tool does
+        if not _stdout_gone():  # another pipe (a socket the command used): an error like any other
+            print(f"vrscroll {args.command}: error: {exc}", file=sys.stderr)
+            return 2
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes it
+        return 141  # 128 + SIGPIPE, what the shell reports for a command that a closed pipe ended
     except (UserError, ValueError, FileNotFoundError, OSError) as exc:
         print(f"vrscroll {args.command}: error: {exc}", file=sys.stderr)
         return 2

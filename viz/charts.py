@@ -47,7 +47,7 @@ def method_bars(rows: list[dict], methods: list[str], shapes: list[str], path, p
 def psychometric_curves(reports: list[dict], unit: str, path, paper: dict | None = None) -> None:
     """Detection ratio per condition (Wilson CI bars, dot area ~ trials) and the fit f, one panel per surface.
 
-    reports: twin.psychometric.analyse's, x in `unit`. Dotted lines at the CDT and DT levels; vertical
+    reports: twin.perception.psychometric.analyse's, x in `unit`. Dotted lines at the CDT and DT levels; vertical
     lines at the thresholds inside the tested range. paper: {'label', 'a', 'b'}, drawn dashed.
     """
     fig, axes = plt.subplots(1, len(reports), figsize=(5.5 * len(reports), 4), squeeze=False)

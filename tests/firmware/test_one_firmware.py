@@ -106,7 +106,7 @@ def test_twin_gains_outside_the_firmwares_bounds_are_refused_and_nothing_changes
 
 
 def test_the_twins_pid_memory_is_the_cores(spec):
-    """twin.pid views the core's own PID memory (the HIL runs carry the integral across a reset)."""
+    """Twin.pid views the core's own PID memory (the HIL runs carry the integral across a reset)."""
     start = np.radians([10.0, 0, 0, 0, 0, -10.0])
     plain, pushed = Twin(spec), Twin(spec)
     for twin in (plain, pushed):

@@ -53,7 +53,7 @@ def test_hinges_follow_a_cylinders_chords(spec):
 
 
 def test_pipeline_lowers_msd_on_every_shape(spec):
-    """From 4 seeded starts 2-6 cm off and tilted up to 30 degrees (twin.starts), on all eight shapes."""
+    """From 4 seeded starts 2-6 cm off and tilted up to 30 degrees (twin.evaluation.starts), on all eight shapes."""
     for name in shape_names():
         mesh, fields = fields_of(name, EVAL_SPACING)
         for start in approach_starts(mesh, 4, seed=3):

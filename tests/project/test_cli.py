@@ -137,3 +137,61 @@ def test_json_holds_null_where_a_number_is_not_defined():
     assert "NaN" not in out.stdout and "Infinity" not in out.stdout
     report = json.loads(out.stdout)
     assert report["hinges"][0]["settle_time_s"] is None and not report["settled"]
+
+
+def test_simulate_exits_1_when_the_gate_fails_as_demo_does():
+    out = vrscroll("simulate", "60", "0", "0", "0", "0", "0", "--max-time", "0.05", "--json", "-")
+    assert out.returncode == 1, out.stderr
+    assert json.loads(out.stdout)["gate"]["passed"] is False
+    assert vrscroll("simulate", "10", "0", "0", "0", "0", "0", "--json", "-").returncode == 0
+
+
+def test_a_negative_list_needs_no_equals_sign():
+    out = vrscroll("simulate", "10", "0", "0", "0", "0", "0", "--from", "-10,0,0,0,0,5", "--json", "-")
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["start_deg"] == [-10, 0, 0, 0, 0, 5]
+
+
+def test_help_shows_json_taking_a_file():
+    out = vrscroll("simulate", "--help")
+    assert "--json FILE" in out.stdout and "[FILE]" not in out.stdout
+
+
+@pytest.mark.parametrize("argv, written", [(("sweep", "--example"), "sweep.toml"),
+                                           (("psychometric", "--example"), "trials.csv")])
+def test_example_as_the_readme_words_it(tmp_path, argv, written):
+    out = vrscroll(*argv, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / written).stat().st_size > 0
+    again = vrscroll(*argv, cwd=tmp_path)  # never over a file that is there
+    assert again.returncode == 2 and "exists" in again.stderr
+    bare = vrscroll(argv[0], cwd=tmp_path)
+    assert bare.returncode == 2 and "--example" in bare.stderr and "Traceback" not in bare.stderr
+
+
+@pytest.mark.parametrize("value, words", [("bogus", "not one of MuJoCo's OpenGL back ends"),
+                                          ("osmesa", "OSMesa")])
+def test_an_unusable_mujoco_gl_is_one_line_naming_the_choices(value, words):
+    import ctypes.util
+
+    if value == "osmesa" and ctypes.util.find_library("OSMesa"):
+        pytest.skip("OSMesa is installed here: MUJOCO_GL=osmesa is usable")
+    import os
+
+    for argv in (("demo", "--help"), ("status", "--serial", "/dev/null")):
+        out = vrscroll(*argv, env={**os.environ, "MUJOCO_GL": value})
+        assert out.returncode == 2 and "Traceback" not in out.stderr
+        assert words in out.stderr and "egl, osmesa, glfw" in out.stderr and len(out.stderr.splitlines()) == 1
+
+
+def test_a_closed_pipe_ends_quietly():
+    import subprocess
+
+    from twin.paths import cli_command, cli_env
+
+    proc = subprocess.Popen(cli_command("simulate", "10", "0", "0", "0", "0", "0", "--json", "-"),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=cli_env(), text=True)
+    proc.stdout.close()  # the reader is gone before the command writes (`| head` that has read enough)
+    err = proc.stderr.read()
+    assert proc.wait(120) == 141
+    assert "Traceback" not in err and "BrokenPipe" not in err and "Exception ignored" not in err

@@ -17,6 +17,7 @@ import argparse
 import contextlib
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -87,6 +88,31 @@ class _JsonFile(argparse.Action):
         if values is None:
             parser.error("--json now takes a file: --json FILE writes it there, --json - prints it on standard output")
         setattr(namespace, self.dest, values)
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """argparse's help, with --json shown as it is taken (FILE, not an optional [FILE]: a bare --json is refused)."""
+
+    def _format_args(self, action, default_metavar):
+        if isinstance(action, _JsonFile):
+            return action.metavar
+        return super()._format_args(action, default_metavar)
+
+
+_NEGATIVE_LIST = re.compile(r"-\d[\d.]*(,-?\d[\d.]*)*")
+
+
+def join_negative_values(parser, argv: list[str]) -> list[str]:
+    """argv with an option that takes a value and is followed by a negative number or list (`--from -10,0,5`)
+    joined into one word (`--from=-10,0,5`): argparse would read `-10,0,5` as an unknown option."""
+    out = []
+    for word in argv:
+        action = parser._option_string_actions.get(out[-1]) if out else None  # argparse has no public lookup
+        if action is not None and action.nargs is None and _NEGATIVE_LIST.fullmatch(word):
+            out[-1] = f"{out[-1]}={word}"
+        else:
+            out.append(word)
+    return out
 
 
 def add_json(p, what: str) -> None:

@@ -22,12 +22,14 @@ from twin.perception.psychometric import FIT_METHOD, analyse, simulate_trials, t
 from twin.perception.thresholds import detection_rule, paper_fits
 from viz.charts import psychometric_curves
 
+EXAMPLE = "trials.csv"  # what `--example` writes when no file is named
 MAX_BOOTSTRAP = 100_000  # resamples: CIs stable to well below a percent; each holds the trials in memory
 
 
 def add_arguments(p) -> None:
     surfaces = [f.surface for f in paper_fits()]
-    p.add_argument("data", metavar="DATA.csv", help="trials CSV (with --example: the file to write)")
+    p.add_argument("data", metavar="DATA.csv", nargs="?",
+                   help=f"trials CSV (with --example: the file to write, default {EXAMPLE})")
     p.add_argument("--out", metavar="DIR", help="write DIR/fit.json and DIR/psychometric.png")
     p.add_argument("--bootstrap", type=int, default=2000, metavar="N",
                    help="bootstrap resamples for the threshold CIs (default 2000; 0: none)")
@@ -36,8 +38,9 @@ def add_arguments(p) -> None:
     add_json(p, "the result")
     p.add_argument("--compare-paper", choices=surfaces, metavar="SURFACE",
                    help=f"overlay the paper's printed curve for SURFACE ({', '.join(surfaces)})")
-    p.add_argument("--example", choices=surfaces, metavar="SURFACE",
-                   help="instead of fitting, write DATA: trials drawn from the paper's curve for SURFACE")
+    p.add_argument("--example", choices=surfaces, metavar="SURFACE", nargs="?", const=surfaces[0],
+                   help=f"instead of fitting, write DATA: trials drawn from the paper's curve for SURFACE "
+                        f"(default {surfaces[0]!r})")
 
 
 def _paper(surface: str) -> dict:
@@ -95,10 +98,12 @@ def _text(result: dict) -> str:
 
 
 def run(args) -> int:
-    path = Path(args.data)
     if args.example:
-        write_example(path, args.example, args.seed)
+        write_example(Path(args.data or EXAMPLE), args.example, args.seed)
         return 0
+    if args.data is None:
+        raise UserError("name the trials file to fit (DATA.csv), or write one with --example")
+    path = Path(args.data)
     if not 0 <= args.bootstrap <= MAX_BOOTSTRAP:
         raise UserError(f"--bootstrap {args.bootstrap}: from 0 to {MAX_BOOTSTRAP:,} resamples")
     if not 0 < args.level_ci < 1:

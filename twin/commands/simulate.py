@@ -106,7 +106,7 @@ def run(args) -> int:
     write_json(args.json, summary)
     if json_to_stdout(args):
         print("\n".join(lines), file=sys.stderr)
-        return 0
+        return 0 if gate.passed else 1
     print(profile_line(profile))
     print(gate.text())
     print(f"{'hinge':>5} {'target_deg':>10} {'final_deg':>9} {'settle_time_s':>13} {'overshoot_deg':>13} "
@@ -127,7 +127,7 @@ def run(args) -> int:
     if args.trace:
         print(f"trace: {args.trace}")
     print(f"step response: {args.plot}" + "".join("\n" + line for line in lines))
-    return 0
+    return 0 if gate.passed else 1
 
 
 def _number(text: str) -> bool:

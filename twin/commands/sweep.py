@@ -15,13 +15,18 @@ from twin.evaluation.backends import add_backend_arguments, make_backend
 from twin.evaluation.lock import folder_lock
 from twin.evaluation.sweep import run_sweep, summarize_designs, write_csv, write_table
 from twin.evaluation.table1 import METHODS
+from twin.errors import UserError
 from twin.formats.sweep import read_sweep, write_sweep
 from twin.morphpatch.shapes import shape_names
 from viz.charts import design_bars, pareto_front
 
 
+EXAMPLE = "sweep.toml"  # what `--example` writes when no file is named
+
+
 def add_arguments(p) -> None:
-    p.add_argument("sweep", metavar="SWEEP.toml", help="the sweep file (with --example: the file to write)")
+    p.add_argument("sweep", metavar="SWEEP.toml", nargs="?",
+                   help=f"the sweep file (with --example: the file to write, default {EXAMPLE})")
     p.add_argument("--out", help="output folder (default results/sweep/<the sweep file's name>)")
     add_backend_arguments(p)
     p.add_argument("--example", action="store_true", help="instead of sweeping, write an example SWEEP.toml")
@@ -29,11 +34,16 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     if args.example:
+        args.sweep = args.sweep or EXAMPLE
+        if Path(args.sweep).exists():
+            raise UserError(f"{args.sweep} exists; --example writes a new file and does not overwrite")
         write_sweep(args.sweep, ["cylinder", "ellipsoid"], 3, 0, ["full", "refined"],
                     {"n_flaps": [5, 7, 9], "hinge_limit": {"from": 90, "to": 110, "count": 2}},
                     {"draws": 1, "seed": 0, "tolerance_pct": {"no_load_speed": 20, "gear_friction": 20}})
         print(f"wrote {args.sweep}")
         return 0
+    if args.sweep is None:
+        raise UserError("name the sweep file to run (SWEEP.toml), or write one with --example")
     sweep = read_sweep(args.sweep, shape_names(), list(METHODS))
     out = Path(args.out or Path("results") / "sweep" / Path(args.sweep).stem)
     n = len(sweep.designs) * len(sweep.shapes) * sweep.starts * len(sweep.methods) * (sweep.plant_draws + 1)

@@ -44,10 +44,6 @@ class Scenario:
     targets: list[np.ndarray]  # rad
     duration: float  # s
 
-    def target_at(self, t: float) -> np.ndarray:
-        i = max(k for k, tk in enumerate(self.times) if tk <= t + 1e-12)
-        return self.targets[i]
-
 
 def read_scenario(path, spec: DeviceSpec) -> Scenario:
     """Read a scenario; ValueError naming the file, the step and the key for anything wrong."""

@@ -215,7 +215,7 @@ def bootstrap_report(thresholds, lo: float, hi: float, ci_level: float, unit: st
 def analyse(trials: Trials, rule: dict, resamples: int = 2000, seed: int = 0, ci_level: float = 0.95) -> list[dict]:
     """One report per surface: counts and ratios per condition, the fit, CDT and DT with bootstrap CIs.
 
-    rule: twin.perception.detection_rule(). Numbers carry the file's unit in their key names.
+    rule: twin.perception.thresholds.detection_rule(). Numbers carry the file's unit in their key names.
     The bootstrap resamples participants when there are two or more, else trials within each condition.
     """
     u = trials.unit

@@ -5,8 +5,8 @@ overshoot under a stated limit, on the *worst* of a set of plants: the nominal
 spec and the corners of the parameter ranges it is tuned over: the intervals
 calibration left open (a device profile's), or, uncalibrated, motor constant
 and gear friction each +-tolerance % (4 corners + nominal = 5 plants). Every candidate is scored
-with the report's own metrics (twin.simulation.hinge_metrics, i.e.
-twin.response.step_metrics) over the same window as the report (the goal's
+with the report's own metrics (twin.sim.response.hinge_metrics, i.e.
+twin.sim.response.step_metrics) over the same window as the report (the goal's
 duration), and must also pass the gate's current checks as the gate makes them
 (peak winding current within the driver's peak rating, mean current over the
 last settle_hold s within the continuous rating), so the goal is met by
