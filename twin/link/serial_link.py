@@ -330,8 +330,20 @@ class Link:
             raise ValueError(f"a pulse is at most duty {P.PULSE_MAX_DUTY} for {P.PULSE_MAX_MS} ms; "
                              f"asked duty {duty} for {duration_s} s")
         self.moved = True
+        self.wait_program()  # the device refuses a pulse while the last still runs (its clock may lag the host's)
         # toward zero on the wire: rounded to nearest, PULSE_MAX_DUTY itself comes back over the firmware's bound
         return self.request(P.Pulse(hinge, int(duty * P.DUTY_SCALE), round(duration_s * 1000)))
+
+    def wait_program(self, timeout_s: float = P.PULSE_MAX_MS / 1000 + 1.0, poll_s: float = 0.01) -> P.ProgramStatus:
+        """Wait until the device's last program (or PULSE) has ended; its PROGRAM_STATUS. LinkError after
+        timeout_s."""
+        deadline = time.monotonic() + timeout_s
+        while (status := self.request(P.GetProgram())).end == ProgramEnd.RUNNING:
+            if time.monotonic() > deadline:
+                raise LinkError(f"{self.url}: the device's program on hinge {status.hinge} still runs after "
+                                f"{timeout_s:g} s")
+            time.sleep(poll_s)
+        return status
 
     def run_program(self, hinge: int, segments, window_counts, timeout_s: float | None = None,
                     poll_s: float = 0.02) -> ProgramRun:
@@ -345,20 +357,19 @@ class Link:
         ValueError, and nothing sent, outside the bounds; NackError where the device refuses."""
         msg = program_message(hinge, segments, window_counts, timeout_s)
         dt = 1.0 / (self.info.loop_rate_hz if self.info and self.info.loop_rate_hz else 1000)
+        self.wait_program()  # a pulse or program still running would refuse it
         with self._pending_lock:
             self._samples = {}
         self.moved = True  # an interrupt from here on e-stops (see __exit__)
         self.request(msg)
-        deadline = time.monotonic() + msg.timeout_ms / 1000 + 1.0
-        while True:
-            status = self.request(P.GetProgram())
-            if status.end != ProgramEnd.RUNNING:
-                break
-            if time.monotonic() > deadline:
+        try:
+            status = self.wait_program(msg.timeout_ms / 1000 + 1.0, poll_s)
+        except LinkError:
+            if self.error is None:  # the link stands: the device kept driving past the program's timeout
                 self.estop()
                 raise LinkError(f"{self.url}: the device's program on hinge {hinge} did not end by its timeout "
-                                f"({msg.timeout_ms} ms): e-stopped")
-            time.sleep(poll_s)
+                                f"({msg.timeout_ms} ms): e-stopped") from None
+            raise
         with self._pending_lock:  # every sample was queued before the status that says the program ended
             samples, self._samples = self._samples, {}
         index = np.array(sorted(i for i in samples if i < status.ticks), np.int64)
