@@ -64,7 +64,8 @@ class PidState(ctypes.Structure):
 
 
 def _program_max_segments() -> int:
-    """VRS_PROGRAM_MAX_SEGMENTS, read from the generated header (its one home is twin/link/protocol.py, a layer above)."""
+    """VRS_PROGRAM_MAX_SEGMENTS, read from the generated header (its one home, twin/link/protocol.py, is a layer
+    above this one)."""
     for line in (FIRMWARE_DIR / "vrs_protocol.h").read_text().splitlines():
         if line.startswith("#define VRS_PROGRAM_MAX_SEGMENTS "):
             return int(line.split()[2])

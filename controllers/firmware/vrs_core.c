@@ -274,15 +274,17 @@ static void program_tick(vrs_core *c, uint32_t now_us)
 {
     vrs_program_run *r = &c->program;
     uint32_t t = r->status.ticks;
-    int32_t at, old, ahead, moved;
+    int32_t at, old;
+    int64_t ahead, moved;  /* wide: counts far apart (a glitching encoder) must not overflow */
     float d;
     if (r->status.end != VRS_PROGRAM_END_RUNNING)
         return;
     at = c->counts[r->spec.hinge];
     old = r->history[t % VRS_PROGRAM_RATE_TICKS];  /* VRS_PROGRAM_RATE_TICKS ticks ago (the start before that) */
     r->history[t % VRS_PROGRAM_RATE_TICKS] = at;
-    ahead = at + (at - old) * (int32_t)ms_to_ticks(c, VRS_PROGRAM_LOOKAHEAD_MS) / VRS_PROGRAM_RATE_TICKS;
-    moved = at - r->stall_ref;
+    ahead = (int64_t)at
+            + ((int64_t)at - old) * (int64_t)ms_to_ticks(c, VRS_PROGRAM_LOOKAHEAD_MS) / VRS_PROGRAM_RATE_TICKS;
+    moved = (int64_t)at - r->stall_ref;
     d = c->duty[r->spec.hinge] < 0.0f ? -c->duty[r->spec.hinge] : c->duty[r->spec.hinge];
     if (moved > c->cfg.stall_counts || moved < -c->cfg.stall_counts || d < program_stall_duty(c)) {
         r->stall_ref = at;

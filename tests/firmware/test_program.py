@@ -2,7 +2,7 @@
 ends them itself (its segments' end, the window's edge, a stall, its timeout, a quiet host, a state change),
 streams a sample per tick, and runs them alike in the twin, the batch twin, the emulator and the sketch."""
 
-import time
+import dataclasses
 
 import numpy as np
 import pytest
@@ -60,8 +60,9 @@ class FirstOrderHinge:
 
 def run(c, msg, ticks, hinge_model=None, hinge=2, heartbeat_ms=50, events=()):
     """Send msg at device time 0, then tick the core `ticks` times (1 ms each) on a FirstOrderHinge (or the
-    given one) for `hinge`, the others still, a heartbeat every heartbeat_ms (0: none); events: {tick: bytes} received before that tick. Returns
-    (the reply to msg, duties (ticks, n), counts of `hinge` per tick, PROGRAM_SAMPLEs (seq, msg), status)."""
+    given one) for `hinge`, the others still, a heartbeat every heartbeat_ms (0: none); events: {tick: bytes}
+    received before that tick. Returns (the reply to msg, duties (ticks, n), counts of `hinge` per tick,
+    PROGRAM_SAMPLEs (seq, msg), status)."""
     h = hinge_model or FirstOrderHinge()
     counts = [0] * c.n
     c.tick(0, counts)
@@ -110,7 +111,15 @@ def test_the_window_ends_a_program_before_its_edge(spec, duty):
     assert st.end == ProgramEnd.WINDOW and 10 < st.ticks < 400 and len(samples) == st.ticks
     assert low <= counts.min() and counts.max() <= high, (counts.min(), counts.max())
     assert not duties[st.ticks:].any()
-    assert abs(counts[st.ticks - 1]) > 0.5 * (high if duty > 0 else -low)  # not ended long before
+    ahead = round(P.PROGRAM_LOOKAHEAD_MS * 1e-3 * core.config_from_spec(spec).loop_rate_hz)
+    k = P.PROGRAM_RATE_TICKS
+
+    def predicted(t):  # where the core puts the hinge `ahead` ticks on, at tick t of the program (counts[t])
+        return counts[t] + int((counts[t] - counts[t - k]) * ahead / k)
+
+    edge = high if duty > 0 else low
+    sign = 1 if duty > 0 else -1
+    assert sign * predicted(st.ticks) > sign * edge >= sign * predicted(st.ticks - 1)  # ended on the tick it must
 
 
 def test_a_stall_ends_a_program_above_the_duty_that_can_overheat_a_jammed_motor(spec):
@@ -199,6 +208,19 @@ def test_a_program_runs_only_idle_with_the_zero_confirmed_and_one_at_a_time(spec
     assert c.program_status().hinge == 2
 
 
+def test_a_retried_program_gets_its_first_ack_and_does_not_start_again(spec):
+    """The host resends a command whose ACK it missed (same seq, same bytes): the core answers from its kept
+    replies, and the program that started goes on, neither restarted nor refused as 'one already runs'."""
+    c = make(spec)
+    msg = raw_program(timeout_ms=100, duty=(0.1,), ms=(100,))
+    first, *_ = run(c, msg, 30)
+    c.rx(P.encode(msg, 1), 31_000)
+    assert [m for _, m in frames(c)] == [first] == [P.Ack(P.MsgId.PROGRAM, 0)]
+    for t in range(31, 120):
+        c.tick(t * 1000, [0] * c.n)
+    assert (c.program_status().end, c.program_status().ticks) == (ProgramEnd.DONE, 100)
+
+
 def test_the_host_refuses_what_the_core_would_before_sending():
     for bad in ([(0.81, 0.1)], [(0.1, 0.1)] * (PAD + 1), [(0.1, P.PROGRAM_MAX_MS / 1000), (0.1, 0.001)],
                 [(0.1, 0.0)], []):
@@ -232,6 +254,43 @@ def test_chained_pulses_stop_at_the_hinges_range_on_drawn_plants(spec):
         assert max(reach) <= lim and emu.firmware.state == P.State.IDLE and emu.firmware.faults == 0, max(reach)
 
 
+@pytest.mark.slow
+def test_programs_at_full_duty_stop_inside_their_window_on_drawn_plants(spec):
+    """Every hinge of 4 drawn plants, hanging and lying flat, driven at the largest duty toward the range both
+    ways: the window (the range) ends each program, and the braked hinge coasts to a stop before the range's
+    edge (with a 30 ms look-ahead one lying flat coasted 7 counts past it)."""
+    lim = core.config_from_spec(spec).limit_counts
+    worst, ended = -lim, 0
+    for seed in range(1, 5):
+        for flat in (False, True):
+            opt = drawn_options(PlantRanges(), FaultOptions(), seed, zeroed=True)
+            opt = dataclasses.replace(opt, plant=dataclasses.replace(opt.plant, lying_flat=flat))
+            for hinge in range(spec.n_hinges):
+                for sign in (1, -1):
+                    emu = Emulator(spec, opt)
+                    for _ in range(300):  # the flaps sag or settle first
+                        emu.step()
+                    at = int(emu.counts[hinge])
+                    window = (at - 1, lim) if sign > 0 else (-lim, at + 1)
+                    if not -lim < at < lim:
+                        continue
+                    emu.receive(P.encode(program_message(hinge, [(sign * P.PROGRAM_MAX_DUTY, 1.5)], window), 1))
+                    out = bytearray()
+                    for i in range(1700):
+                        if i % 50 == 0:
+                            emu.receive(P.encode(P.Heartbeat(), 2 + i))
+                        emu.step()
+                        out += emu.take_output()
+                        worst = max(worst, sign * int(emu.counts[hinge]) - lim)
+                    emu.receive(P.encode(P.GetProgram(), 9999))
+                    for _ in range(10):  # the drawn command latency: up to 3 ms
+                        emu.step()
+                    (status,) = [m for _, m in P.Decoder().feed(bytes(out) + emu.take_output())
+                                 if isinstance(m, P.ProgramStatus)]
+                    ended += status.end == ProgramEnd.WINDOW
+    assert worst < 0 and ended > 60, (worst, ended)
+
+
 # ---- one program everywhere --------------------------------------------------------------------
 
 SEGMENTS = [(0.3, 0.08), (0.0, 0.05), (-0.5, 0.1), (0.6, 0.1)]
@@ -249,7 +308,7 @@ def emulated_program(spec, opt, segments, window, ticks, heartbeat_every=50, hin
         emu.step()
         out += emu.take_output()
     emu.receive(P.encode(P.GetProgram(), 9999))
-    for _ in range(3):
+    for _ in range(10):  # the command latency, if any
         emu.step()
         out += emu.take_output()
     got = P.Decoder().feed(bytes(out))
