@@ -243,6 +243,9 @@ static int program_start(vrs_core *c, const vrs_program_spec *p, float max_duty,
     for (i = 0; i < VRS_PROGRAM_RATE_TICKS; i++)
         r->history[i] = at;
     r->stall_ref = at;
+    r->zero = c->zero[p->hinge];
+    r->encoder = c->wiring.encoder[p->hinge];
+    r->flags = c->wiring.flags[p->hinge];
     r->status.hinge = p->hinge;
     r->status.end = VRS_PROGRAM_END_RUNNING;
     return 0;
@@ -262,10 +265,19 @@ static void program_end(vrs_core *c, uint8_t why)
     c->program.status.battery_mv = c->battery_mv;
 }
 
+/* whether the device is no longer as the program started it: out of IDLE, or its hinge's zero or wiring changed */
+static int program_state_changed(const vrs_core *c)
+{
+    const vrs_program_run *r = &c->program;
+    uint8_t h = r->spec.hinge;
+    return c->state != VRS_STATE_IDLE || c->zero[h] != r->zero || c->wiring.encoder[h] != r->encoder
+           || c->wiring.flags[h] != r->flags;
+}
+
 /* a state change ends the program at once (an ESTOP and a CLEAR_FAULT in one read must not resume it) */
 static void program_check_state(vrs_core *c)
 {
-    if (c->program.status.end == VRS_PROGRAM_END_RUNNING && c->state != VRS_STATE_IDLE)
+    if (c->program.status.end == VRS_PROGRAM_END_RUNNING && program_state_changed(c))
         program_end(c, VRS_PROGRAM_END_STATE);
 }
 
@@ -290,7 +302,7 @@ static void program_tick(vrs_core *c, uint32_t now_us)
         r->stall_ref = at;
         r->stall_since = t;
     }
-    if (c->state != VRS_STATE_IDLE)
+    if (program_state_changed(c))
         program_end(c, VRS_PROGRAM_END_STATE);
     else if (c->cfg.watchdog_ms && now_us - c->last_rx_us > (uint32_t)c->cfg.watchdog_ms * 1000u)
         program_end(c, VRS_PROGRAM_END_HOST_QUIET);

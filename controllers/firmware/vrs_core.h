@@ -114,6 +114,8 @@ typedef struct {
     int32_t history[VRS_PROGRAM_RATE_TICKS]; /* the hinge's counts over the last ticks, for its speed */
     int32_t stall_ref;
     uint32_t stall_since;       /* tick */
+    int32_t zero;               /* the hinge's zero and wiring at the start: a change (CONFIRM_ZERO, SET_WIRING) */
+    uint8_t encoder, flags;     /* moves the window under the hinge, and ends the program */
 } vrs_program_run;
 
 typedef struct vrs_core {
