@@ -137,6 +137,22 @@ def test_a_stall_ends_a_program_above_the_duty_that_can_overheat_a_jammed_motor(
     assert (st.end, st.ticks) == (ProgramEnd.DONE, 500)
 
 
+def test_a_pulse_is_a_program_a_stall_ends_and_its_range_bounds(spec):
+    """PULSE at its largest on a jammed hinge ends on the stall (300 ms of its 500), where the supervisor's
+    STALL (duty 0.5 and up) never looked at it; a PULSE from beyond the range is refused."""
+    stall_ms = core.config_from_spec(spec).stall_ms
+    c = make(spec)
+    reply, duties, _, samples, st = run(c, P.Pulse(2, int(P.PULSE_MAX_DUTY * P.DUTY_SCALE), P.PULSE_MAX_MS), 600,
+                                        FirstOrderHinge(jammed=True))
+    assert reply == P.Ack(P.MsgId.PULSE, 0) and st.end == ProgramEnd.STALL and stall_ms <= st.ticks <= stall_ms + 2
+    assert not duties[st.ticks:].any() and len(samples) == st.ticks and c.state == P.State.IDLE
+    lim = core.config_from_spec(spec).limit_counts
+    c = make(spec)
+    c.tick(0, [0, 0, lim + 3, 0, 0, 0])  # sagged past its range
+    c.rx(P.encode(P.Pulse(2, 1000, 100), 1), 0)
+    assert [m for _, m in frames(c)] == [P.NackMsg(P.MsgId.PULSE, P.Nack.OUT_OF_RANGE, 2)]
+
+
 def test_a_timeout_shorter_than_the_segments_ends_the_program(spec):
     c = make(spec)
     _, duties, _, _, st = run(c, raw_program(2, timeout_ms=100, duty=(0.05, -0.05), ms=(150, 150)), 200)
