@@ -63,6 +63,49 @@ class PidState(ctypes.Structure):
     _fields_ = [("prev", ctypes.c_int32), ("rate", ctypes.c_float), ("integral", ctypes.c_float)]
 
 
+def _program_max_segments() -> int:
+    """VRS_PROGRAM_MAX_SEGMENTS, read from the generated header (its one home, twin/link/protocol.py, is a layer
+    above this one)."""
+    for line in (FIRMWARE_DIR / "vrs_protocol.h").read_text().splitlines():
+        if line.startswith("#define VRS_PROGRAM_MAX_SEGMENTS "):
+            return int(line.split()[2])
+    raise FirmwareBuildError("vrs_protocol.h has no VRS_PROGRAM_MAX_SEGMENTS: run `vrscroll model --write`")
+
+
+PROGRAM_MAX_SEGMENTS = _program_max_segments()
+
+
+class ProgramSpec(ctypes.Structure):
+    """vrs_program_spec (vrs_core.h): an open-loop program on one hinge (duty in [-1, 1], ms, window in counts)."""
+
+    _fields_ = [("hinge", ctypes.c_uint8), ("n_segments", ctypes.c_uint8), ("timeout_ms", ctypes.c_uint16),
+                ("low", ctypes.c_int32), ("high", ctypes.c_int32), ("duty", ctypes.c_float * PROGRAM_MAX_SEGMENTS),
+                ("ms", ctypes.c_uint16 * PROGRAM_MAX_SEGMENTS)]
+
+
+class ProgramStatus(ctypes.Structure):
+    """vrs_program_status (vrs_core.h): the last program's hinge, end (ProgramEnd), ticks run, samples dropped,
+    battery (mV) at its end."""
+
+    _fields_ = [("hinge", ctypes.c_uint8), ("end", ctypes.c_uint8), ("ticks", ctypes.c_uint32),
+                ("dropped", ctypes.c_uint32), ("battery_mv", ctypes.c_uint16)]
+
+
+def program_spec(hinge: int, segments, window_counts, timeout_s: float | None = None) -> ProgramSpec:
+    """The core's program for (duty, duration_s) segments, a (low, high) counts window and a timeout (s; default
+    the segments' sum); ValueError for more segments than the core holds (the core checks every other bound)."""
+    segments = list(segments)
+    if not 1 <= len(segments) <= PROGRAM_MAX_SEGMENTS:
+        raise ValueError(f"a program has 1 to {PROGRAM_MAX_SEGMENTS} segments, not {len(segments)}")
+    ms = [min(max(round(s * 1000), 0), 0xFFFF) for _, s in segments]
+    timeout = sum(ms) if timeout_s is None else round(timeout_s * 1000)
+    p = ProgramSpec(hinge=hinge, n_segments=len(segments), timeout_ms=min(max(timeout, 0), 0xFFFF),
+                    low=int(window_counts[0]), high=int(window_counts[1]))
+    for i, ((d, _), m) in enumerate(zip(segments, ms)):
+        p.duty[i], p.ms[i] = float(d), m
+    return p
+
+
 def config_from_spec(spec: DeviceSpec) -> Config:
     """The core's config for a device spec (the twin sets watchdog_ms = 0 on the result)."""
     return Config(n_hinges=spec.n_hinges, loop_rate_hz=round(spec.loop_rate), watchdog_ms=round(spec.watchdog * 1000),
@@ -158,6 +201,8 @@ _SIGNATURES = {  # name: (argtypes, restype), as vrs_core.h declares them
     "vrs_clear_fault": ([_VP], ctypes.c_int),
     "vrs_set_reset_reason": ([_VP, _U8], None),
     "vrs_confirm_zero": ([_VP], ctypes.c_int),
+    "vrs_program": ([_VP, _VP], ctypes.c_int),
+    "vrs_get_program": ([_VP, _VP], None),
     "vrs_mark_zero_confirmed": ([_VP], None),
     "vrs_get_heat": ([_VP, _VP], None),
     "vrs_get_derated": ([_VP], _U8),
@@ -278,6 +323,16 @@ class Core:
         """CONFIRM_ZERO: the present counts become zero; 0, or Nack.BAD_STATE outside IDLE."""
         return self.lib.vrs_confirm_zero(self.address)
 
+    def program(self, spec: ProgramSpec) -> int:
+        """Start an open-loop program (see program_spec), as PROGRAM would: 0, or the NACK reason."""
+        return self.lib.vrs_program(self.address, ctypes.addressof(spec))
+
+    def program_status(self) -> ProgramStatus:
+        """The last program: hinge, end (ProgramEnd), ticks run, samples dropped, battery_mv at its end."""
+        out = ProgramStatus()
+        self.lib.vrs_get_program(self.address, ctypes.addressof(out))
+        return out
+
     def mark_zero_confirmed(self) -> None:
         """Accept the present zero as it is (the twin's counts are true from the start)."""
         self.lib.vrs_mark_zero_confirmed(self.address)
@@ -348,8 +403,10 @@ def per_hinge(gains, n: int) -> list[PidGains]:
     return gains
 
 
-def start_core(spec: DeviceSpec, gains: list[PidGains], counts, stall_detection: bool = False) -> Core:
-    """The twin's firmware core, ACTIVE and holding `counts`: the device's config with the watchdog off
+def start_core(spec: DeviceSpec, gains: list[PidGains], counts, stall_detection: bool = False,
+               active: bool = True) -> Core:
+    """The twin's firmware core, ACTIVE and holding `counts` (IDLE with active=False, as a device whose zero
+    was confirmed is, ready for an open-loop program): the device's config with the watchdog off
     (no host talks to the twin) and, unless asked for, stall detection off (the twin is also driven into
     contact on purpose: the CBS baseline, the gate's runs).
 
@@ -362,7 +419,8 @@ def start_core(spec: DeviceSpec, gains: list[PidGains], counts, stall_detection:
     fw = Core(cfg, [PidGains.from_spec(spec)] * spec.n_hinges, counts)
     fw.mark_zero_confirmed()  # the twin's counts are true: no one need lay it flat
     set_core_gains(fw, gains)
-    fw.set_targets(counts, 0)
+    if active:
+        fw.set_targets(counts, 0)
     return fw
 
 

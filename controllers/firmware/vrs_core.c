@@ -58,7 +58,8 @@ static int acts(uint8_t id)
 {
     return id == VRS_MSG_SET_TARGETS || id == VRS_MSG_SET_GAINS || id == VRS_MSG_ESTOP || id == VRS_MSG_CLEAR_FAULT
            || id == VRS_MSG_SET_TELEMETRY_RATE || id == VRS_MSG_CONFIRM_ZERO || id == VRS_MSG_PULSE
-           || id == VRS_MSG_SET_WIRING;
+           || id == VRS_MSG_SET_WIRING
+           || id == VRS_MSG_PROGRAM;
 }
 
 /* queue a reply to the command (request id, seq, frame CRC); keep it if the command acts */
@@ -181,20 +182,183 @@ static int wiring_is_identity(const vrs_core *c)
     return 1;
 }
 
-static int pulse(vrs_core *c, uint8_t hinge, float duty, uint32_t ms, uint32_t *detail)
+/* ---- open-loop programs (PROGRAM; PULSE is one segment): docs/firmware.md, "Open-loop motion" ---------- */
+
+/* |duty| at or above this and the hinge not moving: a program's stall. The duty that drives the motor's
+ * continuous current at standstill (continuous / stall current): below it a jammed motor cannot overheat. */
+static float program_stall_duty(const vrs_core *c)
 {
-    float mag = duty < 0.0f ? -duty : duty;
-    *detail = hinge;
-    if (c->state != VRS_STATE_IDLE) {
-        *detail = c->state;
+    return c->cfg.stall_current_ma ? (float)c->cfg.continuous_current_ma / (float)c->cfg.stall_current_ma
+                                   : c->cfg.stall_duty;
+}
+
+static uint32_t ms_to_ticks(const vrs_core *c, uint32_t ms)
+{
+    return (ms * c->cfg.loop_rate_hz + 500u) / 1000u;
+}
+
+/* start p unless refused (0, or the NACK reason with *detail); max_duty: the largest |duty|, compared in wire units */
+static int program_start(vrs_core *c, const vrs_program_spec *p, float max_duty, int need_zero, uint32_t *detail)
+{
+    vrs_program_run *r = &c->program;
+    uint32_t total = 0;
+    uint8_t i;
+    int32_t at, limit = c->cfg.limit_counts;
+    int16_t most = duty_to_wire(max_duty);
+    *detail = p->hinge;
+    if (c->state != VRS_STATE_IDLE || r->status.end == VRS_PROGRAM_END_RUNNING) {
+        *detail = c->state;  /* IDLE (0) here: a program is still running */
         return VRS_NACK_BAD_STATE;
     }
-    if (hinge >= c->cfg.n_hinges || mag > VRS_PULSE_MAX_DUTY || ms > VRS_PULSE_MAX_MS)
+    if (need_zero && !c->zero_confirmed) {
+        *detail = 0xFF;
+        return VRS_NACK_ZERO_UNCONFIRMED;
+    }
+    if (p->hinge >= c->cfg.n_hinges || p->n_segments == 0 || p->n_segments > VRS_PROGRAM_MAX_SEGMENTS
+        || p->timeout_ms == 0 || p->timeout_ms > VRS_PROGRAM_MAX_MS)
         return VRS_NACK_BAD_VALUE;
-    c->pulse_hinge = hinge;
-    c->pulse_duty = duty;
-    c->pulse_end_us = c->now_us + ms * 1000u;
+    for (i = 0; i < p->n_segments; i++) {
+        int16_t d;
+        if (!(p->duty[i] >= -1.0f && p->duty[i] <= 1.0f) || p->ms[i] == 0)  /* NaN too */
+            return VRS_NACK_BAD_VALUE;
+        d = duty_to_wire(p->duty[i]);
+        if (d > most || d < -most)
+            return VRS_NACK_BAD_VALUE;
+        total += p->ms[i];
+    }
+    if (total > VRS_PROGRAM_MAX_MS)
+        return VRS_NACK_BAD_VALUE;
+    at = c->counts[p->hinge];
+    if (p->low >= p->high || p->low < -limit || p->high > limit || at < p->low || at > p->high)
+        return VRS_NACK_OUT_OF_RANGE;
+    memset(r, 0, sizeof *r);
+    r->spec = *p;
+    total = 0;
+    for (i = 0; i < p->n_segments; i++) {
+        r->spec.duty[i] = (float)duty_to_wire(p->duty[i]) / (float)VRS_DUTY_SCALE;  /* as the wire carries it */
+        total += p->ms[i];
+        r->segment_end[i] = ms_to_ticks(c, total);
+    }
+    r->timeout_ticks = ms_to_ticks(c, p->timeout_ms);
+    for (i = 0; i < VRS_PROGRAM_RATE_TICKS; i++)
+        r->history[i] = at;
+    r->stall_ref = at;
+    r->zero = c->zero[p->hinge];
+    r->encoder = c->wiring.encoder[p->hinge];
+    r->flags = c->wiring.flags[p->hinge];
+    r->status.hinge = p->hinge;
+    r->status.end = VRS_PROGRAM_END_RUNNING;
     return 0;
+}
+
+int vrs_program(vrs_core *c, const vrs_program_spec *p)
+{
+    uint32_t detail;
+    return program_start(c, p, VRS_PROGRAM_MAX_DUTY, 1, &detail);
+}
+
+void vrs_get_program(const vrs_core *c, vrs_program_status *out) { *out = c->program.status; }
+
+static void program_end(vrs_core *c, uint8_t why)
+{
+    c->program.status.end = why;
+    c->program.status.battery_mv = c->battery_mv;
+}
+
+/* whether the device is no longer as the program started it: out of IDLE, or its hinge's zero or wiring changed */
+static int program_state_changed(const vrs_core *c)
+{
+    const vrs_program_run *r = &c->program;
+    uint8_t h = r->spec.hinge;
+    return c->state != VRS_STATE_IDLE || c->zero[h] != r->zero || c->wiring.encoder[h] != r->encoder
+           || c->wiring.flags[h] != r->flags;
+}
+
+/* a state change ends the program at once (an ESTOP and a CLEAR_FAULT in one read must not resume it) */
+static void program_check_state(vrs_core *c)
+{
+    if (c->program.status.end == VRS_PROGRAM_END_RUNNING && program_state_changed(c))
+        program_end(c, VRS_PROGRAM_END_STATE);
+}
+
+/* the start of a tick, the counts read: end the program where it must end, else pick its segment */
+static void program_tick(vrs_core *c, uint32_t now_us)
+{
+    vrs_program_run *r = &c->program;
+    uint32_t t = r->status.ticks;
+    int32_t at, old;
+    int64_t ahead, moved;  /* wide: counts far apart (a glitching encoder) must not overflow */
+    float d;
+    if (r->status.end != VRS_PROGRAM_END_RUNNING)
+        return;
+    at = c->counts[r->spec.hinge];
+    old = r->history[t % VRS_PROGRAM_RATE_TICKS];  /* VRS_PROGRAM_RATE_TICKS ticks ago (the start before that) */
+    r->history[t % VRS_PROGRAM_RATE_TICKS] = at;
+    ahead = (int64_t)at
+            + ((int64_t)at - old) * (int64_t)ms_to_ticks(c, VRS_PROGRAM_LOOKAHEAD_MS) / VRS_PROGRAM_RATE_TICKS;
+    moved = (int64_t)at - r->stall_ref;
+    d = c->duty[r->spec.hinge] < 0.0f ? -c->duty[r->spec.hinge] : c->duty[r->spec.hinge];
+    if (moved > c->cfg.stall_counts || moved < -c->cfg.stall_counts || d < program_stall_duty(c)) {
+        r->stall_ref = at;
+        r->stall_since = t;
+    }
+    if (program_state_changed(c))
+        program_end(c, VRS_PROGRAM_END_STATE);
+    else if (c->cfg.watchdog_ms && now_us - c->last_rx_us > (uint32_t)c->cfg.watchdog_ms * 1000u)
+        program_end(c, VRS_PROGRAM_END_HOST_QUIET);
+    else if (at < r->spec.low || at > r->spec.high || ahead < r->spec.low || ahead > r->spec.high)
+        program_end(c, VRS_PROGRAM_END_WINDOW);
+    else if (t - r->stall_since > ms_to_ticks(c, c->cfg.stall_ms))
+        program_end(c, VRS_PROGRAM_END_STALL);
+    else if (t >= r->segment_end[r->spec.n_segments - 1])
+        program_end(c, VRS_PROGRAM_END_DONE);
+    else if (t >= r->timeout_ticks)
+        program_end(c, VRS_PROGRAM_END_TIMEOUT);
+    else
+        while (t >= r->segment_end[r->segment])
+            r->segment++;
+}
+
+/* the program's duty for hinge k this tick (0: braked) */
+static float program_duty(const vrs_core *c, uint8_t k)
+{
+    const vrs_program_run *r = &c->program;
+    return r->status.end == VRS_PROGRAM_END_RUNNING && k == r->spec.hinge ? r->spec.duty[r->segment] : 0.0f;
+}
+
+/* the end of a tick: its sample (counts read, duty applied) as a PROGRAM_SAMPLE, seq its index */
+static void program_sample(vrs_core *c)
+{
+    vrs_program_run *r = &c->program;
+    uint32_t v[2], len;
+    uint8_t frame_bytes[32];
+    if (r->status.end != VRS_PROGRAM_END_RUNNING)
+        return;
+    v[0] = (uint32_t)c->counts[r->spec.hinge];
+    v[1] = (uint32_t)(int32_t)duty_to_wire(c->duty[r->spec.hinge]);
+    len = vrs_encode(VRS_MSG_PROGRAM_SAMPLE, (uint16_t)r->status.ticks, v, 0, frame_bytes, sizeof frame_bytes);
+    if (!queue(c, frame_bytes, len, VRS_TX_REPLY_RESERVE))
+        r->status.dropped++;
+    r->status.ticks++;
+}
+
+/* PULSE: a one-segment program within the hinge's range, at most VRS_PULSE_MAX_DUTY for VRS_PULSE_MAX_MS; bring-up
+ * runs it before the zero is confirmed (the range is then about the counts at the start) */
+static int pulse(vrs_core *c, uint8_t hinge, float duty, uint32_t ms, uint32_t *detail)
+{
+    vrs_program_spec p;
+    memset(&p, 0, sizeof p);
+    *detail = hinge;
+    if (ms > VRS_PULSE_MAX_MS)
+        return VRS_NACK_BAD_VALUE;
+    p.hinge = hinge;
+    p.n_segments = 1;
+    p.timeout_ms = (uint16_t)ms;
+    p.low = -c->cfg.limit_counts;
+    p.high = c->cfg.limit_counts;
+    p.duty[0] = duty;
+    p.ms[0] = (uint16_t)ms;
+    return program_start(c, &p, VRS_PULSE_MAX_DUTY, 0, detail);
 }
 
 void vrs_get_heat(const vrs_core *c, float *share_out)
@@ -295,7 +459,7 @@ int vrs_init(vrs_core *c, const vrs_config *cfg, const vrs_gains *gains, const i
         c->limit_out[k] = cfg->limit_counts + cfg->limit_margin_counts;
         c->wiring.encoder[k] = k;
     }
-    c->pulse_hinge = 0xFF;
+    c->program.status.hinge = 0xFF;
     c->state = VRS_STATE_IDLE;
     c->fault_hinge = 0xFF;
     return 0;
@@ -421,6 +585,32 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
     case VRS_MSG_PULSE:
         r = pulse(c, (uint8_t)v[0], (float)(int16_t)v[1] / (float)VRS_DUTY_SCALE, v[2], &detail);
         break;
+    case VRS_MSG_PROGRAM: {
+        vrs_program_spec p;
+        memset(&p, 0, sizeof p);
+        p.hinge = (uint8_t)v[0];
+        p.low = (int32_t)v[1];
+        p.high = (int32_t)v[2];
+        p.timeout_ms = (uint16_t)v[3];
+        p.n_segments = (uint8_t)v[4];
+        for (k = 0; k < VRS_PROGRAM_MAX_SEGMENTS; k++) {
+            p.duty[k] = (float)(int32_t)v[5 + k] / (float)VRS_DUTY_SCALE;
+            p.ms[k] = (uint16_t)v[5 + VRS_PROGRAM_MAX_SEGMENTS + k];
+        }
+        r = program_start(c, &p, VRS_PROGRAM_MAX_DUTY, 1, &detail);
+        break;
+    }
+    case VRS_MSG_GET_PROGRAM: {
+        const vrs_program_status *st = &c->program.status;
+        out[0] = st->hinge;
+        out[1] = st->end;
+        out[2] = st->ticks;
+        out[3] = st->dropped;
+        out[4] = st->battery_mv;
+        out[5] = st->hinge < nh ? (uint32_t)c->counts[st->hinge] : 0u;
+        reply(c, id, seq, crc, VRS_MSG_PROGRAM_STATUS, out, 0);
+        return;
+    }
     case VRS_MSG_SET_WIRING: {
         vrs_wiring w;
         if (n != nh) {
@@ -506,8 +696,10 @@ void vrs_rx(vrs_core *c, const uint8_t *bytes, uint32_t n, uint32_t now_us)
         }
         if (c->rx_overflow)
             c->rx_bad_frames++;
-        else if (c->rx_len)
+        else if (c->rx_len) {
             frame(c, c->rx_buf, c->rx_len);
+            program_check_state(c);
+        }
         c->rx_overflow = 0;
         c->rx_len = 0;
     }
@@ -591,12 +783,7 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
         c->counts[k] = (c->wiring.flags[k] & VRS_WIRING_ENCODER_REVERSED ? -raw : raw) - c->zero[k];
         c->current_ma[k] = current_ma ? current_ma[k] : 0;
     }
-    if (c->pulse_hinge != 0xFF) {  /* a bring-up pulse: IDLE only, ended by time, a state change or the range */
-        int32_t at = c->counts[c->pulse_hinge];
-        int32_t far = c->cfg.limit_counts + c->cfg.limit_margin_counts;
-        if (c->state != VRS_STATE_IDLE || (int32_t)(now_us - c->pulse_end_us) >= 0 || at > far || at < -far)
-            c->pulse_hinge = 0xFF;
-    }
+    program_tick(c, now_us);
     if (c->state == VRS_STATE_ACTIVE || c->state == VRS_STATE_HOLDING)
         checks(c, now_us);
     driving = c->state == VRS_STATE_ACTIVE || c->state == VRS_STATE_HOLDING;
@@ -605,7 +792,7 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
         if (driving)
             c->duty[k] = vrs_pid_update(&c->pid[k], &c->gains[k], c->alpha[k], c->dt, c->targets[k], c->counts[k]);
         else {
-            c->duty[k] = k == c->pulse_hinge ? c->pulse_duty : 0.0f;
+            c->duty[k] = program_duty(c, k);
             c->pid[k].prev = c->counts[k];
         }
         /* I2t: current estimated from duty at standstill (an upper bound); over budget, the continuous rating */
@@ -627,6 +814,7 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
          * within 0.5 s: docs/firmware.md) */
         decay_out[k] = VRS_DECAY_BRAKE;
     }
+    program_sample(c);
     if (c->telemetry_every && c->ticks % c->telemetry_every == 0)
         telemetry(c);
     c->ticks++;

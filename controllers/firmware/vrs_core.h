@@ -84,6 +84,40 @@ typedef struct {
     uint8_t payload[VRS_REPLY_CAP];
 } vrs_reply;
 
+/* an open-loop duty program on one hinge (PROGRAM, and PULSE as one segment): docs/firmware.md, "Open-loop
+ * motion" */
+typedef struct {
+    uint8_t hinge;              /* the hinge it drives */
+    uint8_t n_segments;
+    uint16_t timeout_ms;        /* ends it at the latest */
+    int32_t low, high;          /* the window, counts */
+    float duty[VRS_PROGRAM_MAX_SEGMENTS];
+    uint16_t ms[VRS_PROGRAM_MAX_SEGMENTS];
+} vrs_program_spec;
+
+/* the last program: how it stands */
+typedef struct {
+    uint8_t hinge;              /* 0xFF: none since the start */
+    uint8_t end;                /* VRS_PROGRAM_END_* (RUNNING while it runs) */
+    uint32_t ticks;             /* ticks it ran, one sample each */
+    uint32_t dropped;           /* samples the transmit queue had no room for */
+    uint16_t battery_mv;        /* read at its end; 0 = not sensed */
+} vrs_program_status;
+
+typedef struct {
+    vrs_program_spec spec;      /* duties as the wire carries them (duty * VRS_DUTY_SCALE, rounded) */
+    vrs_program_status status;
+    uint32_t segment_end[VRS_PROGRAM_MAX_SEGMENTS]; /* tick at which each segment ends */
+    uint32_t timeout_ticks;
+    uint8_t segment;
+    uint8_t stream;             /* 1: a PROGRAM_SAMPLE frame per tick (PROGRAM, not PULSE) */
+    int32_t history[VRS_PROGRAM_RATE_TICKS]; /* the hinge's counts over the last ticks, for its speed */
+    int32_t stall_ref;
+    uint32_t stall_since;       /* tick */
+    int32_t zero;               /* the hinge's zero and wiring at the start: a change (CONFIRM_ZERO, SET_WIRING) */
+    uint8_t encoder, flags;     /* moves the window under the hinge, and ends the program */
+} vrs_program_run;
+
 typedef struct vrs_core {
     vrs_config cfg;
     float dt;                                   /* s per tick */
@@ -104,9 +138,7 @@ typedef struct vrs_core {
     uint32_t away_since_us;                     /* HOLDING since */
     vrs_wiring wiring;
     uint8_t wiring_changed;                     /* set by SET_WIRING until vrs_take_wiring_change */
-    uint8_t pulse_hinge;                        /* a bring-up PULSE under way (0xFF: none) ... */
-    float pulse_duty;                           /* ... at this duty ... */
-    uint32_t pulse_end_us;                      /* ... until then */
+    vrs_program_run program;                    /* the open-loop program (PULSE is one) */
     uint8_t state;
     uint16_t faults;
     uint8_t fault_hinge;
@@ -163,6 +195,14 @@ int vrs_set_gains(vrs_core *c, uint8_t hinge /* VRS_BROADCAST: all */, const vrs
 int vrs_set_telemetry_rate(vrs_core *c, uint16_t rate_hz);
 void vrs_estop(vrs_core *c);
 int vrs_clear_fault(vrs_core *c);  /* 0, or VRS_NACK_FAULT_PERSISTS while a HARDWARE fault stands */
+
+/* Start an open-loop program (PROGRAM does this): 0, or the NACK reason (VRS_NACK_*); nothing changes on a
+ * refusal. IDLE, zero confirmed, no program running; hinge < n; 1..VRS_PROGRAM_MAX_SEGMENTS segments of 1 ms or
+ * more, VRS_PROGRAM_MAX_MS in all; |duty| <= VRS_PROGRAM_MAX_DUTY (compared in wire units: duty is rounded to
+ * duty * VRS_DUTY_SCALE first); timeout 1..VRS_PROGRAM_MAX_MS; -limit_counts <= low < high <= limit_counts with
+ * the hinge's counts inside. Its samples stream as PROGRAM_SAMPLE frames. */
+int vrs_program(vrs_core *c, const vrs_program_spec *p);
+void vrs_get_program(const vrs_core *c, vrs_program_status *out);
 
 /* The flaps lie flat now: the present counts become zero (CONFIRM_ZERO does this); 0, or VRS_NACK_BAD_STATE
  * outside IDLE. vrs_mark_zero_confirmed accepts the present zero as it is (the twin, whose counts are true). */

@@ -4,7 +4,7 @@
 #define VRS_PROTOCOL_H
 
 /* framing (docs/protocol.md) */
-#define VRS_PROTOCOL_VERSION 3
+#define VRS_PROTOCOL_VERSION 4
 #define VRS_MAX_PAYLOAD 512
 #define VRS_DUTY_SCALE 32767
 #define VRS_GAIN_SCALE 10000000
@@ -12,6 +12,11 @@
 #define VRS_BROADCAST 0xFF
 #define VRS_PULSE_MAX_DUTY 0.4f
 #define VRS_PULSE_MAX_MS 500
+#define VRS_PROGRAM_MAX_SEGMENTS 16
+#define VRS_PROGRAM_MAX_DUTY 0.8f
+#define VRS_PROGRAM_MAX_MS 10000
+#define VRS_PROGRAM_LOOKAHEAD_MS 40
+#define VRS_PROGRAM_RATE_TICKS 8
 #define VRS_WIRING_ENCODER_REVERSED 0x01
 #define VRS_WIRING_MOTOR_REVERSED 0x02
 
@@ -29,13 +34,17 @@
 #define VRS_MSG_PULSE 0x0B
 #define VRS_MSG_SET_WIRING 0x0C
 #define VRS_MSG_GET_WIRING 0x0D
+#define VRS_MSG_PROGRAM 0x0E
+#define VRS_MSG_GET_PROGRAM 0x0F
 #define VRS_MSG_ACK 0x80
 #define VRS_MSG_NACK 0x81
 #define VRS_MSG_HELLO_REPLY 0x82
 #define VRS_MSG_STATE 0x83
 #define VRS_MSG_GAINS 0x84
 #define VRS_MSG_WIRING 0x85
+#define VRS_MSG_PROGRAM_STATUS 0x86
 #define VRS_MSG_TELEMETRY 0x90
+#define VRS_MSG_PROGRAM_SAMPLE 0x91
 
 /* bodies: X(name, fixed fields, per-hinge fields after a count byte n); codes B H I h i are
  * u8 u16 u32 i16 i32, little-endian, packed */
@@ -51,6 +60,10 @@
     X(PULSE, "BhH", "") \
     X(SET_WIRING, "", "BB") \
     X(GET_WIRING, "", "") \
+    X(PROGRAM, "BiiHBhhhhhhhhhhhhhhhhHHHHHHHHHHHHHHHH", "") \
+    X(GET_PROGRAM, "", "") \
+    X(PROGRAM_STATUS, "BBIIHi", "") \
+    X(PROGRAM_SAMPLE, "ih", "") \
     X(WIRING, "", "BB") \
     X(SET_TELEMETRY_RATE, "H", "") \
     X(GET_GAINS, "B", "") \
@@ -85,6 +98,16 @@
 #define VRS_FAULT_LIMIT 0x08
 #define VRS_FAULT_OVERCURRENT 0x10
 #define VRS_FAULT_HARDWARE 0x20
+
+/* why a program ended (PROGRAM_STATUS end) */
+#define VRS_PROGRAM_END_NONE 0
+#define VRS_PROGRAM_END_RUNNING 1
+#define VRS_PROGRAM_END_DONE 2
+#define VRS_PROGRAM_END_WINDOW 3
+#define VRS_PROGRAM_END_STALL 4
+#define VRS_PROGRAM_END_TIMEOUT 5
+#define VRS_PROGRAM_END_HOST_QUIET 6
+#define VRS_PROGRAM_END_STATE 7
 
 /* the board's set-up steps (HELLO_REPLY setup_error) */
 #define VRS_SETUP_NONE 0

@@ -96,7 +96,8 @@ _DEVICE_MESSAGES = [P.Ack(3, 5), P.NackMsg(3, 4, 1), P.HelloReply((0, 1, 0), 1, 
                     P.StateMsg((0, 1, 0), 0, 0, 255, 1, 0, (0,) * 6, (0,) * 6, (0,) * 6),
                     P.GainsReply(0, P.Gains(*[1] * 7)),
                     P.WiringReply((0, 1, 2, 3, 4, 5), (0,) * 6),
-                    P.Telemetry(1, 0, 0, 255, (0,) * 6, (0,) * 6, (0,) * 6, (0,) * 6)]
+                    P.Telemetry(1, 0, 0, 255, (0,) * 6, (0,) * 6, (0,) * 6, (0,) * 6),
+                    P.ProgramStatus(0, 0, 0, 0, 0, 0), P.ProgramSample(0, 0)]
 
 
 @pytest.mark.parametrize("active", [False, True], ids=["idle", "active"])
@@ -428,8 +429,10 @@ def test_a_pulse_drives_one_hinge_open_loop_for_its_time_in_idle_only(spec):
     assert ask(c, P.Pulse(2, round(0.2 * P.DUTY_SCALE), 30), 1, 0)[1] == P.Ack(P.MsgId.PULSE, 0)
     duties = [c.tick(t * 1000, [0] * 6)[0] for t in range(1, 40)]
     on = [d[2] for d in duties]
-    assert on[:29] == [pytest.approx(0.2, abs=1e-4)] * 29 and on[29:] == [0.0] * 10
+    assert on[:30] == [pytest.approx(0.2, abs=1e-4)] * 30 and on[30:] == [0.0] * 9  # 30 ticks of 1 ms
     assert all(d[k] == 0 for d in duties for k in (0, 1, 3, 4, 5)) and c.state == P.State.IDLE
+    samples = replies(c)  # a PULSE is a program: a PROGRAM_SAMPLE per tick it drove
+    assert [seq for seq, _ in samples] == list(range(30)) and {m.duty for _, m in samples} == {round(0.2 * P.DUTY_SCALE)}
     for bad in (P.Pulse(2, round(0.5 * P.DUTY_SCALE), 30), P.Pulse(2, 100, P.PULSE_MAX_MS + 1), P.Pulse(6, 100, 30)):
         assert ask(c, bad, 2, 50_000)[1].reason == P.Nack.BAD_VALUE, bad
     ask(c, P.SetTargets((0,) * 6), 3, 50_000)

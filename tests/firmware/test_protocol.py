@@ -22,6 +22,12 @@ MESSAGES = [
     P.GainsReply(0, P.Gains(1, 2, 3, 4, 5, 6, 7)),
     P.Telemetry(999, P.State.FAULT, P.Fault.ESTOP, 255, (1, 2, 3, 4, 5, 6), (6, 5, 4, 3, 2, 1),
                 (32767, -32767, 0, 1, -1, 100), (1600, -1600, 0, 0, 5, -5)),
+    P.Program(3, -300, 2**31 - 1, P.PROGRAM_MAX_MS, 2, (26214, -32768) + (0,) * (P.PROGRAM_MAX_SEGMENTS - 2),
+              (65535, 1) + (0,) * (P.PROGRAM_MAX_SEGMENTS - 2)),
+    P.Program(2, -376, 376, 400, 3, (9830, 0, -26214) + (0,) * (P.PROGRAM_MAX_SEGMENTS - 3),
+              (200, 50, 150) + (0,) * (P.PROGRAM_MAX_SEGMENTS - 3)),  # one the core runs (the fuzz corpus has it)
+    P.GetProgram(), P.ProgramStatus(255, P.ProgramEnd.HOST_QUIET, 2**32 - 1, 7, 7400, -(2**31)),
+    P.ProgramSample(-376, -26214),
 ]
 
 

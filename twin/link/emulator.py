@@ -148,7 +148,8 @@ class Emulator:
         self.plant.actuate(self.wiring.plant_drive(pwm), decay)
         if self.hand is not None:
             self.plant.hold_hinge(*self.hand)
-        jammed = self.faults.jam(self.plant, self.firmware.state == P.State.ACTIVE, self.time)
+        driving = self.firmware.state == P.State.ACTIVE or bool(np.any(pwm))  # under targets, or a program
+        jammed = self.faults.jam(self.plant, driving, self.time)
         if jammed is not None:
             self._log("jam", hinge=self.opt.faults.jam_hinge, angle_deg=math.degrees(jammed))
         if len(self.out) < BACKLOG:

@@ -39,6 +39,11 @@ def header(spec: DeviceSpec | None = None) -> str:
            f"#define VRS_BROADCAST 0x{P.BROADCAST:02X}",
            f"#define VRS_PULSE_MAX_DUTY {_float(P.PULSE_MAX_DUTY)}",
            f"#define VRS_PULSE_MAX_MS {P.PULSE_MAX_MS}",
+           f"#define VRS_PROGRAM_MAX_SEGMENTS {P.PROGRAM_MAX_SEGMENTS}",
+           f"#define VRS_PROGRAM_MAX_DUTY {_float(P.PROGRAM_MAX_DUTY)}",
+           f"#define VRS_PROGRAM_MAX_MS {P.PROGRAM_MAX_MS}",
+           f"#define VRS_PROGRAM_LOOKAHEAD_MS {P.PROGRAM_LOOKAHEAD_MS}",
+           f"#define VRS_PROGRAM_RATE_TICKS {P.PROGRAM_RATE_TICKS}",
            f"#define VRS_WIRING_ENCODER_REVERSED 0x{P.WIRING_ENCODER_REVERSED:02X}",
            f"#define VRS_WIRING_MOTOR_REVERSED 0x{P.WIRING_MOTOR_REVERSED:02X}", "",
            "/* message ids */"]
@@ -54,6 +59,8 @@ def header(spec: DeviceSpec | None = None) -> str:
     out += [f"#define VRS_STATE_{s.name} {s.value}" for s in P.State]
     out += ["", "/* fault bits */"]
     out += [f"#define VRS_FAULT_{f.name} 0x{f.value:02X}" for f in P.Fault if f.value]
+    out += ["", "/* why a program ended (PROGRAM_STATUS end) */"]
+    out += [f"#define VRS_PROGRAM_END_{e.name} {e.value}" for e in P.ProgramEnd]
     out += ["", "/* the board's set-up steps (HELLO_REPLY setup_error) */"]
     out += [f"#define VRS_SETUP_{x.name} {x.value}" for x in P.SetupStep]
     out += ["", "/* gains SET_GAINS accepts, SI, inclusive */"]

@@ -21,9 +21,11 @@ import enum
 import struct
 
 from controllers.pid import PidGains
+from controllers.program import ProgramEnd  # noqa: F401  (the end reasons' one home; the header writes them)
 
-PROTOCOL_VERSION = 3  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING;
-# 3: STATE carries each hinge's PID integral
+PROTOCOL_VERSION = 4  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING;
+# 3: STATE carries each hinge's PID integral; 4: PROGRAM, GET_PROGRAM, PROGRAM_STATUS, PROGRAM_SAMPLE (PULSE is a
+# program of one segment: the range and a stall end it)
 MAX_FRAME = 512  # bytes of decoded payload (header + body + crc); longer is garbage
 DUTY_SCALE = 32767  # duty [-1, 1] on the wire as int16 duty * 32767
 GAIN_SCALE = 10_000_000  # kp, ki, kd on the wire as int32 gain * 1e7
@@ -31,6 +33,11 @@ CUTOFF_SCALE = 10  # derivative cutoff on the wire as uint16 Hz * 10
 BROADCAST = 0xFF  # "every hinge" in SET_GAINS
 PULSE_MAX_DUTY = 0.4  # |duty| a bring-up PULSE may ask for
 PULSE_MAX_MS = 500  # ms a PULSE may last
+PROGRAM_MAX_SEGMENTS = 16  # segments (duty, duration) in one PROGRAM
+PROGRAM_MAX_DUTY = 0.8  # |duty| a PROGRAM segment may ask for
+PROGRAM_MAX_MS = 10_000  # ms a PROGRAM may last: its segments' sum and its timeout each (sample seqs stay < 2**16)
+PROGRAM_LOOKAHEAD_MS = 40  # the window ends a program where the hinge would be this long ahead at its present speed
+PROGRAM_RATE_TICKS = 8  # ticks over which the core measures that speed
 WIRING_ENCODER_REVERSED = 0x01  # SET_WIRING flags: the hinge's encoder counts the other way (A and B swapped)
 WIRING_MOTOR_REVERSED = 0x02  # ... its motor turns the other way (its two leads swapped)
 
@@ -52,6 +59,8 @@ class MsgId(enum.IntEnum):
     PULSE = 0x0B
     SET_WIRING = 0x0C
     GET_WIRING = 0x0D
+    PROGRAM = 0x0E
+    GET_PROGRAM = 0x0F
     # device -> host
     ACK = 0x80
     NACK = 0x81
@@ -59,7 +68,9 @@ class MsgId(enum.IntEnum):
     STATE = 0x83
     GAINS = 0x84
     WIRING = 0x85
+    PROGRAM_STATUS = 0x86
     TELEMETRY = 0x90
+    PROGRAM_SAMPLE = 0x91
 
 
 class Nack(enum.IntEnum):
@@ -292,6 +303,56 @@ class Pulse:
 
 
 @dataclasses.dataclass(frozen=True)
+class Program:
+    """Host -> device, for identification: an open-loop duty program on one hinge, the others braked. Segments
+    0..n_segments-1 of `duty` (int16 duty * 32767, each at most PROGRAM_MAX_DUTY) and `duration_ms` run in
+    order (the rest are zeros); the core ends it itself at the window [low, high] (counts, within the hinge's
+    range, the hinge inside it now), on a stall, after timeout_ms, when the host goes quiet, on any state
+    change. IDLE with the zero confirmed only; PROGRAM_SAMPLE streams its ticks, GET_PROGRAM tells its end."""
+
+    MSG = MsgId.PROGRAM
+    hinge: int
+    low: int
+    high: int
+    timeout_ms: int
+    n_segments: int
+    duty: tuple[int, ...]
+    duration_ms: tuple[int, ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class GetProgram:
+    """Host -> device: how the last program stands; the device answers ProgramStatus."""
+
+    MSG = MsgId.GET_PROGRAM
+
+
+@dataclasses.dataclass(frozen=True)
+class ProgramStatus:
+    """Device -> host: the last program (or PULSE): its hinge (0xFF: none since the start), `end`
+    (ProgramEnd: RUNNING while it runs), the ticks it ran (one PROGRAM_SAMPLE each), the samples its transmit
+    queue had to drop, the battery it read at the end (mV, 0: not sensed) and the hinge's counts now."""
+
+    MSG = MsgId.PROGRAM_STATUS
+    hinge: int
+    end: int
+    ticks: int
+    dropped: int
+    battery_mv: int
+    counts: int
+
+
+@dataclasses.dataclass(frozen=True)
+class ProgramSample:
+    """Device -> host, streamed while a program runs: one tick, its index from the program's start in the
+    header's seq: the hinge's counts read in it and the duty applied from it (int16 duty * 32767)."""
+
+    MSG = MsgId.PROGRAM_SAMPLE
+    counts: int
+    duty: int
+
+
+@dataclasses.dataclass(frozen=True)
 class SetWiring:
     """Host -> device: the wiring correction per hinge: which encoder input is the hinge's (a permutation),
     and WIRING_* flags. IDLE only; the device keeps it across power cycles; the zero must be confirmed again."""
@@ -397,9 +458,9 @@ class GainsReply:
     gains: Gains
 
 
-# what answers a request: these three their data, every other command an ACK (or a NACK) naming it
+# what answers a request: these their data, every other command an ACK (or a NACK) naming it
 REPLY_TO = {MsgId.HELLO: MsgId.HELLO_REPLY, MsgId.GET_STATE: MsgId.STATE, MsgId.GET_GAINS: MsgId.GAINS,
-            MsgId.GET_WIRING: MsgId.WIRING}
+            MsgId.GET_WIRING: MsgId.WIRING, MsgId.GET_PROGRAM: MsgId.PROGRAM_STATUS}
 
 
 def answers(request: "MsgId", reply) -> bool:
@@ -468,10 +529,15 @@ class Layout:
         return struct.calcsize("<" + self.hinge_codes) if self.per_hinge else 0
 
 
+def _repeat(fmt: str) -> int:
+    """How many values a field of format fmt holds as a tuple ("3B": 3, "16h": 16); 0 for a single value."""
+    return int(fmt[:-1]) if fmt[0].isdigit() else 0
+
+
 def _codes(fmt: str) -> str:
     if fmt == "gains":
         return "".join(f for _, f in GAINS_BLOCK)
-    return fmt[1] * int(fmt[0]) if fmt[0].isdigit() else fmt
+    return fmt[-1] * _repeat(fmt) if _repeat(fmt) else fmt
 
 
 LAYOUTS = {
@@ -486,6 +552,13 @@ LAYOUTS = {
     MsgId.PULSE: Layout(Pulse, (("hinge", "B"), ("duty", "h"), ("duration_ms", "H"))),
     MsgId.SET_WIRING: Layout(SetWiring, per_hinge=(("encoder", "B"), ("flags", "B"))),
     MsgId.GET_WIRING: Layout(GetWiring),
+    MsgId.PROGRAM: Layout(Program, (("hinge", "B"), ("low", "i"), ("high", "i"), ("timeout_ms", "H"),
+                                    ("n_segments", "B"), ("duty", f"{PROGRAM_MAX_SEGMENTS}h"),
+                                    ("duration_ms", f"{PROGRAM_MAX_SEGMENTS}H"))),
+    MsgId.GET_PROGRAM: Layout(GetProgram),
+    MsgId.PROGRAM_STATUS: Layout(ProgramStatus, (("hinge", "B"), ("end", "B"), ("ticks", "I"), ("dropped", "I"),
+                                                 ("battery_mv", "H"), ("counts", "i"))),
+    MsgId.PROGRAM_SAMPLE: Layout(ProgramSample, (("counts", "i"), ("duty", "h"))),
     MsgId.WIRING: Layout(WiringReply, per_hinge=(("encoder", "B"), ("flags", "B"))),
     MsgId.SET_TELEMETRY_RATE: Layout(SetTelemetryRate, (("rate_hz", "H"),)),
     MsgId.GET_GAINS: Layout(GetGains, (("hinge", "B"),)),
@@ -511,7 +584,9 @@ def wire_values(msg) -> tuple[list[int], int]:
     values = []
     for name, fmt in lay.fields:
         v = getattr(msg, name)
-        values += dataclasses.astuple(v) if fmt == "gains" else (v if fmt[0].isdigit() else (v,))
+        if _repeat(fmt) and len(v) != _repeat(fmt):
+            raise ValueError(f"{msg.MSG.name}: {name} has {len(v)} values, expected {_repeat(fmt)}")
+        values += dataclasses.astuple(v) if fmt == "gains" else (v if _repeat(fmt) else (v,))
     arrays = [tuple(getattr(msg, name)) for name, _ in lay.per_hinge]
     n = len(arrays[0]) if arrays else 0
     if any(len(a) != n for a in arrays):
@@ -544,8 +619,8 @@ def _decode_body(mid: int, body: bytes):
     for name, fmt in lay.fields:
         if fmt == "gains":
             kwargs[name] = Gains(*(next(flat) for _ in GAINS_BLOCK))
-        elif fmt[0].isdigit():
-            kwargs[name] = tuple(next(flat) for _ in range(int(fmt[0])))
+        elif _repeat(fmt):
+            kwargs[name] = tuple(next(flat) for _ in range(_repeat(fmt)))
         else:
             kwargs[name] = next(flat)
     pos = lay.fixed_size

@@ -22,9 +22,11 @@ import queue
 import threading
 import time
 
+import numpy as np
 import serial
 
 from controllers.core import MAX_HINGES
+from controllers.program import ProgramEnd, ProgramRun, end_name
 from twin.formats.gains import check_gains
 from twin.link import protocol as P
 
@@ -60,6 +62,30 @@ class ZeroUnconfirmed(LinkError):
 
 
 _CLOSED = object()  # put in the telemetry queue when the link ends
+MAX_LOOP_RATE_KHZ = 2  # program samples kept per ms of PROGRAM_MAX_MS: bounded, whatever the device sends
+
+
+def program_message(hinge: int, segments, window_counts, timeout_s: float | None = None) -> P.Program:
+    """The PROGRAM message for segments ((duty, duration_s) pairs), a window (low, high counts) and a timeout
+    (s; default the segments' sum); ValueError naming the bound for a program the device would refuse on
+    its face (the hinge's range and its present counts the device checks)."""
+    segments = [(float(d), float(s)) for d, s in segments]
+    low, high = (int(w) for w in window_counts)
+    ms = [round(s * 1000) for _, s in segments]
+    total = sum(ms)
+    timeout_ms = total if timeout_s is None else round(timeout_s * 1000)
+    if not 1 <= len(segments) <= P.PROGRAM_MAX_SEGMENTS:
+        raise ValueError(f"a program has 1 to {P.PROGRAM_MAX_SEGMENTS} segments, not {len(segments)}")
+    if any(not abs(round(d * P.DUTY_SCALE)) <= round(P.PROGRAM_MAX_DUTY * P.DUTY_SCALE) for d, _ in segments):
+        raise ValueError(f"a program's |duty| is at most {P.PROGRAM_MAX_DUTY}: {[d for d, _ in segments]}")
+    if any(m < 1 for m in ms) or total > P.PROGRAM_MAX_MS or not 1 <= timeout_ms <= P.PROGRAM_MAX_MS:
+        raise ValueError(f"a program's segments last 1 ms or more, {P.PROGRAM_MAX_MS} ms in all, and its timeout "
+                         f"1 to {P.PROGRAM_MAX_MS} ms: segments {ms} ms, timeout {timeout_ms} ms")
+    if not low < high:
+        raise ValueError(f"a program's window is low < high counts, not [{low}, {high}]")
+    pad = P.PROGRAM_MAX_SEGMENTS - len(segments)
+    return P.Program(hinge, low, high, timeout_ms, len(segments),
+                     tuple(round(d * P.DUTY_SCALE) for d, _ in segments) + (0,) * pad, tuple(ms) + (0,) * pad)
 
 
 class Link:
@@ -104,6 +130,7 @@ class Link:
         self.zero_confirmed = False  # from HELLO_REPLY, and set by confirm_zero
         self.moved = False  # whether this session sent targets
         self.echoes = 0  # frames that came back as the host sent them (a looped-back line)
+        self._samples: dict[int, P.ProgramSample] = {}  # the running program's samples by tick index
 
     # ---- session ----------------------------------------------------------------------
     def open(self, hello: bool = True) -> "Link":
@@ -303,8 +330,60 @@ class Link:
             raise ValueError(f"a pulse is at most duty {P.PULSE_MAX_DUTY} for {P.PULSE_MAX_MS} ms; "
                              f"asked duty {duty} for {duration_s} s")
         self.moved = True
+        self.wait_program()  # the device refuses a pulse while the last still runs (its clock may lag the host's)
         # toward zero on the wire: rounded to nearest, PULSE_MAX_DUTY itself comes back over the firmware's bound
         return self.request(P.Pulse(hinge, int(duty * P.DUTY_SCALE), round(duration_s * 1000)))
+
+    def wait_program(self, timeout_s: float = P.PULSE_MAX_MS / 1000 + 1.0, poll_s: float = 0.01) -> P.ProgramStatus:
+        """Wait until the device's last program (or PULSE) has ended; its PROGRAM_STATUS. LinkError after
+        timeout_s."""
+        deadline = time.monotonic() + timeout_s
+        while (status := self.request(P.GetProgram())).end == ProgramEnd.RUNNING:
+            if time.monotonic() > deadline:
+                raise LinkError(f"{self.url}: the device's program on hinge {status.hinge} still runs after "
+                                f"{timeout_s:g} s")
+            time.sleep(poll_s)
+        return status
+
+    def run_program(self, hinge: int, segments, window_counts, timeout_s: float | None = None,
+                    poll_s: float = 0.02) -> ProgramRun:
+        """Run an open-loop duty program on one hinge (the device IDLE, its zero confirmed) and return its samples.
+
+        segments: (duty, duration_s) pairs, at most PROGRAM_MAX_SEGMENTS, |duty| <= PROGRAM_MAX_DUTY, in all at
+        most PROGRAM_MAX_MS; a duty of 0 brakes. window_counts: (low, high), counts within the hinge's range, the
+        hinge inside it now. timeout_s: when the core ends it at the latest (default: the segments' sum). The
+        device ends it itself (docs/protocol.md, "PROGRAM"); this waits for that, polling GET_PROGRAM every
+        poll_s, and gives one sample per firmware tick (PROGRAM_SAMPLE), those lost on the way counted.
+        ValueError, and nothing sent, outside the bounds; NackError where the device refuses."""
+        msg = program_message(hinge, segments, window_counts, timeout_s)
+        dt = 1.0 / (self.info.loop_rate_hz if self.info and self.info.loop_rate_hz else 1000)
+        self.wait_program()  # a pulse or program still running would refuse it
+        with self._pending_lock:
+            self._samples = {}
+        self.moved = True  # an interrupt from here on e-stops (see __exit__)
+        self.request(msg)
+        try:
+            status = self.wait_program(msg.timeout_ms / 1000 + 1.0, poll_s)
+        except LinkError:
+            if self.error is None:  # the link stands: the device kept driving past the program's timeout
+                self.estop()
+                raise LinkError(f"{self.url}: the device's program on hinge {hinge} did not end by its timeout "
+                                f"({msg.timeout_ms} ms): e-stopped") from None
+            raise
+        with self._pending_lock:  # every sample was queued before the status that says the program ended
+            samples, self._samples = self._samples, {}
+        index = np.array(sorted(i for i in samples if i < status.ticks), np.int64)
+        self.log("program_end", hinge=hinge, end=end_name(status.end), ticks=status.ticks, received=len(index),
+                 dropped=status.dropped)
+        return ProgramRun(hinge=hinge, time_s=index * dt,
+                          duty=np.array([samples[i].duty for i in index], float) / P.DUTY_SCALE,
+                          counts=np.array([samples[i].counts for i in index], np.int64),
+                          battery_mV=float(status.battery_mv) if status.battery_mv else None,
+                          end=end_name(status.end), samples_lost=int(status.ticks - len(index)))
+
+    def get_program(self) -> P.ProgramStatus:
+        """How the last program (or PULSE) stands: its hinge, end reason (ProgramEnd), ticks run."""
+        return self.request(P.GetProgram())
 
     def get_wiring(self) -> P.WiringReply:
         return self.request(P.GetWiring())
@@ -369,6 +448,11 @@ class Link:
                 self.log("rx_bad_frames", count=self.decoder.bad_frames, last_error=self.decoder.last_error)
 
     def _dispatch(self, seq: int, msg) -> None:
+        if isinstance(msg, P.ProgramSample):  # a tick of the running program, by its index (the seq)
+            with self._pending_lock:
+                if len(self._samples) < P.PROGRAM_MAX_MS * MAX_LOOP_RATE_KHZ:
+                    self._samples[seq] = msg
+            return
         if isinstance(msg, P.Telemetry):
             if self._last_telemetry_seq is not None:
                 self.telemetry_lost += (seq - self._last_telemetry_seq - 1) & 0xFFFF

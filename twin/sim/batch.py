@@ -11,10 +11,11 @@ import numpy as np
 from mujoco.batch import Batch
 
 from controllers import core
-from controllers.core import (core_state_bytes, per_hinge, pid_memory, pid_memory_at, set_core_gains, start_core,
-                              tick_us)
+from controllers.core import (ProgramStatus, core_state_bytes, per_hinge, pid_memory, pid_memory_at, program_spec,
+                              set_core_gains, start_core, tick_us)
 from controllers.encoder import counts_from_motor_angles, target_counts
 from controllers.pid import PidGains
+from controllers.program import ProgramEnd, ProgramRun, end_name
 from twin.device.mjcf import load_model, motor_attributes
 from twin.device.spec import DeviceSpec, load_spec
 from twin.sim.drive import V_PACK, drive_params
@@ -90,9 +91,10 @@ class TwinBatch:
             raise ValueError(f"expected gains for {self.nsim} simulations, got {len(gains)}")
         return [per_hinge(g, self.spec.n_hinges) for g in gains]
 
-    def reset(self, angles=None, integral=None) -> None:
+    def reset(self, angles=None, integral=None, active: bool = True) -> None:
         """All simulations back to flat (or to angles, rad, (nsim, n_hinges) or one row for all); their firmware
-        restarted, holding there, its PID integral per hinge `integral` (duty, the same shapes; default none)."""
+        restarted, holding there, its PID integral per hinge `integral` (duty, the same shapes; default none);
+        with active=False IDLE instead (every hinge braked), as a device is before its first targets."""
         self.batch.reset(keyframe=0, stage=mujoco.mjtStage.mjSTAGE_NONE.value)
         if angles is not None:
             for q, a in zip(self.qpos, np.broadcast_to(angles, (self.nsim, self.spec.n_hinges))):
@@ -104,7 +106,7 @@ class TwinBatch:
         self._cores = np.zeros((self.nsim, size), np.uint8)  # one vrs_core per simulation, contiguous
         integral = None if integral is None else np.broadcast_to(integral, (self.nsim, self.spec.n_hinges))
         for i in range(self.nsim):
-            fw = start_core(self.spec, self.gains[i], counts[i])
+            fw = start_core(self.spec, self.gains[i], counts[i], active=active)
             if integral is not None:
                 pid_memory(fw).integral[:] = integral[i]
             self._cores[i] = core_state_bytes(fw)
@@ -119,6 +121,45 @@ class TwinBatch:
 
     def _counts_now(self) -> np.ndarray:
         return counts_from_motor_angles(self.sensordata[:, self.hinges.enc], self.spec.counts_per_motor_rev)
+
+    def run_program(self, hinge: int, segments, window_counts, timeout_s: float | None = None,
+                    angles=None) -> list[ProgramRun]:
+        """One open-loop duty program run by every simulation's firmware core from hinge angles `angles` (rad,
+        (nsim, n_hinges) or one row; default flat), the cores restarted IDLE: Twin.run_program on each plant at
+        once, a ProgramRun per simulation. ValueError where a core refuses the program."""
+        from twin.sim import kernels  # compiled on first use, not on import
+
+        s = self.spec
+        n = s.n_hinges
+        self.reset(angles, active=False)
+        spec = program_spec(hinge, segments, window_counts, timeout_s)
+        lib, base, size = core.library(), self._cores.ctypes.data, self._cores.shape[1]
+        for i in range(self.nsim):
+            refused = lib.vrs_program(base + i * size, ctypes.addressof(spec))
+            if refused:
+                raise ValueError(f"simulation {i}: the firmware refused the program on hinge {hinge} "
+                                 f"(NACK reason {refused}; docs/protocol.md, PROGRAM)")
+        ticks = round(max(spec.timeout_ms, sum(spec.ms[:spec.n_segments])) / 1000 / s.firmware_dt) + 1
+        rec = {k: np.zeros((ticks, self.nsim, n)) for k in ("angle", "duty", "current")}
+        rec["counts"] = np.zeros((ticks, self.nsim, n), np.int64)
+        status = [ProgramStatus() for _ in range(self.nsim)]
+        vel_stage = mujoco.mjtStage.mjSTAGE_VEL.value
+        for i in range(ticks):
+            kernels.batch_tick(i, base, size, self._now_us, self.sensordata, self.qpos, self.qvel, self.ctrl,
+                               self.qfrc_applied, self.hinges.enc, self.hinges.qadr, self.hinges.gear_dof,
+                               float(s.counts_per_motor_rev), self._params, self._bus, self._counts, self._duty,
+                               self._decay, self._pwm, rec["angle"], rec["counts"], rec["duty"], rec["current"])
+            self._now_us = (self._now_us + tick_us(s)) & 0xFFFFFFFF
+            for j in range(self.nsim):
+                lib.vrs_get_program(base + j * size, ctypes.addressof(status[j]))
+            if all(st.end != ProgramEnd.RUNNING for st in status):
+                break
+            self.batch.step(nstep=self.substeps, stage=vel_stage)
+        return [ProgramRun(hinge=hinge, time_s=np.arange(st.ticks) * s.firmware_dt,
+                           duty=rec["duty"][:st.ticks, j, hinge].copy(),
+                           counts=rec["counts"][:st.ticks, j, hinge].copy(),
+                           battery_mV=float(st.battery_mv) or None, end=end_name(st.end))
+                for j, st in enumerate(status)]
 
     def run(self, targets, duration: float) -> dict:
         """Run every simulation to its targets (rad, (nsim, n_hinges)) for `duration` s.

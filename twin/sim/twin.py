@@ -23,9 +23,10 @@ import time
 import mujoco
 import numpy as np
 
-from controllers.core import per_hinge, pid_memory, set_core_gains, start_core, tick_us
+from controllers.core import per_hinge, pid_memory, program_spec, set_core_gains, start_core, tick_us
 from controllers.encoder import counts_from_motor_angles, target_counts
 from controllers.pid import PidGains
+from controllers.program import ProgramEnd, ProgramRun, end_name
 from twin.device.mjcf import load_model, motor_attributes
 from twin.device.spec import DeviceSpec, load_spec
 from twin.sim.drive import drive_params
@@ -71,16 +72,17 @@ class Twin:
         self._run(np.zeros(n), 0.0, False)  # compile the loop now, so moves time only the simulation
 
     # ---- state ---------------------------------------------------------------
-    def reset(self, angles=None, integral=None) -> None:
+    def reset(self, angles=None, integral=None, active: bool = True) -> None:
         """Back to the `flat` keyframe (or given hinge angles, rad); the firmware restarted, holding there,
-        its PID integral per hinge `integral` (duty, as a device's STATE reports it; default none)."""
+        its PID integral per hinge `integral` (duty, as a device's STATE reports it; default none); with
+        active=False IDLE instead (every hinge braked), as a device is before its first targets."""
         mujoco.mj_resetDataKeyframe(self.model, self.data, self.model.key("flat").id)
         if angles is not None:
             place_hinges(self.data.qpos, self.hinges, check_targets(self.spec, angles))
         mujoco.mj_forward(self.model, self.data)
         self._bus[0] = self.spec.supply_voltage
         self._target[:] = self.counts
-        self.firmware = start_core(self.spec, self.gains, self._target, self.stall_detection)
+        self.firmware = start_core(self.spec, self.gains, self._target, self.stall_detection, active)
         if integral is not None:
             self.pid.integral[:] = integral
         self._now_us = 0
@@ -142,6 +144,31 @@ class Twin:
     def hold(self, duration: float) -> Trace:
         """Keep the present targets for `duration` seconds."""
         return self._run(self._target * self.spec.rad_per_count, duration, False)
+
+    def run_program(self, hinge: int, segments, window_counts, timeout_s: float | None = None, angles=None,
+                    chunk_s: float = 0.05) -> ProgramRun:
+        """An open-loop duty program on one hinge, run by the firmware core as the device runs it (PROGRAM):
+        from hinge angles `angles` (rad; default flat), the core restarted IDLE, the other hinges braked.
+
+        segments: (duty, duration_s) pairs; window_counts: (low, high) counts; timeout_s: default the segments'
+        sum (controllers.core.program_spec). Runs until the core ends the program (checked every chunk_s s) and
+        returns its samples, one per tick, as Link.run_program does. ValueError where the core refuses it."""
+        self.reset(angles, active=False)
+        spec = program_spec(hinge, segments, window_counts, timeout_s)
+        refused = self.firmware.program(spec)
+        if refused:
+            raise ValueError(f"the firmware refused the program on hinge {hinge} (NACK reason {refused}; "
+                             "docs/protocol.md, PROGRAM)")
+        most = max(spec.timeout_ms, sum(spec.ms[:spec.n_segments])) / 1000 + self.spec.firmware_dt
+        traces = []
+        while self.firmware.program_status().end == ProgramEnd.RUNNING and len(traces) * chunk_s < most:
+            traces.append(self._run(np.zeros(self.spec.n_hinges), chunk_s, False))
+        status = self.firmware.program_status()
+        counts = np.concatenate([t.counts[:, hinge] for t in traces])[:status.ticks]
+        duty = np.concatenate([t.duty[:, hinge] for t in traces])[:status.ticks]
+        return ProgramRun(hinge=hinge, time_s=np.arange(status.ticks) * self.spec.firmware_dt, duty=duty,
+                          counts=counts.astype(np.int64), battery_mV=float(status.battery_mv) or None,
+                          end=end_name(status.end))
 
     def unpowered(self, duration: float) -> Trace:
         """`duration` seconds with the drive unpowered (a pack pulled): zero PWM, every winding open, whatever
