@@ -91,6 +91,25 @@ class ProgramStatus(ctypes.Structure):
                 ("dropped", ctypes.c_uint32), ("battery_mv", ctypes.c_uint16)]
 
 
+# the C structs this module mirrors, by their typedef names in vrs_core.h: layout_checks() turns each into
+# compile-time checks of its size and every field's offset, so a field added, moved or resized on one side only
+# stops the build instead of shifting every value after it
+MIRRORED = {"vrs_config": Config, "vrs_gains": Gains, "vrs_pid": PidState, "vrs_program_spec": ProgramSpec,
+            "vrs_program_status": ProgramStatus}
+
+
+def layout_checks(mirrored: dict | None = None) -> str:
+    """C source (the body of vrs_layout.h) asserting that each mirrored struct has the size and field offsets,
+    in bytes, that its ctypes mirror has on this host: _Static_assert in C11, a negative array size in C99."""
+    lines = []
+    for name, mirror in (mirrored or MIRRORED).items():
+        lines.append(f"VRS_LAYOUT({name}_size, sizeof({name}) == {ctypes.sizeof(mirror)});")
+        for field, *_ in mirror._fields_:
+            offset = getattr(mirror, field).offset
+            lines.append(f"VRS_LAYOUT({name}_{field}, offsetof({name}, {field}) == {offset});")
+    return "\n".join(lines)
+
+
 def program_spec(hinge: int, segments, window_counts, timeout_s: float | None = None) -> ProgramSpec:
     """The core's program for (duty, duration_s) segments, a (low, high) counts window and a timeout (s; default
     the segments' sum); ValueError for more segments than the core holds (the core checks every other bound)."""

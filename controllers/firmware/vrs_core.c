@@ -3,6 +3,7 @@
 #include <string.h>
 
 #include "vrs_core.h"
+#include "vrs_layout.h"
 
 /* ---- small helpers -------------------------------------------------------------------- */
 

@@ -1,6 +1,7 @@
 """The firmware core's build: the generated header agrees with the protocol table and the spec, the
 core compiles with the sketch's warning flags, the host build is cached and fails clearly."""
 
+import ctypes
 import re
 import subprocess
 
@@ -8,7 +9,7 @@ import pytest
 
 from controllers import core
 from twin.device.spec import MAX_HINGES
-from twin.link.firmware_header import HEADER_PATH, header
+from twin.link.firmware_header import HEADER_PATH, LAYOUT_PATH, header, layout_header
 
 # what the ESP32-S3 build would complain about: any double, any float narrowed without a cast
 SKETCH_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion", "-Wfloat-conversion",
@@ -17,6 +18,34 @@ SKETCH_FLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-Wdouble-promotion",
 
 def test_committed_header_is_generated_from_protocol_and_spec():
     assert HEADER_PATH.read_text() == header(), "run `vrscroll model --write`"
+    assert LAYOUT_PATH.read_text() == layout_header(), "run `vrscroll model --write`"
+
+
+class _MovedPid(ctypes.Structure):  # vrs_pid with two fields swapped: the same size, every value misread
+    _fields_ = [("prev", ctypes.c_int32), ("integral", ctypes.c_float), ("rate", ctypes.c_float)]
+
+
+class _ShortConfig(ctypes.Structure):  # vrs_config without its last field
+    _fields_ = core.Config._fields_[:-1]
+
+
+@pytest.mark.parametrize("std", ["-std=c99", "-std=c11"])
+@pytest.mark.parametrize("mirrored, wrong", [({}, None), ({"vrs_pid": _MovedPid}, "vrs_pid_rate"),
+                                            ({"vrs_config": _ShortConfig}, "vrs_config_size")])
+def test_a_mirror_that_differs_from_the_c_struct_stops_the_build(tmp_path, std, mirrored, wrong):
+    """vrs_layout.h holds each mirrored struct's size and offsets: a ctypes mirror that moved or lost a field
+    (here on the host's side) fails to compile, naming the struct and the field; the committed mirrors compile."""
+    checks = tmp_path / "vrs_layout.h"
+    checks.write_text(layout_header({**core.MIRRORED, **mirrored}))
+    source = tmp_path / "check.c"
+    source.write_text('#include "vrs_layout.h"\nint vrs_layout_checked(void) { return 0; }\n')
+    r = subprocess.run([core.compiler(), std, "-Wall", "-Wextra", "-Werror", "-pedantic" if std == "-std=c99" else "-Wpedantic",
+                        f"-I{tmp_path}", f"-I{core.FIRMWARE_DIR}", "-c", str(source), "-o", str(tmp_path / "check.o")],
+                       capture_output=True, text=True)
+    if wrong is None:
+        assert r.returncode == 0, r.stderr
+    else:
+        assert r.returncode != 0 and wrong in r.stderr
 
 
 def test_header_changes_with_the_spec(spec):
