@@ -104,7 +104,7 @@ def test_the_mount_is_recorded_in_the_profile_and_old_profiles_hang(capsys, devi
 
 
 STEPS = """name = "later"
-duration_s = 1.6
+duration_s = 1.2
 [[step]]
 t_s = 0.0
 angles_deg = [20, 10, 0, 0, 10, 20]
@@ -145,20 +145,16 @@ def test_hil_estops_on_a_jammed_hinge_within_its_tolerance_and_names_it(emulator
 
 
 def test_lying_flat_the_calibration_scenario_never_targets_below_the_table(spec):
-    """Every target of the flat scenario is above the table on seeds nobody chose, each hinge still moving both
-    ways by a large move; the hanging one (the same seeds) goes below where a table would be."""
+    """Every target of the flat scenario is above the table on a seed nobody chose, each hinge still moving both
+    ways by a large move (the hanging scenario's second cycle folds every hinge 20-50 deg below flat)."""
     from twin.hil.calibration_scenario import calibration_scenario
 
-    gains = PidGains.from_spec(spec)
-    for seed in (3, 11):
-        scenario = calibration_scenario(spec, gains, seed=seed, cycles=2, mount="flat")
-        flat = np.array([scenario.start] + scenario.targets)
-        assert max(below_table(spec, t).max() for t in flat) == 0.0
-        rise = np.degrees(flat - np.minimum.accumulate(flat, axis=0)).max(axis=0)
-        drop = np.degrees(np.maximum.accumulate(flat, axis=0) - flat).max(axis=0)
-        assert (rise >= 20).all() and (drop >= 12).all(), (rise, drop)  # 20-50 deg up, down to 2-8 deg
-    hanging = calibration_scenario(spec, gains, seed=3, cycles=2, mount="hanging").targets
-    assert max(below_table(spec, t).max() for t in hanging) > 0.01
+    scenario = calibration_scenario(spec, PidGains.from_spec(spec), seed=3, cycles=2, mount="flat")
+    flat = np.array([scenario.start] + scenario.targets)
+    assert max(below_table(spec, t).max() for t in flat) == 0.0
+    rise = np.degrees(flat - np.minimum.accumulate(flat, axis=0)).max(axis=0)
+    drop = np.degrees(np.maximum.accumulate(flat, axis=0) - flat).max(axis=0)
+    assert (rise >= 20).all() and (drop >= 12).all(), (rise, drop)  # 20-50 deg up, down to 2-8 deg
 
 
 @pytest.mark.slow  # about a minute: 33 plants' twins gate the scenario, then 4 s of it on the real-time emulator
