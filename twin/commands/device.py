@@ -24,7 +24,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     if args.mount and args.action != "create":
         raise ValueError(f"--mount is for `vrscroll device create`; give it to a command that runs the device "
-                         "(simulate, hil, mirror, ...: it records it in the profile), not to `device {args.action}`")
+                         f"(simulate, hil, mirror, ...: it records it in the profile), not to `device {args.action}`")
     if args.action == "list":
         chosen = default_name()
         names = profile_names()
