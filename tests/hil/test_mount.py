@@ -175,3 +175,21 @@ def test_lying_flat_the_calibration_scenario_tracks_a_drawn_plant_on_its_table(e
     rows = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert all(r["rmse_deg"] < 1.5 for r in rows), rows
     assert json.loads((tmp_path / "run" / "run.json").read_text())["mount"] == "flat"
+
+
+def test_lying_flat_mirror_never_sends_a_target_below_the_table_and_serves_twin_refuses_it(emulator, capsys, spec):
+    """`mirror --mount flat` on a device lying flat refuses the fold into the table before anything is sent,
+    naming the hinge; the same target above the table is sent and settles. The live service's twin (no
+    device) held flat refuses it too."""
+    emu = emulator("--lying-flat")
+    rc, out, err = _run(capsys, "mirror", "--angles", "0,0,-48,-48,0,0", "--serial", emu.port, "--mount", "flat")
+    assert rc == 2 and "hinge 2 takes flap 2" in err and "nothing was sent" in err, err
+    assert not [e for e in emu.events("rx") if e["msg"] == "SET_TARGETS"]
+    rc, out, err = _run(capsys, "mirror", "--angles", "0,0,48,48,0,0", "--serial", emu.port, "--mount", "flat")
+    assert rc == 0 and "mirror: settled" in out, out + err
+    from twin.live.morph import TwinMorpher
+
+    morpher = TwinMorpher(spec, mount="flat")
+    morpher.open()
+    outcome = morpher.morph(FOLD, lambda event: None)
+    assert outcome.status == "refused" and "hinge 2 takes flap 2" in outcome.message
