@@ -267,7 +267,9 @@ def test_a_run_the_device_stopped_names_the_fault_and_can_still_be_watched(emula
                                                                            capsys):
     emu = emulator("--jam-hinge", "2", "--jam-after", "0.3")  # hinge 2 jams mid-run: the device's stall check stops it
     (tmp_path / "s.toml").write_text(TWO_STEPS)
-    assert vrscroll(["hil", str(tmp_path / "s.toml"), "--serial", emu.port, "--out", str(tmp_path / "run")]) == 2
+    # (a tolerance no hinge reaches: at the default 5 deg the host's divergence stop comes first, test_mount.py's)
+    assert vrscroll(["hil", str(tmp_path / "s.toml"), "--serial", emu.port, "--out", str(tmp_path / "run"),
+                     "--tolerance-deg", "90"]) == 2
     err = capsys.readouterr().err
     assert "device stopped itself" in err and "STALL on hinge 2" in err, err
     _no_display(monkeypatch)

@@ -15,6 +15,7 @@ from twin.commands.approximate import target_and_start
 from twin.commands.options import (
     add_device_option,
     add_json,
+    add_mount,
     add_rerun,
     add_target,
     output_file,
@@ -54,6 +55,7 @@ def add_arguments(p) -> None:
                    help="video and contact sheet of --view without a display (default demo_view)")
     add_rerun(p)
     add_device_option(p)
+    add_mount(p)
 
 
 def run(args) -> int:

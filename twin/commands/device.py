@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 
-from twin.commands.options import select_profile
+from twin.commands.options import add_mount, select_profile
 from twin.device.profile import NO_PROFILE, default_name, profile_names, profiles_dir, set_default
 from twin.device.spec import SPEC_PATH, spec_sources
 from twin.device.spec_toml import shown, shown_range, spec_units
@@ -18,9 +18,13 @@ def add_arguments(p) -> None:
                         "commands that follow (`select none`: the spec's defaults); create one from the spec's "
                         "defaults")
     p.add_argument("name", nargs="?", help="the profile's name")
+    add_mount(p)
 
 
 def run(args) -> int:
+    if args.mount and args.action != "create":
+        raise ValueError(f"--mount is for `vrscroll device create`; give it to a command that runs the device "
+                         f"(simulate, hil, mirror, ...: it records it in the profile), not to `device {args.action}`")
     if args.action == "list":
         chosen = default_name()
         names = profile_names()
@@ -39,11 +43,12 @@ def run(args) -> int:
         print(f"selected: {name or NO_PROFILE}")
         return 0
     if args.action == "create":
-        print(f"created {create_profile(args.name)} (the spec's defaults; `vrscroll calibrate RUN --device "
-              f"{args.name}` calibrates it)")
+        print(f"created {create_profile(args.name, args.mount)} (the spec's defaults, mount: {args.mount or 'hanging'};"
+              f" `vrscroll calibrate RUN --device {args.name}` calibrates it)")
         return 0
     profile = select_profile(args.name)
     print(f"device profile: {profile.label}" + (f" ({profile.folder})" if profile.folder else ""))
+    print(f"mount: {profile.mount}")
     print(f"gains: {profile.gains_from}")
     for k, g in enumerate(profile.gains):
         print(f"  hinge {k}: kp {g.kp:g} ki {g.ki:g} kd {g.kd:g}")

@@ -8,12 +8,13 @@ from pathlib import Path
 
 from twin.commands.options import (
     add_device_option,
+    add_mount,
     add_rerun,
     add_serial,
     add_tolerance_deg,
+    device_session,
     profile_line,
     profile_of,
-    device_session,
     within,
 )
 from twin.errors import UserError
@@ -22,7 +23,7 @@ from twin.formats.run import read_run
 from twin.formats.scenario import read_scenario
 from twin.hil.compare import compare, metrics_text, not_followed
 from twin.hil.mirror import DeviceNotReady
-from twin.hil.record import GainsRestored, run_hil
+from twin.hil.record import Diverged, GainsRestored, run_hil
 from twin.link.serial_link import LinkError, NackError
 from twin.sim.gate import GateRefused
 from viz.hil_report import write_report
@@ -39,6 +40,7 @@ def add_arguments(p) -> None:
     add_tolerance_deg(p)
     add_rerun(p)
     add_device_option(p)
+    add_mount(p)
 
 
 def run(args) -> int:
@@ -71,7 +73,7 @@ def _record(args, profile, spec, scenario, gains, out: Path) -> int:
         with device_session(args, spec, log) as (link, spec):
             run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz, scenario_path=args.scenario,
                     on_progress=progress, gains=gains, tolerance_deg=args.tolerance_deg, profile=profile.label,
-                    hinges=profile.hinges)
+                    hinges=profile.hinges, mount=profile.mount)
     except GainsRestored as exc:
         print(exc.report.text())
         raise UserError(f"refused by the gate: {exc} (the gains of {args.gains or profile.gains_from} were sent, "
@@ -85,6 +87,9 @@ def _record(args, profile, spec, scenario, gains, out: Path) -> int:
             from None
     except DeviceNotReady as exc:
         raise UserError(str(exc)) from None
+    except Diverged as exc:
+        raise UserError(f"stopped: {exc} (the run up to there is kept in {out}, marked stopped; `vrscroll view "
+                        f"{out}` shows it)") from None
     except LinkError as exc:
         raise UserError(f"link: {exc} (session log: {log}; traces so far in {out})") from None
     except RuntimeError as exc:

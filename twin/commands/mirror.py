@@ -9,12 +9,13 @@ import numpy as np
 from twin.checks import cell, hinge_angles
 from twin.commands.options import (
     add_device_option,
+    add_mount,
     add_rerun,
     add_serial,
     add_tolerance_deg,
+    device_session,
     profile_line,
     profile_of,
-    device_session,
     within,
 )
 from twin.errors import UserError
@@ -37,6 +38,7 @@ def add_arguments(p) -> None:
     p.add_argument("--override", action="store_true",
                    help="send even when the gate fails a check (logged); the device's own limits still apply")
     add_device_option(p)
+    add_mount(p)
 
 
 HALF_TURN = math.pi  # rad: no hinge target given with --angles may be further from flat than this
@@ -80,7 +82,7 @@ def run(args) -> int:
                 print("gate override requested: a failed check will be logged and the move sent anyway")
             result = mirror(link, spec, targets, tolerance_deg=args.tolerance_deg, settle_limit=args.settle_limit,
                             override=args.override, telemetry_hz=args.telemetry_hz, on_frame=show,
-                            hinges=profile.hinges)
+                            hinges=profile.hinges, mount=profile.mount)
     except GateRefused as exc:
         print(exc.report.text())
         raise UserError(f"{exc} (nothing was sent; --override to send anyway)") from None

@@ -5,7 +5,8 @@
   human-readable report);
 - units in option names (`--tolerance-deg`, `--tolerance-pct`, `--sigma-mm`); lists are comma-separated
   (`--shapes cube,cylinder`, `--angles 0,10,...`);
-- `--device NAME`: the device profile, remembered as the default;
+- `--device NAME`: the device profile, remembered as the default; `--mount hanging|flat|stand`: how the device is
+  held, recorded in that profile (the twin is held the same way);
 - `--shape S | --mesh FILE` and `--start X,Y,Z,ROLL,PITCH,YAW`: the target and the anchor's start.
 
 An old spelling (`--port`, `--tolerance`, `--json` without a file) is refused with a message naming the new.
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import math
 import re
@@ -24,7 +26,8 @@ from pathlib import Path
 from controllers.pid import PidGains
 from twin.device.profile import default_name, profile_dir, profiles_dir, set_default
 from twin.device.spec import load_spec
-from twin.formats.profile import Profile, read_profile
+from twin.device.mount import MOUNTS
+from twin.formats.profile import Profile, read_profile, write_profile_mount
 from twin.hil.device_gains import device_spec
 from twin.link.serial_link import Link
 
@@ -208,6 +211,14 @@ def add_device_option(p) -> None:
                         "default: the one selected last, else the spec's defaults")
 
 
+def add_mount(p) -> None:
+    """--mount hanging|flat|stand: how the device is held (twin.device.mount), recorded in the profile."""
+    p.add_argument("--mount", choices=MOUNTS,
+                   help="how the device is held: hanging from its root flap, flat on a table, or on a stand "
+                        "(docs/device.md \"Mounts\"); recorded in the device profile, so later commands hold the "
+                        "twin the same way (default: the profile's, else hanging)")
+
+
 def spec_defaults() -> Profile:
     """The spec's defaults: models/vrscroll/spec.toml and its gains on every hinge."""
     spec = load_spec()
@@ -232,19 +243,26 @@ def select_profile(name: str | None = None) -> Profile:
 
 def profile_of(args) -> Profile:
     """The profile args.device names (then remembered as the default), or the selected one, or the spec's
-    defaults. ValueError (one line) for a profile that is not there or is damaged."""
+    defaults; held as args.mount where the command has --mount and it was given (recorded in the profile, when
+    there is one). ValueError (one line) for a profile that is not there or is damaged."""
     profile = select_profile(args.device)
     if args.device:
         set_default(args.device)
+    mount = getattr(args, "mount", None)
+    if mount and mount != profile.mount:
+        if profile.name:
+            write_profile_mount(profile.name, mount)
+        profile = dataclasses.replace(profile, mount=mount)
     return profile
 
 
 def profile_twin(profile: Profile, **options):
     """The twin (twin.sim.twin.Twin) of a device: its profile's spec and gains, each hinge's own plant where it
-    was calibrated per hinge (Profile.hinges). options: Twin's (root, model, stall_detection)."""
+    was calibrated per hinge (Profile.hinges), held as the profile says (Profile.mount). options: Twin's (root,
+    model, stall_detection)."""
     from twin.sim.twin import Twin  # here, not above: MuJoCo and the compiled loops load in 0.5 s, not for --help
 
-    return Twin(profile.spec, profile.gains, hinges=profile.hinges, **options)
+    return Twin(profile.spec, profile.gains, hinges=profile.hinges, mount=profile.mount, **options)
 
 
 def said_by_device(spec, link):
@@ -268,4 +286,4 @@ def device_session(args, spec, log=None):
 def profile_line(profile: Profile) -> str:
     """The line every report starts with."""
     where = f" ({profile.folder})" if profile.folder else " (models/vrscroll/spec.toml)"
-    return f"device profile: {profile.label}{where}"
+    return f"device profile: {profile.label}{where}; mount: {profile.mount}"

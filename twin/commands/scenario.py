@@ -1,12 +1,15 @@
-"""`vrscroll scenario FILE`: write the calibration scenario (TOML) for the gains the device has, to record
-with `vrscroll hil` and fit with `vrscroll calibrate` (docs/tuning-hil-calibration.md)."""
+"""`vrscroll scenario FILE`: write the calibration scenario (TOML) for the gains the device has and how it is held,
+each move gated on every corner of the plants the device may be (the profile's calibrated intervals, else the
+spread about the spec), to record with `vrscroll hil` and fit with `vrscroll calibrate`
+(docs/tuning-hil-calibration.md)."""
 
 from __future__ import annotations
 
-from twin.commands.options import add_device_option, add_serial, profile_line, profile_of, within
+from twin.commands.options import add_device_option, add_mount, add_serial, profile_line, profile_of, within
 from twin.errors import UserError
 from twin.formats.gains import read_gains
 from twin.formats.scenario import write_scenario
+from twin.device.variation import corners, prior_ranges
 from twin.hil.calibration_scenario import calibration_scenario
 from twin.hil.device_gains import device_gains
 from twin.link.serial_link import Link, LinkError
@@ -20,6 +23,7 @@ def add_arguments(p) -> None:
     p.add_argument("--cycles", type=within(1, 100, whole=True), default=2,
                    help="cycles of a large move and a slow ramp out and back (default %(default)s)")
     add_device_option(p)
+    add_mount(p)
 
 
 def run(args) -> int:
@@ -38,10 +42,20 @@ def run(args) -> int:
             raise UserError(f"link: {exc}") from None
     else:
         gains = profile.gains
-    scenario = calibration_scenario(spec, gains, seed=args.seed, cycles=args.cycles,
-                                    name=f"calibration-{args.seed}")
+    ranges = profile.ranges() or prior_ranges(spec)
+    plants = corners(spec, ranges, profile.hinges, profile.hinge_ranges())
+    print(f"gating every move on {len(plants)} plants (nominal and the corners of "
+          f"{'the calibrated intervals' if profile.ranges() else 'the spread about the spec'}), "
+          f"mount: {profile.mount}", flush=True)
+
+    try:
+        scenario = calibration_scenario(spec, gains, seed=args.seed, cycles=args.cycles,
+                                        name=f"calibration-{args.seed}", mount=profile.mount, plants=plants,
+                                        progress=lambda line: print("  " + line, flush=True))
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
     write_scenario(args.scenario, scenario)
     print(f"calibration scenario written to {args.scenario}: {len(scenario.times)} steps, {scenario.duration:.2f} s "
-          f"(timed for the gains of {args.gains or args.serial or profile.gains_from}); record it with "
-          f"`vrscroll hil {args.scenario} --serial PORT`")
+          f"(timed for the gains of {args.gains or args.serial or profile.gains_from}, held {profile.mount}); record "
+          f"it with `vrscroll hil {args.scenario} --serial PORT`")
     return 0

@@ -18,6 +18,7 @@ import time
 
 from twin.commands.options import (
     add_device_option,
+    add_mount,
     add_rerun,
     add_serial,
     add_target,
@@ -48,6 +49,7 @@ def add_arguments(p) -> None:
     p.add_argument("--log", default="vrscroll-live.jsonl", help="serial session log with --serial (default %(default)s)")
     add_rerun(p)
     add_device_option(p)
+    add_mount(p)
     add_tolerance_deg(p)
 
 
@@ -65,8 +67,9 @@ def run(args) -> int:
     if args.mesh:
         loaded = load_mesh(args.mesh)
         mesh = (loaded.vertices, loaded.faces)
-    morpher = (DeviceMorpher(spec, args.serial, args.log, args.tolerance_deg, hinges=profile.hinges) if args.serial
-               else TwinMorpher(spec, profile.gains, hinges=profile.hinges))
+    morpher = (DeviceMorpher(spec, args.serial, args.log, args.tolerance_deg, hinges=profile.hinges,
+                             mount=profile.mount) if args.serial
+               else TwinMorpher(spec, profile.gains, hinges=profile.hinges, mount=profile.mount))
     config = ServiceConfig(spec, morpher, host=args.host, listen=args.listen, token=token,
                            allow_remote=args.allow_remote, variant=args.variant, shape=args.shape, mesh=mesh,
                            profile=profile.label)

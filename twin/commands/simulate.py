@@ -13,6 +13,7 @@ import numpy as np
 from twin.commands.options import (
     add_device_option,
     add_json,
+    add_mount,
     add_rerun,
     json_to_stdout,
     output_file,
@@ -54,6 +55,7 @@ def add_arguments(p) -> None:
                    help="video and contact sheet of --view without a display (default simulate_view)")
     add_rerun(p)
     add_device_option(p)
+    add_mount(p)
 
 
 def run(args) -> int:

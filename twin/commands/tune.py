@@ -14,16 +14,18 @@ from controllers.encoder import target_counts
 from twin.commands.options import (
     add_device_option,
     add_json,
-    add_threads,
+    add_mount,
     add_serial,
+    add_threads,
+    device_session,
     json_to_stdout,
     output_file,
     profile_line,
     profile_of,
-    device_session,
     within,
     write_json,
 )
+from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import SPEC_PATH
 from twin.device.spec_toml import shown_range, spec_units
 from twin.device.variation import tolerance_ranges
@@ -67,6 +69,7 @@ def add_arguments(p) -> None:
     p.add_argument("--log", default="vrscroll-tune.jsonl", help="session log with --serial (default %(default)s)")
     add_json(p, "the summary")
     add_device_option(p)
+    add_mount(p)
 
 
 def _line(label, rows):
@@ -85,7 +88,7 @@ def run(args) -> int:
     goal = TuneGoal(max_overshoot=math.radians(args.max_overshoot_deg), tolerance=args.tolerance_pct / 100,
                     step=step, duration=args.duration, ranges=ranges,
                     hinges=None if profile.hinges is None else tuple(profile.hinges),
-                    hinge_ranges=profile.hinge_ranges())
+                    hinge_ranges=profile.hinge_ranges(), mount=profile.mount)
     before = profile.gains
     quiet = json_to_stdout(args)
     if not quiet:
@@ -150,27 +153,28 @@ def run(args) -> int:
                         "(printed above); loosen the goal or narrow the ranges")
     if args.serial:
         summary["device"] = confirm_on_device(args, spec, result.gains, step, into_profile, quiet=quiet,
-                                               hinges=profile.hinges)
+                                               hinges=profile.hinges, mount=profile.mount)
         summary["gains_files"] = written
     write_json(args.json, summary)
     return 1 if result.broken else 0
 
 
-def confirm_on_device(args, spec, gains, step, pushed, quiet=False, hinges=None) -> list[dict]:
+def confirm_on_device(args, spec, gains, step, pushed, quiet=False, hinges=None, mount=DEFAULT_MOUNT) -> list[dict]:
     """Push the gains (all or nothing: twin.hil.device_gains), call pushed() once the device holds them, run the
-    step on the device, print its metrics next to the twin's prediction (hinges: each hinge's own plant)."""
+    step on the device, print its metrics next to the twin's prediction (hinges: each hinge's own plant; mount:
+    how the device is held)."""
     n = spec.n_hinges
     targets = np.full(n, step)
     try:
         with device_session(args, spec) as (link, spec):
             push_gains(link, gains, n)
             pushed()
-            t, deg, start, res = device_step(link, spec, targets)
+            t, deg, start, res = device_step(link, spec, targets, mount=mount)
     except (GateRefused, DeviceNotReady) as exc:
         raise UserError(f"{exc} (the tuned gains are on the device and in its profile)") from None
     except LinkError as exc:
         raise UserError(f"link: {exc} (session log: {args.log})") from None
-    twin = twin_at_start(spec, gains, start, hinges=hinges)  # where the device is, with the integral it holds
+    twin = twin_at_start(spec, gains, start, hinges=hinges, mount=mount)  # where the device is, with the integral it holds
     trace = twin.move_to(targets, max_time=args.duration, stop_when_settled=False)
     pred = move_report(spec, trace)
     band = math.degrees(spec.settle_band * spec.rad_per_count)

@@ -13,6 +13,7 @@ import math
 import mujoco
 
 from twin.device.kinematics import hinge_axis_sign
+from twin.device.mount import DEFAULT_MOUNT, check_mount, table_height
 from twin.device.spec import DeviceSpec, load_spec
 from twin.paths import MODELS_DIR
 
@@ -261,20 +262,22 @@ def mjcf(spec: DeviceSpec | None = None, root: str = "fixed", motors: list[str] 
 """
 
 
-TABLE_GAP = 1e-4  # m between the flat device's underside and the table under it
-
-
-def load_model(spec: DeviceSpec | None = None, root: str = "fixed", table: bool = False,
+def load_model(spec: DeviceSpec | None = None, root: str = "fixed", mount: str = DEFAULT_MOUNT,
                motors: list[str] | None = None) -> mujoco.MjModel:
-    """Compile the device model from a spec (the default spec if None). table: a table just under the flat
-    device, which the flaps rest on and cannot fold through (the emulator's lying-flat start); motors: as
-    `mjcf`'s."""
-    text = mjcf(spec, root, motors)
-    if table:
-        z = -((spec or load_spec()).thickness + TABLE_GAP)
+    """Compile the device model from a spec (the default spec if None), held as `mount` (twin.device.mount.MOUNTS):
+    'flat' adds a table just under the flat device, which the flaps rest on and cannot fold through; 'stand' turns
+    gravity along the hinges' axes (the device's y). motors: as `mjcf`'s."""
+    check_mount(mount)
+    s = spec or load_spec()
+    text = mjcf(s, root, motors)
+    if mount == "flat":
         text = text.replace("  <worldbody>\n", '  <worldbody>\n    <geom name="table" type="plane" size="0.5 0.5 0.01" '
-                                             f'pos="0 0 {z!r}" material="collision"/>\n', 1)
-    return mujoco.MjModel.from_xml_string(text)
+                                             f'pos="0 0 {table_height(s)!r}" material="collision"/>\n', 1)
+    model = mujoco.MjModel.from_xml_string(text)
+    if mount == "stand":
+        g = float(abs(model.opt.gravity[2]))
+        model.opt.gravity[:] = (0.0, -g, 0.0)
+    return model
 
 
 def scene_mjcf() -> str:

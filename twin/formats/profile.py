@@ -1,8 +1,8 @@
 """Device profile folder (docs/formats.md "Device profile"): one researcher's device, as the twin
 knows it after calibration and tuning.
 
-    profile.json   {"format": "vrscroll-profile/1", "name": NAME, "calibration": {...}, "holding": {...}}
-                   (calibration and holding optional)
+    profile.json   {"format": "vrscroll-profile/1", "name": NAME, "mount": MOUNT, "calibration": {...},
+                   "holding": {...}} (mount, calibration and holding optional)
     spec.toml      the device's spec, a spec TOML: every value with its source ("calibrated from ...")
     gains.json     the device's gains, a gains file (optional: the spec's gains when absent)
 
@@ -16,6 +16,8 @@ bounded parameters at the profile's values, which `vrscroll tune` tunes over (lo
 "hinges" (optional, `vrscroll calibrate --per-hinge`): per hinge, its own values of the
 parameters a hinge's motor and gearbox change, each about the shared value (its "prior"): the twin of
 the profile (twin.commands.options.profile_twin) gives each hinge its own.
+"mount" (written by `--mount` with `--device`, or `vrscroll device create NAME --mount M`): how the device is
+held, one of twin.device.mount.MOUNTS ("hanging", "flat", "stand"); a profile without it (older ones) hangs.
 "holding" (written by `vrscroll holding --device`): {"port", "releases": count, "parameters":
 {"backdrive_efficiency": {...}}}, the value also in spec.toml (twin.hil.holding).
 Where the folders live is twin.device.profile's; which one a command uses, twin.commands.options'.
@@ -30,6 +32,7 @@ from pathlib import Path
 
 from controllers.pid import PidGains
 from twin.checks import json_object, known_keys, number, required_keys
+from twin.device.mount import DEFAULT_MOUNT, MOUNTS, check_mount
 from twin.device.profile import NO_PROFILE, profile_dir, profiles_dir
 from twin.device.spec import SPEC_PATH, DeviceSpec, load_spec, spec_sources
 from twin.device.spec_toml import write_spec_toml
@@ -41,7 +44,7 @@ PROFILE_FORMAT = "vrscroll-profile/1"
 META, SPEC, GAINS, WIRING = "profile.json", "spec.toml", "gains.json", "wiring.json"
 PARAMETER_KEYS = ("value", "prior", "low", "high", "identifiable", "note")
 RUNS_KEYS = ("runs_low", "runs_high")  # optional (a calibration before they were kept has neither): what tuning covers
-META_PARTS = ("calibration", "holding")  # what profile.json holds beside its format and name
+META_PARTS = ("mount", "calibration", "holding")  # what profile.json holds beside its format and name
 
 
 @dataclasses.dataclass
@@ -55,6 +58,7 @@ class Profile:
     gains_from: str  # where the gains came from: the profile's gains.json or the spec
     calibration: dict | None  # profile.json's "calibration", if the profile was calibrated
     holding: dict | None = None  # profile.json's "holding", if a release was measured (`vrscroll holding`)
+    mount: str = DEFAULT_MOUNT  # how the device is held (twin.device.mount.MOUNTS): the twin is held so too
 
     @property
     def label(self) -> str:
@@ -172,6 +176,7 @@ def read_profile(folder) -> Profile:
         raise ValueError(f"{meta_path}: name {meta.get('name')!r} is not the folder's, {folder.name!r}")
     calibration = _calibration(meta["calibration"], f"{meta_path}: calibration", load_spec().n_hinges) if "calibration" in meta else None
     holding = _holding(meta["holding"], f"{meta_path}: holding") if "holding" in meta else None
+    mount = check_mount(meta.get("mount", DEFAULT_MOUNT), f"{meta_path}: mount")
     if not (folder / SPEC).is_file():
         raise ValueError(f"{folder}: device profile without its {SPEC}")
     spec = load_spec(folder / SPEC, defaults=load_spec())  # (one written before an entry was added: the spec's)
@@ -180,7 +185,7 @@ def read_profile(folder) -> Profile:
         gains, source = read_gains(folder / GAINS, spec.n_hinges), str(folder / GAINS)
     else:
         gains, source = [PidGains.from_spec(spec)] * spec.n_hinges, "spec"
-    return Profile(folder.name, folder, spec, gains, source, calibration, holding)
+    return Profile(folder.name, folder, spec, gains, source, calibration, holding, mount)
 
 
 def _write_meta(folder: Path, **parts) -> None:
@@ -195,6 +200,8 @@ def _write_meta(folder: Path, **parts) -> None:
         _calibration(doc["calibration"], str(folder / META), load_spec().n_hinges)
     if doc.get("holding"):
         _holding(doc["holding"], str(folder / META))
+    if "mount" in doc:
+        check_mount(doc["mount"], f"{folder / META}: mount")
     with replacing(folder / META) as tmp:
         tmp.write_text(json.dumps(doc, indent=2) + "\n")
 
@@ -238,15 +245,28 @@ def write_profile_wiring(name: str, encoder, flags, checks: list[str]) -> Path:
     return folder / WIRING
 
 
-def create_profile(name: str) -> Path:
-    """A new profile holding the spec's defaults (its spec.toml a copy of the spec's). ValueError if it exists."""
+def create_profile(name: str, mount: str | None = None) -> Path:
+    """A new profile holding the spec's defaults (its spec.toml a copy of the spec's), held as `mount` (None:
+    not said, hanging). ValueError if it exists."""
     folder = profile_dir(name)
     if folder.exists():
         raise ValueError(f"{folder}: a device profile {name!r} exists already")
+    if mount is not None:
+        check_mount(mount)
     folder.mkdir(parents=True)
     (folder / SPEC).write_text(Path(SPEC_PATH).read_text())
-    _write_meta(folder)
+    _write_meta(folder, mount=mount)
     return folder
+
+
+def write_profile_mount(name: str, mount: str) -> Path:
+    """Record how the device of the profile called name is held (one of MOUNTS; the profile must exist).
+    Returns its profile.json."""
+    folder = profile_dir(name)
+    if not (folder / META).is_file():
+        raise ValueError(f"device profile {name!r} is not in {profiles_dir()}: `vrscroll device create {name}`")
+    _write_meta(folder, mount=check_mount(mount))
+    return folder / META
 
 
 def spec_source_of(profile: Profile) -> dict:

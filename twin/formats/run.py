@@ -7,8 +7,9 @@
     scenario.*    a copy of the scenario played
 
 run.json's "status" is "running" while the run is recorded (and stays so when the recording
-process was killed), "complete" when every step was played, "interrupted" after Ctrl-C, or
-"failed: <why>". Traces of a run that did not complete hold what was recorded up to its end.
+process was killed), "complete" when every step was played, "interrupted" after Ctrl-C, "stopped:
+<why>" when the host e-stopped the device for parting from the twin by more than "tolerance_deg"
+(the hinge and the time named), or "failed: <why>". "mount" is how the device was held (twin.device.mount). Traces of a run that did not complete hold what was recorded up to its end.
 `read_run` returns a `Run`, in SI (times s, targets rad), the form calibration, replay and the
 reports take.
 """
@@ -30,7 +31,8 @@ from twin.formats.trace import Recording, read_trace
 from twin.paths import replacing
 
 RUN_KEYS = ("scenario", "start_counts", "start_target_counts", "start_integral_duty", "before", "telemetry_hz",
-            "firmware_dt_s", "changes", "status", "port", "device_t0_us", "device_rows", "twin_rows", "device_profile")
+            "firmware_dt_s", "changes", "status", "port", "device_t0_us", "device_rows", "twin_rows", "device_profile",
+            "mount", "tolerance_deg")
 BEFORE_KEYS = ("state", "counts", "target_counts")
 COMPLETE = "complete"
 

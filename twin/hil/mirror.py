@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
+from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec
 from twin.formats.run import run_start
 from twin.formats.trace import Recording
@@ -89,11 +90,13 @@ def start_meta(prior: P.StateMsg, state: P.StateMsg) -> dict:
 
 
 def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, settle_limit: float = 2.0,
-           override: bool = False, telemetry_hz: int = 500, on_frame=None, hinges=None) -> MirrorResult:
+           override: bool = False, telemetry_hz: int = 500, on_frame=None, hinges=None,
+           mount: str = DEFAULT_MOUNT) -> MirrorResult:
     """Gate, send and watch one move (targets in rad). GateRefused if the twin finds it unsafe.
 
     on_frame(elapsed_s, device_deg, predicted_deg) is called for every telemetry frame. hinges: each hinge's
-    own plant for the twin (a per-hinge calibration's, Twin's).
+    own plant for the twin (a per-hinge calibration's, Twin's); mount: how the device is held (the twin is
+    held so: twin.device.mount).
     """
     targets = np.asarray(targets, float)
     state = link.get_state()
@@ -107,7 +110,7 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
                              "clear it first (vrscroll status --clear-fault)")
     gains = device_gains(link, spec.n_hinges)
     state = wait_for_rest(link, spec)
-    twin = Twin(spec, gains, hinges=hinges)
+    twin = Twin(spec, gains, hinges=hinges, mount=mount)
     for _ in range(3):  # gate from the present state; again if the device moved while the twin simulated
         start = angle_from_counts(spec, state.counts)
         report = check_move(spec, start, targets, gains, settle_limit=settle_limit, twin=twin,
@@ -170,7 +173,7 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
         frames += 1
         rows.append((since, fr.counts, fr.targets, fr.duty, fr.current_ma))
         device = angle_from_counts(spec, fr.counts)
-        expected, dev = _deviation(device, predicted, int(round(elapsed / dt)), slack)
+        expected, dev = deviation(device, predicted, int(round(elapsed / dt)), slack)
         max_dev = np.maximum(max_dev, dev)
         if on_frame:
             on_frame(elapsed, np.degrees(device), np.degrees(expected))
@@ -178,12 +181,10 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
             hinge = None if fr.fault_hinge == 0xFF else fr.fault_hinge
             return result("device_fault", hinge, f"device stopped itself: {faults_text(fr.faults)}"
                           + (f" on hinge {hinge}" if hinge is not None else "") + f" at t={elapsed:.3f} s")
-        worst = int(np.argmax(dev))
-        if math.degrees(dev[worst]) > tolerance_deg:
+        parted = parted_text(dev, tolerance_deg, elapsed)
+        if parted:
             link.estop()
-            return result("diverged", worst,
-                          f"hinge {worst} parted from the twin by {math.degrees(dev[worst]):.1f} deg "
-                          f"(tolerance {tolerance_deg:.1f} deg) at t={elapsed:.3f} s: device e-stopped")
+            return result("diverged", int(np.argmax(dev)), parted)
         if np.all(np.abs(np.asarray(fr.counts) - tgt) <= spec.settle_band):
             in_band_since = elapsed if in_band_since is None else in_band_since
             if elapsed - in_band_since + frame_period >= hold_needed:
@@ -197,7 +198,17 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
                   f"{math.degrees(device[worst]):.1f} deg, target {math.degrees(targets[worst]):.1f} deg)")
 
 
-def _deviation(device, predicted, row: int, slack: int):
+def parted_text(dev, tolerance_deg: float, t: float) -> str:
+    """Why the device is e-stopped, naming the hinge and the time (t s), where a hinge's deviation (rad, from
+    `deviation`) is more than tolerance_deg; "" where none is."""
+    worst = int(np.argmax(dev))
+    if math.degrees(dev[worst]) <= tolerance_deg:
+        return ""
+    return (f"hinge {worst} parted from the twin by {math.degrees(dev[worst]):.1f} deg (tolerance "
+            f"{tolerance_deg:.1f} deg) at t={t:.3f} s: device e-stopped")
+
+
+def deviation(device, predicted, row: int, slack: int):
     """(the prediction at `row`, each hinge's distance (rad) from the range the prediction spans within
     `slack` rows of it); no prediction: the device itself, and no deviation."""
     if predicted is None:
@@ -217,8 +228,8 @@ def _recording(spec: DeviceSpec, rows) -> Recording | None:
                      counts=counts.astype(np.int64), duty=duty / P.DUTY_SCALE, current=current / 1000.0)
 
 
-def device_step(link: Link, spec: DeviceSpec, targets, settle_limit: float = 2.0):
-    """Bring the device to flat, then step to targets (rad), both gated through `mirror`.
+def device_step(link: Link, spec: DeviceSpec, targets, settle_limit: float = 2.0, mount: str = DEFAULT_MOUNT):
+    """Bring the device to flat, then step to targets (rad), both gated through `mirror` (mount: its).
 
     Returns (t s, angle deg (frames, n), where the step started (twin.formats.run.RunStart: for
     twin.sim.replay.twin_at_start), the step's MirrorResult): the device's encoder angles from the moment
@@ -226,11 +237,11 @@ def device_step(link: Link, spec: DeviceSpec, targets, settle_limit: float = 2.0
     """
     n = spec.n_hinges
     prior = wait_for_rest(link, spec)
-    res = mirror(link, spec, np.zeros(n), settle_limit=settle_limit)
+    res = mirror(link, spec, np.zeros(n), settle_limit=settle_limit, mount=mount)
     if not res.ok:
         raise RuntimeError(f"device did not reach flat: {res.message}")
     start = run_start(start_meta(prior, wait_for_rest(link, spec)))
     ts, ys = [], []
-    res = mirror(link, spec, targets, settle_limit=settle_limit, tolerance_deg=30.0,
+    res = mirror(link, spec, targets, settle_limit=settle_limit, tolerance_deg=30.0, mount=mount,
                  on_frame=lambda t, dev, pred: (ts.append(t), ys.append(np.array(dev))))
     return np.array(ts), np.array(ys).reshape(-1, n), start, res

@@ -7,6 +7,11 @@ so its firmware's integral matches), follows in device time: each target takes e
 at the device time the device's ACK reports. Both traces are written as they come (trace CSV,
 one line per row), so an interrupted run keeps both up to that moment. The run folder's format:
 twin.formats.run.
+
+Through the whole run, as `mirror` does for one move, each telemetry frame is compared with the twin's
+encoder angles within TIME_SLACK of its time, once the twin has played that far: when a hinge parts by
+more than the tolerance the device is e-stopped, the hinge and the time named, and the run kept on
+disk as far as it went, its status "stopped: <why>" (`Diverged`).
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
+from twin.device.mount import DEFAULT_MOUNT
 from twin.device.profile import NO_PROFILE
 from twin.device.spec import DeviceSpec
 from twin.formats.gains import write_gains
@@ -26,10 +32,19 @@ from twin.formats.run import run_start, write_run_meta
 from twin.formats.scenario import Scenario
 from twin.formats.trace import TraceWriter
 from twin.hil.device_gains import device_gains, push_gains, restore_gains
-from twin.hil.mirror import faults_text, mirror, start_meta, wait_for_rest
+from twin.hil.mirror import TIME_SLACK, deviation, faults_text, mirror, parted_text, start_meta, wait_for_rest
 from twin.link import protocol as P
 from twin.sim.gate import GateRefused, check_scenario, enforce
 from twin.sim.replay import replay_targets, twin_at_start
+
+
+class Diverged(RuntimeError):
+    """The device parted from the twin by more than the tolerance during the run: e-stopped, the run kept up to
+    there (its status "stopped: ..."). hinge, t_s: which and when (s from the first target)."""
+
+    def __init__(self, message: str, hinge: int, t_s: float):
+        super().__init__(message)
+        self.hinge, self.t_s = hinge, t_s
 
 
 class GainsRestored(GateRefused):
@@ -39,16 +54,17 @@ class GainsRestored(GateRefused):
 
 def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: int = 500,
             scenario_path=None, on_progress=None, settle_limit: float = 2.0, gains=None,
-            tolerance_deg: float = 5.0, profile: str = NO_PROFILE, hinges=None) -> dict:
+            tolerance_deg: float = 5.0, profile: str = NO_PROFILE, hinges=None, mount: str = DEFAULT_MOUNT) -> dict:
     """Play a scenario on the device and the twin; write out_dir/{device,twin}.csv, gains.json, run.json.
 
     gains: optional per-hinge PidGains pushed to the device first (every hinge's checked before any
     is sent); if the gate then refuses the scenario or the move to its start, the device's previous
     gains are restored and GainsRestored is raised. tolerance_deg: the device is e-stopped if it parts from the twin by
-    more on its way to the scenario's start (twin.hil.mirror). profile: the device profile's name, recorded
-    in run.json; hinges: each hinge's own plant for the twin (a per-hinge calibration's, Twin's). Returns
-    run.json's content. On
-    KeyboardInterrupt the device is e-stopped and both traces stay readable up to that moment.
+    more, on its way to the scenario's start (twin.hil.mirror) and through the scenario (then Diverged is
+    raised, the run kept and marked stopped). profile: the device profile's name, recorded in run.json; hinges:
+    each hinge's own plant for the twin (a per-hinge calibration's, Twin's); mount: how the device is held (the
+    twin, the gate and run.json say so too). Returns run.json's content. On KeyboardInterrupt the device is
+    e-stopped and both traces stay readable up to that moment.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -56,12 +72,12 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     previous = push_gains(link, gains, n) if gains is not None else None
     try:
         gains = device_gains(link, n)
-        enforce(check_scenario(spec, scenario, gains, settle_limit=settle_limit))  # the whole run, as played
+        enforce(check_scenario(spec, scenario, gains, settle_limit=settle_limit, mount=mount))  # the whole run, as played
         # the same start on both sides: move the device there (gated), then start the twin where the device
         # is, with the device's history (twin_at_start)
         prior = wait_for_rest(link, spec)
         res = mirror(link, spec, scenario.start, settle_limit=settle_limit, tolerance_deg=tolerance_deg,
-                     hinges=hinges)
+                     hinges=hinges, mount=mount)
     except GateRefused as exc:
         if previous is None:
             raise
@@ -75,8 +91,8 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     state = wait_for_rest(link, spec)
     meta = {"scenario": scenario.name, **start_meta(prior, state), "telemetry_hz": telemetry_hz,
             "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url,
-            "device_profile": profile}
-    twin = twin_at_start(spec, gains, run_start(meta), hinges=hinges)
+            "device_profile": profile, "mount": mount, "tolerance_deg": tolerance_deg}
+    twin = twin_at_start(spec, gains, run_start(meta), hinges=hinges, mount=mount)
 
     dev_w = TraceWriter(out / "device.csv", n)
     twin_w = TraceWriter(out / "twin.csv", n, extra=("true_angle_deg",))
@@ -84,12 +100,17 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     changes: list[tuple[float, np.ndarray]] = []
     twin_ticks = 0
     mask = 0xFFFFFFFF
+    end_tick = int(math.floor(scenario.duration / dt + 1e-9))
+    predicted = np.zeros((end_tick + 1, n))  # the twin's encoder angles per tick, rad, as far as it has played
+    slack = int(round(TIME_SLACK / dt))
+    pending: list[tuple[float, np.ndarray]] = []  # device frames (t s, encoder angles rad) not yet compared
 
     def advance(to_time: float):
         """Play the twin up to device time to_time (s), writing every stride-th tick."""
         nonlocal twin_ticks
         for first, tr in replay_targets(twin, changes, twin_ticks, int(math.floor(to_time / dt + 1e-9))):
             enc = angle_from_counts(spec, tr.counts)
+            predicted[first:first + len(enc)] = enc
             for i in range(len(tr.time)):
                 tick = first + i
                 if tick % stride == 0:
@@ -97,6 +118,17 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
                                  counts=tr.counts[i], duty=tr.duty[i], current_A=tr.current[i],
                                  true_angle_deg=np.degrees(tr.angle[i]))
             twin_ticks = first + len(tr.time)
+
+    def compare_frames(final: bool):
+        """E-stop (Diverged) where a device frame parts from the twin by more than tolerance_deg: each pending
+        frame once the twin has played TIME_SLACK past it (every one left when final)."""
+        while pending and twin_ticks and (final or int(round(pending[0][0] / dt)) + slack < twin_ticks):
+            since, device = pending.pop(0)
+            _, dev = deviation(device, predicted[:twin_ticks], int(round(since / dt)), slack)
+            parted = parted_text(dev, tolerance_deg, since)
+            if parted:
+                link.estop()
+                raise Diverged(parted, int(np.argmax(dev)), since)
 
     try:
         link.set_telemetry_rate(telemetry_hz)
@@ -131,16 +163,24 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
                     hinge = "" if fr.fault_hinge == 0xFF else f" on hinge {fr.fault_hinge}"
                     raise RuntimeError(f"device stopped itself at t={since:.3f} s: {faults_text(fr.faults)}{hinge}"
                                        " (vrscroll view RUN shows the run up to there)")
+                device = angle_from_counts(spec, fr.counts)
                 dev_w.write(since, target_deg=np.degrees(angle_from_counts(spec, fr.targets)),
-                            angle_deg=np.degrees(angle_from_counts(spec, fr.counts)), counts=fr.counts,
+                            angle_deg=np.degrees(device), counts=fr.counts,
                             duty=np.asarray(fr.duty) / P.DUTY_SCALE, current_A=np.asarray(fr.current_ma) / 1000.0)
+                if since <= scenario.duration:
+                    pending.append((since, device))
                 latest = max(latest, since)
             advance(min(latest, scenario.duration))
+            compare_frames(final=False)
             if on_progress:
                 on_progress(latest)
+        compare_frames(final=True)
         meta["status"] = "complete"
     except KeyboardInterrupt:  # the link e-stops the device as the interrupt leaves its session
         meta["status"] = "interrupted"
+        raise
+    except Diverged as exc:
+        meta["status"] = f"stopped: {exc}"
         raise
     except Exception as exc:
         meta["status"] = f"failed: {exc}"

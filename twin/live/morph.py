@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from controllers.encoder import angle_from_counts
+from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec
 from twin.hil.device_gains import device_spec
 from twin.hil.mirror import DeviceNotReady, faults_text, mirror
@@ -83,9 +84,11 @@ class DeviceMorpher:
 
     on_move = None
 
-    def __init__(self, spec: DeviceSpec, port: str, log_path=None, tolerance_deg: float = 5.0, hinges=None):
+    def __init__(self, spec: DeviceSpec, port: str, log_path=None, tolerance_deg: float = 5.0, hinges=None,
+                 mount: str = DEFAULT_MOUNT):
         self.spec = spec
         self.hinges = hinges  # each hinge's own plant for the gate's twin (a per-hinge calibration's)
+        self.mount = mount  # how the device is held (twin.device.mount): the gate's twin is held so
         self.tolerance_deg = tolerance_deg
         self.link = _ReportingLink(port, log_path=log_path, log_telemetry=False, hinges=spec.n_hinges)
         self.name = f"device on {port}"
@@ -112,7 +115,7 @@ class DeviceMorpher:
         self.link.listener = on_log
         try:
             result = mirror(self.link, self.spec, targets, tolerance_deg=self.tolerance_deg,
-                            settle_limit=SETTLE_LIMIT, on_frame=on_frame, hinges=self.hinges)
+                            settle_limit=SETTLE_LIMIT, on_frame=on_frame, hinges=self.hinges, mount=self.mount)
         except GateRefused as exc:
             return MorphOutcome("refused", None, str(exc))
         except DeviceNotReady as exc:
@@ -153,17 +156,18 @@ class TwinMorpher:
 
     on_move = None
 
-    def __init__(self, spec: DeviceSpec, gains=None, hinges=None):
+    def __init__(self, spec: DeviceSpec, gains=None, hinges=None, mount: str = DEFAULT_MOUNT):
         self.spec = spec
         self.gains = gains
         self.hinges = hinges  # each hinge's own plant (a per-hinge calibration's)
+        self.mount = mount  # how the device is held (twin.device.mount)
         self.twin = None
         self.angles = np.zeros(spec.n_hinges)
         self.integral = None  # the PID integral per hinge its last morph left (duty), as a device holds it
         self.name = "twin (no device attached)"
 
     def open(self) -> None:
-        self.twin = Twin(self.spec, self.gains, hinges=self.hinges)
+        self.twin = Twin(self.spec, self.gains, hinges=self.hinges, mount=self.mount)
 
     def morph(self, targets, emit) -> MorphOutcome:
         report = check_move(self.spec, self.angles, targets, self.gains, settle_limit=SETTLE_LIMIT, twin=self.twin,

@@ -17,6 +17,7 @@ from controllers.encoder import counts_from_motor_angles, target_counts
 from controllers.pid import PidGains
 from controllers.program import ProgramEnd, ProgramRun, end_name
 from twin.device.mjcf import load_model, motor_attributes
+from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec, load_spec
 from twin.sim.drive import V_PACK, drive_params
 from twin.sim.hinges import Hinges, physics_substeps, place_hinges
@@ -30,15 +31,15 @@ class TwinBatch:
     constant for robust tuning); they must share the device's layout. hinges: per
     simulation, each hinge's own spec (n_hinges of them, as Twin takes them) or
     None. gains: one PidGains for all, or per simulation a sequence of one PidGains
-    per hinge.
+    per hinge. mount: how the device is held (twin.device.mount.MOUNTS).
     """
 
     def __init__(self, nsim: int, spec: DeviceSpec | None = None, gains=None, specs=None, nthread: int = 0,
-                 hinges=None):
+                 hinges=None, mount: str = DEFAULT_MOUNT):
         self.spec = spec or load_spec()
         self.nsim = nsim
         n = self.spec.n_hinges
-        model = load_model(self.spec)
+        model = load_model(self.spec, mount=mount)
         self.batch = Batch(model, nsim, nthread=nthread, persistent=True)
         self._models = None
         hinges = [None] * nsim if hinges is None else list(hinges)
@@ -46,7 +47,7 @@ class TwinBatch:
             specs = specs or [self.spec] * nsim
             if len(specs) != nsim or len(hinges) != nsim:
                 raise ValueError(f"expected {nsim} plant specs and hinge lists, got {len(specs)} and {len(hinges)}")
-            self._models = [load_model(p, motors=None if hs is None else [motor_attributes(h) for h in hs])
+            self._models = [load_model(p, mount=mount, motors=None if hs is None else [motor_attributes(h) for h in hs])
                             for p, hs in zip(specs, hinges)]
             self.batch.set_models(self._models)
         self.hinges = Hinges(model, n)

@@ -7,6 +7,9 @@ target at its time, whatever the hinges are doing then: a reversal while a hinge
 still runs draws what the two steps from rest do not). Both check:
 
 - range:     every target inside the hinge range (deg);
+- table:     lying flat (mount "flat"), no target puts a flap below the table (mm; the hinge that takes
+             its flap there named): the twin's table would stop it, and a device driven into a table
+             levers itself off it at full duty;
 - collision: no flap-on-flap contact anywhere along the simulated trajectory
              (trace angles replayed through mj_forward, every `collision_step` s; the
              same contact as twin.device.flap_collision finds without MuJoCo);
@@ -33,6 +36,8 @@ import numpy as np
 
 from controllers.pid import PidGains
 from twin.device.flap_collision import CONTACT_DEPTH
+from twin.device.kinematics import flap_frames
+from twin.device.mount import DEFAULT_MOUNT, table_height
 from twin.device.spec import DeviceSpec
 from twin.formats.scenario import Scenario
 from twin.sim.replay import replay_targets
@@ -121,15 +126,18 @@ def flap_contacts(model: mujoco.MjModel, data: mujoco.MjData, hinge_qadr, angles
 
 def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float = 2.0,
                collision_step: float = 0.005, peak_current_limit: float | None = None,
-               hold_current_limit: float | None = None, twin: Twin | None = None, integral=None) -> GateReport:
+               hold_current_limit: float | None = None, twin: Twin | None = None, integral=None,
+               mount: str = DEFAULT_MOUNT) -> GateReport:
     """Simulate start -> targets (rad) on the twin with the device's gains (one PidGains or one per hinge),
-    from the PID integral the device holds (duty per hinge, its STATE's; default none)."""
+    from the PID integral the device holds (duty per hinge, its STATE's; default none). mount: how the device
+    is held (twin.device.mount.MOUNTS; a given twin's own wins)."""
     start = np.asarray(start, float)
     targets = np.asarray(targets, float)
-    checks = [_range_check(spec, [targets])]
-    if not checks[0].passed:
+    mount = twin.mount if twin is not None else mount
+    checks = _target_checks(spec, [targets], mount)
+    if not all(c.passed for c in checks):
         return GateReport(start, targets, checks, None)
-    twin = _twin_at(spec, start, gains, twin, integral)
+    twin = _twin_at(spec, start, gains, twin, integral, mount)
     trace = twin.move_to(targets, max_time=settle_limit, stop_when_settled=True)
     moved = _heat(twin)
     hold = twin.hold(spec.settle_hold)  # keep simulating: the hold current is what the device draws at rest
@@ -143,8 +151,10 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
 
 def check_scenario(spec: DeviceSpec, scenario: Scenario, gains=None, settle_limit: float = 2.0,
                    collision_step: float = 0.005, peak_current_limit: float | None = None,
-                   hold_current_limit: float | None = None, twin: Twin | None = None) -> GateReport:
-    """Simulate a whole scenario on the twin as one run, as it will be played, and check it whole.
+                   hold_current_limit: float | None = None, twin: Twin | None = None,
+                   mount: str = DEFAULT_MOUNT) -> GateReport:
+    """Simulate a whole scenario on the twin as one run, as it will be played, and check it whole (mount: as
+    check_move's).
 
     From the scenario's start, each target takes effect at its time; the run lasts the scenario's
     duration, or until settle_limit s after the last target if that is later. The settle check is the last
@@ -153,10 +163,11 @@ def check_scenario(spec: DeviceSpec, scenario: Scenario, gains=None, settle_limi
     """
     start = np.asarray(scenario.start, float)
     last = np.asarray(scenario.targets[-1], float)
-    checks = [_range_check(spec, scenario.targets)]
-    if not checks[0].passed:
+    mount = twin.mount if twin is not None else mount
+    checks = _target_checks(spec, scenario.targets, mount)
+    if not all(c.passed for c in checks):
         return GateReport(start, last, checks, None)
-    twin = _twin_at(spec, start, gains, twin)
+    twin = _twin_at(spec, start, gains, twin, mount=mount)
     dt = spec.firmware_dt
     end = int(round(max(scenario.duration, scenario.times[-1] + settle_limit) / dt))
     trace = join_traces([tr for _, tr in replay_targets(twin, list(zip(scenario.times, scenario.targets)), 0, end)])
@@ -182,11 +193,47 @@ def _range_check(spec: DeviceSpec, steps) -> Check:
     return Check("range", float(far[i, k]) <= lim + 1e-9, float(far[i, k]), lim, "deg", detail)
 
 
-def _twin_at(spec: DeviceSpec, start, gains, twin: Twin | None, integral=None) -> Twin:
-    """A twin (the given one, or a new one) with the device's gains, holding the start angles (rad) with
-    the PID integral given (duty per hinge; default none)."""
+def _target_checks(spec: DeviceSpec, steps, mount: str) -> list[Check]:
+    """The checks on the targets alone, before anything is simulated: the range, and the table lying flat."""
+    checks = [_range_check(spec, steps)]
+    if mount == "flat" and checks[0].passed:
+        checks.append(_table_check(spec, steps))
+    return checks
+
+
+def below_table(spec: DeviceSpec, angles) -> np.ndarray:
+    """Per flap, how far its lowest corner lies below the table of a device lying flat, m (0 where above), at
+    hinge angles (rad): each flap's box (its touch surface, the thickness behind it) from the kinematics."""
+    frames = flap_frames(spec, angles)
+    half = (spec.flap_pitch - spec.flap_gap) / 2
+    corners = np.array([[x, 0.0, z, 1.0] for x in (-half, half) for z in (0.0, -spec.thickness)])
+    lowest = (frames @ corners.T)[:, 2, :].min(axis=1)
+    return np.maximum(0.0, table_height(spec) - lowest)
+
+
+def _table_check(spec: DeviceSpec, steps) -> Check:
+    """Lying flat: no target puts a flap below the table (CONTACT_DEPTH allowed). The value is the deepest
+    flap's depth; the detail names, in the first step that goes under, the hinge nearest the root that takes
+    its flap under (the chain beyond follows it) and its step, if more than one."""
+    depth = np.array([below_table(spec, t) for t in steps])
+    deepest = float(depth.max())
+    if deepest <= CONTACT_DEPTH:
+        return Check("table", True, deepest * 1000, CONTACT_DEPTH * 1000, "mm", "no flap below the table")
+    r = spec.root_flap
+    i = int(np.flatnonzero(depth.max(axis=1) > CONTACT_DEPTH)[0])
+    under = np.flatnonzero(depth[i] > CONTACT_DEPTH)
+    j = int(under[np.argmin(np.abs(under - r))])
+    hinge = j if j < r else j - 1
+    detail = f"hinge {hinge} takes flap {j} {depth[i, j] * 1000:.1f} mm below the table" + (
+        f" at step {i}" if len(steps) > 1 else "")
+    return Check("table", False, deepest * 1000, CONTACT_DEPTH * 1000, "mm", detail)
+
+
+def _twin_at(spec: DeviceSpec, start, gains, twin: Twin | None, integral=None, mount: str = DEFAULT_MOUNT) -> Twin:
+    """A twin (the given one, or a new one held as `mount`) with the device's gains, holding the start angles
+    (rad) with the PID integral given (duty per hinge; default none)."""
     if twin is None:
-        twin = Twin(spec, gains if isinstance(gains, PidGains) or gains is None else list(gains))
+        twin = Twin(spec, gains if isinstance(gains, PidGains) or gains is None else list(gains), mount=mount)
     else:
         twin.set_gains(PidGains.from_spec(spec) if gains is None else gains)
     twin.reset(np.clip(start, -spec.hinge_limit, spec.hinge_limit), integral)

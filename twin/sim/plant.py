@@ -179,7 +179,7 @@ class Plant:
             raise ValueError(f"the plant draws {len(opt.hinges)} hinges; the device has {self.spec.n_hinges}")
         self.hinge_specs = hinge_specs(self.spec, opt)
         motors = [_motor(s, h, opt.warming) for s, h in zip(self.hinge_specs, opt.hinges)] or None
-        self.model = load_model(self.spec, table=opt.lying_flat, motors=motors)
+        self.model = load_model(self.spec, mount="flat" if opt.lying_flat else "hanging", motors=motors)
         self.data = mujoco.MjData(self.model)
         self.substeps = physics_substeps(self.spec, self.model)
         n = self.spec.n_hinges

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.encoder import angle_from_counts
+from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec
 from twin.formats.run import RunStart
 from twin.sim.batch import TwinBatch
@@ -49,11 +50,11 @@ def put_at_start(reset, play, integral, start: RunStart, spec: DeviceSpec) -> No
 
 
 def twin_at_start(plant: DeviceSpec, gains, start: RunStart, spec: DeviceSpec | None = None,
-                  hinges: list[DeviceSpec] | None = None) -> Twin:
+                  hinges: list[DeviceSpec] | None = None, mount: str = DEFAULT_MOUNT) -> Twin:
     """A twin at the device's start with the device's recent history, so its firmware state matches
     (`put_at_start`). plant: the physics (hinges: each hinge's own, where they differ); spec: the device's
-    encoder (default: the plant's)."""
-    twin = Twin(plant, gains, hinges=hinges)
+    encoder (default: the plant's); mount: how the device is held (twin.device.mount)."""
+    twin = Twin(plant, gains, hinges=hinges, mount=mount)
     put_at_start(twin.reset, lambda targets, s: twin.move_to(targets, max_time=s, stop_when_settled=False),
                  lambda: twin.pid.integral.copy(), start, spec or plant)
     return twin
@@ -75,13 +76,15 @@ def stretches(changes, dt: float, start_tick: int, stop_tick: int) -> list:
 
 
 def replay_batch(plants: list[DeviceSpec], gains, start: RunStart, changes, stop_tick: int, spec: DeviceSpec,
-                 hinges: list | None = None, nthread: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                 hinges: list | None = None, nthread: int = 0,
+                 mount: str = DEFAULT_MOUNT) -> tuple[np.ndarray, np.ndarray]:
     """Firmware ticks [0, stop_tick) of timed targets (as `stretches`) played from the device's start
     (`put_at_start`) on one twin per plant, in lockstep on the batch twin: (counts, duty), each (ticks,
     len(plants), n_hinges). gains: the device's (one PidGains or one per hinge); hinges: per plant, each
     hinge's own specs or None; spec: the device (its encoder and firmware); nthread: MuJoCo's threads
-    (0: every core)."""
-    batch = TwinBatch(len(plants), spec, [gains] * len(plants), specs=plants, nthread=nthread, hinges=hinges)
+    (0: every core); mount: how the device was held (twin.device.mount)."""
+    batch = TwinBatch(len(plants), spec, [gains] * len(plants), specs=plants, nthread=nthread, hinges=hinges,
+                      mount=mount)
     put_at_start(batch.reset, batch.run, lambda: batch.integral, start, spec)
     out = [batch.run(targets, ticks * spec.firmware_dt) for _, ticks, targets in
            stretches(changes, spec.firmware_dt, 0, stop_tick)]

@@ -28,6 +28,7 @@ from controllers.encoder import counts_from_motor_angles, target_counts
 from controllers.pid import PidGains
 from controllers.program import ProgramEnd, ProgramRun, end_name
 from twin.device.mjcf import load_model, motor_attributes
+from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec, load_spec
 from twin.sim.drive import drive_params
 from twin.sim.hinges import Hinges, contact_free_spreads, physics_substeps, place_hinges
@@ -46,12 +47,14 @@ class Twin:
 
     def __init__(self, spec: DeviceSpec | None = None, gains=None, root: str = "fixed",
                  model: mujoco.MjModel | None = None, stall_detection: bool = False,
-                 hinges: list[DeviceSpec] | None = None):
+                 hinges: list[DeviceSpec] | None = None, mount: str = DEFAULT_MOUNT):
         """hinges: each hinge's own spec where the device's motors and gearboxes differ (a per-hinge
-        calibration's); their plant fields are used, the rest is `spec`'s."""
+        calibration's); their plant fields are used, the rest is `spec`'s. mount: how the device is held
+        (twin.device.mount.MOUNTS: hanging, flat on a table, on a stand; a given model is taken as it is)."""
         self.spec = spec or load_spec()
+        self.mount = mount
         motors = None if hinges is None else [motor_attributes(h) for h in hinges]
-        self.model = model or load_model(self.spec, root, motors=motors)
+        self.model = model or load_model(self.spec, root, mount, motors=motors)
         self.data = mujoco.MjData(self.model)
         self._free_model = copy.copy(self.model)  # the model with contacts disabled, refreshed every run
         self.root = root

@@ -53,6 +53,7 @@ import numpy as np
 from controllers.core import per_hinge
 from controllers.encoder import target_counts
 from controllers.pid import PidGains
+from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec
 from twin.device.variation import Plant, at_ends, corners, tolerance_ranges
 from twin.search import CrossEntropy
@@ -72,7 +73,8 @@ class TuneGoal:
     """What the tuner minimises: worst-plant settle time with overshoot under max_overshoot (rad), over the
     plants `ranges` spans: {spec field: (low, high) SI}, e.g. the intervals calibration left open
     (twin.formats.profile.Profile.ranges); empty: +-tolerance on motor constant and gear friction. With
-    `hinges`, every plant gives each hinge its own values, at its own intervals' corners (variation.corners)."""
+    `hinges`, every plant gives each hinge its own values, at its own intervals' corners (variation.corners).
+    mount: how the device is held (twin.device.mount): every plant's twin is held so."""
 
     max_overshoot: float = math.radians(1.0)  # rad
     tolerance: float = 0.20  # +- fraction on motor constant and gear friction, where no ranges are given
@@ -81,6 +83,7 @@ class TuneGoal:
     ranges: dict = dataclasses.field(default_factory=dict)  # spec field -> (low, high), SI
     hinges: tuple | None = None  # each hinge's own spec (a per-hinge calibration's), or None: all the spec's
     hinge_ranges: list | None = None  # per hinge, {spec field: (low, high) SI} of its own values' intervals
+    mount: str = DEFAULT_MOUNT
 
 
 def step_scores(spec: DeviceSpec, out: dict, target: np.ndarray) -> dict:
@@ -173,7 +176,7 @@ class RobustEvaluator:
         if backend is None:  # simulation index = candidate * nplant + plant
             every = [p for _ in range(population) for p in self.plants]
             self.batch = TwinBatch(population * self.nplant, spec, specs=[p.spec for p in every],
-                                   hinges=[p.hinges for p in every], nthread=nthread)
+                                   hinges=[p.hinges for p in every], nthread=nthread, mount=goal.mount)
         self.simulations = 0
 
     def costs(self, kp, ki, kd):
@@ -214,7 +217,7 @@ def plant_scores(task) -> dict:
     key = (plant, len(candidates))
     if key not in _PLANT_BATCHES:
         _PLANT_BATCHES[key] = TwinBatch(len(candidates), spec, specs=[plant.spec] * len(candidates),
-                                        hinges=[plant.hinges] * len(candidates), nthread=1)
+                                        hinges=[plant.hinges] * len(candidates), nthread=1, mount=goal.mount)
     batch = _PLANT_BATCHES[key]
     batch.set_gains(candidates)
     batch.reset()
@@ -331,6 +334,6 @@ def range_sensitivity(spec: DeviceSpec, goal: TuneGoal, gains, nthread: int = 0,
 def step_report(spec: DeviceSpec, gains, goal: TuneGoal, plant: DeviceSpec | None = None, hinges=None):
     """move_report rows (settle s, overshoot deg, ...) of one twin step from flat to goal.step on every
     hinge, over the tuner's window (goal.duration); and the trace. hinges: each hinge's own spec (Twin's)."""
-    twin = Twin(plant or spec, gains, hinges=hinges)
+    twin = Twin(plant or spec, gains, hinges=hinges, mount=goal.mount)
     trace = twin.move_to(np.full(spec.n_hinges, goal.step), max_time=goal.duration, stop_when_settled=False)
     return move_report(spec, trace), trace
