@@ -92,6 +92,8 @@ def test_holding_on_an_emulated_device_whose_gearboxes_nobody_told_the_twin(emul
     (["--release-s", "9"], "--release-s"),
     (["--releases", "0"], "--releases"),
     (["--serial", "/dev/no-such-port"], "/dev/no-such-port"),
+    (["--mount", "flat"], "--mount hanging"),  # the table holds the flaps up: nothing to release under gravity
+    (["--mount", "stand"], "--mount hanging"),  # on its edge gravity loads no hinge
 ])
 def test_holding_refuses_bad_input_naming_it(capsys, args, message):
     argv = ["holding"] + (args if "--serial" in args else args + ["--serial", "/dev/no-such-port"])

@@ -11,6 +11,7 @@ import math
 from twin.commands.options import (
     add_device_option,
     add_json,
+    add_mount,
     add_serial,
     add_tolerance_deg,
     device_session,
@@ -43,10 +44,14 @@ def add_arguments(p) -> None:
     p.add_argument("--log", help="session log, JSON lines")
     add_json(p, "the releases, the fit and the prediction")
     add_device_option(p)
+    add_mount(p)
 
 
 def run(args) -> int:
     profile = profile_of(args)
+    if profile.mount != "hanging":  # lying flat the table holds the flaps up; on a stand gravity loads no hinge
+        raise UserError(f"holding releases the flaps under gravity, which the {profile.mount} mount takes away: hang "
+                        "the device from its root flap and give --mount hanging (docs/device.md, \"Mounts\")")
     spec = profile.spec
     quiet = json_to_stdout(args)
     if not quiet:
