@@ -133,7 +133,7 @@ def test_numbers_on_the_command_line_are_finite_and_within_their_range(argv, opt
 def test_json_holds_null_where_a_number_is_not_defined():
     """A move cut short before it settles: its settle time is not defined, null in JSON (JSON has no NaN)."""
     out = vrscroll("simulate", "60", "0", "0", "0", "0", "0", "--max-time", "0.05", "--json", "-")
-    assert out.returncode == 0, out.stderr
+    assert out.returncode == 1, out.stderr  # the gate's settle check fails: the report is written all the same
     assert "NaN" not in out.stdout and "Infinity" not in out.stdout
     report = json.loads(out.stdout)
     assert report["hinges"][0]["settle_time_s"] is None and not report["settled"]
