@@ -31,7 +31,7 @@ def test_an_interrupt_e_stops_the_device(command, sig, emulator, tmp_path):
     scenario = tmp_path / "s.toml"
     scenario.write_text(LONG)
     # a tolerance no slow plant exceeds: the command is still watching the move when the signal comes
-    args = {"mirror": ["mirror", "--angles=60,-45,20,30,90,-100", "--settle-limit", "5", "--tolerance-deg", "170"],
+    args = {"mirror": ["mirror", "--angles=60,-45,20,30,90,-100", "--settle-limit-s", "5", "--tolerance-deg", "170"],
             "hil": ["hil", str(scenario), "--out", str(tmp_path / "run"), "--tolerance-deg", "170"]}[command]
     # SIGINT as a terminal gives it, whatever this run inherited: a suite started in the background by a
     # non-interactive shell has SIGINT ignored, and a child that starts so never sees Ctrl-C

@@ -176,7 +176,7 @@ def test_watchdog_holds_then_stops_the_motors_when_the_host_goes_quiet(emulator,
 
 
 def test_jammed_hinge_is_caught_by_the_live_comparison(emulator, spec, tmp_path):
-    emu = emulator("--jam-hinge", "2", "--jam-after", "0.0")
+    emu = emulator("--jam-hinge", "2", "--jam-after-s", "0.0")
     log = tmp_path / "session.jsonl"
     targets = np.radians([20.0, 10.0, 40.0, 0.0, -10.0, -20.0])
     with Link(emu.port, log_path=log) as link:
@@ -213,7 +213,7 @@ def test_port_disappearing_mid_run_is_a_clear_error_and_the_log_survives(emulato
 
 
 def test_a_device_that_stops_answering_times_out(emulator):
-    emu = emulator("--drop-after", "0.5")
+    emu = emulator("--drop-after-s", "0.5")
     with Link(emu.port, timeout=0.05, retries=2) as link:
         link.get_state()
         time.sleep(0.6)
@@ -270,7 +270,7 @@ def test_an_unknown_message_id_is_refused_and_the_logging_emulator_lives_on(emul
 
 
 @pytest.mark.parametrize("option", [["--watchdog-ms", "-1"], ["--watchdog-ms", "70000"], ["--speed-scale", "0"],
-                                    ["--corrupt", "5"], ["--drop-after", "-1"], ["--backlash-deg", "1e9"],
+                                    ["--corrupt", "5"], ["--drop-after-s", "-1"], ["--backlash-deg", "1e9"],
                                     ["--latency-ms", "nan"]])
 def test_emulator_options_out_of_range_are_refused(option, capsys):
     assert vrscroll(["emulate", *option]) == 2

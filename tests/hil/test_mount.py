@@ -119,7 +119,7 @@ def test_hil_estops_on_a_jammed_hinge_within_its_tolerance_and_names_it(emulator
     0.6 s into the scenario: `hil` e-stops the device then, names hinge 2 and the time, and keeps the run, marked
     stopped, up to there; the device had parted from the twin by the tolerance and a frame's motion, not by
     what the scenario would have made of it."""
-    emu = emulator("--lying-flat", "--jam-hinge", "2", "--jam-after", "0")
+    emu = emulator("--lying-flat", "--jam-hinge", "2", "--jam-after-s", "0")
     (tmp_path / "later.toml").write_text(STEPS)
     tol = 5.0
     rc, out, err = _run(capsys, "hil", str(tmp_path / "later.toml"), "--serial", emu.port, "--out",

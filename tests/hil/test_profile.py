@@ -64,12 +64,12 @@ def test_a_profiles_gains_are_the_twins(capsys, spec, device_profiles):
     write_gains(device_profiles / "soft" / "gains.json", [soft] * spec.n_hinges)
     assert read_profile(device_profiles / "soft").gains == [soft] * spec.n_hinges
     rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-", "--device", "soft",
-                      "--max-time", "1.0")
+                      "--max-time-s", "1.0")
     assert rc == 0
     soft_row = json.loads(out)["hinges"][0]
     _run(capsys, "device", "select", "none")
     default_row = json.loads(_run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-",
-                                  "--max-time", "1.0")[1])["hinges"][0]
+                                  "--max-time-s", "1.0")[1])["hinges"][0]
     # no integral, a weak kp, no derivative: the soft profile's hinge takes longer (or never settles)
     assert not soft_row["settle_time_s"] <= default_row["settle_time_s"] + 0.02, (soft_row, default_row)
 

@@ -265,7 +265,7 @@ def test_mirror_simulate_and_a_move_on_a_target_write_rerun_recordings(spec, emu
 
 def test_a_run_the_device_stopped_names_the_fault_and_can_still_be_watched(emulator, tmp_path, spec, monkeypatch,
                                                                            capsys):
-    emu = emulator("--jam-hinge", "2", "--jam-after", "0.3")  # hinge 2 jams mid-run: the device's stall check stops it
+    emu = emulator("--jam-hinge", "2", "--jam-after-s", "0.3")  # hinge 2 jams mid-run: the device's stall check stops it
     (tmp_path / "s.toml").write_text(TWO_STEPS)
     # (a tolerance no hinge reaches: at the default 5 deg the host's divergence stop comes first, test_mount.py's)
     assert vrscroll(["hil", str(tmp_path / "s.toml"), "--serial", emu.port, "--out", str(tmp_path / "run"),

@@ -61,6 +61,12 @@ def test_user_error_is_one_line_under_python_dash_m():
     (["tune", "--tolerance", "10"], "--tolerance-pct"),
     (["calibrate", "--scenario", "cal.toml"], "vrscroll scenario"),
     (["simulate", "1", "0", "0", "0", "0", "0", "--json"], "--json -"),
+    (["simulate", "1", "0", "0", "0", "0", "0", "--max-time", "1"], "--max-time-s"),  # units in option names
+    (["tune", "--duration", "1"], "--duration-s"),
+    (["mirror", "--angles", "0,0,0,0,0,0", "--serial", "/dev/null", "--settle-limit", "1"], "--settle-limit-s"),
+    (["emulate", "--jam-after", "1"], "--jam-after-s"),
+    (["emulate", "--drop-after", "1"], "--drop-after-s"),
+    (["emulate", "--pack-voltage", "8"], "--pack-voltage-v"),
 ])
 def test_old_spellings_are_refused_naming_the_new(argv, new):
     r = vrscroll(*argv)
@@ -118,9 +124,9 @@ def test_a_picture_or_file_into_a_folder_is_refused(tmp_path):
 
 
 @pytest.mark.parametrize("argv, option", [
-    (["simulate", "1", "0", "0", "0", "0", "0", "--max-time", "1e9"], "--max-time"),  # 10^12 ticks of trace
-    (["simulate", "1", "0", "0", "0", "0", "0", "--max-time", "nan"], "--max-time"),
-    (["tune", "--duration", "1e9"], "--duration"), (["tune", "--population", "0"], "--population"),
+    (["simulate", "1", "0", "0", "0", "0", "0", "--max-time-s", "1e9"], "--max-time-s"),  # 10^12 ticks of trace
+    (["simulate", "1", "0", "0", "0", "0", "0", "--max-time-s", "nan"], "--max-time-s"),
+    (["tune", "--duration-s", "1e9"], "--duration-s"), (["tune", "--population", "0"], "--population"),
     (["tune", "--threads", "-1"], "--threads"), (["calibrate", "run", "--threads", "100000"], "--threads"),
     (["mirror", "--angles", "0,0,0,0,0,0", "--serial", "x", "--tolerance-deg", "-5"], "--tolerance-deg"),
     (["redirect", "a.json", "--sigma-mm", "inf"], "--sigma-mm"),
@@ -132,7 +138,7 @@ def test_numbers_on_the_command_line_are_finite_and_within_their_range(argv, opt
 
 def test_json_holds_null_where_a_number_is_not_defined():
     """A move cut short before it settles: its settle time is not defined, null in JSON (JSON has no NaN)."""
-    out = vrscroll("simulate", "60", "0", "0", "0", "0", "0", "--max-time", "0.05", "--json", "-")
+    out = vrscroll("simulate", "60", "0", "0", "0", "0", "0", "--max-time-s", "0.05", "--json", "-")
     assert out.returncode == 1, out.stderr  # the gate's settle check fails: the report is written all the same
     assert "NaN" not in out.stdout and "Infinity" not in out.stdout
     report = json.loads(out.stdout)
@@ -140,7 +146,7 @@ def test_json_holds_null_where_a_number_is_not_defined():
 
 
 def test_simulate_exits_1_when_the_gate_fails_as_demo_does():
-    out = vrscroll("simulate", "60", "0", "0", "0", "0", "0", "--max-time", "0.05", "--json", "-")
+    out = vrscroll("simulate", "60", "0", "0", "0", "0", "0", "--max-time-s", "0.05", "--json", "-")
     assert out.returncode == 1, out.stderr
     assert json.loads(out.stdout)["gate"]["passed"] is False
     assert vrscroll("simulate", "10", "0", "0", "0", "0", "0", "--json", "-").returncode == 0

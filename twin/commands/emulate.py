@@ -45,15 +45,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                        help=f"{what}: fixed, or drawn uniformly from the seed (default {lo:g},{hi:g})")
     p.add_argument("--encoder-miss", type=float, default=0.0,
                    help="probability that the encoder's counter misses an edge; missed edges accumulate (default 0)")
-    p.add_argument("--pack-voltage", type=float,
+    p.add_argument("--pack-voltage-v", type=float,
                    help="the 2S pack's open-circuit voltage, V (default: the spec's supply_voltage)")
     p.add_argument("--watchdog-ms", type=int, help="watchdog timeout, ms (default: the spec's, 0: off)")
     p.add_argument("--host-away-hold-ms", type=int,
                    help="how long the targets are held after the watchdog fires, before the release, ms "
                         "(default: the spec's host_away_hold)")
     p.add_argument("--jam-hinge", type=int, help="this hinge jams ...")
-    p.add_argument("--jam-after", type=float, default=0.0, help="... this many s after the first target (default 0)")
-    p.add_argument("--drop-after", type=float, help="the link goes dead after this many s of device time")
+    p.add_argument("--jam-after-s", type=float, default=0.0, help="... this many s after the first target (default 0)")
+    p.add_argument("--drop-after-s", type=float, help="the link goes dead after this many s of device time")
     p.add_argument("--wiring-fault", action="append", default=[], metavar="FAULT:HINGE[,HINGE]",
                    help="a wiring mistake between the board and its motors (repeatable): motor-reversed:K, "
                         "encoder-reversed:K, encoder-dead:K, crossed:J,K (the encoder cables of J and K swapped)")
@@ -101,11 +101,11 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
         raise ValueError(f"--encoder-miss {args.encoder_miss}: a probability, 0 to 1")
     if not 0.0 <= args.corrupt <= 1.0:
         raise ValueError(f"--corrupt {args.corrupt}: a probability, 0 to 1")
-    if args.pack_voltage is not None and not 0 < args.pack_voltage <= MAX_PACK_V:
-        raise ValueError(f"--pack-voltage {args.pack_voltage}: a pack's voltage, above 0 and at most {MAX_PACK_V} V")
+    if args.pack_voltage_v is not None and not 0 < args.pack_voltage_v <= MAX_PACK_V:
+        raise ValueError(f"--pack-voltage-v {args.pack_voltage_v}: a pack's voltage, above 0 and at most {MAX_PACK_V} V")
     if args.watchdog_ms is not None and not 0 <= args.watchdog_ms <= 65535:
         raise ValueError(f"--watchdog-ms {args.watchdog_ms}: 0 (off) to 65535 ms, what the firmware's config holds")
-    for flag, value in (("--jam-after", args.jam_after), ("--drop-after", args.drop_after)):
+    for flag, value in (("--jam-after-s", args.jam_after_s), ("--drop-after-s", args.drop_after_s)):
         if value is not None and not (math.isfinite(value) and value >= 0):
             raise ValueError(f"{flag} {value}: a time in s, finite and not negative")
     if args.host_away_hold_ms is not None and not 0 <= args.host_away_hold_ms <= 65535:
@@ -128,10 +128,10 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
     except ValueError as exc:
         field, reason = str(exc).split(": ", 1)
         raise ValueError(f"{_flag(field)}: {reason}") from None
-    faults = FaultOptions(jam_hinge=args.jam_hinge, jam_after=args.jam_after, drop_after=args.drop_after,
+    faults = FaultOptions(jam_hinge=args.jam_hinge, jam_after=args.jam_after_s, drop_after=args.drop_after_s,
                           corrupt=args.corrupt, wiring=tuple(args.wiring_fault))
     Miswiring.parse(faults.wiring, spec.n_hinges)  # refused here, naming the fault
-    opt = drawn_options(ranges, faults, args.seed, args.watchdog_ms, args.encoder_miss, args.pack_voltage,
+    opt = drawn_options(ranges, faults, args.seed, args.watchdog_ms, args.encoder_miss, args.pack_voltage_v,
                         args.sketch, args.zeroed, spec.n_hinges)
     return dataclasses.replace(opt, host_away_hold_ms=args.host_away_hold_ms,
                                plant=dataclasses.replace(opt.plant, lying_flat=args.lying_flat,

@@ -31,7 +31,7 @@ def add_arguments(p) -> None:
                    "(write --angles=-30,0,... when the first is negative)")
     add_serial(p, required=True)
     add_tolerance_deg(p)
-    p.add_argument("--settle-limit", type=within(0.1, 60, "s"), default=2.0, help="s the move may take (default %(default)s)")
+    p.add_argument("--settle-limit-s", type=within(0.1, 60, "s"), default=2.0, help="s the move may take (default %(default)s)")
     p.add_argument("--telemetry-hz", type=within(1, 1000, "Hz", whole=True), default=500, help="telemetry rate (default %(default)s)")
     p.add_argument("--log", default="vrscroll-session.jsonl", help="session log, JSON lines (default %(default)s)")
     add_rerun(p)
@@ -80,7 +80,7 @@ def run(args) -> int:
         with device_session(args, spec) as (link, spec):
             if args.override:
                 print("gate override requested: a failed check will be logged and the move sent anyway")
-            result = mirror(link, spec, targets, tolerance_deg=args.tolerance_deg, settle_limit=args.settle_limit,
+            result = mirror(link, spec, targets, tolerance_deg=args.tolerance_deg, settle_limit=args.settle_limit_s,
                             override=args.override, telemetry_hz=args.telemetry_hz, on_frame=show,
                             hinges=profile.hinges, mount=profile.mount)
     except GateRefused as exc:

@@ -32,7 +32,9 @@ from twin.hil.device_gains import device_spec
 from twin.link.serial_link import Link
 
 # old spelling -> new, refused wherever the new one is an option of the command
-RENAMED = {"--port": "--serial", "--tolerance": "--tolerance-pct"}
+RENAMED = {"--port": "--serial", "--tolerance": "--tolerance-pct", "--max-time": "--max-time-s",
+           "--duration": "--duration-s", "--settle-limit": "--settle-limit-s", "--jam-after": "--jam-after-s",
+           "--drop-after": "--drop-after-s", "--pack-voltage": "--pack-voltage-v"}  # old spelling -> the new
 
 
 class _Renamed(argparse.Action):

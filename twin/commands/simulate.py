@@ -42,8 +42,8 @@ def add_arguments(p) -> None:
     p.add_argument("--from", dest="start", metavar="DEG,...",
                    help="the hinge angles the move starts from, degrees, comma-separated (default flat; "
                         "write --from=-30,0,... when the first is negative)")
-    p.add_argument("--max-time", type=within(0.01, 60, "s"), default=3.0, help="longest the move may take, s (default 3)")
-    p.add_argument("--hold", action="store_true", help="run the full --max-time instead of stopping once settled")
+    p.add_argument("--max-time-s", type=within(0.01, 60, "s"), default=3.0, help="longest the move may take, s (default 3)")
+    p.add_argument("--hold", action="store_true", help="run the full --max-time-s instead of stopping once settled")
     p.add_argument("--trace", metavar="CSV", type=output_file, help="write the firmware-rate trace to this CSV file")
     add_json(p, "the report")
     p.add_argument("--plot", metavar="PNG", type=output_file, default="simulate.png",
@@ -71,13 +71,13 @@ def run(args) -> int:
     start = np.zeros(spec.n_hinges) if not args.start else hinge_angles(
         [cell(v, f"--from[{k}]") for k, v in enumerate(args.start.split(","))], spec.n_hinges, spec.hinge_limit, "--from")
     twin = profile_twin(profile)
-    gate = check_move(spec, start, targets, profile.gains, settle_limit=args.max_time, twin=twin)
+    gate = check_move(spec, start, targets, profile.gains, settle_limit=args.max_time_s, twin=twin)
     if gate.prediction is None:
         raise UserError(gate.refusal())
     trace = gate.prediction  # the move until settled, as simulated by the gate
-    if args.hold:  # ... or the whole --max-time
+    if args.hold:  # ... or the whole --max-time-s
         twin.reset(start)
-        trace = twin.move_to(targets, max_time=args.max_time, stop_when_settled=False)
+        trace = twin.move_to(targets, max_time=args.max_time_s, stop_when_settled=False)
     rows = move_report(twin.spec, trace)
     summary = {
         "device_profile": profile.label,

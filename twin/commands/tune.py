@@ -51,7 +51,7 @@ def add_arguments(p) -> None:
                         "calibrated profile's intervals replace it")
     p.add_argument("--step-deg", type=float, default=30.0,
                    help="step every hinge takes from flat, deg (default %(default)s)")
-    p.add_argument("--duration", type=within(0.1, 10, "s"), default=1.0,
+    p.add_argument("--duration-s", type=within(0.1, 10, "s"), default=1.0,
                    help="s simulated per candidate, and the window of the reported metrics (default %(default)s)")
     p.add_argument("--population", type=within(4, 1000, whole=True), default=32, help="candidates per generation (default %(default)s)")
     p.add_argument("--generations", type=within(1, 100, whole=True), default=8, help="cross-entropy generations (default %(default)s)")
@@ -86,7 +86,7 @@ def run(args) -> int:
         raise UserError(f"--step-deg {args.step_deg}: outside the hinge range")
     ranges = profile.ranges() or tolerance_ranges(spec, args.tolerance_pct / 100)
     goal = TuneGoal(max_overshoot=math.radians(args.max_overshoot_deg), tolerance=args.tolerance_pct / 100,
-                    step=step, duration=args.duration, ranges=ranges,
+                    step=step, duration=args.duration_s, ranges=ranges,
                     hinges=None if profile.hinges is None else tuple(profile.hinges),
                     hinge_ranges=profile.hinge_ranges(), mount=profile.mount)
     before = profile.gains
@@ -111,7 +111,7 @@ def run(args) -> int:
     rows_after, _ = step_report(spec, result.gains, goal, hinges=profile.hinges)
     meta = {"device_profile": profile.label,
             "goal": {"max_overshoot_deg": args.max_overshoot_deg, "step_deg": args.step_deg,
-                     "duration_s": args.duration,
+                     "duration_s": args.duration_s,
                      "ranges": {p: [float(lo), float(hi)] for p, (lo, hi) in ranges.items()},
                      **({"hinge_ranges": [{p: [float(lo), float(hi)] for p, (lo, hi) in row.items()}
                                           for row in goal.hinge_ranges]} if goal.hinge_ranges else {})},
@@ -135,7 +135,7 @@ def run(args) -> int:
         into_profile()
     summary = {"gains_files": written, "before": rows_before, "after": rows_after, **meta}
     if not quiet:
-        print(f"tuned in {result.wall_time:.1f} s ({result.simulations} simulations of {args.duration} s); "
+        print(f"tuned in {result.wall_time:.1f} s ({result.simulations} simulations of {args.duration_s} s); "
               f"nominal twin, step to {args.step_deg} deg, per hinge settle / overshoot:")
         print(_line("before", rows_before))
         print(_line("tuned", rows_after))
@@ -175,7 +175,7 @@ def confirm_on_device(args, spec, gains, step, pushed, quiet=False, hinges=None,
     except LinkError as exc:
         raise UserError(f"link: {exc} (session log: {args.log})") from None
     twin = twin_at_start(spec, gains, start, hinges=hinges, mount=mount)  # where the device is, with the integral it holds
-    trace = twin.move_to(targets, max_time=args.duration, stop_when_settled=False)
+    trace = twin.move_to(targets, max_time=args.duration_s, stop_when_settled=False)
     pred = move_report(spec, trace)
     band = math.degrees(spec.settle_band * spec.rad_per_count)
     tgt = np.degrees(target_counts(spec, targets) * spec.rad_per_count)
