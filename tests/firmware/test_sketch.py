@@ -2,12 +2,17 @@
 peripherals, run on the emulator's plant. It agrees with the bare core and the twin; each defect the sketch
 once had, put back, makes one of these fail."""
 
+import configparser
 import ctypes
+import glob
+import json
+import os
+import re
 
 import numpy as np
 import pytest
 
-from controllers import sketch
+from controllers import core, sketch
 from controllers.encoder import target_counts
 from cli import vrscroll
 from twin.link import protocol as P
@@ -146,3 +151,37 @@ def test_commands_against_the_sketch_on_a_pty_wait_for_the_zero(tmp_path):
         assert r.returncode == 0 and "zero confirmed" in r.stdout, r.stderr
         r = vrscroll("mirror", "--serial", dev.port, "--angles=5,0,0,0,0,0", "--tolerance-deg", "30", cwd=tmp_path)
         assert r.returncode == 0, r.stdout + r.stderr
+
+
+# PlatformIO's source matching (platformio-core: platformio/fs.py match_src_files; the extensions of
+# builder/tools/piobuild.py SRC_BUILD_EXT, and .ino/.pde, which the Arduino builder converts)
+PIO_BUILD_EXT = ("c", "cc", "cpp", "cxx", "c++", "S", "spp", "SPP", "sx", "s", "asm", "ASM", "ino", "pde")
+PIO_DEFAULT_FILTER = "+<*> -<.git/> -<.svn/>"
+
+
+def pio_sources(src_dir, src_filter: str) -> set:
+    """The files PlatformIO compiles from src_dir under src_filter: each +<glob> adds, each -<glob> removes, a
+    folder standing for every file below it."""
+    matched = set()
+    for action, pattern in re.findall(r"(\+|-)<([^>]+)>", src_filter):
+        found = set()
+        for item in glob.glob(os.path.join(glob.escape(str(src_dir)), pattern), recursive=True):
+            files = [os.path.join(r, f) for r, _, fs in os.walk(item) for f in fs] if os.path.isdir(item) else [item]
+            found |= {os.path.relpath(f, src_dir) for f in files if f.rsplit(".", 1)[-1] in PIO_BUILD_EXT}
+        matched = matched | found if action == "+" else matched - found
+    return matched
+
+
+def test_platformio_builds_only_the_sketch_and_the_core():
+    """platformio.ini's build_src_filter, applied to the tree as PlatformIO applies it, picks the sketch and
+    nothing else (not host/'s stand-ins, whose HWCDC:: and Preferences:: would clash with Arduino's); the core's
+    library.json picks exactly the core's sources."""
+    ini = configparser.ConfigParser()
+    ini.read(sketch.SKETCH_DIR / "platformio.ini")
+    src_dir = sketch.SKETCH_DIR / ini.get("platformio", "src_dir", fallback="src")
+    src_filter = ini.get("env:esp32s3", "build_src_filter", fallback=PIO_DEFAULT_FILTER)
+    assert pio_sources(src_dir, src_filter) == {"esp32s3.ino"}
+    lib = json.loads((core.FIRMWARE_DIR / "library.json").read_text())["build"]
+    lib_dir = core.FIRMWARE_DIR / lib.get("srcDir", "src")
+    picked = pio_sources(lib_dir, " ".join(lib.get("srcFilter", [PIO_DEFAULT_FILTER])))
+    assert picked == {p.name for p in core.core_sources()}
