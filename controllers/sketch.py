@@ -65,7 +65,9 @@ def build(defines: tuple[str, ...] = ()) -> Path:
 
 @dataclasses.dataclass(frozen=True)
 class Wiring:
-    """Which GPIO each motor's bridge inputs and encoder outputs reach (-1: not connected), and the battery's pin."""
+    """Which GPIO each motor's bridge inputs and encoder outputs reach (-1: not connected), the battery's pin,
+    and whether the board pulls every bridge input up (docs/firmware.md "Wiring": braked through reset and boot;
+    without, the DRV8833's pull-downs hold them low: coast)."""
 
     in1: tuple[int, ...]
     in2: tuple[int, ...]
@@ -73,6 +75,7 @@ class Wiring:
     enc_b: tuple[int, ...]
     battery_pin: int
     battery_divider: float
+    in_pull_ups: bool = True
 
 
 def wiring() -> Wiring:
@@ -97,6 +100,7 @@ _SIGNATURES = {
     "host_set_encoder": ([_I32, _I64], None),
     "host_set_pin_mv": ([_I32, _U32], None),
     "host_boot": ([_I32, _U64], None),
+    "host_pull_up": ([_I32, _I32], None),
     "host_advance": ([_U32], _I32),
     "host_bridge": ([_I32, _VP, _VP, _VP], None),
     "host_rx": ([_VP, _U32], _U32),
@@ -155,6 +159,8 @@ class Sketch:
         w = self.wires
         for k in range(self.n):
             lib.host_connect_motor(k, w.in1[k], w.in2[k], w.enc_a[k], w.enc_b[k], int(positions[k]))
+            for pin in (w.in1[k], w.in2[k]):
+                lib.host_pull_up(pin, int(w.in_pull_ups))
         self._positions = positions.copy()
         lib.host_boot(reason, at_us)
 

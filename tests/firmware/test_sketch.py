@@ -4,6 +4,7 @@ once had, put back, makes one of these fail."""
 
 import configparser
 import ctypes
+import dataclasses
 import glob
 import json
 import os
@@ -76,17 +77,25 @@ def test_the_pcnt_stand_in_keeps_counting_past_its_16_bit_limit():
     assert frames(board, P.GetState())[0].counts[0] == 40000
 
 
+def bridge_shares(board, k) -> np.ndarray:
+    """Motor k's bridge since the last call: the shares of time forward, reverse, braking, coasting."""
+    shares = np.zeros(4)
+    board.lib.host_bridge(k, ctypes.byref(board._pwm), ctypes.byref(board._decay), shares.ctypes.data)
+    return shares
+
+
 def test_the_board_brakes_from_its_first_instruction_and_says_why_it_started(spec):
-    """A reset mid-morph: the bridges brake (not coast, which lets the flaps fold) before the first tick, and
-    HELLO_REPLY names the reset."""
+    """A reset mid-morph: from the reset through the ROM's boot and set-up (each call taking its time), the
+    bridges brake, never coast (which lets the flaps fold) nor drive, and HELLO_REPLY names the reset. The
+    stand-ins refuse digitalWrite before pinMode as Arduino-ESP32 3.x does: the old order (digitalWrite HIGH,
+    then pinMode) coasts between pinMode and MCPWM's generators."""
     _, emu = emulated(spec, True, ticks=150)
     board = emu.firmware
     board.reset(P.ResetReason.BROWNOUT)
-    shares = np.zeros(4)
-    board.lib.host_advance(100)  # 0.1 ms: setup() has run, the first tick has not
+    board.lib.host_advance(100)  # 0.1 ms more: setup() has run, the first tick has not
     for k in range(6):
-        board.lib.host_bridge(k, ctypes.byref(board._pwm), ctypes.byref(board._decay), shares.ctypes.data)
-        assert shares[2] == pytest.approx(1.0), f"hinge {k}: forward, reverse, brake, coast shares {shares}"
+        shares = bridge_shares(board, k)
+        assert shares[2] == 1.0, f"hinge {k}: forward, reverse, brake, coast shares {shares}"
     hello = frames(board, P.Hello())[0]
     assert hello.reset_reason == P.ResetReason.BROWNOUT and hello.setup_error == P.SetupStep.NONE
     assert hello.zero_confirmed == 0
@@ -100,9 +109,12 @@ def test_the_board_brakes_from_its_first_instruction_and_says_why_it_started(spe
 
 
 def test_a_pwm_the_timer_cannot_make_is_a_named_hardware_fault():
-    """A period the MCPWM timer refuses (over 65535 ticks): the device says which set-up step failed, faults, and
-    CLEAR_FAULT cannot clear it."""
+    """A period the MCPWM timer refuses (over 65535 ticks): every bridge brakes from the reset on, the device says
+    which set-up step failed, faults, and CLEAR_FAULT cannot clear it."""
     board = sketch.Sketch(np.zeros(6), defines=("PWM_PERIOD_TICKS=70000",))
+    board.lib.host_advance(5000)
+    for k in range(6):  # the group's pins stay the GPIO outputs set up first, high: braked, not coasting
+        assert bridge_shares(board, k)[2] == 1.0
     hello, state = frames(board, P.Hello(), P.GetState())
     assert hello.setup_error == P.SetupStep.PWM_TIMER
     assert state.state == P.State.FAULT and state.faults & P.Fault.HARDWARE
@@ -185,3 +197,11 @@ def test_platformio_builds_only_the_sketch_and_the_core():
     lib_dir = core.FIRMWARE_DIR / lib.get("srcDir", "src")
     picked = pio_sources(lib_dir, " ".join(lib.get("srcFilter", [PIO_DEFAULT_FILTER])))
     assert picked == {p.name for p in core.core_sources()}
+
+
+def test_without_the_boards_pull_ups_the_bridges_coast_until_setup():
+    """What holds the inputs before setup() is the board's: without its pull-ups the DRV8833's own pull-downs
+    hold both inputs low (coast) from the reset until setup() brakes them, the ROM's boot."""
+    bare = sketch.Sketch(np.zeros(6), wires=dataclasses.replace(sketch.wiring(), in_pull_ups=False))
+    shares = bridge_shares(bare, 0)
+    assert shares[3] > 0.99, shares

@@ -7,6 +7,7 @@
  * for the calls it makes. docs/firmware.md has the wiring, the build commands and the bring-up. */
 #include <Arduino.h>
 #include <Preferences.h>
+#include <driver/gpio.h>
 #include <driver/mcpwm_prelude.h>
 #include <driver/pulse_cnt.h>
 #include <esp_system.h>
@@ -105,8 +106,17 @@ static void read_counts(void *ctx, int32_t *counts)
 
 /* ---- motors: MCPWM, set up once, only compare values and forced levels change in the tick ---------- */
 
-/* One H-bridge on operator `op`: each input's generator goes low at the period's start and high at its
- * comparator, so an input is low for `compare` ticks of the period. Forced high it stays high. */
+/* Every generator's output is inverted in the GPIO matrix (invert_pwm): a generator just made, reset and
+ * low, holds its pin high, so the hand-over from the GPIO (set high in setup()) to MCPWM never lets an
+ * input fall (ESP-IDF v5.4 mcpwm_gen.c, mcpwm_new_generator: the generator reset, then the signal
+ * connected with its invert flag). The pin's level (1 high, 0 low, -1 to the PWM actions) as the force: */
+static esp_err_t force_pin(mcpwm_gen_handle_t gen, int level)
+{
+    return mcpwm_generator_set_force_level(gen, level < 0 ? -1 : 1 - level, true);
+}
+
+/* One H-bridge on operator `op`: each input goes low at the period's start and high at its comparator
+ * (the generator high, then low: inverted), so an input is low for `compare` ticks of the period. */
 static void bridge_setup(int k, mcpwm_timer_handle_t tmr, int group)
 {
     mcpwm_oper_handle_t op = NULL;
@@ -125,13 +135,14 @@ static void bridge_setup(int k, mcpwm_timer_handle_t tmr, int group)
     for (int i = 0; i < 2; i++) {
         mcpwm_generator_config_t gc = {};
         gc.gen_gpio_num = pins[i];
+        gc.flags.invert_pwm = 1;
         if (failed(mcpwm_new_generator(op, &gc, gens[i]), VRS_SETUP_PWM_GENERATOR, k)
-            || failed(mcpwm_generator_set_force_level(*gens[i], 1, true), VRS_SETUP_PWM_GENERATOR, k)  /* brake */
+            || failed(force_pin(*gens[i], 1), VRS_SETUP_PWM_GENERATOR, k)  /* brake */
             || failed(mcpwm_generator_set_action_on_timer_event(*gens[i],
                           MCPWM_GEN_TIMER_EVENT_ACTION(MCPWM_TIMER_DIRECTION_UP, MCPWM_TIMER_EVENT_EMPTY,
-                                                       MCPWM_GEN_ACTION_LOW)), VRS_SETUP_PWM_GENERATOR, k)
+                                                       MCPWM_GEN_ACTION_HIGH)), VRS_SETUP_PWM_GENERATOR, k)
             || failed(mcpwm_generator_set_action_on_compare_event(*gens[i],
-                          MCPWM_GEN_COMPARE_EVENT_ACTION(MCPWM_TIMER_DIRECTION_UP, cmps[i], MCPWM_GEN_ACTION_HIGH)),
+                          MCPWM_GEN_COMPARE_EVENT_ACTION(MCPWM_TIMER_DIRECTION_UP, cmps[i], MCPWM_GEN_ACTION_LOW)),
                       VRS_SETUP_PWM_GENERATOR, k))
             return;
     }
@@ -153,8 +164,8 @@ static void write_drive(void *ctx, const float *pwm, const uint8_t *decay)
         if (dir != drive_dir[k] || (dir == 0 && decay[k] != stop_decay[k])) {
             int level1 = dir > 0 ? 1 : (dir < 0 ? -1 : (decay[k] == VRS_DECAY_BRAKE ? 1 : 0));
             int level2 = dir < 0 ? 1 : (dir > 0 ? -1 : (decay[k] == VRS_DECAY_BRAKE ? 1 : 0));
-            mcpwm_generator_set_force_level(gen_in1[k], level1, true);
-            mcpwm_generator_set_force_level(gen_in2[k], level2, true);
+            force_pin(gen_in1[k], level1);
+            force_pin(gen_in2[k], level2);
             drive_dir[k] = dir;
             stop_decay[k] = decay[k];
         }
@@ -192,10 +203,15 @@ static void IRAM_ATTR on_timer() { ticks_due++; }
 
 void setup()
 {
-    /* brake first: the flaps hold where they are from the first instruction after a reset */
+    /* brake first: the board's pull-ups held every input high through reset and boot (docs/firmware.md,
+     * "Wiring"); the output register is set high before the output is enabled, so the first level the pin
+     * drives is high. Arduino-ESP32 3.x refuses digitalWrite on a pin pinMode has not made GPIO, and its
+     * pinMode leaves the register as it was (low after reset): digitalWrite first would coast, so
+     * ESP-IDF's gpio_set_level, which writes the register in any mode, comes first. Should MCPWM then fail
+     * to start, these pins stay GPIO outputs, high: braked. */
     for (int k = 0; k < 6; k++) {
-        digitalWrite(PIN_IN1[k], HIGH);
-        digitalWrite(PIN_IN2[k], HIGH);
+        gpio_set_level((gpio_num_t)PIN_IN1[k], 1);
+        gpio_set_level((gpio_num_t)PIN_IN2[k], 1);
         pinMode(PIN_IN1[k], OUTPUT);
         pinMode(PIN_IN2[k], OUTPUT);
     }
