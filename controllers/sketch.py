@@ -100,6 +100,7 @@ _SIGNATURES = {
     "host_set_encoder": ([_I32, _I64], None),
     "host_set_pin_mv": ([_I32, _U32], None),
     "host_boot": ([_I32, _U64], None),
+    "host_hang_loop": ([_U32], None),
     "host_pull_up": ([_I32, _I32], None),
     "host_advance": ([_U32], _I32),
     "host_bridge": ([_I32, _VP, _VP, _VP], None),
@@ -171,6 +172,10 @@ class Sketch:
         used = self.lib.host_nvs_dump(flash, len(flash))
         kept = flash.raw[:used]  # the flash survives the reset
         self._boot(self._positions, reason, int(self.lib.host_now_us()), kept)
+
+    def hang(self, seconds: float) -> None:
+        """loop() stops returning for `seconds` of the board's time from now (the timer's interrupts go on)."""
+        self.lib.host_hang_loop(int(seconds * 1e6))
 
     def confirm_zero(self) -> int:
         """What CONFIRM_ZERO does, done on the board (a bench user at power-on); 0 or the NACK reason."""

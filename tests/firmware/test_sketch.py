@@ -205,3 +205,22 @@ def test_without_the_boards_pull_ups_the_bridges_coast_until_setup():
     bare = sketch.Sketch(np.zeros(6), wires=dataclasses.replace(sketch.wiring(), in_pull_ups=False))
     shares = bridge_shares(bare, 0)
     assert shares[3] > 0.99, shares
+
+
+def test_a_hung_loop_stops_the_motors_within_a_few_ticks(spec):
+    """Mid-move, loop() hangs (a wait that never ends): the timer's interrupt, which does not need loop(), brakes
+    every bridge within a few ticks; before, MCPWM ran on at the last compare values until the 5 s task watchdog.
+    Then the watchdog resets the board, which starts braked and says why."""
+    _, emu = emulated(spec, True, ticks=60)
+    board = emu.firmware
+    assert np.any(board.run_tick(0, emu.counts, None, 8000)[0] != 0)  # driving when it hangs
+    board.hang(10.0)
+    driven_ms = 0
+    for tick in range(6000):
+        pwm, _ = board.run_tick(0, emu.counts, None, 8000)
+        if np.any(pwm != 0):
+            driven_ms = tick + 1
+        if board.resets:
+            break
+    assert driven_ms <= 5, f"a motor stayed driven {driven_ms} ms after loop() hung"
+    assert board.resets == 1 and frames(board, P.Hello())[0].reset_reason == P.ResetReason.TASK_WDT

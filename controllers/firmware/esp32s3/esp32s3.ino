@@ -20,7 +20,7 @@ static pcnt_unit_handle_t pcnt[N_PCNT_HINGES];
 static volatile int32_t soft_counts[6];        /* hinges N_PCNT_HINGES.. : decoded in the interrupt */
 static volatile uint8_t soft_state[6];
 static volatile uint32_t ticks_due;             /* written by the timer interrupt only */
-static uint32_t ticks_done;                    /* written by loop() only */
+static volatile uint32_t ticks_done;            /* written by loop() only */
 static hw_timer_t *timer;
 static mcpwm_cmpr_handle_t compare_in1[6], compare_in2[6];
 static mcpwm_gen_handle_t gen_in1[6], gen_in2[6];
@@ -199,7 +199,24 @@ static int read_battery_mv(void *ctx, uint16_t *mv)
 static const vrs_hw hw = {NULL, micros_now, read_counts, write_drive, serial_read, serial_write, serial_room,
                           NULL /* the DRV8833 reports no current */, read_battery_mv};
 
-static void IRAM_ATTR on_timer() { ticks_due++; }
+/* The brake that does not need loop(): should loop() fall more than LOOP_LATE_TICKS ticks behind the
+ * timer (a wait that never ends, a bug), the timer's interrupt sets every compare value to 0, so every
+ * bridge brakes from the next PWM period: the driven input high for the whole period beside the one
+ * forced high (a compare event at the period's start outranks the timer's EMPTY: ESP32-S3 TRM, MCPWM
+ * generator event priority). mcpwm_comparator_set_compare_value is the MCPWM call ESP-IDF allows in an
+ * ISR (docs: "MCPWM", ISR and thread safety). loop(), once back, writes its own compare values again.
+ * The task watchdog (enableLoopWDT, 5 s) then resets a board whose loop() does not come back. */
+#define LOOP_LATE_TICKS 3
+static void IRAM_ATTR on_timer()
+{
+    ticks_due++;
+    if (ticks_due - ticks_done > LOOP_LATE_TICKS)
+        for (int k = 0; k < 6; k++)
+            if (compare_in1[k] && compare_in2[k]) {
+                mcpwm_comparator_set_compare_value(compare_in1[k], 0);
+                mcpwm_comparator_set_compare_value(compare_in2[k], 0);
+            }
+}
 
 void setup()
 {

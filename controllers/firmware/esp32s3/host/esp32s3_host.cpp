@@ -661,6 +661,8 @@ static int loop_wdt;
 static int wdt_expired;
 void enableLoopWDT(void) { loop_wdt = 1; }
 #define TWDT_TIMEOUT_US 5000000u
+static uint64_t loop_returned_us;  /* when loop() last returned: the TWDT's last reset */
+static uint64_t hung_until_us;     /* host_hang_loop: loop() does not return before this */
 
 /* ---- NVS through Preferences (libraries/Preferences; ESP-IDF 5.x "Non-Volatile Storage Library": 4096-byte
  * flash pages): one page of key/blob records the host keeps across resets
@@ -788,6 +790,7 @@ void host_boot(int reason, uint64_t at_us)
     reset_reason = (esp_reset_reason_t)reason;
     spend(ROM_BOOT_US);
     setup();
+    loop_returned_us = now_us;
 }
 
 /* Run the board for `us` microseconds: the timer's interrupts when due, loop() after each (and once
@@ -808,10 +811,17 @@ int host_advance(uint32_t us)
                     t->armed = 0;
             }
         }
-        uint64_t before = now_us;
-        for (int i = 0; i < (fired ? fired : 1); i++)
-            loop();
-        if (loop_wdt && now_us - before > TWDT_TIMEOUT_US)
+        if (now_us >= hung_until_us) {
+            for (int i = 0; i < (fired ? fired : 1); i++) {
+                uint64_t before = now_us;
+                loop();
+                if (now_us - before > TWDT_TIMEOUT_US)
+                    loop_returned_us = before;  /* this pass alone held it too long */
+                else
+                    loop_returned_us = now_us;
+            }
+        }
+        if (loop_wdt && now_us - loop_returned_us > TWDT_TIMEOUT_US)
             wdt_expired = 1;
         for (int i = 0; i < 4; i++)
             if (hw_timers[i].used && hw_timers[i].armed && hw_timers[i].next_us < next)
@@ -823,6 +833,13 @@ int host_advance(uint32_t us)
     }
     integrate();
     return wdt_expired;
+}
+
+/* loop() hangs from now for `us` (a bug: a wait that never ends): the timer's interrupts go on, the task
+ * watchdog counts from its last return. */
+void host_hang_loop(uint32_t us)
+{
+    hung_until_us = now_us + us;
 }
 
 /* Motor k's bridge over the time since the last call: pwm in [-1, 1] (forward minus reverse share),
