@@ -117,6 +117,7 @@ _SIGNATURES = {
     "vrs_get_fault_hinge": ([_VP], _U8),
     "vrs_get_rx_bad_frames": ([_VP], _U32),
     "vrs_get_telemetry_dropped": ([_VP], _U32),
+    "vrs_get_battery_mv": ([_VP], ctypes.c_uint16),
 }
 
 
@@ -231,6 +232,11 @@ class Sketch:
     @property
     def fault_hinge(self) -> int:
         return self.lib.vrs_get_fault_hinge(self._core)
+
+    @property
+    def battery_mv(self) -> int:
+        """The battery the core compensates for, mV."""
+        return self.lib.vrs_get_battery_mv(self._core)
 
     @property
     def rx_bad_frames(self) -> int:

@@ -115,7 +115,7 @@ void vrs_estop(vrs_core *c)
 
 int vrs_clear_fault(vrs_core *c)
 {
-    if (c->faults & VRS_FAULT_HARDWARE)
+    if (c->faults & VRS_FAULT_HARDWARE || c->battery_implausible)
         return VRS_NACK_FAULT_PERSISTS;
     c->state = VRS_STATE_IDLE;
     c->faults = 0;
@@ -635,6 +635,13 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
 /* ---- battery compensation -------------------------------------------------------------- */
 
 void vrs_set_battery_mv(vrs_core *c, uint16_t mv) { c->battery_mv = mv; }
+
+void vrs_set_battery_plausible(vrs_core *c, int plausible)
+{
+    c->battery_implausible = (uint8_t)!plausible;
+    if (!plausible && !(c->faults & VRS_FAULT_BATTERY))
+        fault(c, VRS_FAULT_BATTERY, 0xFF);
+}
 
 void vrs_pwm(const vrs_core *c, float *pwm_out)
 {

@@ -24,12 +24,12 @@ from twin.sim.twin import Twin
 TARGETS = np.radians([30, -25, 20, -20, 25, -30])  # every hinge, both directions
 
 
-def frames(board, *msgs) -> list:
+def frames(board, *msgs, battery_mv: int = 8000) -> list:
     """One tick (the encoders read), then msgs (seq 1, 2, ...) to a Sketch and one more: what it answered."""
-    board.run_tick(0, board._positions, None, 8000)
+    board.run_tick(0, board._positions, None, battery_mv)
     for i, m in enumerate(msgs):
         board.rx(P.encode(m, i + 1))
-    board.run_tick(0, board._positions, None, 8000)
+    board.run_tick(0, board._positions, None, battery_mv)
     return [m for _, m in P.Decoder().feed(board.tx())]
 
 
@@ -224,3 +224,28 @@ def test_a_hung_loop_stops_the_motors_within_a_few_ticks(spec):
             break
     assert driven_ms <= 5, f"a motor stayed driven {driven_ms} ms after loop() hung"
     assert board.resets == 1 and frames(board, P.Hello())[0].reset_reason == P.ResetReason.TASK_WDT
+
+
+@pytest.mark.parametrize("broken_mv", [450, 0, 9300], ids=["150mV-at-the-pin", "zero", "adc-top"])
+def test_an_implausible_battery_reading_is_a_named_fault_and_no_more_than_nominal_compensation(broken_mv):
+    """The pack reads 7.6 V; one sample of 0 (noise) is filtered out. Then the divider breaks: within the
+    filter's time the device faults BATTERY and compensates as for the spec's nominal pack, not for the reading
+    (150 mV at the pin multiplied the loop's gain by 40; 0 removed compensation); CLEAR_FAULT is refused while
+    the reading stays out, and accepted once the pack reads right again."""
+    board = sketch.Sketch(np.zeros(6))
+    for mv in [7600] * 20 + [0] + [7600] * 5:
+        board.run_tick(0, board._positions, None, mv)
+    assert board.faults == 0 and abs(board.battery_mv - 7600) < 500
+    for tick in range(40):
+        board.run_tick(0, board._positions, None, broken_mv)
+        assert board.battery_mv >= 4500, board.battery_mv  # never compensating for the broken reading
+        if board.faults:
+            break
+    assert board.faults == P.Fault.BATTERY and board.state == P.State.FAULT and tick < 30
+    assert board.battery_mv == 7400  # the spec's nominal (supply_voltage)
+    nack = frames(board, P.ClearFault(), battery_mv=broken_mv)[0]
+    assert isinstance(nack, P.NackMsg) and nack.reason == P.Nack.FAULT_PERSISTS
+    for _ in range(60):
+        board.run_tick(0, board._positions, None, 7600)
+    ack = frames(board, P.GetState(), P.ClearFault())[1]  # seq 2: not the repeat of the refused seq 1
+    assert ack.MSG == P.MsgId.ACK and board.faults == 0

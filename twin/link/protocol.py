@@ -91,6 +91,8 @@ class Fault(enum.IntFlag):
     LIMIT = 0x08  # a hinge passed its range
     OVERCURRENT = 0x10  # a winding current over the limit
     HARDWARE = 0x20  # a peripheral's set-up failed at boot (HELLO_REPLY's setup_error names it); persists
+    BATTERY = 0x40  # the battery reading is implausible (a broken divider, the ADC): PWM as for the nominal pack;
+    # persists while the reading does
 
 
 class ResetReason(enum.IntEnum):

@@ -189,10 +189,20 @@ static int serial_room(void *ctx) { (void)ctx; return Serial.availableForWrite()
 
 static void serial_write(void *ctx, const uint8_t *buf, int n) { (void)ctx; Serial.write(buf, (size_t)n); }
 
+/* The pack through the divider, low-passed over BATTERY_FILTER_TICKS (one noisy or dropped sample moves it
+ * by a sixteenth); outside BATTERY_MIN_MV..BATTERY_MAX_MV the core faults BATTERY and compensates as for
+ * the spec's nominal pack (VRS_DEVICE_SUPPLY_MV), never for the implausible value: a divider reading
+ * 150 mV would otherwise multiply the loop's gain by 40, a reading of 0 remove compensation. */
+static uint32_t battery_sum;  /* BATTERY_FILTER_TICKS x the filtered mV; 0 before the first reading */
 static int read_battery_mv(void *ctx, uint16_t *mv)
 {
     (void)ctx;
-    *mv = (uint16_t)(analogReadMilliVolts(PIN_BATTERY) * BATTERY_DIVIDER);
+    uint32_t raw = analogReadMilliVolts(PIN_BATTERY) * BATTERY_DIVIDER;
+    battery_sum = battery_sum ? battery_sum - battery_sum / BATTERY_FILTER_TICKS + raw : raw * BATTERY_FILTER_TICKS;
+    uint32_t filtered = battery_sum / BATTERY_FILTER_TICKS;
+    int plausible = filtered >= BATTERY_MIN_MV && filtered <= BATTERY_MAX_MV;
+    vrs_set_battery_plausible(&core, plausible);
+    *mv = (uint16_t)(plausible ? filtered : VRS_DEVICE_SUPPLY_MV);
     return 0;
 }
 

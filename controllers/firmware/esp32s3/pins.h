@@ -18,6 +18,12 @@ static const int PIN_IN2[6] = {17, 21, 39, 41, 47, 2};
 /* battery through a divider (ADC1 channel 0; ADC2 is unusable while Wi-Fi runs) */
 #define PIN_BATTERY 1
 #define BATTERY_DIVIDER 3  /* 20 kOhm over 10 kOhm: 8.4 V (2S full) -> 2.8 V at the pin */
+/* what a 2S pack can read through it, mV: above a flat pack sagging under six stalled motors (2 x 2.25 V),
+ * below a full one with the ADC's error (8.4 V + 0.6 V); outside, the divider or the ADC is broken (an open
+ * lower resistor reads the ADC's top, 9.3 V; an open upper one, or no pack, 0) */
+#define BATTERY_MIN_MV 4500
+#define BATTERY_MAX_MV 9000
+#define BATTERY_FILTER_TICKS 16  /* the reading's first-order low-pass, ticks (16 ms at 1 kHz) */
 
 /* the ESP32-S3 has four PCNT units: hinges 0-3 count in hardware, 4-5 in a pin-change interrupt */
 #define N_PCNT_HINGES 4
