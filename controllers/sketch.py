@@ -118,6 +118,7 @@ _SIGNATURES = {
     "vrs_get_rx_bad_frames": ([_VP], _U32),
     "vrs_get_telemetry_dropped": ([_VP], _U32),
     "vrs_get_battery_mv": ([_VP], ctypes.c_uint16),
+    "vrs_get_derated": ([_VP], _U8),
 }
 
 

@@ -515,6 +515,12 @@ void vrs_rx(vrs_core *c, const uint8_t *bytes, uint32_t n, uint32_t now_us)
 
 /* ---- the control tick ------------------------------------------------------------------ */
 
+/* |duty| the I2t protection holds a derated hinge to: the continuous rating over the stall current */
+static float derated_cap(const vrs_core *c)
+{
+    return c->cfg.stall_current_ma ? (float)c->cfg.continuous_current_ma / (float)c->cfg.stall_current_ma : 1.0f;
+}
+
 static void checks(vrs_core *c, uint32_t now_us)
 {
     uint8_t k, n = c->cfg.n_hinges;
@@ -546,7 +552,9 @@ static void checks(vrs_core *c, uint32_t now_us)
     for (k = 0; k < n; k++) {
         int32_t moved = c->counts[k] - c->stall_ref[k];
         float d = c->duty[k] < 0.0f ? -c->duty[k] : c->duty[k];
-        if (moved > c->cfg.stall_counts || moved < -c->cfg.stall_counts || d < c->cfg.stall_duty) {
+        /* a derated hinge's duty is held to the cap: STALL at the same share of what it may give */
+        float stall_duty = c->derated & (1u << k) ? c->cfg.stall_duty * derated_cap(c) : c->cfg.stall_duty;
+        if (moved > c->cfg.stall_counts || moved < -c->cfg.stall_counts || d < stall_duty) {
             c->stall_ref[k] = c->counts[k];
             c->stall_since_us[k] = now_us;
         }
@@ -584,7 +592,7 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
     int driving;
     float i_stall = (float)c->cfg.stall_current_ma * 1e-3f, i_cont = (float)c->cfg.continuous_current_ma * 1e-3f;
     float budget = (i_stall * i_stall - i_cont * i_cont) * (float)c->cfg.overload_ms * 1e-3f;
-    float cap = i_stall > 0.0f ? i_cont / i_stall : 1.0f;
+    float cap = derated_cap(c);
     c->now_us = now_us;
     for (k = 0; k < n; k++) {
         int32_t raw = counts[c->wiring.encoder[k]];

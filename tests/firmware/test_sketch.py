@@ -249,3 +249,33 @@ def test_an_implausible_battery_reading_is_a_named_fault_and_no_more_than_nomina
         board.run_tick(0, board._positions, None, 7600)
     ack = frames(board, P.GetState(), P.ClearFault())[1]  # seq 2: not the repeat of the refused seq 1
     assert ack.MSG == P.MsgId.ACK and board.faults == 0
+
+
+def test_every_reset_reason_the_s3_gives_is_named_on_the_host():
+    """ESP-IDF v5.4.1's esp_reset_reason_t, 0-15 (the stand-in's copy of esp_system.h): each value has its name in
+    the protocol's table, so `status` prints USB, not 11, after a USB reset; the board reports what it was given."""
+    text = (sketch.HOST_DIR / "esp_system.h").read_text()
+    names = re.findall(r"ESP_RST_(\w+)", re.search(r"typedef enum \{(.*?)\}", text, re.S).group(1))
+    assert len(names) == 16 and names[11] == "USB"
+    assert [P.enum_name(P.ResetReason, v) for v in range(len(names))] == names
+    board = sketch.Sketch(np.zeros(6), reset_reason=11)
+    assert frames(board, P.Hello())[0].reset_reason == P.ResetReason.USB
+
+
+def test_a_derated_hinge_still_faults_stall():
+    """Hinge 0 creeps under full duty (a heavy load: 1 count per 100 ms, never a stall) until the I2t protection
+    holds it to 0.25 duty, then jams: STALL, at the same share of the duty it may give (0.5 x 0.25), within its
+    0.3 s; before, STALL at 0.5 could never trip once derated."""
+    board = sketch.Sketch(np.zeros(6))
+    assert frames(board, P.ConfirmZero(), P.SetTargets((300, 0, 0, 0, 0, 0)))[1].MSG == P.MsgId.ACK
+    pos = board._positions.copy()
+    for tick in range(2500):
+        pos[0] = tick // 100
+        board.run_tick(0, pos, None, 8000)
+    assert board.state == P.State.ACTIVE or board.state == P.State.HOLDING, board.faults
+    assert board.lib.vrs_get_derated(board._core) & 1
+    for tick in range(1000):  # jammed where it stands
+        board.run_tick(0, pos, None, 8000)
+        if board.faults:
+            break
+    assert board.faults == P.Fault.STALL and board.fault_hinge == 0 and tick <= 350, (board.faults, tick)

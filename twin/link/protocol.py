@@ -96,7 +96,8 @@ class Fault(enum.IntFlag):
 
 
 class ResetReason(enum.IntEnum):
-    """Why the device last started: esp_reset_reason_t (ESP-IDF 5.x, components/esp_system/include/esp_system.h)."""
+    """Why the device last started: every esp_reset_reason_t (ESP-IDF v5.4.1, components/esp_system/include/
+    esp_system.h)."""
 
     UNKNOWN = 0
     POWERON = 1
@@ -109,6 +110,11 @@ class ResetReason(enum.IntEnum):
     DEEPSLEEP = 8
     BROWNOUT = 9  # the supply sagged below the brown-out level
     SDIO = 10
+    USB = 11  # the USB peripheral (the S3 after a USB reset, e.g. an upload)
+    JTAG = 12
+    EFUSE = 13  # an eFuse error
+    PWR_GLITCH = 14  # a power glitch detected
+    CPU_LOCKUP = 15  # a CPU lock-up (double exception)
 
 
 class SetupStep(enum.IntEnum):
