@@ -98,6 +98,8 @@ _U8, _I32, _U32, _I64, _U64, _VP = (ctypes.c_uint8, ctypes.c_int, ctypes.c_uint3
 _SIGNATURES = {
     "host_connect_motor": ([_I32, _I32, _I32, _I32, _I32, _I64], None),
     "host_set_encoder": ([_I32, _I64], None),
+    "host_set_encoder_racing": ([_I32, _I64], None),
+    "host_encoder_glitch": ([_I32], None),
     "host_set_pin_mv": ([_I32, _U32], None),
     "host_boot": ([_I32, _U64], None),
     "host_hang_loop": ([_U32], None),
@@ -233,6 +235,10 @@ class Sketch:
     @property
     def fault_hinge(self) -> int:
         return self.lib.vrs_get_fault_hinge(self._core)
+
+    def illegal_transitions(self) -> list[int]:
+        """Per hinge, the software decoder's illegal transitions (both channels changed at once; PCNT hinges: 0)."""
+        return list((ctypes.c_uint32 * 6).in_dll(self.lib, "soft_illegal"))
 
     @property
     def battery_mv(self) -> int:

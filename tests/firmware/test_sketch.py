@@ -279,3 +279,34 @@ def test_a_derated_hinge_still_faults_stall():
         if board.faults:
             break
     assert board.faults == P.Fault.STALL and board.fault_hinge == 0 and tick <= 350, (board.faults, tick)
+
+
+def test_the_software_decoder_reads_one_snapshot_per_edge_and_counts_illegal_transitions():
+    """Hinges 4-5 decode in a pin interrupt. Edges closer than the interrupt's latency (each landing while the one
+    before is being read): one read of both channels counts every edge, where two digitalReads saw states that
+    never were. Both channels flipping at once (a glitch) moves no count and is counted as illegal."""
+    board = sketch.Sketch(np.zeros(6))
+    board.lib.host_set_encoder_racing(4, 400)
+    board.lib.host_set_encoder_racing(5, -400)
+    board.lib.host_set_encoder_racing(3, 400)  # a PCNT hinge, for comparison
+    board._positions[3:] = (400, 400, -400)
+    assert frames(board, P.GetState())[0].counts[3:] == (400, 400, -400)
+    assert board.illegal_transitions() == [0] * 6
+    board.lib.host_encoder_glitch(4)
+    assert frames(board, P.GetState())[0].counts[4] == 400 and board.illegal_transitions()[4] == 1
+    pins = sketch.wiring()
+    assert max(pins.enc_a[4:] + pins.enc_b[4:]) < 32  # one GPIO_IN_REG holds them
+
+
+def test_the_devkits_rgb_led_pin_is_named_and_never_written():
+    """The DevKitC-1's RGB LED is on GPIO48 (v1.0) or GPIO38 (v1.1), each a bridge input here: pins.h names both
+    and the bridge each shares, the wiring docs say so, and the sketch never writes the LED."""
+    text = (sketch.SKETCH_DIR / "pins.h").read_text()
+    leds = {rev: int(pin) for rev, pin in re.findall(r"#define PIN_DEVKIT_(V1_\d)_RGB_LED (\d+)", text)}
+    assert leds == {"V1_0": 48, "V1_1": 38}
+    w = sketch.wiring()
+    assert [w.in1.index(pin) for pin in leds.values()] == [5, 2]  # hinge 5's and hinge 2's IN1
+    docs = (core.FIRMWARE_DIR.parents[1] / "docs" / "firmware.md").read_text()
+    assert "GPIO38 on v1.1 (hinge 2's IN1)" in docs and "GPIO48 on board v1.0 (hinge 5's IN1)" in docs
+    ino = (sketch.SKETCH_DIR / "esp32s3.ino").read_text()
+    assert not re.search(r"rgbLedWrite|neopixelWrite|RGB_LED|RGB_BUILTIN|LED_BUILTIN", ino)

@@ -11,6 +11,8 @@
 #include <driver/mcpwm_prelude.h>
 #include <driver/pulse_cnt.h>
 #include <esp_system.h>
+#include <soc/gpio_reg.h>
+#include <soc/soc.h>
 
 #include "pins.h"
 #include "vrs_core.h"
@@ -19,6 +21,8 @@ vrs_core core;  /* not static: the host build (controllers/sketch.py) reads its 
 static pcnt_unit_handle_t pcnt[N_PCNT_HINGES];
 static volatile int32_t soft_counts[6];        /* hinges N_PCNT_HINGES.. : decoded in the interrupt */
 static volatile uint8_t soft_state[6];
+volatile uint32_t soft_illegal[6];  /* both channels changed between two interrupts: an edge lost (not static:
+                                       the host build reads it) */
 static volatile uint32_t ticks_due;             /* written by the timer interrupt only */
 static volatile uint32_t ticks_done;            /* written by loop() only */
 static hw_timer_t *timer;
@@ -81,10 +85,16 @@ static void pcnt_setup(int k)
 /* Gray-code step for (previous AB, new AB) with AB = A << 1 | B: +1 for 00 -> 10 -> 11 -> 01 -> 00 */
 static const int8_t QUAD_STEP[16] = {0, -1, 1, 0, 1, 0, 0, -1, -1, 0, 0, 1, 0, 1, -1, 0};
 
+/* A and B from one read of GPIO_IN_REG (GPIO0-31 at one instant; pins.h keeps these hinges' pins below 32):
+ * two digitalReads apart could see A before and B after another edge, a state that never was. A change of
+ * both at once cannot be counted (which way?): it is counted as illegal instead. */
 static void IRAM_ATTR soft_encoder(void *arg)
 {
     int k = (int)(intptr_t)arg;
-    uint8_t ab = (uint8_t)(digitalRead(PIN_ENC_A[k]) << 1 | digitalRead(PIN_ENC_B[k]));
+    uint32_t in = REG_READ(GPIO_IN_REG);
+    uint8_t ab = (uint8_t)(((in >> PIN_ENC_A[k]) & 1u) << 1 | ((in >> PIN_ENC_B[k]) & 1u));
+    if ((soft_state[k] ^ ab) == 3u)
+        soft_illegal[k]++;
     soft_counts[k] += QUAD_STEP[soft_state[k] << 2 | ab];
     soft_state[k] = ab;
 }

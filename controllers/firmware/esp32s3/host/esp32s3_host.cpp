@@ -17,6 +17,8 @@
 #include "driver/mcpwm_prelude.h"
 #include "driver/pulse_cnt.h"
 #include "esp_system.h"
+#include "soc/gpio_reg.h"
+#include "soc/soc.h"
 
 extern void setup(void);
 extern void loop(void);
@@ -96,11 +98,38 @@ esp_err_t gpio_set_level(gpio_num_t gpio_num, uint32_t level)
     return ESP_OK;
 }
 
+/* An input read takes time: an encoder edge due (host_set_encoder_racing) lands just after it, and its
+ * interrupt runs once the one reading has returned, as a second edge inside an interrupt's latency does. */
+static int race_pin = -1, race_level, isr_pending = -1;
+static int pin_level(int pin) { return pins[pin].mode == OUTPUT ? pins[pin].out : pins[pin].in; }
+static void race_lands(void)
+{
+    if (race_pin < 0)
+        return;
+    int p = race_pin;
+    race_pin = -1;
+    pins[p].in = (uint8_t)race_level;
+    pcnt_edge(p, race_level);
+    isr_pending = p;
+}
+
 int digitalRead(uint8_t pin)
 {
     if (pin >= N_GPIO)
         return 0;
-    return pins[pin].mode == OUTPUT ? pins[pin].out : pins[pin].in;
+    int level = pin_level(pin);
+    race_lands();
+    return level;
+}
+
+uint32_t host_reg_read(uint32_t reg)
+{
+    uint32_t v = 0;
+    if (reg == GPIO_IN_REG)
+        for (int pin = 0; pin < 32; pin++)
+            v |= (uint32_t)pin_level(pin) << pin;
+    race_lands();
+    return v;
 }
 
 void attachInterruptArg(uint8_t pin, void (*handler)(void *), void *arg, int mode)
@@ -112,6 +141,13 @@ void attachInterruptArg(uint8_t pin, void (*handler)(void *), void *arg, int mod
     pins[pin].isr_mode = mode;
 }
 
+static void run_isr(int pin, int level)
+{
+    pin_state *p = &pins[pin];
+    if (p->isr && (p->isr_mode == CHANGE || (p->isr_mode == RISING && level) || (p->isr_mode == FALLING && !level)))
+        p->isr(p->isr_arg);
+}
+
 /* the outside world drives an input pin: PCNT counts the edge, then the pin's interrupt runs */
 static void drive_input(int pin, int level)
 {
@@ -119,9 +155,7 @@ static void drive_input(int pin, int level)
         return;
     pins[pin].in = (uint8_t)level;
     pcnt_edge(pin, level);
-    pin_state *p = &pins[pin];
-    if (p->isr && (p->isr_mode == CHANGE || (p->isr_mode == RISING && level) || (p->isr_mode == FALLING && !level)))
-        p->isr(p->isr_arg);
+    run_isr(pin, level);
 }
 
 /* ---- PCNT (ESP-IDF 5.x pulse_cnt.c; ESP32-S3 TRM "Pulse Count Controller") -----------------------
@@ -767,6 +801,55 @@ void host_set_encoder(int k, int64_t position)
         if (m->enc_b >= 0 && pins[m->enc_b].in != AB[phase][1])
             drive_input(m->enc_b, AB[phase][1]);
     }
+}
+
+/* Turn motor k's shaft to `position` counts with each edge landing while the interrupt of the one before it
+ * reads its inputs (edges closer than an interrupt's latency): a decoder that reads A and B apart sees a
+ * state that never was. */
+void host_set_encoder_racing(int k, int64_t position)
+{
+    static const uint8_t AB[4][2] = {{0, 0}, {1, 0}, {1, 1}, {0, 1}};
+    motor_wiring *m = &motors[k];
+    while (m->position != position) {
+        int64_t next = m->position + (position > m->position ? 1 : -1);
+        int phase = (int)(((next % 4) + 4) % 4);
+        int pin = pins[m->enc_a].in != AB[phase][0] ? m->enc_a : m->enc_b;
+        int level = pin == m->enc_a ? AB[phase][0] : AB[phase][1];
+        m->position = next;
+        if (isr_pending < 0 && race_pin < 0) {  /* the first edge: lands at once */
+            pins[pin].in = (uint8_t)level;
+            pcnt_edge(pin, level);
+            isr_pending = pin;
+            continue;
+        }
+        race_pin = pin;  /* lands during the pending edge's interrupt */
+        race_level = level;
+        int p = isr_pending;
+        isr_pending = -1;
+        run_isr(p, pins[p].in);
+        if (race_pin >= 0) {  /* the interrupt read nothing: it lands after */
+            race_lands();
+        }
+    }
+    while (isr_pending >= 0) {
+        int p = isr_pending;
+        isr_pending = -1;
+        run_isr(p, pins[p].in);
+    }
+}
+
+/* Motor k's encoder outputs both flip at once (a glitch, or two edges inside one interrupt's latency): A's
+ * interrupt, then B's, run after both have changed. */
+void host_encoder_glitch(int k)
+{
+    motor_wiring *m = &motors[k];
+    const int both[2] = {m->enc_a, m->enc_b};
+    for (int pin : both) {
+        pins[pin].in ^= 1;
+        pcnt_edge(pin, pins[pin].in);
+    }
+    run_isr(m->enc_a, pins[m->enc_a].in);
+    run_isr(m->enc_b, pins[m->enc_b].in);
 }
 
 void host_set_pin_mv(int pin, uint32_t mv)
