@@ -49,14 +49,21 @@ def emulator_with(spec, *wiring, sketch=False):
     ("crossed:1,3", "hinge 1: encoder input 3, .* encoder cables of hinges 1 and 3 are crossed"),
 ])
 def test_bringup_names_the_fault_stores_the_correction_and_moves_right(emulator, fault, named):
-    dev = emulator("--ideal", "--wiring-fault", fault)  # zeroed, as conftest starts it: bring-up re-zeros anyway
+    dev = emulator("--ideal", "--lying-flat", "--wiring-fault", fault)  # as bring-up asks; it re-zeros anyway
     r = vrscroll("bringup", "--serial", dev.port, "--tolerance-deg", "20")
     assert r.returncode == 0, r.stdout + r.stderr
-    import re
     assert re.search(named, r.stdout), r.stdout
     assert "move     every hinge to 10 deg: settled" in r.stdout and "bring-up done" in r.stdout
+    assert "kept on the device (its flash" in r.stdout and "no device profile is selected" in r.stdout
     wiring = [e for e in dev.events("rx") if e["msg"] == "SET_WIRING"][-1]
     assert wiring["encoder"] != [0, 1, 2, 3, 4, 5] or any(wiring["flags"])
+    # `zero` now: the device holds bring-up's last targets; it says so (not a fault to clear), and how to let go
+    r = vrscroll("zero", "--serial", dev.port)
+    assert r.returncode == 2 and "holds the last session's targets" in r.stderr, r.stderr
+    assert "once the cause is gone" not in r.stderr
+    assert vrscroll("status", "--serial", dev.port, "--estop", "--clear-fault").returncode == 0
+    r = vrscroll("zero", "--serial", dev.port)
+    assert r.returncode == 0 and "zero confirmed" in r.stdout, r.stderr
 
 
 @pytest.mark.slow  # 6 s each; the default suite has the lying-flat dead encoder below, whose hinge 3 answers alike

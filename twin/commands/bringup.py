@@ -51,8 +51,12 @@ def run(args) -> int:
             print("wiring   " + ("as built: nothing to correct" if not found else
                                  f"corrected on the device: encoder inputs {list(wiring.encoder)}, "
                                  f"flags {list(wiring.flags)}"))
+            kept = "kept on the device (its flash, across power cycles, HELLO's wiring_set)"
             if profile.folder:
-                print(f"         kept in {write_profile_wiring(profile.name, wiring.encoder, wiring.flags, found)}")
+                print(f"         {kept} and in {write_profile_wiring(profile.name, wiring.encoder, wiring.flags, found)}")
+            else:
+                print(f"         {kept} only: no device profile is selected, so no copy here (`--device NAME` "
+                      "keeps one in the profile's wiring.json)")
             if args.hand:
                 input("lay every flap flat for the zero; press Enter ")
             link.confirm_zero()
