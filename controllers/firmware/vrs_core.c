@@ -242,6 +242,7 @@ static int set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us, uint
             c->pid[k].integral = 0.0f;
             c->stall_ref[k] = c->counts[k];
             c->stall_since_us[k] = now_us;
+            c->runaway_sign[k] = 0;
             /* a hinge that sagged past its range may be driven back; LIMIT only if it goes further out */
             c->limit_out[k] = c->counts[k] > far ? c->counts[k] : (c->counts[k] < -far ? -c->counts[k] : far);
         }
@@ -515,6 +516,10 @@ void vrs_rx(vrs_core *c, const uint8_t *bytes, uint32_t n, uint32_t now_us)
 
 /* ---- the control tick ------------------------------------------------------------------ */
 
+/* counts a runaway moves against its duty in a window of a tenth of stall_ms (30 ms on the spec): a reversed
+ * encoder or motor moved 20-45 on the twin; a flap sagging braked against motors too weak to hold it, at most 9 */
+#define RUNAWAY_COUNTS 16
+
 /* |duty| the I2t protection holds a derated hinge to: the continuous rating over the stall current */
 static float derated_cap(const vrs_core *c)
 {
@@ -564,6 +569,31 @@ static void checks(vrs_core *c, uint32_t now_us)
             fault(c, VRS_FAULT_STALL, k);
             return;
         }
+    /* RUNAWAY: a duty of one sign at or above the stall duty, and the hinge moving the other way by more than
+     * RUNAWAY_COUNTS in each of two windows of a tenth of stall_ms, no slower in the second (a reversed encoder
+     * or motor: the PID drives it away ever faster). A hinge braking an overshoot moves against its duty too,
+     * but slower and slower; a flap sagging against a motor too weak to hold it, slowly. Faults within two
+     * windows (60 ms on the spec) of the duty reaching the stall duty and the hinge its runaway speed. */
+    for (k = 0; k < n; k++) {
+        float d = c->duty[k] < 0.0f ? -c->duty[k] : c->duty[k];
+        float stall_duty = c->derated & (1u << k) ? c->cfg.stall_duty * derated_cap(c) : c->cfg.stall_duty;
+        int8_t sign = d < stall_duty ? 0 : (c->duty[k] > 0.0f ? 1 : -1);
+        int32_t against = (c->runaway_ref[k] - c->counts[k]) * c->runaway_sign[k];
+        if (sign == 0 || sign != c->runaway_sign[k]) {
+            c->runaway_sign[k] = sign;
+            c->runaway_before[k] = 0;
+        } else if (now_us - c->runaway_since_us[k] < (uint32_t)c->cfg.stall_ms * 100u) {
+            continue;
+        } else if (against > RUNAWAY_COUNTS && c->runaway_before[k] > RUNAWAY_COUNTS
+                   && against >= c->runaway_before[k]) {
+            fault(c, VRS_FAULT_RUNAWAY, k);
+            return;
+        } else {
+            c->runaway_before[k] = against;
+        }
+        c->runaway_ref[k] = c->counts[k];
+        c->runaway_since_us[k] = now_us;
+    }
 }
 
 static void telemetry(vrs_core *c)

@@ -96,6 +96,10 @@ typedef struct vrs_core {
     int16_t current_ma[VRS_MAX_HINGES];         /* as read at the last tick; 0 if not sensed */
     int32_t stall_ref[VRS_MAX_HINGES];
     uint32_t stall_since_us[VRS_MAX_HINGES];
+    int32_t runaway_ref[VRS_MAX_HINGES];        /* counts at the start of a runaway window of one duty sign, */
+    uint32_t runaway_since_us[VRS_MAX_HINGES];  /* its start, */
+    int32_t runaway_before[VRS_MAX_HINGES];     /* and the counts moved against the duty in the window before */
+    int8_t runaway_sign[VRS_MAX_HINGES];        /* the sign of a duty at or above stall_duty; 0 below */
     int32_t zero[VRS_MAX_HINGES];               /* raw counts at the flat pose (CONFIRM_ZERO) */
     int32_t limit_out[VRS_MAX_HINGES];          /* |counts| beyond this: LIMIT (ratchets in toward the range) */
     float heat[VRS_MAX_HINGES];                 /* I2t estimate above the continuous rating, A^2 s */

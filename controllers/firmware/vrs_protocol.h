@@ -86,6 +86,7 @@
 #define VRS_FAULT_OVERCURRENT 0x10
 #define VRS_FAULT_HARDWARE 0x20
 #define VRS_FAULT_BATTERY 0x40
+#define VRS_FAULT_RUNAWAY 0x80
 
 /* the board's set-up steps (HELLO_REPLY setup_error) */
 #define VRS_SETUP_NONE 0

@@ -18,6 +18,7 @@ from controllers.encoder import target_counts
 from cli import vrscroll
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions
+from twin.link.faults import FaultOptions
 from twin.sim.plant import as_twin
 from twin.sim.twin import Twin
 
@@ -310,3 +311,25 @@ def test_the_devkits_rgb_led_pin_is_named_and_never_written():
     assert "GPIO38 on v1.1 (hinge 2's IN1)" in docs and "GPIO48 on board v1.0 (hinge 5's IN1)" in docs
     ino = (sketch.SKETCH_DIR / "esp32s3.ino").read_text()
     assert not re.search(r"rgbLedWrite|neopixelWrite|RGB_LED|RGB_BUILTIN|LED_BUILTIN", ino)
+
+
+@pytest.mark.parametrize("fault", ["encoder-reversed:2", "motor-reversed:4"])
+def test_a_runaway_faults_within_the_stall_window(spec, fault):
+    """A hinge wired the wrong way round, not corrected, given a 10 deg target: the PID drives it away from the
+    target at its full duty; the core faults RUNAWAY on that hinge within two runaway windows (a tenth of the
+    stall time each) and the few ms its duty takes to rise, before the range (LIMIT, 104-136 ms), and brakes."""
+    k = int(fault.split(":")[1])
+    emu = Emulator(spec, EmulatorOptions(plant=as_twin(spec), sketch=True, zeroed=True,
+                                         faults=FaultOptions(latency_ms=0.0, wiring=(fault,))))
+    targets = np.zeros(6)
+    targets[k] = np.radians(10)
+    emu.receive(P.encode(P.SetTargets(tuple(int(c) for c in target_counts(spec, targets))), 1))
+    for tick in range(1000):
+        emu.step()
+        emu.take_output()
+        if emu.firmware.faults:
+            break
+    board = emu.firmware
+    assert board.faults == P.Fault.RUNAWAY and board.fault_hinge == k, (board.faults, board.fault_hinge)
+    assert tick <= 2 * spec.stall_time * 100 + 5, tick
+    assert np.all(board.run_tick(0, emu.counts, None, 8000)[0] == 0)

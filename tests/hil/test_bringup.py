@@ -44,8 +44,20 @@ def emulator_with(spec, *wiring, sketch=False):
                                           sketch=sketch))
 
 
+def hand_on(emu, link):
+    """hand(k) for an in-process emulator: a person bends flap k up by 20 deg, reads the counts, lets go."""
+    def hand(k):
+        before = np.asarray(link.get_state().counts)
+        emu.hand = (k, emu.plant.angles[k] + np.radians(20))
+        time.sleep(0.4)
+        moved = np.asarray(link.get_state().counts) - before
+        emu.hand = None
+        time.sleep(0.2)
+        return moved
+    return hand
+
+
 @pytest.mark.parametrize("fault, named", [
-    pytest.param("motor-reversed:2", "hinge 2: encoder input 2, .* motor leads swapped", marks=pytest.mark.slow),
     ("crossed:1,3", "hinge 1: encoder input 3, .* encoder cables of hinges 1 and 3 are crossed"),
 ])
 def test_bringup_names_the_fault_stores_the_correction_and_moves_right(emulator, fault, named):
@@ -107,19 +119,24 @@ def test_a_dead_encoder_is_named_and_nothing_stored(emulator):
     assert len(stored) == 1 and stored[0]["encoder"] == [0, 1, 2, 3, 4, 5]  # only the identity, to measure
 
 
+@pytest.mark.parametrize("fault", ["encoder-reversed:4", pytest.param("motor-reversed:2", marks=pytest.mark.slow)])
+def test_without_a_hand_a_hinge_counting_the_wrong_way_is_named_and_nothing_stored(emulator, fault):
+    """Pulses cannot tell a reversed encoder from a reversed motor (the wrong guess leaves the device reporting
+    +10 deg for a flap at -10 deg): without --hand bring-up names the hinge, both causes and how to decide, and
+    stores nothing."""
+    k = fault.split(":")[1]
+    dev = emulator("--ideal", "--lying-flat", "--wiring-fault", fault)
+    r = vrscroll("bringup", "--serial", dev.port)
+    assert r.returncode == 2 and "nothing stored" in r.stderr, r.stdout + r.stderr
+    assert f"hinge {k}: positive drive turns encoder input {k} down" in r.stderr and "--hand" in r.stderr
+    stored = [e for e in dev.events("rx") if e["msg"] == "SET_WIRING"]
+    assert len(stored) == 1 and stored[0]["flags"] == [0] * 6  # only the identity, to measure
+
+
 def test_a_hand_tells_a_reversed_encoder_from_a_reversed_motor_and_the_flap_then_moves_the_right_way(spec):
     emu = emulator_with(spec, "encoder-reversed:4")
     with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
-        def hand(k):  # a person bends flap k up by 20 deg and lets go
-            before = np.asarray(link.get_state().counts)
-            emu.hand = (k, emu.plant.angles[k] + np.radians(20))
-            time.sleep(0.4)
-            moved = np.asarray(link.get_state().counts) - before
-            emu.hand = None
-            time.sleep(0.2)
-            return moved
-
-        checks = bring_up(link, spec, hand, say=lambda line: None)
+        checks = bring_up(link, spec, hand_on(emu, link), say=lambda line: None)
         assert [(c.encoder_reversed, c.motor_reversed) for c in checks][4] == (True, False)
         assert not any(c.encoder_reversed or c.motor_reversed for i, c in enumerate(checks) if i != 4)
         link.confirm_zero()
@@ -132,7 +149,7 @@ def test_a_hand_tells_a_reversed_encoder_from_a_reversed_motor_and_the_flap_then
 def test_the_sketch_keeps_the_correction_across_a_reset(spec):
     emu = emulator_with(spec, "crossed:0,5", "motor-reversed:3", sketch=True)
     with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
-        bring_up(link, spec, say=lambda line: None)
+        bring_up(link, spec, hand_on(emu, link), say=lambda line: None)
         stored = link.get_wiring()
     assert list(stored.encoder) == [5, 1, 2, 3, 4, 0] and stored.flags[3] == P.WIRING_MOTOR_REVERSED
     emu.firmware.reset(P.ResetReason.POWERON)  # off and on: the flash keeps it

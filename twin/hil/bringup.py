@@ -7,10 +7,14 @@ answers; where the hinge's own input does not, stronger and longer pulses, up to
 them). The encoder that moves most between the two pulses is the hinge's (another hinge's, at the strongest
 pulse: the cables are crossed); its sign says whether the motor turns the encoder up for positive drive; its size, against
 the spec's no-load speed, whether the counts per degree are plausible. A motor that turns no encoder is a
-dead encoder or an unconnected motor: named, nothing stored. Whether the encoder or the motor is the one
-reversed only a person can tell, by bending the flap by hand (`hand`); without it the encoder is taken as
-right and the motor's flag corrects the pair. The correction goes to the device (SET_WIRING, kept across
-power cycles), which leaves its zero unconfirmed. Units: counts, s, duty.
+dead encoder or an unconnected motor: named, nothing stored. An encoder counting down for positive drive
+means the motor's leads or the encoder's A and B are swapped; which one, the pulses cannot tell (lying flat,
+the flap tents below the table almost as far as it lifts above it: the spec's plant moved hinge 0 186 counts
+down and 268 up from rest; hanging, the outer flaps barely feel gravity), and the wrong guess leaves the
+device reporting +10 deg for a flap standing at -10 deg. So a person tells them apart by bending the flap
+by hand (`hand`); without one bring-up names the hinge, says how to decide, and stores nothing. The
+correction goes to the device (SET_WIRING, kept across power cycles), which leaves its zero unconfirmed.
+Units: counts, s, duty.
 """
 
 from __future__ import annotations
@@ -53,6 +57,7 @@ class HingeCheck:
     counts: float  # |counts| the encoder moved per pulse
     expected: float  # |counts| the spec's no-load speed would give, an upper bound
     note: str  # what was wrong, "" if nothing
+    decided: bool = True  # False: reversed, and which of encoder and motor is left to a person (no hand given)
 
     @property
     def flags(self) -> int:
@@ -111,12 +116,17 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
         if encoder_reversed:
             notes.append(f"hinge {hinge}: its encoder counts down when the flap bends up: A and B swapped "
                          "(corrected: counted the other way)")
+    if hand is None and swing[j] < 0:
+        notes.append(f"hinge {hinge}: positive drive turns encoder input {j} down: its motor's leads or its "
+                     f"encoder's A and B are swapped, and pulses cannot tell which. Run `vrscroll bringup --hand` "
+                     f"and bend the flap up when asked; or bend flap {hinge}'s free end up by hand watching "
+                     f"`vrscroll status --watch`: hinge {hinge} counting down, swap its encoder's A and B; "
+                     "counting up, swap its motor's leads")
+        return HingeCheck(hinge, j, False, False, moved, expected, "; ".join(notes), decided=False)
     motor_reversed = bool((swing[j] < 0) != encoder_reversed)
     if motor_reversed:
         notes.append(f"hinge {hinge}: positive drive turns it the negative way: motor leads swapped "
-                     f"(corrected: driven the other way)" + ("" if hand else
-                                                              "; or its encoder's A and B, if the flap then moves "
-                                                              "the wrong way: run with --hand to tell them apart"))
+                     f"(corrected: driven the other way)")
     if moved > MAX_SHARE * expected:
         notes.append(f"hinge {hinge}: {moved:.0f} counts per pulse, more than the spec's no-load speed allows "
                      f"({expected:.0f}): counts per degree unlike the spec's (gear ratio, encoder CPR)")
@@ -147,7 +157,7 @@ def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCh
         say(f"hinge {k}: encoder input {c.encoder}, {c.counts:.0f} counts per pulse (at most {c.expected:.0f}) "
             + ("ok" if not c.note else c.note.split(": ", 1)[1]))
         checks.append(c)
-    dead = [c.note for c in checks if "no encoder answered" in c.note]
+    dead = [c.note for c in checks if "no encoder answered" in c.note or not c.decided]
     inputs = [c.encoder for c in checks]
     for i in sorted({i for i in inputs if inputs.count(i) > 1}):
         both = [c.hinge for c in checks if c.encoder == i]

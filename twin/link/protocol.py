@@ -93,6 +93,7 @@ class Fault(enum.IntFlag):
     HARDWARE = 0x20  # a peripheral's set-up failed at boot (HELLO_REPLY's setup_error names it); persists
     BATTERY = 0x40  # the battery reading is implausible (a broken divider, the ADC): PWM as for the nominal pack;
     # persists while the reading does
+    RUNAWAY = 0x80  # a hinge moved against a high duty for a stall window (a reversed encoder or motor)
 
 
 class ResetReason(enum.IntEnum):

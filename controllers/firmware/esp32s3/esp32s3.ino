@@ -199,20 +199,22 @@ static int serial_room(void *ctx) { (void)ctx; return Serial.availableForWrite()
 
 static void serial_write(void *ctx, const uint8_t *buf, int n) { (void)ctx; Serial.write(buf, (size_t)n); }
 
-/* The pack through the divider, low-passed over BATTERY_FILTER_TICKS (one noisy or dropped sample moves it
- * by a sixteenth); outside BATTERY_MIN_MV..BATTERY_MAX_MV the core faults BATTERY and compensates as for
- * the spec's nominal pack (VRS_DEVICE_SUPPLY_MV), never for the implausible value: a divider reading
- * 150 mV would otherwise multiply the loop's gain by 40, a reading of 0 remove compensation. */
+/* The pack through the divider. Its plausibility is judged on the reading low-passed over
+ * BATTERY_FILTER_TICKS (one noisy or dropped sample moves it by a sixteenth): outside BATTERY_MIN_MV..
+ * BATTERY_MAX_MV the core faults BATTERY and compensates as for the spec's nominal pack
+ * (VRS_DEVICE_SUPPLY_MV). Within them it compensates for this tick's reading where that is plausible too (a
+ * pack sagging under load is followed at once), else for the filtered one: never for an implausible value
+ * (a divider reading 150 mV would multiply the loop's gain by 40, a reading of 0 remove compensation). */
 static uint32_t battery_sum;  /* BATTERY_FILTER_TICKS x the filtered mV; 0 before the first reading */
+static bool battery_plausible(uint32_t mv) { return mv >= BATTERY_MIN_MV && mv <= BATTERY_MAX_MV; }
 static int read_battery_mv(void *ctx, uint16_t *mv)
 {
     (void)ctx;
     uint32_t raw = analogReadMilliVolts(PIN_BATTERY) * BATTERY_DIVIDER;
     battery_sum = battery_sum ? battery_sum - battery_sum / BATTERY_FILTER_TICKS + raw : raw * BATTERY_FILTER_TICKS;
     uint32_t filtered = battery_sum / BATTERY_FILTER_TICKS;
-    int plausible = filtered >= BATTERY_MIN_MV && filtered <= BATTERY_MAX_MV;
-    vrs_set_battery_plausible(&core, plausible);
-    *mv = (uint16_t)(plausible ? filtered : VRS_DEVICE_SUPPLY_MV);
+    vrs_set_battery_plausible(&core, battery_plausible(filtered));
+    *mv = (uint16_t)(!battery_plausible(filtered) ? VRS_DEVICE_SUPPLY_MV : battery_plausible(raw) ? raw : filtered);
     return 0;
 }
 

@@ -30,7 +30,7 @@ static const int PIN_IN2[6] = {17, 21, 39, 41, 47, 2};
  * lower resistor reads the ADC's top, 9.3 V; an open upper one, or no pack, 0) */
 #define BATTERY_MIN_MV 4500
 #define BATTERY_MAX_MV 9000
-#define BATTERY_FILTER_TICKS 16  /* the reading's first-order low-pass, ticks (16 ms at 1 kHz) */
+#define BATTERY_FILTER_TICKS 16  /* the plausibility check's first-order low-pass, ticks (16 ms at 1 kHz) */
 
 /* the ESP32-S3 has four PCNT units: hinges 0-3 count in hardware, 4-5 in a pin-change interrupt, which
  * reads A and B in one read of GPIO_IN_REG: their pins must be below 32 */
