@@ -48,12 +48,18 @@ def emulator_with(spec, *wiring, sketch=False):
 
 
 def hand_on(emu, link):
-    """hand(k) for an in-process emulator: a person bends flap k up by 20 deg, reads the counts, lets go."""
+    """hand(k) for an in-process emulator: a person bends flap k up by 20 deg, reads the counts, then lays back
+    each flap the bend moved (lying flat, the emulator's hold on one hinge lifts the flaps beyond it too, which
+    the brake then keeps up) and lets go."""
     def hand(k):
-        before = np.asarray(link.get_state().counts)
-        emu.hand = (k, emu.plant.angles[k] + np.radians(20))
+        before, angles = np.asarray(link.get_state().counts), emu.plant.angles.copy()
+        emu.hand = (k, angles[k] + np.radians(20))
         time.sleep(0.4)
         moved = np.asarray(link.get_state().counts) - before
+        for i in np.argsort(-np.abs(emu.plant.angles - angles)):
+            if abs(emu.plant.angles[i] - angles[i]) > np.radians(2):
+                emu.hand = (int(i), angles[i])
+                time.sleep(0.15)
         emu.hand = None
         time.sleep(0.2)
         return moved

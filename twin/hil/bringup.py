@@ -112,8 +112,12 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
                           f"alone counts back and forth by one) or a motor not connected to bridge {hinge} (its "
                           f"leads, or a bridge input open)", decided=False)
     expected = pulse_counts(spec, duty, seconds)  # the pulse that answered: its reach unloaded
-    if (duty, seconds) == PULSES[-1] and weak < ONE_WAY_SHARE * strong:  # the first pulse lifts or pushes, the
-        # second brings it back: a healthy hinge moved both ways
+    if (duty, seconds) == PULSES[-1] and weak < ONE_WAY_SHARE * strong:
+        # lying flat, a hinge beside the root driven the wrong way first pushes into the table (blocked), then lifts:
+        # a third pulse, the first's way again, brings it back where that way is driven at all
+        again = _measure(link, hinge, duty, seconds)
+        weak, strong = sorted((max(abs(up[j]), abs(again[j])), abs(down[j])))
+    if (duty, seconds) == PULSES[-1] and weak < ONE_WAY_SHARE * strong:  # a healthy hinge moved both ways
         way, pin = ("positive", "IN2") if abs(up[j]) < abs(down[j]) else ("negative", "IN1")
         return HingeCheck(hinge, j, False, False, moved, expected,
                           f"hinge {hinge}: its motor turns one way only ({up[j]:+.0f} counts at positive duty, "
