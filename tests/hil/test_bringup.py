@@ -48,18 +48,19 @@ def emulator_with(spec, *wiring, sketch=False):
 
 
 def hand_on(emu, link):
-    """hand(k) for an in-process emulator: a person bends flap k up by 20 deg, reads the counts, then, lying flat,
-    lays back each flap the bend moved (the emulator's hold on one hinge lifts the flaps beyond it too, which the
-    brake then keeps up) and lets go."""
+    """hand(k) for an in-process emulator: a person bends flap k up by 20 deg holding the others still, reads the
+    counts, lays it back and lets go. (The emulator's hand sets the angles it holds: bending one hinge alone, lying
+    flat, pushed the flaps beyond it through the table, and they sprang up by up to 100 deg.)"""
     def hand(k):
         before, angles = np.asarray(link.get_state().counts), emu.plant.angles.copy()
-        emu.hand = (k, angles[k] + np.radians(20))
+        bent = angles.copy()
+        bent[k] += np.radians(20)
+        every = np.arange(len(angles))
+        emu.hand = (every, bent)
         time.sleep(0.4)
         moved = np.asarray(link.get_state().counts) - before
-        for i in np.argsort(-np.abs(emu.plant.angles - angles)) if emu.opt.plant.lying_flat else ():
-            if abs(emu.plant.angles[i] - angles[i]) > np.radians(2):
-                emu.hand = (int(i), angles[i])
-                time.sleep(0.15)
+        emu.hand = (every, angles)
+        time.sleep(0.15)
         emu.hand = None
         time.sleep(0.2)
         return moved
