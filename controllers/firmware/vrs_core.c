@@ -526,6 +526,13 @@ static float derated_cap(const vrs_core *c)
     return c->cfg.stall_current_ma ? (float)c->cfg.continuous_current_ma / (float)c->cfg.stall_current_ma : 1.0f;
 }
 
+/* |duty| at or above which STALL and RUNAWAY watch hinge k: a derated hinge's duty is held to the cap, so the
+ * same share of what it may give */
+static float stall_duty_of(const vrs_core *c, uint8_t k)
+{
+    return c->derated & (1u << k) ? c->cfg.stall_duty * derated_cap(c) : c->cfg.stall_duty;
+}
+
 static void checks(vrs_core *c, uint32_t now_us)
 {
     uint8_t k, n = c->cfg.n_hinges;
@@ -557,9 +564,7 @@ static void checks(vrs_core *c, uint32_t now_us)
     for (k = 0; k < n; k++) {
         int32_t moved = c->counts[k] - c->stall_ref[k];
         float d = c->duty[k] < 0.0f ? -c->duty[k] : c->duty[k];
-        /* a derated hinge's duty is held to the cap: STALL at the same share of what it may give */
-        float stall_duty = c->derated & (1u << k) ? c->cfg.stall_duty * derated_cap(c) : c->cfg.stall_duty;
-        if (moved > c->cfg.stall_counts || moved < -c->cfg.stall_counts || d < stall_duty) {
+        if (moved > c->cfg.stall_counts || moved < -c->cfg.stall_counts || d < stall_duty_of(c, k)) {
             c->stall_ref[k] = c->counts[k];
             c->stall_since_us[k] = now_us;
         }
@@ -576,8 +581,7 @@ static void checks(vrs_core *c, uint32_t now_us)
      * windows (60 ms on the spec) of the duty reaching the stall duty and the hinge its runaway speed. */
     for (k = 0; k < n; k++) {
         float d = c->duty[k] < 0.0f ? -c->duty[k] : c->duty[k];
-        float stall_duty = c->derated & (1u << k) ? c->cfg.stall_duty * derated_cap(c) : c->cfg.stall_duty;
-        int8_t sign = d < stall_duty ? 0 : (c->duty[k] > 0.0f ? 1 : -1);
+        int8_t sign = d < stall_duty_of(c, k) ? 0 : (c->duty[k] > 0.0f ? 1 : -1);
         int32_t against = (c->runaway_ref[k] - c->counts[k]) * c->runaway_sign[k];
         if (sign == 0 || sign != c->runaway_sign[k]) {
             c->runaway_sign[k] = sign;
