@@ -575,10 +575,11 @@ static void checks(vrs_core *c, uint32_t now_us)
             return;
         }
     /* RUNAWAY: a duty of one sign at or above the stall duty, and the hinge moving the other way by more than
-     * RUNAWAY_COUNTS in each of two windows of a tenth of stall_ms, no slower in the second (a reversed encoder
-     * or motor: the PID drives it away ever faster). A hinge braking an overshoot moves against its duty too,
-     * but slower and slower; a flap sagging against a motor too weak to hold it, slowly. Faults within two
-     * windows (60 ms on the spec) of the duty reaching the stall duty and the hinge its runaway speed. */
+     * RUNAWAY_COUNTS in each of three windows of a tenth of stall_ms, each no slower than the one before (a
+     * reversed encoder or motor: the PID drives it away ever faster). A hinge braking an overshoot moves
+     * against its duty too, but slower and slower; one flung back by flaps meeting, for a window or two; a flap
+     * sagging against a motor too weak to hold it, slowly. Faults within three windows (90 ms on the spec) of
+     * the duty reaching the stall duty and the hinge its runaway speed. */
     for (k = 0; k < n; k++) {
         float d = c->duty[k] < 0.0f ? -c->duty[k] : c->duty[k];
         int8_t sign = d < stall_duty_of(c, k) ? 0 : (c->duty[k] > 0.0f ? 1 : -1);
@@ -586,14 +587,17 @@ static void checks(vrs_core *c, uint32_t now_us)
         if (sign == 0 || sign != c->runaway_sign[k]) {
             c->runaway_sign[k] = sign;
             c->runaway_before[k] = 0;
+            c->runaway_windows[k] = 0;
         } else if (now_us - c->runaway_since_us[k] < (uint32_t)c->cfg.stall_ms * 100u) {
             continue;
-        } else if (against > RUNAWAY_COUNTS && c->runaway_before[k] > RUNAWAY_COUNTS
-                   && against >= c->runaway_before[k]) {
-            fault(c, VRS_FAULT_RUNAWAY, k);
-            return;
         } else {
+            c->runaway_windows[k] = against > RUNAWAY_COUNTS && against >= c->runaway_before[k]
+                                        ? (uint8_t)(c->runaway_windows[k] + 1) : 0;
             c->runaway_before[k] = against;
+            if (c->runaway_windows[k] >= 3) {
+                fault(c, VRS_FAULT_RUNAWAY, k);
+                return;
+            }
         }
         c->runaway_ref[k] = c->counts[k];
         c->runaway_since_us[k] = now_us;

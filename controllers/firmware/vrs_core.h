@@ -98,7 +98,8 @@ typedef struct vrs_core {
     uint32_t stall_since_us[VRS_MAX_HINGES];
     int32_t runaway_ref[VRS_MAX_HINGES];        /* counts at the start of a runaway window of one duty sign, */
     uint32_t runaway_since_us[VRS_MAX_HINGES];  /* its start, */
-    int32_t runaway_before[VRS_MAX_HINGES];     /* and the counts moved against the duty in the window before */
+    int32_t runaway_before[VRS_MAX_HINGES];     /* the counts moved against the duty in the window before, */
+    uint8_t runaway_windows[VRS_MAX_HINGES];    /* and how many windows in a row moved against it, faster */
     int8_t runaway_sign[VRS_MAX_HINGES];        /* the sign of a duty at or above stall_duty; 0 below */
     int32_t zero[VRS_MAX_HINGES];               /* raw counts at the flat pose (CONFIRM_ZERO) */
     int32_t limit_out[VRS_MAX_HINGES];          /* |counts| beyond this: LIMIT (ratchets in toward the range) */
