@@ -65,7 +65,9 @@ def build(defines: tuple[str, ...] = ()) -> Path:
 
 @dataclasses.dataclass(frozen=True)
 class Wiring:
-    """Which GPIO each motor's bridge inputs and encoder outputs reach (-1: not connected), and the battery's pin."""
+    """Which GPIO each motor's bridge inputs and encoder outputs reach (-1: not connected), the battery's pin,
+    and whether the board pulls every bridge input up (docs/firmware.md "Wiring": braked through reset and boot;
+    without, the DRV8833's pull-downs hold them low: coast)."""
 
     in1: tuple[int, ...]
     in2: tuple[int, ...]
@@ -73,6 +75,7 @@ class Wiring:
     enc_b: tuple[int, ...]
     battery_pin: int
     battery_divider: float
+    in_pull_ups: bool = True
 
 
 def wiring() -> Wiring:
@@ -95,8 +98,12 @@ _U8, _I32, _U32, _I64, _U64, _VP = (ctypes.c_uint8, ctypes.c_int, ctypes.c_uint3
 _SIGNATURES = {
     "host_connect_motor": ([_I32, _I32, _I32, _I32, _I32, _I64], None),
     "host_set_encoder": ([_I32, _I64], None),
+    "host_set_encoder_racing": ([_I32, _I64], None),
+    "host_encoder_glitch": ([_I32], None),
     "host_set_pin_mv": ([_I32, _U32], None),
     "host_boot": ([_I32, _U64], None),
+    "host_hang_loop": ([_U32], None),
+    "host_pull_up": ([_I32, _I32], None),
     "host_advance": ([_U32], _I32),
     "host_bridge": ([_I32, _VP, _VP, _VP], None),
     "host_rx": ([_VP, _U32], _U32),
@@ -112,6 +119,8 @@ _SIGNATURES = {
     "vrs_get_fault_hinge": ([_VP], _U8),
     "vrs_get_rx_bad_frames": ([_VP], _U32),
     "vrs_get_telemetry_dropped": ([_VP], _U32),
+    "vrs_get_battery_mv": ([_VP], ctypes.c_uint16),
+    "vrs_get_derated": ([_VP], _U8),
 }
 
 
@@ -155,6 +164,8 @@ class Sketch:
         w = self.wires
         for k in range(self.n):
             lib.host_connect_motor(k, w.in1[k], w.in2[k], w.enc_a[k], w.enc_b[k], int(positions[k]))
+            for pin in (w.in1[k], w.in2[k]):
+                lib.host_pull_up(pin, int(w.in_pull_ups))
         self._positions = positions.copy()
         lib.host_boot(reason, at_us)
 
@@ -165,6 +176,10 @@ class Sketch:
         used = self.lib.host_nvs_dump(flash, len(flash))
         kept = flash.raw[:used]  # the flash survives the reset
         self._boot(self._positions, reason, int(self.lib.host_now_us()), kept)
+
+    def hang(self, seconds: float) -> None:
+        """loop() stops returning for `seconds` of the board's time from now (the timer's interrupts go on)."""
+        self.lib.host_hang_loop(int(seconds * 1e6))
 
     def confirm_zero(self) -> int:
         """What CONFIRM_ZERO does, done on the board (a bench user at power-on); 0 or the NACK reason."""
@@ -220,6 +235,15 @@ class Sketch:
     @property
     def fault_hinge(self) -> int:
         return self.lib.vrs_get_fault_hinge(self._core)
+
+    def illegal_transitions(self) -> list[int]:
+        """Per hinge, the software decoder's illegal transitions (both channels changed at once; PCNT hinges: 0)."""
+        return list((ctypes.c_uint32 * 6).in_dll(self.lib, "soft_illegal"))
+
+    @property
+    def battery_mv(self) -> int:
+        """The battery the core compensates for, mV."""
+        return self.lib.vrs_get_battery_mv(self._core)
 
     @property
     def rx_bad_frames(self) -> int:

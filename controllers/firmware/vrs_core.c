@@ -117,7 +117,7 @@ void vrs_estop(vrs_core *c)
 
 int vrs_clear_fault(vrs_core *c)
 {
-    if (c->faults & VRS_FAULT_HARDWARE)
+    if (c->faults & VRS_FAULT_HARDWARE || c->battery_implausible)
         return VRS_NACK_FAULT_PERSISTS;
     c->state = VRS_STATE_IDLE;
     c->faults = 0;
@@ -407,6 +407,7 @@ static int set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us, uint
             c->pid[k].integral = 0.0f;
             c->stall_ref[k] = c->counts[k];
             c->stall_since_us[k] = now_us;
+            c->runaway_sign[k] = 0;
             /* a hinge that sagged past its range may be driven back; LIMIT only if it goes further out */
             c->limit_out[k] = c->counts[k] > far ? c->counts[k] : (c->counts[k] < -far ? -c->counts[k] : far);
         }
@@ -708,6 +709,23 @@ void vrs_rx(vrs_core *c, const uint8_t *bytes, uint32_t n, uint32_t now_us)
 
 /* ---- the control tick ------------------------------------------------------------------ */
 
+/* counts a runaway moves against its duty in a window of a tenth of stall_ms (30 ms on the spec): a reversed
+ * encoder or motor moved 20-45 on the twin; a flap sagging braked against motors too weak to hold it, at most 9 */
+#define RUNAWAY_COUNTS 16
+
+/* |duty| the I2t protection holds a derated hinge to: the continuous rating over the stall current */
+static float derated_cap(const vrs_core *c)
+{
+    return c->cfg.stall_current_ma ? (float)c->cfg.continuous_current_ma / (float)c->cfg.stall_current_ma : 1.0f;
+}
+
+/* |duty| at or above which STALL and RUNAWAY watch hinge k: a derated hinge's duty is held to the cap, so the
+ * same share of what it may give */
+static float stall_duty_of(const vrs_core *c, uint8_t k)
+{
+    return c->derated & (1u << k) ? c->cfg.stall_duty * derated_cap(c) : c->cfg.stall_duty;
+}
+
 static void checks(vrs_core *c, uint32_t now_us)
 {
     uint8_t k, n = c->cfg.n_hinges;
@@ -739,7 +757,7 @@ static void checks(vrs_core *c, uint32_t now_us)
     for (k = 0; k < n; k++) {
         int32_t moved = c->counts[k] - c->stall_ref[k];
         float d = c->duty[k] < 0.0f ? -c->duty[k] : c->duty[k];
-        if (moved > c->cfg.stall_counts || moved < -c->cfg.stall_counts || d < c->cfg.stall_duty) {
+        if (moved > c->cfg.stall_counts || moved < -c->cfg.stall_counts || d < stall_duty_of(c, k)) {
             c->stall_ref[k] = c->counts[k];
             c->stall_since_us[k] = now_us;
         }
@@ -749,6 +767,34 @@ static void checks(vrs_core *c, uint32_t now_us)
             fault(c, VRS_FAULT_STALL, k);
             return;
         }
+    /* RUNAWAY: a duty of one sign at or above the stall duty, and the hinge moving the other way by more than
+     * RUNAWAY_COUNTS in each of three windows of a tenth of stall_ms, each no slower than the one before (a
+     * reversed encoder or motor: the PID drives it away ever faster). A hinge braking an overshoot moves
+     * against its duty too, but slower and slower; one flung back by flaps meeting, for a window or two; a flap
+     * sagging against a motor too weak to hold it, slowly. Faults within three windows (90 ms on the spec) of
+     * the duty reaching the stall duty and the hinge its runaway speed. */
+    for (k = 0; k < n; k++) {
+        float d = c->duty[k] < 0.0f ? -c->duty[k] : c->duty[k];
+        int8_t sign = d < stall_duty_of(c, k) ? 0 : (c->duty[k] > 0.0f ? 1 : -1);
+        int32_t against = (c->runaway_ref[k] - c->counts[k]) * c->runaway_sign[k];
+        if (sign == 0 || sign != c->runaway_sign[k]) {
+            c->runaway_sign[k] = sign;
+            c->runaway_before[k] = 0;
+            c->runaway_windows[k] = 0;
+        } else if (now_us - c->runaway_since_us[k] < (uint32_t)c->cfg.stall_ms * 100u) {
+            continue;
+        } else {
+            c->runaway_windows[k] = against > RUNAWAY_COUNTS && against >= c->runaway_before[k]
+                                        ? (uint8_t)(c->runaway_windows[k] + 1) : 0;
+            c->runaway_before[k] = against;
+            if (c->runaway_windows[k] >= 3) {
+                fault(c, VRS_FAULT_RUNAWAY, k);
+                return;
+            }
+        }
+        c->runaway_ref[k] = c->counts[k];
+        c->runaway_since_us[k] = now_us;
+    }
 }
 
 static void telemetry(vrs_core *c)
@@ -777,7 +823,7 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
     int driving;
     float i_stall = (float)c->cfg.stall_current_ma * 1e-3f, i_cont = (float)c->cfg.continuous_current_ma * 1e-3f;
     float budget = (i_stall * i_stall - i_cont * i_cont) * (float)c->cfg.overload_ms * 1e-3f;
-    float cap = i_stall > 0.0f ? i_cont / i_stall : 1.0f;
+    float cap = derated_cap(c);
     c->now_us = now_us;
     for (k = 0; k < n; k++) {
         int32_t raw = counts[c->wiring.encoder[k]];
@@ -824,6 +870,13 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
 /* ---- battery compensation -------------------------------------------------------------- */
 
 void vrs_set_battery_mv(vrs_core *c, uint16_t mv) { c->battery_mv = mv; }
+
+void vrs_set_battery_plausible(vrs_core *c, int plausible)
+{
+    c->battery_implausible = (uint8_t)!plausible;
+    if (!plausible && !(c->faults & VRS_FAULT_BATTERY))
+        fault(c, VRS_FAULT_BATTERY, 0xFF);
+}
 
 void vrs_pwm(const vrs_core *c, float *pwm_out)
 {

@@ -130,6 +130,11 @@ typedef struct vrs_core {
     int16_t current_ma[VRS_MAX_HINGES];         /* as read at the last tick; 0 if not sensed */
     int32_t stall_ref[VRS_MAX_HINGES];
     uint32_t stall_since_us[VRS_MAX_HINGES];
+    int32_t runaway_ref[VRS_MAX_HINGES];        /* counts at the start of a runaway window of one duty sign, */
+    uint32_t runaway_since_us[VRS_MAX_HINGES];  /* its start, */
+    int32_t runaway_before[VRS_MAX_HINGES];     /* the counts moved against the duty in the window before, */
+    uint8_t runaway_windows[VRS_MAX_HINGES];    /* and how many windows in a row moved against it, faster */
+    int8_t runaway_sign[VRS_MAX_HINGES];        /* the sign of a duty at or above stall_duty; 0 below */
     int32_t zero[VRS_MAX_HINGES];               /* raw counts at the flat pose (CONFIRM_ZERO) */
     int32_t limit_out[VRS_MAX_HINGES];          /* |counts| beyond this: LIMIT (ratchets in toward the range) */
     float heat[VRS_MAX_HINGES];                 /* I2t estimate above the continuous rating, A^2 s */
@@ -151,6 +156,7 @@ typedef struct vrs_core {
     uint32_t rx_bad_frames;
     uint32_t rx_good_frames;
     uint16_t battery_mv;                        /* last battery reading (vrs_set_battery_mv); 0 = not sensed */
+    uint8_t battery_implausible;                /* vrs_set_battery_plausible(c, 0): FAULT BATTERY persists */
     uint8_t reset_reason;                       /* why the device last started (esp_reset_reason_t), for HELLO */
     uint8_t setup_error;                        /* VRS_SETUP_*: the first set-up call that failed; 0 none */
     uint8_t rx_buf[VRS_RX_CAP];
@@ -183,6 +189,9 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
 
 /* The battery voltage now, mV (the device's ADC through the divider; the twin's and the emulator's pack). */
 void vrs_set_battery_mv(vrs_core *c, uint16_t mv);
+/* Whether the battery reading is plausible (the board's bounds); not: FAULT BATTERY, which CLEAR_FAULT
+ * cannot clear while it stays so. */
+void vrs_set_battery_plausible(vrs_core *c, int plausible);
 
 /* Battery compensation: the H-bridges' PWM per hinge for the last tick's duties, in [-1, 1]. Duty 1 means
  * drive_cap_mv at the motor, so pwm = duty * drive_cap_mv / battery_mv, clamped (a pack sagging below the

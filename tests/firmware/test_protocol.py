@@ -138,5 +138,5 @@ def test_a_newer_devices_states_and_faults_are_named_by_number_not_a_traceback()
     from twin.hil.mirror import faults_text
 
     assert P.enum_name(P.State, P.State.HOLDING) == "HOLDING" and P.enum_name(P.State, 9) == "9"
-    assert faults_text(P.Fault.WATCHDOG | P.Fault.HARDWARE | 0x80) == "WATCHDOG|HARDWARE|0x80"
+    assert faults_text(P.Fault.WATCHDOG | P.Fault.HARDWARE | 0x8000) == "WATCHDOG|HARDWARE|0x8000"
     assert faults_text(0) == "none"

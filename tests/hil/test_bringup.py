@@ -2,7 +2,9 @@
 the device (kept across a reset of the whole sketch), the next move right; a dead encoder named and nothing
 stored; a reversed encoder told from a reversed motor by a hand's bend."""
 
+import argparse
 import contextlib
+import itertools
 import os
 import re
 import threading
@@ -13,11 +15,12 @@ import pytest
 
 from cli import vrscroll
 from random_plant import emulator_args
-from twin.hil.bringup import bring_up
+from twin.commands import emulate
+from twin.hil.bringup import BringupError, bring_up
 from twin.hil.mirror import mirror
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions
-from twin.link.faults import FaultOptions
+from twin.link.faults import FaultOptions, Miswiring
 from twin.link.pty_device import open_pty, serve
 from twin.link.serial_link import Link
 from twin.sim.plant import as_twin
@@ -44,19 +47,39 @@ def emulator_with(spec, *wiring, sketch=False):
                                           sketch=sketch))
 
 
-@pytest.mark.parametrize("fault, named", [
-    pytest.param("motor-reversed:2", "hinge 2: encoder input 2, .* motor leads swapped", marks=pytest.mark.slow),
-    ("crossed:1,3", "hinge 1: encoder input 3, .* encoder cables of hinges 1 and 3 are crossed"),
-])
-def test_bringup_names_the_fault_stores_the_correction_and_moves_right(emulator, fault, named):
-    dev = emulator("--ideal", "--wiring-fault", fault)  # zeroed, as conftest starts it: bring-up re-zeros anyway
+def hand_on(emu, link):
+    """hand(k) for an in-process emulator: a person bends flap k up by 20 deg holding the others still, reads the
+    counts, lays it back and lets go. (The emulator's hand sets the angles it holds: bending one hinge alone, lying
+    flat, pushed the flaps beyond it through the table, and they sprang up by up to 100 deg.)"""
+    def hand(k):
+        before, angles = np.asarray(link.get_state().counts), emu.plant.angles.copy()
+        bent = angles.copy()
+        bent[k] += np.radians(20)
+        every = np.arange(len(angles))
+        emu.hand = (every, bent)
+        time.sleep(0.4)
+        moved = np.asarray(link.get_state().counts) - before
+        emu.hand = (every, angles)
+        time.sleep(0.15)
+        emu.hand = None
+        time.sleep(0.2)
+        return moved
+    return hand
+
+
+def test_bringup_of_a_board_wired_right_stores_the_identity_says_where_and_zero_follows(emulator):
+    dev = emulator("--ideal", "--lying-flat")  # as bring-up asks; it re-zeros anyway
     r = vrscroll("bringup", "--serial", dev.port, "--tolerance-deg", "20")
     assert r.returncode == 0, r.stdout + r.stderr
-    import re
-    assert re.search(named, r.stdout), r.stdout
-    assert "move     every hinge to 10 deg: settled" in r.stdout and "bring-up done" in r.stdout
-    wiring = [e for e in dev.events("rx") if e["msg"] == "SET_WIRING"][-1]
-    assert wiring["encoder"] != [0, 1, 2, 3, 4, 5] or any(wiring["flags"])
+    assert "wiring   as built: nothing to correct" in r.stdout and "bring-up done" in r.stdout
+    assert "kept on the device (its flash" in r.stdout and "no device profile is selected" in r.stdout
+    # `zero` now: the device holds bring-up's last targets; it says so (not a fault to clear), and how to let go
+    r = vrscroll("zero", "--serial", dev.port)
+    assert r.returncode == 2 and "holds the last session's targets" in r.stderr, r.stderr
+    assert "once the cause is gone" not in r.stderr
+    assert vrscroll("status", "--serial", dev.port, "--estop", "--clear-fault").returncode == 0
+    r = vrscroll("zero", "--serial", dev.port)
+    assert r.returncode == 0 and "zero confirmed" in r.stdout, r.stderr
 
 
 @pytest.mark.slow  # 6 s each; the default suite has the lying-flat dead encoder below, whose hinge 3 answers alike
@@ -100,19 +123,28 @@ def test_a_dead_encoder_is_named_and_nothing_stored(emulator):
     assert len(stored) == 1 and stored[0]["encoder"] == [0, 1, 2, 3, 4, 5]  # only the identity, to measure
 
 
+@pytest.mark.parametrize("fault, named", [
+    ("encoder-reversed:4", "hinge 4: positive drive turns encoder input 4 down"),
+    pytest.param("motor-reversed:2", "hinge 2: positive drive turns encoder input 2 down", marks=pytest.mark.slow),
+    pytest.param("crossed:1,3", "hinge 1: its bridge turns encoder input 3: the encoder cables of hinges 1 and 3 "
+                 "are crossed, or their motors are on each other's bridges", marks=pytest.mark.slow),
+])
+def test_without_a_hand_what_pulses_cannot_tell_is_named_and_nothing_stored(emulator, fault, named):
+    """Pulses cannot tell a reversed encoder from a reversed motor (the wrong guess leaves the device reporting
+    +10 deg for a flap at -10 deg), nor crossed encoder cables from motors on each other's bridges: without
+    --hand bring-up names the hinge, both causes and how to decide, and stores nothing."""
+    dev = emulator("--ideal", "--lying-flat", "--wiring-fault", fault)
+    r = vrscroll("bringup", "--serial", dev.port)
+    assert r.returncode == 2 and "nothing stored" in r.stderr, r.stdout + r.stderr
+    assert named in r.stderr and "--hand" in r.stderr, r.stderr
+    stored = [e for e in dev.events("rx") if e["msg"] == "SET_WIRING"]
+    assert len(stored) == 1 and stored[0]["flags"] == [0] * 6  # only the identity, to measure
+
+
 def test_a_hand_tells_a_reversed_encoder_from_a_reversed_motor_and_the_flap_then_moves_the_right_way(spec):
     emu = emulator_with(spec, "encoder-reversed:4")
     with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
-        def hand(k):  # a person bends flap k up by 20 deg and lets go
-            before = np.asarray(link.get_state().counts)
-            emu.hand = (k, emu.plant.angles[k] + np.radians(20))
-            time.sleep(0.4)
-            moved = np.asarray(link.get_state().counts) - before
-            emu.hand = None
-            time.sleep(0.2)
-            return moved
-
-        checks = bring_up(link, spec, hand, say=lambda line: None)
+        checks = bring_up(link, spec, hand_on(emu, link), say=lambda line: None)
         assert [(c.encoder_reversed, c.motor_reversed) for c in checks][4] == (True, False)
         assert not any(c.encoder_reversed or c.motor_reversed for i, c in enumerate(checks) if i != 4)
         link.confirm_zero()
@@ -125,7 +157,7 @@ def test_a_hand_tells_a_reversed_encoder_from_a_reversed_motor_and_the_flap_then
 def test_the_sketch_keeps_the_correction_across_a_reset(spec):
     emu = emulator_with(spec, "crossed:0,5", "motor-reversed:3", sketch=True)
     with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
-        bring_up(link, spec, say=lambda line: None)
+        bring_up(link, spec, hand_on(emu, link), say=lambda line: None)
         stored = link.get_wiring()
     assert list(stored.encoder) == [5, 1, 2, 3, 4, 0] and stored.flags[3] == P.WIRING_MOTOR_REVERSED
     emu.firmware.reset(P.ResetReason.POWERON)  # off and on: the flash keeps it
@@ -145,3 +177,87 @@ def test_lying_flat_the_flaps_stay_and_status_watch_reads_them_live(emulator):
     assert 3 <= len(lines) <= 5
     angles = np.array([[float(a) for a in x.split("s", 1)[1].split("deg")[0].split()] for x in lines])
     assert np.abs(angles).max() < 1.0, r.stdout
+
+
+# every wiring fault the emulator can make, once each, on hinges spread over the device: the first four bring-up
+# corrects (with a hand to tell encoder from motor), the rest it names and stores nothing (not the software's)
+CORRECTED = ("motor-reversed:2", "encoder-reversed:4", "crossed:0,5", "encoder-reversed:1")
+NAMED = {"encoder-dead:5": r"hinges? .*5", "channel-dead:3": r"hinges? .*3", "bridges-crossed:1,2": r"hinges? .*[12]",
+         "input-open:4,2": "hinge 4: its motor turns one way only",
+         "input-open:0,1": "hinge 0: its motor turns one way only"}
+
+
+def hinges_of(fault: str) -> set:
+    """The hinges a wiring fault touches (input-open's second number is the input, not a hinge)."""
+    numbers = fault.split(":")[1].split(",")
+    return set(numbers[:1] if fault.startswith("input-open") else numbers)
+
+
+ALONE_AND_PAIRS = [(f,) for f in (*CORRECTED, *NAMED)] + [
+    pair for pair in itertools.combinations((*CORRECTED, *NAMED), 2) if not hinges_of(pair[0]) & hinges_of(pair[1])]
+
+
+def drawn_emulator(spec, seed: int | None, lying_flat: bool, wiring) -> Emulator:
+    """The sketch in the loop on a plant drawn from seed (the emulator's stated ranges; None: the spec's), with these
+    wiring faults."""
+    p = argparse.ArgumentParser()
+    emulate.add_arguments(p)
+    plant = emulator_args(seed) if seed is not None else ["--ideal"]
+    args = p.parse_args([*plant, "--sketch", "--latency-ms", "0", *(["--lying-flat"] * lying_flat),
+                         *itertools.chain.from_iterable(("--wiring-fault", w) for w in wiring)])
+    return Emulator(spec, emulate.options_from_args(args, spec))
+
+
+def expected_wiring(faults, n):
+    """The correction that undoes the correctable faults: the input each hinge reads and its flags."""
+    m = Miswiring.parse(faults, n)
+    encoder = [m.source.index(k) for k in range(n)]
+    flags = [(P.WIRING_ENCODER_REVERSED if m.sign[encoder[k]] < 0 else 0)
+             | (P.WIRING_MOTOR_REVERSED if m.motor_sign[k] < 0 else 0) for k in range(n)]
+    return encoder, flags
+
+
+def bring_up_named_or_corrected(spec, faults, seed, lying_flat):
+    """Bring-up with a hand on the sketch in the loop: every fault it cannot correct named and nothing stored;
+    else the correction stored, and a move of every hinge to +10 deg moves every flap up by about that."""
+    emu = drawn_emulator(spec, seed, lying_flat, faults)
+    with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
+        named = [NAMED[f] for f in faults if f in NAMED]
+        if named:
+            with pytest.raises(BringupError) as err:
+                bring_up(link, spec, hand_on(emu, link), say=lambda line: None)
+            for pattern in named:
+                assert re.search(pattern, str(err.value)), (faults, str(err.value))
+            assert "nothing stored" in str(err.value)
+            assert link.get_wiring().flags == (0,) * spec.n_hinges  # the identity, to measure
+            return
+        bring_up(link, spec, hand_on(emu, link), say=lambda line: None)
+        wiring = link.get_wiring()
+        assert (list(wiring.encoder), list(wiring.flags)) == expected_wiring(faults, spec.n_hinges), faults
+        link.confirm_zero()
+        flat = emu.plant.angles.copy()
+        result = mirror(link, spec, np.radians([10] * spec.n_hinges), tolerance_deg=20)
+        moved = np.degrees(emu.plant.angles - flat)
+        assert result.outcome == "settled" and np.all(moved > 5), (faults, result.outcome, moved)
+
+
+@pytest.mark.parametrize("faults, seed, lying_flat", [
+    (("bridges-crossed:1,2",), 61, True),
+    pytest.param(("encoder-reversed:1", "input-open:4,2"), 7, True, marks=pytest.mark.slow),
+])
+def test_bring_up_on_the_sketch_names_or_corrects_first_board_faults(spec, faults, seed, lying_flat):
+    """Two of the slow test's cases below, on drawn plants lying flat: motors on each other's bridges (named: the
+    correction maps encoders, not bridges), and a reversed encoder beside a bridge input left open."""
+    bring_up_named_or_corrected(spec, faults, seed, lying_flat)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("lying_flat", [True, False], ids=["lying-flat", "hanging"])
+@pytest.mark.parametrize("faults", ALONE_AND_PAIRS, ids=lambda faults: "+".join(faults))
+def test_bring_up_names_or_corrects_every_wiring_fault_alone_and_two_at_a_time(spec, faults, lying_flat):
+    """Every wiring fault the emulator makes, alone and two at a time on different hinges, lying flat on a drawn
+    plant and hanging on the spec's: bring-up on the sketch in the loop corrects what the software can (and the
+    flaps then move the way the device says) and names the rest, storing nothing. (Hanging, a drawn plant's hinges
+    2-3 may sag past their range within the seconds bring-up takes, seed 7's to 378 counts, where no pulse may go:
+    bring-up then asks for the device to be laid flat.)"""
+    bring_up_named_or_corrected(spec, faults, 11 + len(faults) if lying_flat else None, lying_flat)

@@ -32,7 +32,7 @@ def add_arguments(p) -> None:
     add_serial(p, required=True)
     p.add_argument("--hand", action="store_true",
                    help="ask you to bend each flap by hand, so that a reversed encoder is told from a reversed "
-                        "motor (without it the encoder is taken as right)")
+                        "motor (without it, a hinge counting the wrong way is named and nothing stored)")
     p.add_argument("--no-move", action="store_true", help="stop after the zero: no first gated move")
     add_tolerance_deg(p)
     p.add_argument("--log", help="session log, JSON lines")
@@ -51,8 +51,12 @@ def run(args) -> int:
             print("wiring   " + ("as built: nothing to correct" if not found else
                                  f"corrected on the device: encoder inputs {list(wiring.encoder)}, "
                                  f"flags {list(wiring.flags)}"))
+            kept = "kept on the device (its flash, across power cycles, HELLO's wiring_set)"
             if profile.folder:
-                print(f"         kept in {write_profile_wiring(profile.name, wiring.encoder, wiring.flags, found)}")
+                print(f"         {kept} and in {write_profile_wiring(profile.name, wiring.encoder, wiring.flags, found)}")
+            else:
+                print(f"         {kept} only: no device profile is selected, so no copy here (`--device NAME` "
+                      "keeps one in the profile's wiring.json)")
             if args.hand:
                 input("lay every flap flat for the zero; press Enter ")
             link.confirm_zero()

@@ -56,7 +56,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drop-after-s", type=float, help="the link goes dead after this many s of device time")
     p.add_argument("--wiring-fault", action="append", default=[], metavar="FAULT:HINGE[,HINGE]",
                    help="a wiring mistake between the board and its motors (repeatable): motor-reversed:K, "
-                        "encoder-reversed:K, encoder-dead:K, crossed:J,K (the encoder cables of J and K swapped)")
+                        "encoder-reversed:K, encoder-dead:K, channel-dead:K (its B channel open), crossed:J,K (the "
+                        "encoder cables of J and K swapped), bridges-crossed:J,K (their motors on each other's bridges), "
+                        "input-open:K,N (bridge K's IN1 or IN2 open, pulled up)")
     p.add_argument("--corrupt", type=float, default=0.0,
                    help="probability per frame sent of a flipped byte and of inserted garbage (default 0)")
     p.add_argument("--seed", type=int, default=0, help="random seed: the plant drawn, missed edges, corruption")

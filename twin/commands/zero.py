@@ -28,9 +28,21 @@ def run(args) -> int:
     try:
         with device_session(args, spec) as (link, spec):
             before = link.get_state()
+            if before.state == P.State.FAULT and before.faults == P.Fault.WATCHDOG:
+                link.clear_fault()  # the last session's hold ran out: nothing went wrong
+                before = link.get_state()
+            if before.state in (P.State.ACTIVE, P.State.HOLDING):
+                raise UserError(
+                    f"the device is {P.enum_name(P.State, before.state)}: it holds the last session's targets (a "
+                    f"`mirror`, bring-up's first move) for {spec.host_away_hold:g} s after that session's last "
+                    f"frame; the zero is confirmed in IDLE only. Run `vrscroll zero --serial {args.serial}` again "
+                    f"after that (it clears the hold's end itself), or let go now with `vrscroll status --serial "
+                    f"{args.serial} --estop --clear-fault` (the flaps then rest where they are)")
             if before.state != P.State.IDLE:
-                raise UserError(f"the device is {P.enum_name(P.State, before.state)}: the zero is confirmed in IDLE only "
-                                "(`vrscroll status --serial PORT --clear-fault` after a fault or e-stop)")
+                raise UserError(f"the device is {P.enum_name(P.State, before.state)} ("
+                                f"{P.enum_name(P.Fault, before.faults) if before.faults else 'no fault'}): the zero "
+                                f"is confirmed in IDLE only (`vrscroll status --serial {args.serial} --clear-fault` "
+                                "once the cause is gone)")
             link.confirm_zero()
             after = link.get_state()
     except LinkError as exc:

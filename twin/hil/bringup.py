@@ -7,10 +7,14 @@ answers; where the hinge's own input does not, stronger and longer pulses, up to
 them). The encoder that moves most between the two pulses is the hinge's (another hinge's, at the strongest
 pulse: the cables are crossed); its sign says whether the motor turns the encoder up for positive drive; its size, against
 the spec's no-load speed, whether the counts per degree are plausible. A motor that turns no encoder is a
-dead encoder or an unconnected motor: named, nothing stored. Whether the encoder or the motor is the one
-reversed only a person can tell, by bending the flap by hand (`hand`); without it the encoder is taken as
-right and the motor's flag corrects the pair. The correction goes to the device (SET_WIRING, kept across
-power cycles), which leaves its zero unconfirmed. Units: counts, s, duty.
+dead encoder or an unconnected motor: named, nothing stored. An encoder counting down for positive drive
+means the motor's leads or the encoder's A and B are swapped; which one, the pulses cannot tell (lying flat,
+the flap tents below the table almost as far as it lifts above it: the spec's plant moved hinge 0 186 counts
+down and 268 up from rest; hanging, the outer flaps barely feel gravity), and the wrong guess leaves the
+device reporting +10 deg for a flap standing at -10 deg. So a person tells them apart by bending the flap
+by hand (`hand`); without one bring-up names the hinge, says how to decide, and stores nothing. The
+correction goes to the device (SET_WIRING, kept across power cycles), which leaves its zero unconfirmed.
+Units: counts, s, duty.
 """
 
 from __future__ import annotations
@@ -36,6 +40,11 @@ SETTLE_S = 0.1  # s waited after a pulse before the counts are read
 MIN_SHARE = 0.15  # the answering encoder must move at least this share of what the spec's no-load speed gives
 MAX_SHARE = 1.6  # ... and at most this share (more: counts per degree unlike the spec's)
 HAND_COUNTS = 15  # counts a hand's bend must move an encoder by
+# the weaker way's share of the stronger below which a motor turns one way only (a bridge input open), judged at
+# the strongest pulse: the first pulse lifts or pushes, the second brings the flap back, so a healthy hinge moved
+# both ways alike (the emulator's plants, lying flat and hanging: 0.55-1.0 at the strongest; hanging, at the first
+# pulse hinge 3 moved 6 counts up against gravity and 30 down with it, so a weaker pulse cannot judge)
+ONE_WAY_SHARE = 0.25
 
 
 class BringupError(UserError):
@@ -53,6 +62,7 @@ class HingeCheck:
     counts: float  # |counts| the encoder moved per pulse
     expected: float  # |counts| the spec's no-load speed would give, an upper bound
     note: str  # what was wrong, "" if nothing
+    decided: bool = True  # False: not corrected here (named, nothing stored): a person decides or rewires
 
     @property
     def flags(self) -> int:
@@ -76,47 +86,84 @@ def _measure(link: Link, hinge: int, duty: float, seconds: float) -> np.ndarray:
 def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeCheck:
     """Pulse one hinge's motor each way and name what answers (the device IDLE, its wiring the identity)."""
     expected = pulse_counts(spec)
-    state = link.get_state()
-    far = spec.hinge_limit / spec.rad_per_count - 2 * expected
-    # the gate of the first pulse: its farthest reach stays inside the range (the stronger ones follow only where
-    # it moved the hinge's own input little: a load, or no encoder; the firmware's range ends every pulse)
-    if abs(state.counts[hinge]) > far:
-        raise BringupError(f"hinge {hinge}: at {state.counts[hinge]} counts, too near its range for a pulse; "
-                           "lay the device flat first")
+    limit = spec.hinge_limit / spec.rad_per_count  # counts
+    # the gate of the first pulse: its farthest reach unloaded stays inside the range (the two pulses go opposite
+    # ways); the stronger ones follow only where it moved the hinge's own input little (a load, or no encoder), and
+    # the firmware's range ends every pulse. Hanging, hinges 2-3 sag to -66 deg (220 counts) within 3 s and on to
+    # their range: lay the device flat
+    at = abs(link.get_state().counts[hinge])
+    if at + expected > limit:
+        return HingeCheck(hinge, hinge, False, False, 0.0, expected,
+                          f"hinge {hinge}: at {at} counts from flat, too near its range for a pulse (a flap hanging, "
+                          "or lifted by another hinge's pulses): lay the device flat and run again", decided=False)
     for duty, seconds in PULSES:  # stronger while no encoder answers, or another input than the hinge's own
-        swing = (_measure(link, hinge, duty, seconds) - _measure(link, hinge, -duty, seconds)) / 2  # sagging cancels
+        up, down = _measure(link, hinge, duty, seconds), _measure(link, hinge, -duty, seconds)
+        swing = (up - down) / 2  # sagging cancels
         j = int(np.argmax(np.abs(swing)))
         moved = float(abs(swing[j]))
-        if moved >= MIN_SHARE * expected and j == hinge:
+        weak, strong = sorted((abs(up[j]), abs(down[j])))
+        if moved >= MIN_SHARE * expected and j == hinge and weak >= ONE_WAY_SHARE * strong:
             break
     if moved < MIN_SHARE * expected:
         return HingeCheck(hinge, hinge, False, False, moved, expected,
                           f"hinge {hinge}: its motor was pulsed and no encoder answered ({moved:.0f} counts at "
                           f"duty {duty:g} for {seconds:g} s; at duty {PULSE_DUTY:g} for {PULSE_S:g} s it turns "
-                          f"up to {expected:.0f} unloaded): a dead encoder (power, A/B wires) or a motor not "
-                          f"connected to bridge {hinge}")
+                          f"up to {expected:.0f} unloaded): a dead encoder (power, or an A or B wire: one channel "
+                          f"alone counts back and forth by one) or a motor not connected to bridge {hinge} (its "
+                          f"leads, or a bridge input open)", decided=False)
     expected = pulse_counts(spec, duty, seconds)  # the pulse that answered: its reach unloaded
+    if (duty, seconds) == PULSES[-1] and weak < ONE_WAY_SHARE * strong:
+        # lying flat, a hinge beside the root driven the wrong way first pushes into the table (blocked), then lifts:
+        # a third pulse, the first's way again, brings it back where that way is driven at all
+        again = _measure(link, hinge, duty, seconds)
+        weak, strong = sorted((max(abs(up[j]), abs(again[j])), abs(down[j])))
+    if (duty, seconds) == PULSES[-1] and weak < ONE_WAY_SHARE * strong:  # a healthy hinge moved both ways
+        way, pin = ("positive", "IN2") if abs(up[j]) < abs(down[j]) else ("negative", "IN1")
+        return HingeCheck(hinge, j, False, False, moved, expected,
+                          f"hinge {hinge}: its motor turns one way only ({up[j]:+.0f} counts at positive duty, "
+                          f"{down[j]:+.0f} at negative): bridge {hinge}'s {pin}, which drives the {way} way, is "
+                          "open (the board's pull-up holds it high: that way brakes); check its wire and solder",
+                          decided=False)
     notes = []
-    if j != hinge:
-        notes.append(f"hinge {hinge}: its motor turns encoder input {j}: the encoder cables of hinges {hinge} and "
-                     f"{j} are crossed (corrected: hinge {hinge} reads input {j})")
     encoder_reversed = False
     if hand is not None:
         bent = np.asarray(hand(hinge))
-        k = int(np.argmax(np.abs(bent)))
-        if abs(bent[k]) < HAND_COUNTS or k != j:
-            notes.append(f"hinge {hinge}: the hand's bend moved input {k} by {bent[k]:.0f} counts, not input {j}: "
-                         f"bend flap {hinge}'s free end up by about 20 deg and run again")
+        # of the input that answered the bridge and the hinge's own, the one the bend moved more (the others may be
+        # sagging meanwhile)
+        k = j if abs(bent[j]) >= abs(bent[hinge]) else hinge
+        if abs(bent[k]) < HAND_COUNTS:
+            return HingeCheck(hinge, j, False, False, moved, expected,
+                              f"hinge {hinge}: the hand's bend moved input {j} by {bent[j]:.0f} counts and input "
+                              f"{hinge} by {bent[hinge]:.0f}: bend flap {hinge}'s free end up by about 20 deg and run "
+                              "again", decided=False)
+        if k != j:  # the flap's own encoder is on its own input: the bridge drives another flap
+            return HingeCheck(hinge, j, False, False, moved, expected,
+                              f"hinge {hinge}: bending flap {hinge} turns input {hinge}, but bridge {hinge} turns "
+                              f"input {j}: the motors of hinges {hinge} and {j} are on each other's bridges; swap "
+                              "their motor wires between the two bridges (the wiring correction maps encoders, not "
+                              "bridges)", decided=False)
         encoder_reversed = bool(bent[j] < 0)
         if encoder_reversed:
             notes.append(f"hinge {hinge}: its encoder counts down when the flap bends up: A and B swapped "
                          "(corrected: counted the other way)")
+    elif j != hinge or swing[j] < 0:
+        what = [f"hinge {hinge}: its bridge turns encoder input {j}: the encoder cables of hinges {hinge} and {j} "
+                "are crossed, or their motors are on each other's bridges"] if j != hinge else []
+        what += [f"hinge {hinge}: positive drive turns encoder input {j} down: its motor's leads or its encoder's "
+                 "A and B are swapped"] if swing[j] < 0 else []
+        return HingeCheck(hinge, j, False, False, moved, expected,
+                          "; ".join(what) + f"; pulses cannot tell which. Run `vrscroll bringup --hand` and bend the "
+                          f"flap up when asked (or bend flap {hinge}'s free end up by hand watching `vrscroll status "
+                          f"--watch`: the input that moves is its encoder's; counting down, swap that encoder's A and "
+                          "B; counting up with positive drive still counting down, swap the motor's leads)",
+                          decided=False)
+    if j != hinge:
+        notes.insert(0, f"hinge {hinge}: its motor turns encoder input {j}: the encoder cables of hinges {hinge} and "
+                        f"{j} are crossed (corrected: hinge {hinge} reads input {j})")
     motor_reversed = bool((swing[j] < 0) != encoder_reversed)
     if motor_reversed:
         notes.append(f"hinge {hinge}: positive drive turns it the negative way: motor leads swapped "
-                     f"(corrected: driven the other way)" + ("" if hand else
-                                                              "; or its encoder's A and B, if the flap then moves "
-                                                              "the wrong way: run with --hand to tell them apart"))
+                     f"(corrected: driven the other way)")
     if moved > MAX_SHARE * expected:
         notes.append(f"hinge {hinge}: {moved:.0f} counts per pulse, more than the spec's no-load speed allows "
                      f"({expected:.0f}): counts per degree unlike the spec's (gear ratio, encoder CPR)")
@@ -147,7 +194,7 @@ def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCh
         say(f"hinge {k}: encoder input {c.encoder}, {c.counts:.0f} counts per pulse (at most {c.expected:.0f}) "
             + ("ok" if not c.note else c.note.split(": ", 1)[1]))
         checks.append(c)
-    dead = [c.note for c in checks if "no encoder answered" in c.note]
+    dead = [c.note for c in checks if not c.decided]
     inputs = [c.encoder for c in checks]
     for i in sorted({i for i in inputs if inputs.count(i) > 1}):
         both = [c.hinge for c in checks if c.encoder == i]

@@ -1,5 +1,6 @@
 """Faults injected into the emulated device: command latency, a dropped link, corrupted bytes, a jammed hinge,
-wiring mistakes between the board and its motors and encoders.
+wiring mistakes between the board and its motors and encoders (those of a first board: swapped wires, a dead
+encoder or one dead channel, motors on each other's bridges, a bridge input left open).
 
 Each acts at the device's edge, never inside its firmware: latency and a dead
 link on the bytes in, a dead link and corruption on the bytes out, a jam on the
@@ -35,25 +36,35 @@ WIRING_FAULTS = {
     "motor-reversed": "hinge K's motor leads swapped: positive drive turns it the negative way",
     "encoder-reversed": "hinge K's encoder A and B swapped: it counts the other way",
     "encoder-dead": "hinge K's encoder unpowered: its count never changes",
+    "channel-dead": "hinge K's encoder channel B open: the decoder sees A's edges alone, back and forth by one count",
     "crossed": "hinges J and K's encoder cables swapped: each motor turns the other's encoder",
+    "bridges-crossed": "hinges J and K's motors on each other's bridges: each bridge turns the other hinge",
+    "input-open": "bridge K's input N (1 or 2) open: the board's pull-up holds it high, so the way it drives (IN2 "
+                  "forward, IN1 reverse) brakes instead",
 }
+TWO = {"crossed": "two different hinges", "bridges-crossed": "two different hinges", "input-open": "a hinge and 1 or 2"}
 
 
 @dataclasses.dataclass(frozen=True)
 class Miswiring:
     """How the board's inputs and outputs reach the plant: board encoder input k reads plant motor source[k]'s
-    shaft (times sign[k]; dead ones stay at their first reading), board bridge k drives plant motor k times
-    motor_sign[k]."""
+    shaft (times sign[k]; dead ones stay at their first reading; one_channel ones decode channel A alone),
+    plant motor m is driven by board bridge bridge[m] times motor_sign[m], and a bridge k with an open input
+    drives one way only (open[k]: +1 forward braked, -1 reverse braked, 0 none)."""
 
     source: tuple[int, ...]
     sign: tuple[int, ...]
     dead: tuple[bool, ...]
     motor_sign: tuple[int, ...]
+    one_channel: tuple[bool, ...] = ()
+    bridge: tuple[int, ...] = ()
+    open: tuple[int, ...] = ()
 
     @classmethod
     def parse(cls, faults, n: int) -> "Miswiring":
         """From FaultOptions.wiring; ValueError naming a fault or hinge that is not there."""
         source, sign, dead, motor = list(range(n)), [1] * n, [False] * n, [1] * n
+        one_channel, bridge, open_ = [False] * n, list(range(n)), [0] * n
         for text in faults:
             kind, _, where = str(text).partition(":")
             if kind not in WIRING_FAULTS:
@@ -63,10 +74,11 @@ class Miswiring:
                 hinges = [int(x) for x in where.split(",")]
             except ValueError:
                 raise ValueError(f"wiring fault {text!r}: expected hinge numbers after the colon") from None
-            if len(hinges) != (2 if kind == "crossed" else 1) or not all(0 <= k < n for k in hinges) \
-                    or len(set(hinges)) != len(hinges):
-                raise ValueError(f"wiring fault {text!r}: {'two different hinges' if kind == 'crossed' else 'one hinge'}"
-                                 f" of 0..{n - 1}")
+            ok = len(hinges) == (2 if kind in TWO else 1) and 0 <= hinges[0] < n and (
+                kind not in TWO or (hinges[1] in (1, 2) if kind == "input-open" else
+                                    0 <= hinges[1] < n and hinges[1] != hinges[0]))
+            if not ok:
+                raise ValueError(f"wiring fault {text!r}: {TWO.get(kind, 'one hinge')} of 0..{n - 1}")
             k = hinges[0]
             if kind == "motor-reversed":
                 motor[k] = -motor[k]
@@ -74,22 +86,46 @@ class Miswiring:
                 sign[k] = -sign[k]
             elif kind == "encoder-dead":
                 dead[k] = True
-            else:
+            elif kind == "channel-dead":
+                one_channel[k] = True
+            elif kind == "input-open":
+                open_[k] = 1 if hinges[1] == 2 else -1
+            elif kind == "crossed":
                 j = hinges[1]
                 source[k], source[j] = source[j], source[k]
-        return cls(tuple(source), tuple(sign), tuple(dead), tuple(motor))
+            else:
+                j = hinges[1]
+                bridge[k], bridge[j] = bridge[j], bridge[k]
+        return cls(tuple(source), tuple(sign), tuple(dead), tuple(motor), tuple(one_channel), tuple(bridge),
+                   tuple(open_))
 
     def encoder_inputs(self, shaft_counts, first) -> np.ndarray:
         """What the board's encoder inputs count, from the plant's shaft counts (first: the counts at power-on)."""
-        c = np.asarray(shaft_counts)
+        c, c0 = np.asarray(shaft_counts), np.asarray(first)
         out = np.array([s * c[src] for src, s in zip(self.source, self.sign)], c.dtype)
+        for k in np.flatnonzero(self.one_channel):
+            out[k] = one_channel_count(out[k], self.sign[k] * c0[self.source[k]])
         dead = np.array(self.dead)
-        out[dead] = np.asarray(first)[dead]
+        out[dead] = c0[dead]
         return out
 
     def plant_drive(self, pwm) -> np.ndarray:
-        """The plant's motors' PWM from the board's bridges'."""
-        return np.asarray(pwm, np.float32) * np.asarray(self.motor_sign, np.float32)
+        """The plant's motors' PWM from the board's bridges': a bridge with an open input brakes the way that input
+        drives; each motor takes its bridge's, times its sign."""
+        p = np.asarray(pwm, np.float32).copy()
+        blocked = np.asarray(self.open or [0] * len(p))
+        p[(blocked != 0) & (np.sign(p) == blocked)] = 0.0
+        bridge = list(self.bridge or range(len(p)))
+        return p[bridge] * np.asarray(self.motor_sign, np.float32)
+
+
+def one_channel_count(count: int, first: int) -> int:
+    """What an x4 decoder counts with channel B stuck where it was at `first` counts and A still following the
+    shaft at `count` (A leads B counting up: AB = 00, 10, 11, 01): A's edges step +1 and -1 about `first`."""
+    def a(c):
+        return int(c % 4 in (1, 2))
+    b = int(first % 4 in (2, 3))
+    return first + (a(count) - a(first)) * (1 if b == 0 else -1)
 
 
 class Faults:

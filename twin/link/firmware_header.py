@@ -80,7 +80,9 @@ def header(spec: DeviceSpec | None = None) -> str:
     for name, v in (("KP", gains.kp), ("KI", gains.ki), ("KD", gains.kd), ("CUTOFF_HZ", gains.derivative_cutoff),
                     ("INTEGRAL_LIMIT", gains.integral_limit), ("DEADBAND", gains.deadband_duty)):
         out.append(f"#define VRS_DEVICE_{name} {_float(v)}")
-    out += [f"#define VRS_DEVICE_HOLD_BAND {gains.hold_band}", "",
+    out += [f"#define VRS_DEVICE_HOLD_BAND {gains.hold_band}",
+            f"#define VRS_DEVICE_SUPPLY_MV {round(spec.supply_voltage * 1000)}  /* the pack's nominal: the sketch's "
+            "battery stand-in for an implausible reading */", "",
             "/* initializers in vrs_config's and vrs_gains's field order */"]
     names = [f"VRS_DEVICE_{n.upper()}" for n, _ in cfg._fields_]
     names[names.index("VRS_DEVICE_FW_VERSION")] = ("{VRS_DEVICE_FW_VERSION_MAJOR, VRS_DEVICE_FW_VERSION_MINOR, "

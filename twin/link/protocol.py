@@ -102,10 +102,14 @@ class Fault(enum.IntFlag):
     LIMIT = 0x08  # a hinge passed its range
     OVERCURRENT = 0x10  # a winding current over the limit
     HARDWARE = 0x20  # a peripheral's set-up failed at boot (HELLO_REPLY's setup_error names it); persists
+    BATTERY = 0x40  # the battery reading is implausible (a broken divider, the ADC): PWM as for the nominal pack;
+    # persists while the reading does
+    RUNAWAY = 0x80  # a hinge moved against a high duty for a stall window (a reversed encoder or motor)
 
 
 class ResetReason(enum.IntEnum):
-    """Why the device last started: esp_reset_reason_t (ESP-IDF 5.x, components/esp_system/include/esp_system.h)."""
+    """Why the device last started: every esp_reset_reason_t (ESP-IDF v5.4.1, components/esp_system/include/
+    esp_system.h)."""
 
     UNKNOWN = 0
     POWERON = 1
@@ -118,6 +122,11 @@ class ResetReason(enum.IntEnum):
     DEEPSLEEP = 8
     BROWNOUT = 9  # the supply sagged below the brown-out level
     SDIO = 10
+    USB = 11  # the USB peripheral (the S3 after a USB reset, e.g. an upload)
+    JTAG = 12
+    EFUSE = 13  # an eFuse error
+    PWR_GLITCH = 14  # a power glitch detected
+    CPU_LOCKUP = 15  # a CPU lock-up (double exception)
 
 
 class SetupStep(enum.IntEnum):

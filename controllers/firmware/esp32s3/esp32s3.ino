@@ -7,9 +7,12 @@
  * for the calls it makes. docs/firmware.md has the wiring, the build commands and the bring-up. */
 #include <Arduino.h>
 #include <Preferences.h>
+#include <driver/gpio.h>
 #include <driver/mcpwm_prelude.h>
 #include <driver/pulse_cnt.h>
 #include <esp_system.h>
+#include <soc/gpio_reg.h>
+#include <soc/soc.h>
 
 #include "pins.h"
 #include "vrs_core.h"
@@ -18,8 +21,10 @@ vrs_core core;  /* not static: the host build (controllers/sketch.py) reads its 
 static pcnt_unit_handle_t pcnt[N_PCNT_HINGES];
 static volatile int32_t soft_counts[6];        /* hinges N_PCNT_HINGES.. : decoded in the interrupt */
 static volatile uint8_t soft_state[6];
+volatile uint32_t soft_illegal[6];  /* both channels changed between two interrupts: an edge lost (not static:
+                                       the host build reads it) */
 static volatile uint32_t ticks_due;             /* written by the timer interrupt only */
-static uint32_t ticks_done;                    /* written by loop() only */
+static volatile uint32_t ticks_done;            /* written by loop() only */
 static hw_timer_t *timer;
 static mcpwm_cmpr_handle_t compare_in1[6], compare_in2[6];
 static mcpwm_gen_handle_t gen_in1[6], gen_in2[6];
@@ -80,10 +85,16 @@ static void pcnt_setup(int k)
 /* Gray-code step for (previous AB, new AB) with AB = A << 1 | B: +1 for 00 -> 10 -> 11 -> 01 -> 00 */
 static const int8_t QUAD_STEP[16] = {0, -1, 1, 0, 1, 0, 0, -1, -1, 0, 0, 1, 0, 1, -1, 0};
 
+/* A and B from one read of GPIO_IN_REG (GPIO0-31 at one instant; pins.h keeps these hinges' pins below 32):
+ * two digitalReads apart could see A before and B after another edge, a state that never was. A change of
+ * both at once cannot be counted (which way?): it is counted as illegal instead. */
 static void IRAM_ATTR soft_encoder(void *arg)
 {
     int k = (int)(intptr_t)arg;
-    uint8_t ab = (uint8_t)(digitalRead(PIN_ENC_A[k]) << 1 | digitalRead(PIN_ENC_B[k]));
+    uint32_t in = REG_READ(GPIO_IN_REG);
+    uint8_t ab = (uint8_t)(((in >> PIN_ENC_A[k]) & 1u) << 1 | ((in >> PIN_ENC_B[k]) & 1u));
+    if ((soft_state[k] ^ ab) == 3u)
+        soft_illegal[k]++;
     soft_counts[k] += QUAD_STEP[soft_state[k] << 2 | ab];
     soft_state[k] = ab;
 }
@@ -105,8 +116,17 @@ static void read_counts(void *ctx, int32_t *counts)
 
 /* ---- motors: MCPWM, set up once, only compare values and forced levels change in the tick ---------- */
 
-/* One H-bridge on operator `op`: each input's generator goes low at the period's start and high at its
- * comparator, so an input is low for `compare` ticks of the period. Forced high it stays high. */
+/* Every generator's output is inverted in the GPIO matrix (invert_pwm): a generator just made, reset and
+ * low, holds its pin high, so the hand-over from the GPIO (set high in setup()) to MCPWM never lets an
+ * input fall (ESP-IDF v5.4 mcpwm_gen.c, mcpwm_new_generator: the generator reset, then the signal
+ * connected with its invert flag). The pin's level (1 high, 0 low, -1 to the PWM actions) as the force: */
+static esp_err_t force_pin(mcpwm_gen_handle_t gen, int level)
+{
+    return mcpwm_generator_set_force_level(gen, level < 0 ? -1 : 1 - level, true);
+}
+
+/* One H-bridge on operator `op`: each input goes low at the period's start and high at its comparator
+ * (the generator high, then low: inverted), so an input is low for `compare` ticks of the period. */
 static void bridge_setup(int k, mcpwm_timer_handle_t tmr, int group)
 {
     mcpwm_oper_handle_t op = NULL;
@@ -125,13 +145,14 @@ static void bridge_setup(int k, mcpwm_timer_handle_t tmr, int group)
     for (int i = 0; i < 2; i++) {
         mcpwm_generator_config_t gc = {};
         gc.gen_gpio_num = pins[i];
+        gc.flags.invert_pwm = 1;
         if (failed(mcpwm_new_generator(op, &gc, gens[i]), VRS_SETUP_PWM_GENERATOR, k)
-            || failed(mcpwm_generator_set_force_level(*gens[i], 1, true), VRS_SETUP_PWM_GENERATOR, k)  /* brake */
+            || failed(force_pin(*gens[i], 1), VRS_SETUP_PWM_GENERATOR, k)  /* brake */
             || failed(mcpwm_generator_set_action_on_timer_event(*gens[i],
                           MCPWM_GEN_TIMER_EVENT_ACTION(MCPWM_TIMER_DIRECTION_UP, MCPWM_TIMER_EVENT_EMPTY,
-                                                       MCPWM_GEN_ACTION_LOW)), VRS_SETUP_PWM_GENERATOR, k)
+                                                       MCPWM_GEN_ACTION_HIGH)), VRS_SETUP_PWM_GENERATOR, k)
             || failed(mcpwm_generator_set_action_on_compare_event(*gens[i],
-                          MCPWM_GEN_COMPARE_EVENT_ACTION(MCPWM_TIMER_DIRECTION_UP, cmps[i], MCPWM_GEN_ACTION_HIGH)),
+                          MCPWM_GEN_COMPARE_EVENT_ACTION(MCPWM_TIMER_DIRECTION_UP, cmps[i], MCPWM_GEN_ACTION_LOW)),
                       VRS_SETUP_PWM_GENERATOR, k))
             return;
     }
@@ -153,8 +174,8 @@ static void write_drive(void *ctx, const float *pwm, const uint8_t *decay)
         if (dir != drive_dir[k] || (dir == 0 && decay[k] != stop_decay[k])) {
             int level1 = dir > 0 ? 1 : (dir < 0 ? -1 : (decay[k] == VRS_DECAY_BRAKE ? 1 : 0));
             int level2 = dir < 0 ? 1 : (dir > 0 ? -1 : (decay[k] == VRS_DECAY_BRAKE ? 1 : 0));
-            mcpwm_generator_set_force_level(gen_in1[k], level1, true);
-            mcpwm_generator_set_force_level(gen_in2[k], level2, true);
+            force_pin(gen_in1[k], level1);
+            force_pin(gen_in2[k], level2);
             drive_dir[k] = dir;
             stop_decay[k] = decay[k];
         }
@@ -178,24 +199,58 @@ static int serial_room(void *ctx) { (void)ctx; return Serial.availableForWrite()
 
 static void serial_write(void *ctx, const uint8_t *buf, int n) { (void)ctx; Serial.write(buf, (size_t)n); }
 
+/* The pack through the divider. Its plausibility is judged on the reading low-passed over
+ * BATTERY_FILTER_TICKS (one noisy or dropped sample moves it by a sixteenth): outside BATTERY_MIN_MV..
+ * BATTERY_MAX_MV the core faults BATTERY and compensates as for the spec's nominal pack
+ * (VRS_DEVICE_SUPPLY_MV). Within them it compensates for this tick's reading where that is plausible too (a
+ * pack sagging under load is followed at once), else for the filtered one: never for an implausible value
+ * (a divider reading 150 mV would multiply the loop's gain by 40, a reading of 0 remove compensation). */
+static uint32_t battery_sum;  /* BATTERY_FILTER_TICKS x the filtered mV; 0 before the first reading */
+static bool battery_plausible(uint32_t mv) { return mv >= BATTERY_MIN_MV && mv <= BATTERY_MAX_MV; }
 static int read_battery_mv(void *ctx, uint16_t *mv)
 {
     (void)ctx;
-    *mv = (uint16_t)(analogReadMilliVolts(PIN_BATTERY) * BATTERY_DIVIDER);
+    uint32_t raw = analogReadMilliVolts(PIN_BATTERY) * BATTERY_DIVIDER;
+    battery_sum = battery_sum ? battery_sum - battery_sum / BATTERY_FILTER_TICKS + raw : raw * BATTERY_FILTER_TICKS;
+    uint32_t filtered = battery_sum / BATTERY_FILTER_TICKS;
+    vrs_set_battery_plausible(&core, battery_plausible(filtered));
+    *mv = (uint16_t)(!battery_plausible(filtered) ? VRS_DEVICE_SUPPLY_MV : battery_plausible(raw) ? raw : filtered);
     return 0;
 }
 
 static const vrs_hw hw = {NULL, micros_now, read_counts, write_drive, serial_read, serial_write, serial_room,
                           NULL /* the DRV8833 reports no current */, read_battery_mv};
 
-static void IRAM_ATTR on_timer() { ticks_due++; }
+/* The brake that does not need loop(): should loop() fall more than LOOP_LATE_TICKS ticks behind the
+ * timer (a wait that never ends, a bug), the timer's interrupt sets every compare value to 0, so every
+ * bridge brakes from the next PWM period: the driven input high for the whole period beside the one
+ * forced high (a compare event at the period's start outranks the timer's EMPTY: ESP32-S3 TRM, MCPWM
+ * generator event priority). mcpwm_comparator_set_compare_value is the MCPWM call ESP-IDF allows in an
+ * ISR (docs: "MCPWM", ISR and thread safety). loop(), once back, writes its own compare values again.
+ * The task watchdog (enableLoopWDT, 5 s) then resets a board whose loop() does not come back. */
+#define LOOP_LATE_TICKS 3
+static void IRAM_ATTR on_timer()
+{
+    ticks_due++;
+    if (ticks_due - ticks_done > LOOP_LATE_TICKS)
+        for (int k = 0; k < 6; k++)
+            if (compare_in1[k] && compare_in2[k]) {
+                mcpwm_comparator_set_compare_value(compare_in1[k], 0);
+                mcpwm_comparator_set_compare_value(compare_in2[k], 0);
+            }
+}
 
 void setup()
 {
-    /* brake first: the flaps hold where they are from the first instruction after a reset */
+    /* brake first: the board's pull-ups held every input high through reset and boot (docs/firmware.md,
+     * "Wiring"); the output register is set high before the output is enabled, so the first level the pin
+     * drives is high. Arduino-ESP32 3.x refuses digitalWrite on a pin pinMode has not made GPIO, and its
+     * pinMode leaves the register as it was (low after reset): digitalWrite first would coast, so
+     * ESP-IDF's gpio_set_level, which writes the register in any mode, comes first. Should MCPWM then fail
+     * to start, these pins stay GPIO outputs, high: braked. */
     for (int k = 0; k < 6; k++) {
-        digitalWrite(PIN_IN1[k], HIGH);
-        digitalWrite(PIN_IN2[k], HIGH);
+        gpio_set_level((gpio_num_t)PIN_IN1[k], 1);
+        gpio_set_level((gpio_num_t)PIN_IN2[k], 1);
         pinMode(PIN_IN1[k], OUTPUT);
         pinMode(PIN_IN2[k], OUTPUT);
     }

@@ -15,11 +15,25 @@ static const int PIN_ENC_B[6] = {5, 7, 9, 11, 13, 15};
 static const int PIN_IN1[6] = {16, 18, 38, 40, 42, 48};
 static const int PIN_IN2[6] = {17, 21, 39, 41, 47, 2};
 
+/* The DevKitC-1's RGB LED (a WS2812) takes its data from GPIO48 on board v1.0 and from GPIO38 on v1.1: hinge
+ * 5's IN1 or hinge 2's IN1 here, the S3 having no free output left. The sketch never writes the LED; its
+ * data input (high impedance) reads the bridge's PWM as colour data, so it flickers while that hinge drives,
+ * and nothing else. (Arduino's own PIN_RGB_LED, variants/esp32s3, says 48 whatever the revision.) */
+#define PIN_DEVKIT_V1_0_RGB_LED 48
+#define PIN_DEVKIT_V1_1_RGB_LED 38
+
 /* battery through a divider (ADC1 channel 0; ADC2 is unusable while Wi-Fi runs) */
 #define PIN_BATTERY 1
 #define BATTERY_DIVIDER 3  /* 20 kOhm over 10 kOhm: 8.4 V (2S full) -> 2.8 V at the pin */
+/* what a 2S pack can read through it, mV: above a flat pack sagging under six stalled motors (2 x 2.25 V),
+ * below a full one with the ADC's error (8.4 V + 0.6 V); outside, the divider or the ADC is broken (an open
+ * lower resistor reads the ADC's top, 9.3 V; an open upper one, or no pack, 0) */
+#define BATTERY_MIN_MV 4500
+#define BATTERY_MAX_MV 9000
+#define BATTERY_FILTER_TICKS 16  /* the plausibility check's first-order low-pass, ticks (16 ms at 1 kHz) */
 
-/* the ESP32-S3 has four PCNT units: hinges 0-3 count in hardware, 4-5 in a pin-change interrupt */
+/* the ESP32-S3 has four PCNT units: hinges 0-3 count in hardware, 4-5 in a pin-change interrupt, which
+ * reads A and B in one read of GPIO_IN_REG: their pins must be below 32 */
 #define N_PCNT_HINGES 4
 
 /* PWM: MCPWM, whose two groups of three operators with two generators each drive six H-bridges with no

@@ -13,9 +13,12 @@
 
 #include "Arduino.h"
 #include "Preferences.h"
+#include "driver/gpio.h"
 #include "driver/mcpwm_prelude.h"
 #include "driver/pulse_cnt.h"
 #include "esp_system.h"
+#include "soc/gpio_reg.h"
+#include "soc/soc.h"
 
 extern void setup(void);
 extern void loop(void);
@@ -26,6 +29,21 @@ extern void loop(void);
 
 static uint64_t now_us;
 static esp_reset_reason_t reset_reason = ESP_RST_POWERON;
+static void integrate(void);
+
+/* Set-up takes time on the board: each GPIO call and each driver call (an allocation, a lock, a log line)
+ * moves the clock on, so what the pins hold between two set-up calls is integrated into the bridges'
+ * states. Assumed costs, of the S3's order at 240 MHz (not measured on silicon). ROM_BOOT_US: from a reset
+ * to setup(), the ROM, the second-stage bootloader and Arduino's start-up, in which no pin is the sketch's
+ * (assumed; the S3's boot log shows a few hundred ms, most of it loading the app from flash). */
+#define GPIO_CALL_US 2u
+#define DRIVER_CALL_US 20u
+#define ROM_BOOT_US 300000u
+static void spend(uint32_t us)
+{
+    integrate();
+    now_us += us;
+}
 
 unsigned long micros(void) { return (unsigned long)(uint32_t)now_us; }  /* 32 bits, wrapping, as on the S3 */
 
@@ -34,7 +52,9 @@ unsigned long micros(void) { return (unsigned long)(uint32_t)now_us; }  /* 32 bi
 struct host_mcpwm_gen;
 struct pin_state {
     uint8_t mode;            /* 0 unconfigured (input, high impedance) */
-    uint8_t out;             /* level written by digitalWrite */
+    uint8_t gpio;            /* set as GPIO by pinMode (Arduino 3.x's peripheral manager: ESP32_BUS_TYPE_GPIO) */
+    uint8_t pull_up;         /* the board's own pull-up on the pin (host_pull_up) */
+    uint8_t out;             /* the output register (gpio_set_level, digitalWrite on a GPIO pin) */
     uint8_t in;              /* level the outside world drives (encoder pins) */
     struct host_mcpwm_gen *gen;  /* routed to an MCPWM generator */
     void (*isr)(void *);
@@ -43,31 +63,73 @@ struct pin_state {
 };
 static pin_state pins[N_GPIO];
 
-static void integrate(void);
 static void pcnt_edge(int pin, int level);
 
+/* Arduino-ESP32 3.x (cores/esp32/esp32-hal-gpio.c): pinMode detaches the pin from any peripheral (the
+ * peripheral manager), configures it with gpio_config, which leaves the output register as it was, and
+ * marks it as GPIO; digitalWrite on a pin not so marked is refused ("IO %u is not set as GPIO. Execute
+ * digitalMode(%u, OUTPUT) first.") and changes nothing. ESP-IDF's gpio_set_level writes the output
+ * register whatever the pin's mode, so a level set before pinMode(OUTPUT) is the level it drives. */
 void pinMode(uint8_t pin, uint8_t mode)
 {
     if (pin >= N_GPIO)
         return;
-    integrate();
+    spend(GPIO_CALL_US);
     pins[pin].mode = mode;
-    pins[pin].gen = NULL;  /* Arduino 3.x's peripheral manager detaches the pin from any peripheral */
+    pins[pin].gpio = 1;
+    pins[pin].gen = NULL;
 }
 
 void digitalWrite(uint8_t pin, uint8_t val)
 {
     if (pin >= N_GPIO)
         return;
-    integrate();
-    pins[pin].out = val ? 1 : 0;  /* latched even before pinMode(OUTPUT), as the output register is */
+    spend(GPIO_CALL_US);
+    if (pins[pin].gpio && !pins[pin].gen)
+        pins[pin].out = val ? 1 : 0;
+}
+
+esp_err_t gpio_set_level(gpio_num_t gpio_num, uint32_t level)
+{
+    if (gpio_num < 0 || gpio_num >= N_GPIO)
+        return ESP_ERR_INVALID_ARG;
+    spend(GPIO_CALL_US);
+    pins[gpio_num].out = level ? 1 : 0;
+    return ESP_OK;
+}
+
+/* An input read takes time: an encoder edge due (host_set_encoder_racing) lands just after it, and its
+ * interrupt runs once the one reading has returned, as a second edge inside an interrupt's latency does. */
+static int race_pin = -1, race_level, isr_pending = -1;
+static int pin_level(int pin) { return pins[pin].mode == OUTPUT ? pins[pin].out : pins[pin].in; }
+static void race_lands(void)
+{
+    if (race_pin < 0)
+        return;
+    int p = race_pin;
+    race_pin = -1;
+    pins[p].in = (uint8_t)race_level;
+    pcnt_edge(p, race_level);
+    isr_pending = p;
 }
 
 int digitalRead(uint8_t pin)
 {
     if (pin >= N_GPIO)
         return 0;
-    return pins[pin].mode == OUTPUT ? pins[pin].out : pins[pin].in;
+    int level = pin_level(pin);
+    race_lands();
+    return level;
+}
+
+uint32_t host_reg_read(uint32_t reg)
+{
+    uint32_t v = 0;
+    if (reg == GPIO_IN_REG)
+        for (int pin = 0; pin < 32; pin++)
+            v |= (uint32_t)pin_level(pin) << pin;
+    race_lands();
+    return v;
 }
 
 void attachInterruptArg(uint8_t pin, void (*handler)(void *), void *arg, int mode)
@@ -79,6 +141,13 @@ void attachInterruptArg(uint8_t pin, void (*handler)(void *), void *arg, int mod
     pins[pin].isr_mode = mode;
 }
 
+static void run_isr(int pin, int level)
+{
+    pin_state *p = &pins[pin];
+    if (p->isr && (p->isr_mode == CHANGE || (p->isr_mode == RISING && level) || (p->isr_mode == FALLING && !level)))
+        p->isr(p->isr_arg);
+}
+
 /* the outside world drives an input pin: PCNT counts the edge, then the pin's interrupt runs */
 static void drive_input(int pin, int level)
 {
@@ -86,9 +155,7 @@ static void drive_input(int pin, int level)
         return;
     pins[pin].in = (uint8_t)level;
     pcnt_edge(pin, level);
-    pin_state *p = &pins[pin];
-    if (p->isr && (p->isr_mode == CHANGE || (p->isr_mode == RISING && level) || (p->isr_mode == FALLING && !level)))
-        p->isr(p->isr_arg);
+    run_isr(pin, level);
 }
 
 /* ---- PCNT (ESP-IDF 5.x pulse_cnt.c; ESP32-S3 TRM "Pulse Count Controller") -----------------------
@@ -112,6 +179,7 @@ static host_pcnt_unit pcnt_units[4];
 
 esp_err_t pcnt_new_unit(const pcnt_unit_config_t *config, pcnt_unit_handle_t *ret_unit)
 {
+    spend(DRIVER_CALL_US);
     if (!config || !ret_unit || !(config->low_limit < 0 && config->high_limit > 0 && config->low_limit >= -32768
                                   && config->high_limit <= 32767))
         return ESP_ERR_INVALID_ARG;
@@ -278,7 +346,7 @@ struct host_mcpwm_timer { int used, group, state; uint32_t period; };  /* state:
 struct host_mcpwm_oper { int used, group; host_mcpwm_timer *timer; int n_cmpr, n_gen; };
 struct host_mcpwm_cmpr { int used; host_mcpwm_oper *oper; uint32_t value; };
 struct host_mcpwm_gen {
-    int used, gpio, force;  /* force: -1 none, 0 low, 1 high */
+    int used, gpio, force, invert;  /* force: -1 none, 0 low, 1 high (the generator's, before invert) */
     host_mcpwm_oper *oper;
     mcpwm_generator_action_t on_empty, on_compare;
     host_mcpwm_cmpr *cmpr;
@@ -293,6 +361,7 @@ static host_mcpwm_gen mcpwm_gens[2][6];
 
 esp_err_t mcpwm_new_timer(const mcpwm_timer_config_t *config, mcpwm_timer_handle_t *ret_timer)
 {
+    spend(DRIVER_CALL_US);
     if (!config || !ret_timer || config->group_id < 0 || config->group_id >= 2)
         return ESP_ERR_INVALID_ARG;
     uint32_t peak = config->count_mode == MCPWM_TIMER_COUNT_MODE_UP_DOWN ? config->period_ticks / 2 : config->period_ticks;
@@ -350,6 +419,7 @@ esp_err_t mcpwm_timer_start_stop(mcpwm_timer_handle_t timer, mcpwm_timer_start_s
 
 esp_err_t mcpwm_new_operator(const mcpwm_operator_config_t *config, mcpwm_oper_handle_t *ret_oper)
 {
+    spend(DRIVER_CALL_US);
     if (!config || !ret_oper || config->group_id < 0 || config->group_id >= 2)
         return ESP_ERR_INVALID_ARG;
     for (int i = 0; i < 3; i++) {
@@ -376,6 +446,7 @@ esp_err_t mcpwm_operator_connect_timer(mcpwm_oper_handle_t oper, mcpwm_timer_han
 esp_err_t mcpwm_new_comparator(mcpwm_oper_handle_t oper, const mcpwm_comparator_config_t *config,
                                mcpwm_cmpr_handle_t *ret_cmpr)
 {
+    spend(DRIVER_CALL_US);
     if (!oper || !config || !ret_cmpr)
         return ESP_ERR_INVALID_ARG;
     if (oper->n_cmpr == 2)
@@ -411,12 +482,13 @@ esp_err_t mcpwm_new_generator(mcpwm_oper_handle_t oper, const mcpwm_generator_co
         return ESP_ERR_NOT_FOUND;
     host_mcpwm_oper *base = mcpwm_groups[oper->group].opers;
     host_mcpwm_gen *g = &mcpwm_gens[oper->group][(oper - base) * 2 + oper->n_gen++];
-    integrate();
+    spend(DRIVER_CALL_US);
     memset(g, 0, sizeof *g);
     g->used = 1;
     g->oper = oper;
     g->gpio = config->gen_gpio_num;
     g->force = -1;
+    g->invert = config->flags.invert_pwm;  /* in the GPIO matrix (esp_rom_gpio_connect_out_signal): every level */
     pins[g->gpio].gen = g;
     pins[g->gpio].mode = OUTPUT;
     *ret_gen = g;
@@ -451,6 +523,27 @@ esp_err_t mcpwm_generator_set_action_on_compare_event(mcpwm_gen_handle_t gen, mc
     return ESP_OK;
 }
 
+/* The share of one PWM period a generator's output is high, as the interval [lo, hi) of the period. */
+static void generator_interval(const host_mcpwm_gen *g, double *lo, double *hi)
+{
+    const host_mcpwm_timer *t = g->oper->timer;
+    *lo = 0.0;
+    *hi = 0.0;
+    if (g->force >= 0) {
+        *hi = g->force ? 1.0 : 0.0;
+        return;
+    }
+    if (!t || t->state != 2 || !g->cmpr)
+        return;  /* no timer running: the generator holds its reset level, low */
+    double c = (double)(g->cmpr->value < t->period ? g->cmpr->value : t->period) / (double)t->period;
+    if (g->on_empty == MCPWM_GEN_ACTION_LOW && g->on_compare == MCPWM_GEN_ACTION_HIGH) {
+        *lo = c;
+        *hi = 1.0;
+    } else if (g->on_empty == MCPWM_GEN_ACTION_HIGH && g->on_compare == MCPWM_GEN_ACTION_LOW) {
+        *hi = c;
+    }
+}
+
 /* The share of one PWM period a pin is high, as the interval [lo, hi) of the period. */
 static void high_interval(int pin, double *lo, double *hi)
 {
@@ -458,25 +551,18 @@ static void high_interval(int pin, double *lo, double *hi)
     *lo = 0.0;
     *hi = 0.0;
     if (p->gen) {
-        const host_mcpwm_gen *g = p->gen;
-        const host_mcpwm_timer *t = g->oper->timer;
-        if (g->force >= 0) {
-            *hi = g->force ? 1.0 : 0.0;
-            return;
-        }
-        if (!t || t->state != 2 || !g->cmpr)
-            return;  /* no timer running: the generator holds its reset level, low */
-        double c = (double)(g->cmpr->value < t->period ? g->cmpr->value : t->period) / (double)t->period;
-        if (g->on_empty == MCPWM_GEN_ACTION_LOW && g->on_compare == MCPWM_GEN_ACTION_HIGH) {
-            *lo = c;
-            *hi = 1.0;
-        } else if (g->on_empty == MCPWM_GEN_ACTION_HIGH && g->on_compare == MCPWM_GEN_ACTION_LOW) {
-            *hi = c;
+        generator_interval(p->gen, lo, hi);
+        if (p->gen->invert) {  /* the complement of [lo, hi), one interval for the actions above */
+            double a = *lo, b = *hi;
+            *lo = a > 0.0 ? 0.0 : b;
+            *hi = a > 0.0 ? a : 1.0;
         }
         return;
     }
     if (p->mode == OUTPUT)
-        *hi = p->out ? 1.0 : 0.0;  /* an input or an unset pin: the DRV8833's pull-down holds INx low */
+        *hi = p->out ? 1.0 : 0.0;
+    else  /* an input or an unset pin: the board's pull-up against the DRV8833's pull-down (100 kOhm) */
+        *hi = p->pull_up ? 1.0 : 0.0;
 }
 
 /* ---- the H-bridges (TI DRV8833 datasheet, table "H-bridge logic"): time in each state per motor ---- */
@@ -574,7 +660,11 @@ size_t HWCDC::setRxBufferSize(size_t size)
     return size;
 }
 void HWCDC::setTxTimeoutMs(uint32_t timeout) { cdc_tx_timeout_ms = timeout; }
-void HWCDC::begin(unsigned long baud) { (void)baud; }
+void HWCDC::begin(unsigned long baud)
+{
+    (void)baud;
+    spend(DRIVER_CALL_US);
+}
 int HWCDC::available(void) { return (int)cdc_rx_len; }
 size_t HWCDC::read(uint8_t *buffer, size_t size)
 {
@@ -605,6 +695,8 @@ static int loop_wdt;
 static int wdt_expired;
 void enableLoopWDT(void) { loop_wdt = 1; }
 #define TWDT_TIMEOUT_US 5000000u
+static uint64_t loop_returned_us;  /* when loop() last returned: the TWDT's last reset */
+static uint64_t hung_until_us;     /* host_hang_loop: loop() does not return before this */
 
 /* ---- NVS through Preferences (libraries/Preferences; ESP-IDF 5.x "Non-Volatile Storage Library": 4096-byte
  * flash pages): one page of key/blob records the host keeps across resets
@@ -711,18 +803,77 @@ void host_set_encoder(int k, int64_t position)
     }
 }
 
+/* Turn motor k's shaft to `position` counts with each edge landing while the interrupt of the one before it
+ * reads its inputs (edges closer than an interrupt's latency): a decoder that reads A and B apart sees a
+ * state that never was. */
+void host_set_encoder_racing(int k, int64_t position)
+{
+    static const uint8_t AB[4][2] = {{0, 0}, {1, 0}, {1, 1}, {0, 1}};
+    motor_wiring *m = &motors[k];
+    while (m->position != position) {
+        int64_t next = m->position + (position > m->position ? 1 : -1);
+        int phase = (int)(((next % 4) + 4) % 4);
+        int pin = pins[m->enc_a].in != AB[phase][0] ? m->enc_a : m->enc_b;
+        int level = pin == m->enc_a ? AB[phase][0] : AB[phase][1];
+        m->position = next;
+        if (isr_pending < 0 && race_pin < 0) {  /* the first edge: lands at once */
+            pins[pin].in = (uint8_t)level;
+            pcnt_edge(pin, level);
+            isr_pending = pin;
+            continue;
+        }
+        race_pin = pin;  /* lands during the pending edge's interrupt */
+        race_level = level;
+        int p = isr_pending;
+        isr_pending = -1;
+        run_isr(p, pins[p].in);
+        if (race_pin >= 0) {  /* the interrupt read nothing: it lands after */
+            race_lands();
+        }
+    }
+    while (isr_pending >= 0) {
+        int p = isr_pending;
+        isr_pending = -1;
+        run_isr(p, pins[p].in);
+    }
+}
+
+/* Motor k's encoder outputs both flip at once (a glitch, or two edges inside one interrupt's latency): A's
+ * interrupt, then B's, run after both have changed. */
+void host_encoder_glitch(int k)
+{
+    motor_wiring *m = &motors[k];
+    const int both[2] = {m->enc_a, m->enc_b};
+    for (int pin : both) {
+        pins[pin].in ^= 1;
+        pcnt_edge(pin, pins[pin].in);
+    }
+    run_isr(m->enc_a, pins[m->enc_a].in);
+    run_isr(m->enc_b, pins[m->enc_b].in);
+}
+
 void host_set_pin_mv(int pin, uint32_t mv)
 {
     if (pin >= 0 && pin < N_GPIO)
         pin_mv[pin] = mv;
 }
 
-/* Start the board: the reset reason it will report, then setup() at the present time. */
+/* The board's own pull-up on a pin (a resistor to 3.3 V), there from power-on. */
+void host_pull_up(int pin, int on)
+{
+    if (pin >= 0 && pin < N_GPIO)
+        pins[pin].pull_up = (uint8_t)(on != 0);
+}
+
+/* Start the board at at_us: the reset reason it will report, ROM_BOOT_US with every pin an input (the ROM,
+ * the bootloader), then setup(), whose calls take their time. */
 void host_boot(int reason, uint64_t at_us)
 {
     now_us = integrated_to = at_us;
     reset_reason = (esp_reset_reason_t)reason;
+    spend(ROM_BOOT_US);
     setup();
+    loop_returned_us = now_us;
 }
 
 /* Run the board for `us` microseconds: the timer's interrupts when due, loop() after each (and once
@@ -743,10 +894,17 @@ int host_advance(uint32_t us)
                     t->armed = 0;
             }
         }
-        uint64_t before = now_us;
-        for (int i = 0; i < (fired ? fired : 1); i++)
-            loop();
-        if (loop_wdt && now_us - before > TWDT_TIMEOUT_US)
+        if (now_us >= hung_until_us) {
+            for (int i = 0; i < (fired ? fired : 1); i++) {
+                uint64_t before = now_us;
+                loop();
+                if (now_us - before > TWDT_TIMEOUT_US)
+                    loop_returned_us = before;  /* this pass alone held it too long */
+                else
+                    loop_returned_us = now_us;
+            }
+        }
+        if (loop_wdt && now_us - loop_returned_us > TWDT_TIMEOUT_US)
             wdt_expired = 1;
         for (int i = 0; i < 4; i++)
             if (hw_timers[i].used && hw_timers[i].armed && hw_timers[i].next_us < next)
@@ -758,6 +916,13 @@ int host_advance(uint32_t us)
     }
     integrate();
     return wdt_expired;
+}
+
+/* loop() hangs from now for `us` (a bug: a wait that never ends): the timer's interrupts go on, the task
+ * watchdog counts from its last return. */
+void host_hang_loop(uint32_t us)
+{
+    hung_until_us = now_us + us;
 }
 
 /* Motor k's bridge over the time since the last call: pwm in [-1, 1] (forward minus reverse share),
