@@ -41,6 +41,7 @@ import numpy as np
 from twin.device.mjcf import load_model
 from twin.device.spec import DeviceSpec
 from twin.device.variation import BOUNDED, SPREAD
+from twin.hil.calibration import Estimate
 from twin.sim.hinges import Hinges, place_hinges
 from twin.sim.plant import HingeDraw, Plant, PlantOptions
 
@@ -269,7 +270,7 @@ def fit_hinge(moves: list[Move], spec: DeviceSpec, progress=None) -> HingeFit:
         moved = [-inv @ A.T @ B[:, j] * math.log(e) for e in ends]
         lo_shift += np.minimum(0.0, np.minimum(*moved))
         hi_shift += np.maximum(0.0, np.maximum(*moved))
-        held[p] = tuple(getattr(spec, p) * f for f in (1.0, *ends))
+        held[p] = tuple(float(getattr(spec, p) * f) for f in (1.0, *ends))
     values = np.array([getattr(spec, p) for p in FITTED]) * np.exp(x)
     low, high = values * np.exp(-Z95 * sd + lo_shift), values * np.exp(Z95 * sd + hi_shift)
     return HingeFit(k, dict(zip(FITTED, values)), dict(zip(FITTED, low)), dict(zip(FITTED, high)),
@@ -296,13 +297,14 @@ def autocorrelation(res: np.ndarray, which: np.ndarray) -> float:
     return total
 
 
-def identify(run_program, spec: DeviceSpec, hinges=None, progress=None) -> tuple[list[HingeFit], float]:
-    """Run every hinge's `programs` with run_program(hinge, segments, window_counts, timeout_s) -> ProgramRun
-    (Link.run_program on the device) and fit each hinge (`fit_hinge`). hinges: which (default all).
-    progress(message). Returns the fits and the programs' device time, s."""
-    fits, device_s = [], 0.0
+def experiments(run_program, spec: DeviceSpec, hinges=None, progress=None) -> tuple[dict, float]:
+    """Run each hinge's `programs` with run_program(hinge, segments, window_counts, timeout_s) -> ProgramRun
+    (Link.run_program on the device), back to back. hinges: which (default all). progress(message). Returns
+    {hinge: [Move]} and the programs' device time, s."""
+    moves, device_s = {}, 0.0
     for k in (range(spec.n_hinges) if hinges is None else hinges):
-        moves, todo = [], programs(spec, k)
+        todo = programs(spec, k)
+        moves[k] = []
         for i, p in enumerate(todo):
             if progress:
                 progress(f"hinge {k}: move {i + 1}/{len(todo)}")
@@ -310,6 +312,35 @@ def identify(run_program, spec: DeviceSpec, hinges=None, progress=None) -> tuple
             device_s += len(run.time_s) * spec.firmware_dt
             move = move_of(run, spec)
             if move is not None and len(move.duty) > 2 * SPEED_TICKS:
-                moves.append(move)
-        fits.append(fit_hinge(moves, spec, progress))
-    return fits, device_s
+                moves[k].append(move)
+    return moves, device_s
+
+
+PROFILED = FITTED[:3]  # what the profile keeps per hinge (the resistance is the winding's now: it warms and
+# cools with use, so the profile keeps the datasheet's and the fit says what it found)
+
+
+def estimates(fit: HingeFit, spec: DeviceSpec, max_halfwidth: float) -> dict:
+    """A hinge's fit as calibration's estimates ({field: twin.hil.calibration.Estimate}, the prior the
+    profile's value): identifiable where its 95 % interval is within x(1 -+ max_halfwidth) of its value."""
+    out = {}
+    held = ", ".join(HELD)
+    for p in FITTED:
+        v, lo, hi = float(fit.values[p]), float(fit.low[p]), float(fit.high[p])
+        pinned = bool(v / lo <= 1 + max_halfwidth and hi / v <= 1 + max_halfwidth)
+        out[p] = Estimate(v, float(getattr(spec, p)), lo, hi, pinned,
+                          f"open-loop moves, replayed on the twin; interval x{lo / v:.3f} .. x{hi / v:.3f} of the value "
+                          f"({held} held, anywhere in their ranges)" + ("" if pinned else ": not identifiable"))
+    return out
+
+
+def shared_estimates(per_hinge: list[dict]) -> dict:
+    """One estimate per field for the device as a whole: the hinges' geometric mean, the interval spanning
+    every hinge's, identifiable where every hinge's is (the profile's shared values; each hinge keeps its own)."""
+    out = {}
+    for p in per_hinge[0]:
+        es = [h[p] for h in per_hinge]
+        v = math.exp(sum(math.log(e.value) for e in es) / len(es))
+        out[p] = Estimate(v, es[0].prior, min(e.low for e in es), max(e.high for e in es), all(e.identifiable for e in es),
+                          "the hinges' geometric mean, the interval spanning each hinge's own")
+    return out
