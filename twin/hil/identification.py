@@ -159,8 +159,10 @@ def twin_options(spec: DeviceSpec, k: int, scales: dict) -> PlantOptions:
 
 
 def replay(spec: DeviceSpec, k: int, scales: dict, moves: list[Move]) -> list[np.ndarray]:
-    """The twin's encoder counts through each move on hinge k: its duties applied from rest at its first
-    count's angle (the other hinges flat and braked, as the core drives them in IDLE), as long as it lasted.
+    """The twin's encoder counts through each move on hinge k, unrounded (the device's floor to a count; the
+    twin's, unrounded, move smoothly with its values, so that their sensitivities do): its duties applied
+    from rest at its first count's angle (the other hinges flat and braked, as the core drives them in IDLE),
+    as long as it lasted.
     scales: as `twin_options`', and resistance (x the winding's: a warm winding, its motor constant kept)."""
     hot = spec.resistance * scales.get("resistance", 1.0)
     # the spec derives K from the datasheet's no-load point and the resistance: the no-load speed moves to keep K
@@ -178,11 +180,13 @@ def replay(spec: DeviceSpec, k: int, scales: dict, moves: list[Move]) -> list[np
         mujoco.mj_forward(plant.model, plant.data)  # (the twin's encoder misses no edge: its counts are the shaft's)
         counts = np.zeros(len(m.duty))
         pwm = np.zeros(n)
+        per_rad = spec.counts_per_motor_rev / (2 * math.pi)
         for i, d in enumerate(m.duty):
-            counts[i] = plant.sense()[k]
+            plant.sense()
+            counts[i] = plant.data.sensordata[plant.hinges.enc[k]] * per_rad  # unrounded: smooth in the values
             pwm[k] = max(-1.0, min(1.0, d * spec.drive_cap / plant.bus))
             plant.actuate(pwm, brake)
-        out.append(counts - counts[0] + m.counts[0])
+        out.append(counts - counts[0] + m.counts[0] + 0.5)
     return out
 
 
