@@ -68,7 +68,8 @@ def test_each_hinge_is_identified_on_a_drawn_plant(spec, seed, hinges):
 def test_calibrate_serial_writes_each_hinges_values_into_the_profile_and_tune_reads_them(emulator, capsys):
     """`vrscroll calibrate --serial PORT --device NAME --json -` on a drawn plant lying flat over a real pty:
     per hinge value, low, high and identifiable for each profiled parameter (SI), the profile keeping them, and
-    `vrscroll tune --device NAME` tuning over each hinge's intervals."""
+    `vrscroll tune --device NAME` tuning over each hinge's intervals (pushing nothing where no gains keep the
+    limit over them: then naming the limit and the interval that drives the worst case)."""
     emu = emulator("--lying-flat", *emulator_args(4))
     hinges = drawn_hinges(emu)
     assert vrscroll(["calibrate", "--serial", emu.port, "--device", "flat4", "--json", "-"]) == 0
@@ -83,9 +84,12 @@ def test_calibrate_serial_writes_each_hinges_values_into_the_profile_and_tune_re
     profile = select_profile("flat4")
     assert profile.hinge_ranges() == [{p: (h["parameters"][p]["low"], h["parameters"][p]["high"]) for p in PROFILED}
                                       for h in out["hinges"]]
-    assert vrscroll(["tune", "--device", "flat4", "--population", "8", "--generations", "2", "--json", "-"]) == 0
+    rc = vrscroll(["tune", "--device", "flat4", "--population", "8", "--generations", "2", "--json", "-"])
     tuned = json.loads(capsys.readouterr().out)
     assert set(tuned["goal"]["ranges"]) == set(PROFILED)
+    assert [list(r) for r in tuned["goal"]["hinge_ranges"]] == [list(PROFILED)] * 6
+    # where no gains keep the limit over every hinge's intervals, tune says which limit and which interval
+    assert rc == 0 or (rc == 1 and tuned["limits_broken"] and tuned["worst_case_range"][0]["parameter"] in PROFILED)
 
 
 @pytest.mark.slow
