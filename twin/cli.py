@@ -36,7 +36,7 @@ COMMANDS = {
     "tune": ("twin.commands.tune", "tune PID gains per hinge on the twin (robust to tolerances); --serial confirms"),
     "hil": ("twin.commands.hil", "play a scenario on the device and the twin; traces, metrics, plots, report"),
     "scenario": ("twin.commands.scenario", "write the calibration scenario for the device's gains, to record with hil"),
-    "calibrate": ("twin.commands.calibrate", "fit the twin's motor and gearbox parameters to recorded HIL runs"),
+    "calibrate": ("twin.commands.calibrate", "fit the twin's motor and gearbox parameters to recorded HIL runs, or (--serial) to the device's own experiments"),
     "holding": ("twin.commands.holding", "what the device does when its drive is cut: releases under gravity, the "
                                          "gearboxes' back-driven efficiency fitted, the twin's prediction"),
     "redirect": ("twin.commands.redirect", "pen redirection field of an approximation; redirect pen samples (CSV)"),

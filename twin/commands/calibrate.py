@@ -1,9 +1,12 @@
-"""`vrscroll calibrate RUN... --holdout RUN`: fit the twin's plant to recorded HIL runs, say what the runs
-show and what they do not (docs/tuning-hil-calibration.md; `vrscroll scenario` writes the scenario to record)."""
+"""`vrscroll calibrate --serial PORT --device NAME`: run the device's identification experiments (open-loop
+programs its firmware runs, the device lying flat) and fit each hinge's drive train on the twin's replays of
+them; `vrscroll calibrate RUN... --holdout RUN`: fit the twin's plant to recorded HIL runs. Each says what it
+shows and what it does not (docs/tuning-hil-calibration.md; `vrscroll scenario` writes the scenario to record)."""
 
 from __future__ import annotations
 
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +15,9 @@ from twin.commands.options import (
     add_device_option,
     add_json,
     add_refused,
+    add_serial,
     add_threads,
+    device_session,
     json_to_stdout,
     output_file,
     select_profile,
@@ -26,12 +31,18 @@ from twin.device.spec_toml import shown, shown_range, spec_units, write_spec_tom
 from twin.errors import UserError
 from twin.formats.profile import write_profile_spec
 from twin.formats.run import read_run
-from twin.hil.calibration import calibrate, calibrate_hinges, floor_deg, trace_rmse, unexplained
+from twin.hil.calibration import MAX_HALFWIDTH, calibrate, calibrate_hinges, floor_deg, trace_rmse, unexplained
 from twin.hil.compare import not_followed
+from twin.hil.identification import PROFILED, estimates, experiments, fit_hinge, shared_estimates
+from twin.link.serial_link import LinkError, NackError
 
 
 def add_arguments(p) -> None:
     p.add_argument("runs", nargs="*", metavar="RUN", help="HIL run folders (vrscroll hil --out) to fit to")
+    add_serial(p, required=False, what="the device to identify instead, lying flat on a table with its zero "
+                                       "confirmed there (`vrscroll zero`): it runs its own open-loop experiments, "
+                                       "each hinge raised off the table and driven back")
+    p.add_argument("--log", help="with --serial: the session log, JSON lines")
     p.add_argument("--holdout", metavar="RUN", help="a HIL run folder not fitted to: fit error before/after")
     p.add_argument("--out", type=output_file,
                    help="also write the calibrated spec to this TOML (without a device profile: default "
@@ -66,6 +77,10 @@ def _profile(args):
 def run(args) -> int:
     profile, new = _profile(args)
     name = args.device or profile.name
+    if args.serial:
+        if args.runs or args.holdout or args.per_hinge:
+            raise UserError("--serial identifies the device itself: give no runs, --holdout or --per-hinge with it")
+        return _identify(args, profile, name, new)
     if not args.runs:
         raise UserError("give the HIL run folders to fit to (`vrscroll scenario FILE` writes the scenario to record)")
     if args.holdout and any(Path(args.holdout).resolve() == Path(r).resolve() for r in args.runs):
@@ -227,3 +242,65 @@ def _print_hinge_fit(fit: dict, units: dict) -> None:
             for r in rows:
                 print(f"  hinge {r['hinge']}: {r['rmse_shared_deg']:.3f} -> {r['rmse_per_hinge_deg']:.3f}; "
                       f"floor {r['floor_deg']:.3f}; unexplained {r['unexplained_deg']:.3f}")
+
+
+def _identify(args, profile, name, new) -> int:
+    """`calibrate --serial`: the experiments on the device, each hinge fitted, the profile written, a report."""
+    quiet = json_to_stdout(args)
+    say = None if quiet else (lambda message: print(message, flush=True))
+    start = time.monotonic()
+    try:
+        with device_session(args, profile.spec) as (link, spec):
+            if not quiet:
+                print(f"device profile: {name or profile.label} (prior: {'spec defaults' if new else profile.label}); "
+                      "identifying each hinge, the device lying flat", flush=True)
+            moves, device_s = experiments(link.run_program, spec, progress=say)
+            port = link.url
+        fits = [fit_hinge(m, spec, say) for m in moves.values()]
+    except NackError as exc:
+        raise UserError(f"the device refused an experiment ({exc}): it runs them IDLE with its zero confirmed, "
+                        "lying flat (`vrscroll zero --serial PORT`)") from None
+    except LinkError as exc:
+        raise UserError(f"link: {exc}") from None
+    except ValueError as exc:
+        raise UserError(f"identification: {exc}") from None
+    wall = time.monotonic() - start
+    per_hinge = [estimates(f, spec, MAX_HALFWIDTH) for f in fits]
+    shared = shared_estimates([{p: e[p] for p in PROFILED} for e in per_hinge])
+    written = []
+    if name:
+        source = f"identified on {port} (vrscroll calibrate --serial)"
+        calibration = {"runs": [f"{port}: identification experiments"],
+                       "parameters": {p: e.to_json() for p, e in shared.items()},
+                       "hinges": [{p: e[p].to_json() for p in PROFILED} for e in per_hinge]}
+        written.append(str(write_profile_spec(name, {p: e.value for p, e in shared.items()}, source,
+                                              calibration=calibration)))
+        set_default(name)
+    out = {"device_profile": name or profile.label, "prior": "spec defaults" if new else profile.label,
+           "written": written, "port": port,
+           "parameters": {p: e.to_json() for p, e in shared.items()},
+           "hinges": [{"hinge": f.hinge, "parameters": {p: e.to_json() for p, e in est.items()},
+                       "held": {p: {"value": v, "low": lo, "high": hi} for p, (v, lo, hi) in f.held.items()},
+                       "rms_speed_rad_s": round(f.rms_speed, 4), "windows": f.windows, "replays": f.replays}
+                      for f, est in zip(fits, per_hinge)],
+           "device_time_s": round(device_s, 2), "wall_time_s": round(wall, 1)}
+    write_json(args.json, out)
+    if quiet:
+        return 0
+    units = spec_units(SPEC_PATH)
+    print(f"identified in {wall:.0f} s ({device_s:.1f} s of experiments on the device); per hinge each value in "
+          "the spec file's unit, its 95 % interval, and both as multiples of the prior:")
+    for f, est in zip(fits, per_hinge):
+        print(f"  hinge {f.hinge} (speed residual {f.rms_speed:.2f} rad/s over {f.windows} windows):")
+        for p, e in est.items():
+            unit = units.get(p, "")
+            print(f"    {p:<14} {shown(e.value, unit)}  interval {shown_range(e.low, e.high, unit)}  "
+                  f"(x{e.value / e.prior:.3f}, x{e.low / e.prior:.3f} .. x{e.high / e.prior:.3f})  "
+                  f"{'identifiable' if e.identifiable else 'NOT IDENTIFIABLE'}")
+    print("held, not shown by the experiments (each anywhere in its range widens the intervals above): "
+          + ", ".join(f"{p} {shown(v, units.get(p, ''))} (x{lo / v:.2g} .. x{hi / v:.2g})"
+                      for p, (v, lo, hi) in fits[0].held.items()))
+    print("the profile keeps each hinge's " + ", ".join(PROFILED) + " (the resistance is the winding's now: it "
+          "warms and cools with use)")
+    print("calibrated spec written to " + (", ".join(written) if written else "nothing (--device NAME keeps it)"))
+    return 0

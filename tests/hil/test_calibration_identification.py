@@ -1,0 +1,116 @@
+"""The identification experiments and the per-hinge fit (issue 36) on plants nobody chose: the emulator draws
+its plant within its stated ranges (each hinge its own values, the cogging, friction ripple and warming
+winding the twin leaves out), lying flat on a table; the drawn values are read only to judge.
+
+What is asserted is what the fit achieves on every plant tried (docs/tuning-hil-calibration.md,
+"Identification", has the measured figures): every hinge fitted, each value inside its interval, the no-load
+speed within 10 % of the drawn value, its 95 % interval holding it and no wider than x1.5; the issue's targets for the friction and the
+rotor inertia are measured by benchmarks/bench_calibration.py --identify, not met yet, and not asserted."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from emulated_programs import EmulatedDevice
+from random_plant import drawn_hinges, emulator_args
+from twin.cli import main as vrscroll
+from twin.commands.options import select_profile
+from twin.hil.identification import FITTED, PROFILED, WINDOW_DEG, experiments, fit_hinge, programs
+from twin.link.serial_link import program_message
+
+SPEED_WIDTH = 1.5  # the no-load speed's 95 % interval at most this wide (high / low): the issue's bound
+SPEED_ERROR = 0.10  # the no-load speed within this of the drawn value: the issue's bound
+
+
+def test_the_experiments_keep_each_flap_off_the_table_within_the_programs_bounds(spec):
+    """Lying flat, a flap can only be raised: every move up ends at the window's top, every move down at its
+    bottom, above the table; each program is one the device accepts (the host's checks are the core's)."""
+    top, bottom = (math.radians(a) / spec.rad_per_count for a in (WINDOW_DEG[1], WINDOW_DEG[0]))
+    for k in range(spec.n_hinges):
+        moves = programs(spec, k)
+        assert {m.segments[-1][0] > 0 for m in moves} == {True, False}
+        for m in moves:
+            program_message(m.hinge, m.segments, m.window, m.timeout_s)  # ValueError outside the bounds
+            assert m.segments[0][0] == 0.0  # each starts braked, the flap at rest
+            if m.segments[-1][0] > 0:
+                assert m.window[1] <= top + 1
+            else:
+                assert m.window[0] >= bottom - 1 > 0
+
+
+@pytest.mark.parametrize("seed, hinges", [(3, (3,)), (11, (0,))])
+def test_each_hinge_is_identified_on_a_drawn_plant(spec, seed, hinges):
+    """A hinge of a drawn plant (beside the root, lifting three flaps; the outermost, lifting one): the
+    experiments run by the firmware core never drive a flap below the window's bottom, and the fit gives
+    every value inside its interval, the no-load speed within 10 % of the drawn value, its interval holding it
+    and no wider than x1.5."""
+    dev = EmulatedDevice(spec, seed)
+    moves, device_s = experiments(dev.run_program, spec, hinges)
+    bottom = math.radians(WINDOW_DEG[0]) / spec.rad_per_count
+    for k in hinges:
+        assert len(moves[k]) == len(programs(spec, k))
+        for m in moves[k]:
+            driven_down = (m.duty < 0) & np.isfinite(m.counts)
+            assert np.all(m.counts[driven_down] >= bottom - 30)  # the core's look-ahead stops it at the window
+        fit = fit_hinge(moves[k], spec)
+        for p in FITTED:
+            assert 0 < fit.low[p] <= fit.values[p] <= fit.high[p], p
+        truth = dev.truth[k].no_load_speed
+        assert fit.low["no_load_speed"] <= truth <= fit.high["no_load_speed"]
+        assert fit.high["no_load_speed"] / fit.low["no_load_speed"] <= SPEED_WIDTH
+        assert abs(fit.values["no_load_speed"] / truth - 1) <= SPEED_ERROR
+    assert 1.0 < device_s < 10.0  # a hinge's experiments: seconds of device time
+
+
+@pytest.mark.slow
+def test_calibrate_serial_writes_each_hinges_values_into_the_profile_and_tune_reads_them(emulator, capsys):
+    """`vrscroll calibrate --serial PORT --device NAME --json -` on a drawn plant lying flat over a real pty:
+    per hinge value, low, high and identifiable for each profiled parameter (SI), the profile keeping them, and
+    `vrscroll tune --device NAME` tuning over each hinge's intervals (pushing nothing where no gains keep the
+    limit over them: then naming the limit and the interval that drives the worst case)."""
+    emu = emulator("--lying-flat", *emulator_args(4))
+    hinges = drawn_hinges(emu)
+    assert vrscroll(["calibrate", "--serial", emu.port, "--device", "flat4", "--json", "-"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [h["hinge"] for h in out["hinges"]] == list(range(6))
+    for h in out["hinges"]:
+        for p in PROFILED:
+            e = h["parameters"][p]
+            assert isinstance(e["identifiable"], bool) and 0 < e["low"] <= e["value"] <= e["high"]
+        e, truth = h["parameters"]["no_load_speed"], hinges[h["hinge"]]["no_load_speed"]
+        assert e["low"] <= truth <= e["high"]
+    profile = select_profile("flat4")
+    assert profile.hinge_ranges() == [{p: (h["parameters"][p]["low"], h["parameters"][p]["high"]) for p in PROFILED}
+                                      for h in out["hinges"]]
+    rc = vrscroll(["tune", "--device", "flat4", "--population", "8", "--generations", "2", "--json", "-"])
+    tuned = json.loads(capsys.readouterr().out)
+    assert set(tuned["goal"]["ranges"]) == set(PROFILED)
+    assert [list(r) for r in tuned["goal"]["hinge_ranges"]] == [list(PROFILED)] * 6
+    # where no gains keep the limit over every hinge's intervals, tune says which limit and which interval
+    assert rc == 0 or (rc == 1 and tuned["limits_broken"] and tuned["worst_case_range"][0]["parameter"] in PROFILED)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="not met yet: on 20 plants x 6 hinges 92/120 no-load speeds within 10 % with "
+                   "an interval no wider than x1.5 (hinges 2 and 4 miss most; seed 15's hinges 2 and 3 -52 %), "
+                   "112/120 intervals hold the drawn value (benchmarks/bench_calibration.py --identify)")
+def test_twenty_drawn_plants_every_hinges_no_load_speed(spec):
+    """The issue's criteria on 20 drawn plants x 6 hinges, for the value the experiments pin down: the no-load
+    speed within 10 % of the drawn value and its 95 % interval no wider than x1.5 on every hinge, the intervals
+    holding the drawn value in at least 90 % of cases. (The friction's and the rotor inertia's figures:
+    benchmarks/bench_calibration.py --identify.)"""
+    held, n, misses = 0, 0, []
+    for seed in range(1, 21):
+        dev = EmulatedDevice(spec, seed)
+        moves, _ = experiments(dev.run_program, spec)
+        for k, m in moves.items():
+            fit, truth = fit_hinge(m, spec), dev.truth[k].no_load_speed
+            v, lo, hi = fit.values["no_load_speed"], fit.low["no_load_speed"], fit.high["no_load_speed"]
+            n += 1
+            held += lo <= truth <= hi
+            if abs(v / truth - 1) > SPEED_ERROR or hi / lo > SPEED_WIDTH:
+                misses.append(f"seed {seed} hinge {k}: {v / truth:.3f} x the drawn value, interval x{hi / lo:.3f} wide")
+    assert not misses, misses
+    assert held >= 0.9 * n, f"{held} of {n} intervals hold the drawn value"
