@@ -46,6 +46,7 @@ COMMANDS = {
     "device": ("twin.commands.device", "list, show, select or create device profiles (calibrated spec and gains)"),
     "view": ("twin.commands.view", "replay a HIL run's device and twin side by side: MuJoCo's viewer, or a video "
                                    "and a contact sheet without a display"),
+    "cache": ("twin.commands.cache", "show what the cache folder holds (fields, firmware builds), or clear it"),
     "compare": ("twin.commands.compare", "HIL runs of one scenario side by side: per hinge RMSE, settle, overshoot, plot"),
 }
 

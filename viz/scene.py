@@ -29,12 +29,13 @@ def _nice_ceiling(x: float) -> float:
 
 def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.ndarray, widths,
                          path: str | Path, title: str = "", notes=(), start_frames: np.ndarray | None = None,
-                         window_size=(1200, 900)) -> Path:
+                         window_size=(1200, 900), failed: str | None = None) -> Path:
     """Write a PNG of the target (grey) and the device's flaps coloured by signed distance to it (mm; below 0,
     red, inside the target; blue above it), the colour scale symmetric about 0 and running to the largest
     distance (rounded up to 1, 2 or 5 x 10^k, at least 0.5 mm) so the fit's own spread is seen, and where the
     flaps lie inside the target, how much and how deep, noted; `notes` (lines of text, e.g. hinge angles)
-    lower left; where start_frames are given, the device where it started, as a black outline.
+    lower left; where start_frames are given, the device where it started, as a black outline; where `failed`
+    is given (what refused the pose, e.g. the gate's failed checks), FAILED and it in red, upper right.
 
     frames, start_frames: world flap frames (n_flaps, 4, 4), e.g. `Approximation.frames(spec)`; widths: m.
     """
@@ -66,6 +67,8 @@ def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.nda
         plotter.add_text(title, font_size=10)
     if notes:
         plotter.add_text("\n".join(notes), position="lower_left", font_size=8)
+    if failed:
+        plotter.add_text(f"FAILED: {failed}", position="upper_right", font_size=14, color="red")
     plotter.camera_position = "iso"
     plotter.reset_camera()
     path = Path(path)

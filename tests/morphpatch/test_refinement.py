@@ -16,7 +16,8 @@ from twin.device.kinematics import pose_matrix
 from twin.evaluation.starts import approach_starts
 from twin.morphpatch.approximation import VARIANTS, approximate, root_pose
 from twin.morphpatch.fields import build_fields, exact_signed_distance
-from twin.morphpatch.refinement import ANCHOR_RADIUS, uncurled
+from twin.morphpatch.refinement import ANCHOR_RADIUS, INSIDE_LIMIT, uncurled
+from twin.morphpatch.resting import DEEP_SHARE_MAX, DEEPEST_MAX, FLAP_APART_MIN, resting
 from twin.morphpatch.shapes import load_shape, shape_names, sweep_solid
 from twin.sim.gate import check_move
 from twin.sim.twin import Twin
@@ -71,46 +72,46 @@ def test_hcevf_translation_keeps_the_anchor_on_a_wave(spec):
         assert abs(exact_signed_distance(wave, result.root_pose[None, :3, 3])[0][0]) < ANCHOR_INSIDE
 
 
-def assert_well_below_full(results):
-    """The refinement's bounds on {shape: {variant: [measured results]}}: at least 20 % lower mean MSD and 15 % lower
-    mean HD than full on every shape, 50 % lower MSD averaged over the shapes, and no start's MSD more than
-    0.5 mm above full's."""
-    drops = []
+def assert_rests_and_fits(spec, meshes, results):
+    """Ours on {shape: {variant: [measured results]}} (issue 37: the 20 %-below-full goal of issue 22 is retired,
+    full goes through the target where ours may not): every result of ours rests on the target from outside
+    (twin.morphpatch.resting's bar, exact mesh), and from every start where full's own pose keeps within ours'
+    search's bounds too (no deeper than INSIDE_LIMIT, flaps apart), ours' MSD is at most 0.5 mm above full's."""
     for name, by_variant in results.items():
-        full = np.array([[r.msd, r.hd] for r in by_variant["full"]])
-        ours = np.array([[r.msd, r.hd] for r in by_variant["refined"]])
-        msd_drop, hd_drop = 1 - ours.mean(axis=0) / full.mean(axis=0)
-        assert msd_drop >= 0.2, (name, msd_drop)
-        assert hd_drop >= 0.15, (name, hd_drop)
-        worst = np.argmax(ours[:, 0] - full[:, 0])
-        assert ours[worst, 0] - full[worst, 0] <= 0.5e-3, (name, worst, ours[worst, 0], full[worst, 0])
-        drops.append(msd_drop)
-    assert np.mean(drops) >= 0.5
+        for full, ours in zip(by_variant["full"], by_variant["refined"]):
+            r = resting(spec, meshes[name], None, ours, through=False)
+            assert r.deepest <= DEEPEST_MAX and r.deep_share <= DEEP_SHARE_MAX, (name, r)
+            f = resting(spec, meshes[name], None, full, through=False)
+            if f.deepest <= INSIDE_LIMIT and f.gap >= FLAP_APART_MIN:  # full within ours' own search bounds
+                assert ours.msd <= full.msd + 0.5e-3, (name, ours.msd, full.msd)
 
 
-def test_ours_is_well_below_full_on_every_shape(runs):
-    assert_well_below_full({name: results for name, (_, _, _, results) in runs.items()})
+def test_ours_rests_and_fits_where_full_rests_on_every_shape(spec, runs):
+    assert_rests_and_fits(spec, {n: m for n, (m, _, _, _) in runs.items()},
+                          {name: results for name, (_, _, _, results) in runs.items()})
 
 
 @pytest.mark.slow  # 11 s; the same bounds on the fixture's starts stay in the default suite
-def test_ours_is_well_below_full_from_starts_nobody_tuned_for(spec, runs):
-    """The refinement's bounds again, from FRESH_STARTS more starts per shape of a seed nothing else uses. Before,
-    the search ended after its first small gain, often a step cut short by the anchor's ball: on the
-    benchmark's starts a torus start ended 0.81 mm above full's MSD; and plain squared distances traded the
-    torus's flap tips buried 20-40 mm in the tube (its HD) against the mean: 12 % lower HD than full there."""
+def test_ours_rests_and_fits_from_starts_nobody_tuned_for(spec, runs):
+    """The same from FRESH_STARTS more starts per shape of a seed nothing else uses."""
     results = {}
     for name, (mesh, fields, _, _) in runs.items():
         starts = approach_starts(mesh, FRESH_STARTS, seed=FRESH_SEED)
         results[name] = {v: [approximate(fields, s, spec, v).measured(spec, mesh) for s in starts]
                          for v in ("full", "refined")}
-    assert_well_below_full(results)
+    assert_rests_and_fits(spec, {n: m for n, (m, _, _, _) in runs.items()}, results)
 
 
 def test_ours_keeps_the_anchor_where_the_user_brought_the_device(spec, runs):
     for name, (_, fields, starts, results) in runs.items():
         snapped = np.array([root_pose(fields, s, spec)[:3, 3] for s in starts])
         anchors = np.array([r.root_pose[:3, 3] for r in results["refined"]])
-        assert np.linalg.norm(anchors - snapped, axis=1).max() <= ANCHOR_RADIUS + 1e-9, name
+        normals = np.array([r.root_pose[:3, 2] for r in results["full"]])
+        # within the ball about the snapped point, lifted along the pipeline's normal where the start had to be
+        # lifted off the target (issue 37): the distance to that half-line
+        lift = np.maximum(np.einsum("ij,ij->i", anchors - snapped, normals), 0.0)
+        off = np.linalg.norm(anchors - snapped - lift[:, None] * normals, axis=1)
+        assert off.max() <= ANCHOR_RADIUS + 1e-9, name
 
 
 def test_every_result_of_ours_passes_the_gates_range_and_collision_checks(spec, runs):

@@ -61,8 +61,9 @@ def _write(tmp_path, name, data):
     ("text.stl", "hello, I am not a mesh\n", "no triangles|not a mesh"),
     ("nan.obj", "v 0 0 0\nv 0.1 0 0\nv nan 0.1 0\nv 0 0 0.1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n",
      "1 vertices are NaN"),
-    ("tiny.stl", trimesh.creation.box((0.005, 0.005, 0.005)), r"largest extent 0.005 m .*scale a millimetre file"),
-    ("huge.stl", trimesh.creation.box((10.0, 1.0, 1.0)), "largest extent 10 m"),
+    ("tiny.stl", trimesh.creation.box((0.001, 0.001, 0.001)),
+     r"largest extent 0.001 m \(1 mm, the file read in metres\) is below the 2 mm a target may span"),
+    ("huge.stl", trimesh.creation.box((10.0, 1.0, 1.0)), r"largest extent 10 m \(1e\+04 mm.*above the 5 m"),
     ("open.stl", trimesh.Trimesh(*(lambda b: (b.vertices, b.faces[:-1]))(trimesh.creation.box((0.1, 0.1, 0.1)))),
      "not watertight"),
 ])

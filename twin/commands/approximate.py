@@ -4,9 +4,15 @@ The target is a named shape (models/shapes/shapes.toml) or a mesh file in metres
 The start is the anchor's pose as x,y,z (mm), roll,pitch,yaw (deg, fixed axes:
 R = Rz(yaw) Ry(pitch) Rx(roll)); by default the shape's own `start` from
 shapes.toml, or for a mesh file 40 mm above the centre of its bounding box's top,
-level (device z up). The JSON carries MSD and HD (mm) on the exact mesh, and
-time_ms of a warm call (the process's first call, which loads compiled code, is
-run once before and not reported).
+level (device z up). The JSON carries MSD and HD (mm) on the exact mesh, how much of
+the touch surface lies inside the target and how deep (inside_percent, inside_depth_mm,
+inside_over_2mm_percent), the smallest gap between flaps two or more apart (flap_gap_mm),
+flaps through the target, and time_ms of a warm call (the process's first call, which
+loads compiled code, is run once before and not reported).
+
+A pose whose flaps meet (any variant), or for ours (refined) one that does not rest on the
+target from outside (twin.morphpatch.resting), is refused: one line saying why, exit 2, no
+JSON written.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from twin.errors import UserError
 from twin.formats.target import write_approximation
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
+from twin.morphpatch.resting import refusal, resting, resting_json
 from twin.morphpatch.shapes import load_mesh, load_shape, mesh_start, shape_names, shape_table
 from viz.scene import render_approximation
 
@@ -83,5 +90,9 @@ def run(args) -> int:
     fields = build_fields(mesh)
     approximate(fields, pose, spec, args.variant)  # warm-up: the first call in a process loads compiled code
     result = approximate(fields, pose, spec, args.variant).measured(spec, mesh)
-    write_result(args, name, start, result, mesh, spec)
+    rest = resting(spec, mesh, fields, result)
+    why = refusal(spec, mesh, rest, args.variant)
+    if why:
+        raise UserError(why)
+    write_result(args, name, start, result, mesh, spec, resting_json(rest))
     return 0

@@ -71,6 +71,8 @@ def run(args) -> int:
     approx = approximate(fields, pose, spec, args.variant).measured(spec, mesh)
     print(f"[2/5] {args.variant} approximated in {approx.time * 1e3:.2f} ms: MSD {approx.msd * 1e3:.2f} mm, "
           f"HD {approx.hd * 1e3:.2f} mm; hinges {np.degrees(approx.angles).round(1).tolist()} deg", flush=True)
+    print(f"      {approx.inside:.0%} of the touch surface inside the target, up to {approx.depth * 1e3:.1f} mm deep"
+          + ("" if approx.rests is not False else "; ours found no pose resting on it from outside"), flush=True)
 
     print("[3/5] validating and simulating the morph on the twin (firmware PID at 1 kHz) ...", flush=True)
     gate = check_move(spec, np.zeros(spec.n_hinges), approx.angles, profile.gains, twin=profile_twin(profile))
@@ -99,7 +101,10 @@ def run(args) -> int:
              "twin ended at:  " + " ".join(f"{a:.1f}" for a in np.degrees(end_angles)) + " deg"]
     render_approximation(spec, mesh, frames, approx.widths, args.png, notes=notes, start_frames=start_frames,
                          title=f"{name}, {args.variant}: twin after the morph, MSD {end.msd * 1e3:.2f} mm, "
-                               f"HD {end.hd * 1e3:.2f} mm")
+                               f"HD {end.hd * 1e3:.2f} mm",
+                         failed="; ".join(([] if gate.passed else ["the gate refused: " + ", ".join(c.name for c in gate.failed)])
+                                          + ([] if approx.rests is not False else ["no pose resting from outside"]))
+                         or None)
     print(f"[5/5] picture: {args.png}")
     if trace is not None:
         hinge_figure(args.plot, f"demo: {name} morph on the twin", [("twin", trace)], range(spec.n_hinges),

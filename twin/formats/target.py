@@ -20,6 +20,7 @@ from twin.device.spec import DeviceSpec
 
 APPROXIMATION_KEYS = ("root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm")
 OPTIONAL_KEYS = ("variant", "target", "start_mm_deg", "msd_mm", "hd_mm", "inside_percent", "inside_depth_mm", "time_ms",
+                 "inside_over_2mm_percent", "flap_gap_mm", "flaps_through",  # vrscroll approximate (issue 37)
                  # vrscroll cbs adds these
                  "collision_parts", "collision_error_mean_mm", "collision_error_max_mm", "touching_flaps")
 

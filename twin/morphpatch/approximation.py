@@ -66,7 +66,7 @@ from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_f
 from twin.device.spec import DeviceSpec, load_spec
 from twin.formats.target import APPROXIMATION_KEYS, OPTIONAL_KEYS, approximation_fields
 from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate, _path_clear
-from twin.morphpatch.refinement import flaps_through, objective, refine, uncurled
+from twin.morphpatch.refinement import objective, refine, uncurled
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
 from twin.morphpatch.surface_metrics import match
 
@@ -84,8 +84,10 @@ PRINCIPAL_MIN_TILT = math.radians(3)  # ... or their RMS tilt from the normal be
 # objective there is at most TURN_TRIED times the objective where the first refinement ended (`_refined`): the
 # local search keeps the direction step 4 gave the row, which on a cup or a plate's edge can lie along the side
 # the row cannot curl round (docs/approximation.md, "Turned starts")
+# (TURN_TRIED was 1 before the inside tail became steep (issue 37): a turned pipeline pose that curls a little
+# too far into a can costs up to twice its refined result, and at 1 the turned start a can needs was not tried)
 TURN = math.pi / 2
-TURN_TRIED = 1.0
+TURN_TRIED = 3.0
 WIDTH_RANGE = (0.5, 1.5)  # flap widths stay within these multiples of the pitch
 
 
@@ -102,6 +104,7 @@ class Approximation:
     hd: float | None = None  # m
     inside: float | None = None  # share (0..1) of the touch surface inside the target, once `measured`
     depth: float | None = None  # m, the deepest of it
+    rests: bool | None = None  # ours: whether the search found a pose resting on the target from outside
 
     def frames(self, spec: DeviceSpec) -> np.ndarray:
         """World poses (n_flaps, 4, 4) of the flaps' touch-surface frames."""
@@ -230,9 +233,11 @@ def approximate(fields: Fields, start, spec: DeviceSpec | None = None, variant: 
         if _path_clear(fields.grid, snapped[:3, 3], slid[:3, 3]):
             pose = slid
     angles, widths = _hinges_and_widths(fields, spec, lay, pose, variant != "no_hcevf")
+    rests = None
     if variant == "refined":
-        pose, angles, widths = _refined(fields, spec, lay, snapped[:3, 3], pose, angles, widths)
-    return Approximation(pose, angles, widths, time.perf_counter() - t0, variant)
+        pose, angles, rests = _refined(fields, spec, lay, snapped[:3, 3], pose, angles)
+        widths = np.full(spec.n_flaps, spec.flap_pitch)
+    return Approximation(pose, angles, widths, time.perf_counter() - t0, variant, rests=rests)
 
 
 def _hinges_and_widths(fields: Fields, spec: DeviceSpec, lay: _Layouts, pose, hcevf: bool = True):
@@ -247,27 +252,25 @@ def _hinges_and_widths(fields: Fields, spec: DeviceSpec, lay: _Layouts, pose, hc
     return angles, widths
 
 
-def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angles, widths):
+def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angles):
     """Ours: the refinement (twin.morphpatch.refinement) from the pipeline's pose and, where the objective at
-    that pose with the root turned by TURN about its normal (steps 6-7 redone there) is at most TURN_TRIED
-    times the objective where the first refinement ended, from that turned pose too; of the results the one
-    the objective prefers (root pose 4x4, hinge angles rad, widths m). A turned result with more flaps
-    through the target than the pipeline's pose is not taken."""
+    that pose with the root turned by TURN about its normal (step 6 redone there) is at most TURN_TRIED
+    times the objective where the first refinement ended, from that turned pose too; of the results that rest
+    on the target from outside the one the objective prefers: (root pose 4x4, hinge angles rad, whether it
+    rests). Flaps at the pitch: ours is a pose the device takes, judged as the device is built."""
+    widths = np.full(spec.n_flaps, spec.flap_pitch)
     local = lay.flap.local(widths)
-    p, a = refine(fields, spec, local, pose, angles, widths, centre)
-    cost = objective(fields, spec, local, p, a, widths)
+    p, a, rests = refine(fields, spec, local, pose, angles, widths, centre)
+    cost = objective(fields, spec, local, p, a, widths) if rests else np.inf
     turned = pose.copy()
     turned[:3, :3] = pose[:3, :3] @ _rot(2, TURN)
-    turned_angles, turned_widths = _hinges_and_widths(fields, spec, lay, turned)
-    turned_local = lay.flap.local(turned_widths)
-    if objective(fields, spec, turned_local, turned, uncurled(spec, turned_angles), turned_widths) > TURN_TRIED * cost:
-        return p, a, widths
-    tp, ta = refine(fields, spec, turned_local, turned, turned_angles, turned_widths, centre)
-    if objective(fields, spec, turned_local, tp, ta, turned_widths) >= cost or \
-            flaps_through(fields, spec, tp, ta, turned_widths) > flaps_through(fields, spec, pose, uncurled(spec, angles),
-                                                                            widths):
-        return p, a, widths
-    return tp, ta, turned_widths
+    turned_angles, _ = _hinges_and_widths(fields, spec, lay, turned, hcevf=False)
+    if rests and objective(fields, spec, local, turned, uncurled(spec, turned_angles), widths) > TURN_TRIED * cost:
+        return p, a, True
+    tp, ta, turned_rests = refine(fields, spec, local, turned, turned_angles, widths, centre)
+    if not turned_rests or objective(fields, spec, local, tp, ta, widths) >= cost:
+        return p, a, rests
+    return tp, ta, True
 
 
 def root_pose(fields: Fields, start, spec: DeviceSpec) -> np.ndarray:

@@ -35,10 +35,21 @@ Queries are the approximation's hot path:
   grid point's target edge: V(q) = e*(round(q)) - q (`_hcevf_at(Fields.edge_grid, x, y, z)`,
   compiled).
 
-Caching: `build_fields` keeps built fields in an in-memory dict keyed by a hash of
-the mesh's vertices and faces and the build parameters, and on disk as .npz under
+Size: a grid of more than MAX_GRID_POINTS points is built coarser instead (its spacing
+the smallest that stays within it, said on stderr): a 1 m box at 3 mm is 64 million points
+and 7.6 GB to build; the device, 188 x 175 mm, lies on a face either way, and trilinear
+interpolation of a flat face's distance is exact at any spacing.
+
+Caching: `build_fields` keeps the last MEMORY_ENTRIES built fields in memory, keyed by a
+hash of the mesh's vertices and faces and the build parameters, and on disk as .npz under
 $VRSCROLL_CACHE (default ~/.cache/vrscroll/fields), so the command line does not
-rebuild them on every call.
+rebuild them on every call. The disk cache is capped (CACHE_CAP bytes: the least
+recently used files go first; `vrscroll cache` shows and clears it). A cache file is
+trusted only once checked (`_checked`): its version, the mesh's key stored inside it,
+every array's shape and type, finite values, the grid the mesh and parameters give
+(origin, spacing, size), the distance positive at the grid's corners (outside the mesh by
+the margin: a negated field fails), every edge index within the edge list. Anything else
+is rebuilt, with a one-line notice; no unchecked array reaches compiled code.
 """
 
 from __future__ import annotations
@@ -70,10 +81,14 @@ PATH_DEPTH = 1e-3  # m: an anchor's path may graze the target this deep (the gri
 PATH_STEP = 1e-3  # m between the samples of such a path
 CHORD_DEPTH = 2e-3  # m: a straight line across the refinement's whole slide may dip this deep (a chord of a curved
 # surface the anchor slid along: 20 mm on a 25 mm radius dips 2 mm), short of the 2.5 mm the exact mesh is held to
-_VERSION = 2  # bump when the stored arrays change meaning
+_VERSION = 3  # bump when the stored arrays change meaning (3: the key and version stored inside the file)
+MAX_GRID_POINTS = 4_000_000  # a grid with more points is built coarser (module docstring): about 0.6 GB to build
+MEMORY_ENTRIES = 8  # built fields kept in memory
+CACHE_CAP = 1_000_000_000  # bytes: the fields' disk cache is trimmed to this, least recently used first
 
 _MEMORY: dict[str, "Fields"] = {}
 FIELD_ARRAYS = ("origin", "spacing", "sdf", "edges", "edge_index", "curvature", "min_curvature", "edge_radius")
+CACHE_ARRAYS = FIELD_ARRAYS + ("key", "version")
 CHUNK = 1 << 18  # grid points per chunk of a field build
 PROGRESS_AFTER = 1.0  # s: a field build that takes longer reports its progress on stderr, about once a second
 
@@ -276,7 +291,8 @@ def load_npz(path: Path, required=()) -> dict | None:
 def build_fields(mesh: trimesh.Trimesh, spacing: float = GRID_SPACING, margin: float = MARGIN,
                  min_curvature: float = MIN_CURVATURE, edge_radius: float | None = None,
                  disk_cache: bool = True) -> Fields:
-    """The fields of a watertight mesh (metres) on a grid of `spacing` m padded by `margin` m.
+    """The fields of a watertight mesh (metres) on a grid of `spacing` m (coarser where that grid would have
+    more than MAX_GRID_POINTS points: `grid_spacing`) padded by `margin` m.
 
     edge_radius: the HCEVF's distance threshold, m; default half the device's flap
     pitch, so that any edge attracts the one hinge line nearest to it.
@@ -284,19 +300,113 @@ def build_fields(mesh: trimesh.Trimesh, spacing: float = GRID_SPACING, margin: f
     """
     if edge_radius is None:
         edge_radius = load_spec().flap_pitch / 2
+    spacing = grid_spacing(mesh, spacing, margin)
     key = mesh_key(mesh, spacing=spacing, margin=margin, min_curvature=min_curvature, edge_radius=edge_radius)
     if key in _MEMORY:
+        _MEMORY[key] = _MEMORY.pop(key)  # the most recently used last
         return _MEMORY[key]
     path = cache_dir("fields") / f"{key}.npz"
-    arrays = load_npz(path, FIELD_ARRAYS) if disk_cache else None
-    if arrays is not None:
-        fields = Fields._from_arrays(arrays)
+    arrays = load_npz(path, CACHE_ARRAYS) if disk_cache else None
+    fields = _checked(arrays, key, mesh, spacing, margin, path) if arrays is not None else None
+    if fields is not None:
+        os.utime(path)  # used now: trimmed last
     else:
         fields = _compute(mesh, spacing, margin, min_curvature, edge_radius)
         if disk_cache:
-            save_npz(path, fields._arrays())
+            save_npz(path, {**fields._arrays(), "key": np.array(key), "version": np.array(_VERSION)})
+            trim_cache(cache_dir("fields"), CACHE_CAP, keep=path)
     _MEMORY[key] = fields
+    while len(_MEMORY) > MEMORY_ENTRIES:
+        del _MEMORY[next(iter(_MEMORY))]
     return fields
+
+
+def grid_spacing(mesh: trimesh.Trimesh, spacing: float = GRID_SPACING, margin: float = MARGIN) -> float:
+    """The spacing (m) of a mesh's grid: `spacing`, or where that grid over the bounding box padded by `margin`
+    would have more than MAX_GRID_POINTS points, the smallest (to 0.1 mm) that keeps it within them."""
+    size = np.asarray(mesh.extents, float) + 2 * margin
+    fine = spacing
+
+    def points(h):
+        return float(np.prod(np.ceil(size / h) + 1))
+    if points(spacing) > MAX_GRID_POINTS:
+        spacing = math.ceil(float(np.prod(size) / MAX_GRID_POINTS) ** (1 / 3) * 1e4) / 1e4
+        while points(spacing) > MAX_GRID_POINTS:
+            spacing += 1e-4
+    if spacing != fine:
+        print(f"vrscroll: the target is {size.max() - 2 * margin:.3g} m across: its fields on a {spacing * 1e3:.1f} mm "
+              f"grid, not {fine * 1e3:g} mm (at most {MAX_GRID_POINTS:,} grid points)", file=sys.stderr, flush=True)
+    return spacing
+
+
+def _checked(arrays: dict, key: str, mesh: trimesh.Trimesh, spacing: float, margin: float, path: Path) -> Fields | None:
+    """Fields from a cache file's arrays if they are this mesh's as `_compute` would build them (module
+    docstring), else None with a one-line notice on stderr."""
+    why = _cache_problem(arrays, key, mesh, spacing, margin)
+    if why is None:
+        return Fields._from_arrays(arrays)
+    print(f"vrscroll: cache file {path} is not this target's fields ({why}); building it again", file=sys.stderr,
+          flush=True)
+    return None
+
+
+def _cache_problem(a: dict, key: str, mesh: trimesh.Trimesh, spacing: float, margin: float) -> str | None:
+    """What is wrong with a cache file's arrays, or None."""
+    def scalar(name, kind):
+        v = a[name]
+        return v.shape == () and v.dtype.kind in kind
+    if not (scalar("version", "iu") and int(a["version"]) == _VERSION):
+        return "another version"
+    if not (scalar("key", "U") and str(a["key"]) == key):
+        return "another mesh's or parameters' key"
+    for name in ("spacing", "min_curvature", "edge_radius"):
+        if not (scalar(name, "f") and math.isfinite(float(a[name])) and float(a[name]) > 0):
+            return f"{name} is not a positive number"
+    lo, shape = _grid_of(mesh, spacing, margin)
+    if float(a["spacing"]) != spacing or a["origin"].shape != (3,) or a["origin"].dtype.kind != "f" or \
+            not np.allclose(a["origin"], lo, rtol=0, atol=1e-9):
+        return "another grid's origin or spacing"
+    for name in ("sdf", "curvature"):
+        if a[name].shape != tuple(shape) or a[name].dtype.kind != "f" or not np.all(np.isfinite(a[name])):
+            return f"{name} is not finite numbers on the grid"
+    sdf = a["sdf"]
+    if min(sdf[i, j, k] for i in (0, -1) for j in (0, -1) for k in (0, -1)) <= 0 or sdf.min() >= 0:
+        return "the distance's sign is wrong"
+    edges, index = a["edges"], a["edge_index"]
+    if edges.ndim != 2 or edges.shape[1] != 3 or edges.dtype.kind != "f" or not np.all(np.isfinite(edges)):
+        return "the edges are not finite points"
+    if index.shape != tuple(shape) or index.dtype.kind not in "iu" or index.min() < -1 or index.max() >= len(edges):
+        return "an edge index is outside the edge list"
+    return None
+
+
+def _grid_of(mesh: trimesh.Trimesh, spacing: float, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """The grid's origin (3,) m and shape (3,) for a mesh: its bounding box padded by margin, at spacing."""
+    lo = mesh.bounds[0] - margin
+    return lo, np.ceil((mesh.bounds[1] + margin - lo) / spacing).astype(int) + 1
+
+
+def cache_files(folder: Path) -> list[Path]:
+    """The cache's files under a folder, least recently used first (modification time: a load touches it)."""
+    files = [p for p in folder.rglob("*") if p.is_file()] if folder.is_dir() else []
+    return sorted(files, key=lambda p: p.stat().st_mtime)
+
+
+def trim_cache(folder: Path, cap: int, keep: Path | None = None) -> list[Path]:
+    """Remove the least recently used files under folder until they take at most `cap` bytes (never `keep`);
+    the files removed."""
+    files = cache_files(folder)
+    total = sum(p.stat().st_size for p in files)
+    removed = []
+    for p in files:
+        if total <= cap:
+            break
+        if p == keep:
+            continue
+        total -= p.stat().st_size
+        p.unlink(missing_ok=True)
+        removed.append(p)
+    return removed
 
 
 def exact_signed_distance(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -333,8 +443,7 @@ class _Progress:
 
 
 def _compute(mesh, spacing, margin, min_curvature, edge_radius) -> Fields:
-    lo = mesh.bounds[0] - margin
-    shape = np.ceil((mesh.bounds[1] + margin - lo) / spacing).astype(int) + 1
+    lo, shape = _grid_of(mesh, spacing, margin)
     empty = Fields(lo, spacing, np.zeros(shape), np.zeros((0, 3)), np.full(shape, -1), np.zeros(shape),
                    min_curvature, edge_radius)
     points = empty.grid_points()

@@ -24,7 +24,7 @@ SHAPES_PATH = MODELS_DIR / "shapes" / "shapes.toml"
 START_HEIGHT = 0.04  # m: a mesh's default start is this far above its top (mesh_start)
 TOP_BAND = 0.002  # m: the top of a mesh is its upward faces within this of its highest point
 TOP_SUPPORT = 0.002  # m: a start is over a point of the top with solid this far under it (at least half of it)
-MIN_SIZE = 0.01  # m: a target whose bounding box is smaller than this is an error (wrong units?)
+MIN_SIZE = 0.002  # m: a target whose bounding box is smaller than this is an error (a 1 cm sphere is a target)
 MAX_SIZE = 5.0  # m: ... or larger than this
 
 
@@ -112,9 +112,10 @@ def check_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
     """Validate a target mesh; returns it unchanged or raises MeshError."""
     check_finite(mesh, name)
     size = float(np.max(mesh.extents))
-    if size < MIN_SIZE or size > MAX_SIZE:
-        raise MeshError(f"{name}: largest extent {size:.4g} m is outside {MIN_SIZE}..{MAX_SIZE} m "
-                        "(units must be metres: scale a millimetre file by 0.001)")
+    if size < MIN_SIZE or size > MAX_SIZE:  # the size as read, in metres and in mm; no guess at the file's units
+        raise MeshError(f"{name}: largest extent {size:.4g} m ({size * 1e3:.4g} mm, the file read in metres) is "
+                        + (f"below the {MIN_SIZE * 1e3:g} mm" if size < MIN_SIZE else f"above the {MAX_SIZE:g} m")
+                        + " a target may span")
     if not mesh.is_watertight:
         raise MeshError(f"{name}: not watertight ({len(mesh.faces)} faces, open or non-manifold edges); "
                         "its inside is undefined, so no signed distance: close the holes first")
