@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import signal
 import sys
 
+from twin.commands.interrupts import interrupt_on_stop_signals
 from twin.commands.options import refuse_renamed
 from twin.errors import UserError
 
@@ -47,10 +47,6 @@ COMMANDS = {
 }
 
 
-def _terminated(signum, frame):
-    raise KeyboardInterrupt
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="vrscroll", description="VRScroll physics twin and MorphPatch tools.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -66,15 +62,23 @@ def main(argv=None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, already printed): the status, as for any command
         return exc.code
-    signal.signal(signal.SIGTERM, _terminated)  # SIGTERM as Ctrl-C: a session with the device e-stops it
+    interrupt_on_stop_signals()  # SIGTERM, SIGHUP, SIGQUIT as Ctrl-C: a session with the device e-stops it
     try:
         return importlib.import_module(args._module).run(args) or 0
     except (UserError, ValueError, FileNotFoundError, OSError) as exc:
-        print(f"vrscroll {args.command}: error: {exc}", file=sys.stderr)
+        _say(f"vrscroll {args.command}: error: {exc}")
         return 2
     except KeyboardInterrupt:
-        print(f"vrscroll {args.command}: interrupted", file=sys.stderr)
+        _say(f"vrscroll {args.command}: interrupted")
         return 130
+
+
+def _say(line: str) -> None:
+    """A line on stderr, if there is still one to write to (a closed terminal is why some commands end)."""
+    try:
+        print(line, file=sys.stderr)
+    except OSError:
+        pass
 
 
 if __name__ == "__main__":

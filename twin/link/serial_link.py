@@ -154,15 +154,24 @@ class Link:
         return self.open()
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        """Close; an interrupt (Ctrl-C, or SIGTERM: the CLI raises KeyboardInterrupt for both) while this session
-        had sent targets e-stops the device first, so it never keeps driving toward them unwatched."""
-        if exc_type is not None and issubclass(exc_type, KeyboardInterrupt) and self.moved:
-            try:
-                self.estop()
-                self.log("estop_on_interrupt")
-            except Exception as failed:  # the interrupt is what the caller hears about; the log says this
-                self.log("estop_on_interrupt_failed", error=str(failed))
+        """Close; a session that sent targets and ends on an exception e-stops the device first, so it never
+        keeps driving toward them unwatched: an interrupt (Ctrl-C; SIGTERM, SIGHUP, SIGQUIT, which the CLI
+        raises as KeyboardInterrupt: twin.commands.interrupts), a closed terminal (EIO writing to it), a
+        device the host stopped trusting, any error of the host's own."""
+        if exc_type is not None:
+            self.estop_if_moved("estop_on_interrupt" if issubclass(exc_type, KeyboardInterrupt) else "estop_on_error")
         self.close()
+
+    def estop_if_moved(self, event: str) -> None:
+        """ESTOP, logged as `event`, if this session sent targets or a pulse; a failure is logged, not raised
+        (the reason the session ends is what its caller hears about)."""
+        if not self.moved:
+            return
+        try:
+            self.estop()
+            self.log(event)
+        except Exception as failed:
+            self.log(event + "_failed", error=str(failed))
 
     def log(self, event: str, **fields) -> None:
         """One line in the session log, flushed: host time (s since the epoch), event, fields."""
@@ -316,6 +325,8 @@ class Link:
         return ack
 
     def estop(self) -> P.Ack:
+        """ESTOP, after a 0x00 that ends whatever an interrupted write left on the line."""
+        self._write(b"\x00")
         return self.request(P.EStop(), timeout=0.05, retries=5)
 
     def clear_fault(self) -> P.Ack:
