@@ -26,6 +26,7 @@ from twin.device.spec import load_spec
 from twin.formats.profile import Profile, read_profile
 from twin.hil.device_gains import device_spec
 from twin.link.serial_link import Link
+from twin.paths import replacing
 
 # old spelling -> new, refused wherever the new one is an option of the command
 RENAMED = {"--port": "--serial", "--tolerance": "--tolerance-pct"}
@@ -137,7 +138,8 @@ def write_json(dest: str | None, doc) -> None:
     if dest == "-":
         sys.stdout.write(text)
     else:
-        Path(dest).write_text(text)
+        with replacing(dest) as tmp:
+            Path(tmp).write_text(text)
 
 
 def add_serial(p, required: bool, what: str = "the device") -> None:
