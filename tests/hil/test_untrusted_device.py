@@ -133,8 +133,9 @@ def _one_hinge_telemetry(emu, seq, msg):
 
 
 @pytest.mark.parametrize("lie, words", [(_telemetry_stamped_before_the_ack, "clock went back"),
-                                        (_ack_2000_s_ahead, "clock ran ahead"),
-                                        (_one_hinge_telemetry, "TELEMETRY has 1 hinges")],
+                                        pytest.param(_ack_2000_s_ahead, "clock ran ahead", marks=pytest.mark.slow),
+                                        pytest.param(_one_hinge_telemetry, "TELEMETRY has 1 hinges",
+                                                     marks=pytest.mark.slow)],
                          ids=["telemetry-before-ack", "ack-2000-s-ahead", "one-hinge-telemetry"])
 def test_a_lie_mid_move_is_named_and_the_device_e_stopped(liar, spec, lie, words):
     port, events = liar(lie)
@@ -155,6 +156,7 @@ def _restart(emu, seq, msg):
     return msg
 
 
+@pytest.mark.slow
 def test_a_restart_mid_move_is_named(liar, spec):
     port, events = liar(_restart)
     with pytest.raises(DeviceUntrusted, match="clock went back"):

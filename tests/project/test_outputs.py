@@ -94,6 +94,7 @@ def test_a_regular_file_is_still_replaced_whole(tmp_path, spec):
     assert len(read_gains(path, spec.n_hinges)) == spec.n_hinges
 
 
+@pytest.mark.slow
 def test_the_command_line_refuses_a_fifo_nobody_reads_in_one_line(tmp_path):
     fifo = tmp_path / "scenario.toml"
     os.mkfifo(fifo)
@@ -103,7 +104,7 @@ def test_the_command_line_refuses_a_fifo_nobody_reads_in_one_line(tmp_path):
     assert stat.S_ISFIFO(os.stat(fifo).st_mode)
 
 
-@pytest.mark.parametrize("status", ["complete", "interrupted"])
+@pytest.mark.parametrize("status", ["complete", pytest.param("interrupted", marks=pytest.mark.slow)])
 def test_hil_refuses_to_record_over_a_run(tmp_path, status):
     run_dir = tmp_path / "run"
     run_dir.mkdir()

@@ -405,7 +405,7 @@ class Link:
 
     def estop(self) -> P.Ack:
         """ESTOP, after a 0x00 that ends whatever an interrupted write left on the line."""
-        self._write(b"\x00")
+        self._write(b"\x00", estop=True)
         return self.request(P.EStop(), timeout=0.05, retries=5)
 
     def clear_fault(self) -> P.Ack:
