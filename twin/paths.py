@@ -36,8 +36,13 @@ def replacing(path):
     place (tmp is path); a FIFO nobody reads, a folder, a block device or a socket is refused (ValueError, one
     line) before anything is written, never waited on."""
     path = Path(path)
-    if _written_in_place(path):
-        yield path
+    held = _special_output(path)
+    if held is not None:
+        try:
+            yield path
+        finally:
+            if held >= 0:
+                os.close(held)
         return
     tmp = path.with_name(path.name + ".part")
     try:
@@ -47,25 +52,25 @@ def replacing(path):
         tmp.unlink(missing_ok=True)
 
 
-def _written_in_place(path: Path) -> bool:
-    """Whether path is a special file to write in place (False: none there, or a regular file); ValueError
-    for one that cannot be an output."""
+def _special_output(path: Path) -> int | None:
+    """None for no file or a regular file at path; for a special file to write in place, a file descriptor to
+    close once it is written (-1: none): a FIFO's, opened here without waiting and held open, so that its reader
+    does not see the end of its input before the writer's own open; ValueError for one that cannot be an output."""
     try:
         mode = os.stat(path).st_mode
     except FileNotFoundError:
-        return False
+        return None
     if stat.S_ISREG(mode):
-        return False
+        return None
     if stat.S_ISCHR(mode):
-        return True
+        return -1
     if stat.S_ISFIFO(mode):
         try:  # opening a FIFO to write waits for a reader: without one, refuse now rather than wait forever
-            os.close(os.open(path, os.O_WRONLY | os.O_NONBLOCK))
+            return os.open(path, os.O_WRONLY | os.O_NONBLOCK)
         except OSError as exc:
             if exc.errno == errno.ENXIO:
                 raise ValueError(f"{path} is a FIFO that nobody reads: start its reader first, or give a file") from None
             raise
-        return True
     kind = "a folder" if stat.S_ISDIR(mode) else "a block device" if stat.S_ISBLK(mode) else "a socket"
     raise ValueError(f"{path} is {kind}, not a file to write: give a file name")
 

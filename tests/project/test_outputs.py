@@ -36,9 +36,20 @@ WRITERS = {
 }
 
 
-def _read_fifo(path, got: list):
-    with open(path, "rb") as f:
-        got.append(f.read())
+def _read_fifo(fd: int, got: list):
+    """Read the FIFO (opened for reading by the test) until its writer has written and closed it."""
+    os.set_blocking(fd, True)
+    data, deadline = b"", time.monotonic() + 10
+    while time.monotonic() < deadline:
+        chunk = os.read(fd, 65536)
+        if chunk:
+            data += chunk
+        elif data:
+            break  # the writer wrote and closed
+        else:
+            time.sleep(0.01)  # no writer yet
+    got.append(data)
+    os.close(fd)
 
 
 @pytest.mark.parametrize("writer", sorted(WRITERS))
@@ -46,11 +57,10 @@ def test_a_fifo_with_a_reader_is_written_in_place_and_stays_a_fifo(writer, tmp_p
     fifo = tmp_path / "out"
     os.mkfifo(fifo)
     got = []
-    reader = threading.Thread(target=_read_fifo, args=(fifo, got), daemon=True)
+    reader = threading.Thread(target=_read_fifo, args=(os.open(fifo, os.O_RDONLY | os.O_NONBLOCK), got), daemon=True)
     reader.start()
-    time.sleep(0.05)  # the reader is waiting on the FIFO
     WRITERS[writer](fifo, spec)
-    reader.join(5)
+    reader.join(15)
     assert stat.S_ISFIFO(os.stat(fifo).st_mode)
     assert not (tmp_path / "out.part").exists()
     assert got and got[0], "the reader got nothing"
@@ -121,3 +131,33 @@ def test_hil_refuses_to_record_over_a_run(tmp_path, status):
                                      str(run_dir), "--overwrite"), env=cli_env(), capture_output=True, text=True,
                          timeout=60)
     assert run.returncode == 2 and "holds a run" not in run.stderr and "no-such-port" in run.stderr, run.stderr
+
+
+def test_a_reader_that_reads_to_the_end_gets_the_whole_file(tmp_path, spec):
+    """`cat FIFO > FILE` as the reader: it stops at the first end of input, so the writer's check for a reader
+    must not be one (an open and a close of the FIFO once let cat finish empty and the write wait forever)."""
+    fifo, copy = tmp_path / "out", tmp_path / "copy.json"
+    os.mkfifo(fifo)
+    with open(copy, "wb") as sink:
+        cat = subprocess.Popen(["cat", str(fifo)], stdout=sink)
+    try:
+        done = []
+
+        def write():
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline:
+                try:  # refused until cat has the FIFO open
+                    write_gains(fifo, [PidGains.from_spec(spec)] * spec.n_hinges)
+                    done.append(True)
+                    return
+                except ValueError:
+                    time.sleep(0.02)
+
+        writer = threading.Thread(target=write, daemon=True)
+        writer.start()
+        writer.join(15)
+        assert done, "the write did not finish"
+        cat.wait(10)
+    finally:
+        cat.kill()
+    assert len(read_gains(copy, spec.n_hinges)) == spec.n_hinges
