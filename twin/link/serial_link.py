@@ -68,6 +68,10 @@ class DeviceUntrusted(LinkError):
 
 
 _CLOSED = object()  # put in the telemetry queue when the link ends
+# sent before every frame: it ends whatever is on the line before it (noise, a write cut short by an
+# interrupt), so the frame is read whole (docs/protocol.md, "Frames"); without it a frame that followed garbage
+# with no 0x00 was dropped with it, and under a stream of noise no request was answered
+FRAME_START = b"\x00"
 
 # What a HELLO_REPLY's figures may be (inclusive): a loop the twin can simulate and telemetry can follow, a
 # watchdog the host's 50 ms heartbeat can feed (at least two of them) that fires before long (0, off, would
@@ -232,7 +236,7 @@ class Link:
         self.log("device_untrusted", error=str(self.untrusted), moved=self.moved)
         if self.moved:
             try:
-                self._write(b"\x00" + P.encode(P.EStop(), self._next_seq()), estop=True)
+                self._write(FRAME_START + P.encode(P.EStop(), self._next_seq()), estop=True)
                 self.log("estop_untrusted")
             except LinkError as exc:
                 self.log("estop_untrusted_failed", error=str(exc))
@@ -268,7 +272,7 @@ class Link:
     def send(self, msg) -> int:
         """Send a message that expects no reply (HEARTBEAT); returns its sequence number."""
         seq = self._next_seq()
-        self._write(P.encode(msg, seq))
+        self._write(FRAME_START + P.encode(msg, seq))
         return seq
 
     def _next_seq(self) -> int:
@@ -290,7 +294,7 @@ class Link:
         slot = [threading.Event(), None, msg.MSG, time.monotonic()]  # answered, the answer, what it answers, sent
         with self._pending_lock:
             self._pending[seq] = slot
-        frame = P.encode(msg, seq)
+        frame = FRAME_START + P.encode(msg, seq)
         fields = _fields(msg)
         try:
             for attempt in range(retries + 1):
@@ -404,8 +408,6 @@ class Link:
         return ack
 
     def estop(self) -> P.Ack:
-        """ESTOP, after a 0x00 that ends whatever an interrupted write left on the line."""
-        self._write(b"\x00", estop=True)
         return self.request(P.EStop(), timeout=0.05, retries=5)
 
     def clear_fault(self) -> P.Ack:
