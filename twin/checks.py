@@ -14,8 +14,18 @@ def number(value, where: str) -> float:
     """A JSON or TOML number as a finite float; ValueError naming `where` for a string (even "12": a number in
     quotes is a mistake the file's author should see), a bool, NaN or inf."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{where}: expected a number, got {value!r}")
-    return finite(float(value), value, where)
+        raise ValueError(f"{where}: expected a number, got {_short(value)}")
+    try:
+        x = float(value)
+    except OverflowError:  # an integer of hundreds of digits
+        raise ValueError(f"{where}: {_short(value)} is not a finite number") from None
+    return finite(x, value, where)
+
+
+def _short(value) -> str:
+    """repr of value, cut to 40 characters (a 400-digit number named in one line)."""
+    text = repr(value)
+    return text if len(text) <= 40 else f"{text[:20]}...{text[-8:]} ({len(text)} characters)"
 
 
 def cell(text: str, where: str) -> float:
@@ -30,7 +40,7 @@ def cell(text: str, where: str) -> float:
 def finite(x: float, given, where: str) -> float:
     """x, or ValueError naming `where` and what was given when x is NaN or infinite."""
     if not math.isfinite(x):
-        raise ValueError(f"{where}: {given!r} is not a finite number")
+        raise ValueError(f"{where}: {_short(given)} is not a finite number")
     return x
 
 
@@ -95,11 +105,28 @@ def read_text(path, limit: int = MAX_FILE_BYTES) -> str:
 def parse_json(text, where: str):
     """JSON text (str or bytes) as Python values; ValueError naming `where` for bad JSON or nesting too deep."""
     try:
-        return json.loads(text)
+        return json.loads(text, object_pairs_hook=_unique_keys)
+    except DuplicateKey as exc:
+        raise ValueError(f"{where}: key {exc.args[0]!r} given twice (which one was meant?)") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{where}: not JSON ({exc})") from None
+    except ValueError as exc:  # an integer over Python's 4300 digits
+        raise ValueError(f"{where}: not JSON this project reads ({exc})") from None
     except RecursionError:
         raise ValueError(f"{where}: nested too deeply to be one of this project's files") from None
+
+
+class DuplicateKey(ValueError):
+    """A JSON object with one key twice: json keeps the last silently, so a later value could inject itself."""
+
+
+def _unique_keys(pairs: list) -> dict:
+    doc = {}
+    for key, value in pairs:
+        if key in doc:
+            raise DuplicateKey(key)
+        doc[key] = value
+    return doc
 
 
 def parse_toml(text: str, where: str) -> dict:

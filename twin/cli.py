@@ -11,10 +11,10 @@ import argparse
 import importlib
 import os
 import select
-import signal
 import sys
 
 from twin import gl_problem
+from twin.commands.interrupts import interrupt_on_stop_signals
 from twin.commands.options import HelpFormatter, join_negative_values, refuse_renamed
 from twin.errors import UserError
 
@@ -58,10 +58,6 @@ def _stdout_gone() -> bool:
     return any(events & select.POLLERR for _, events in poll.poll(0))
 
 
-def _terminated(signum, frame):
-    raise KeyboardInterrupt
-
-
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="vrscroll", description="VRScroll physics twin and MorphPatch tools.")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -82,21 +78,29 @@ def main(argv=None) -> int:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, already printed): the status, as for any command
         return exc.code
-    signal.signal(signal.SIGTERM, _terminated)  # SIGTERM as Ctrl-C: a session with the device e-stops it
+    interrupt_on_stop_signals()  # SIGTERM, SIGHUP, SIGQUIT as Ctrl-C: a session with the device e-stops it
     try:
         return importlib.import_module(args._module).run(args) or 0
     except BrokenPipeError as exc:  # the reader went away (`vrscroll status | head`): end quietly, as a shell tool does
         if not _stdout_gone():  # another pipe (a socket the command used): an error like any other
-            print(f"vrscroll {args.command}: error: {exc}", file=sys.stderr)
+            _say(f"vrscroll {args.command}: error: {exc}")
             return 2
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes it
         return 141  # 128 + SIGPIPE, what the shell reports for a command that a closed pipe ended
     except (UserError, ValueError, FileNotFoundError, OSError) as exc:
-        print(f"vrscroll {args.command}: error: {exc}", file=sys.stderr)
+        _say(f"vrscroll {args.command}: error: {exc}")
         return 2
     except KeyboardInterrupt:
-        print(f"vrscroll {args.command}: interrupted", file=sys.stderr)
+        _say(f"vrscroll {args.command}: interrupted")
         return 130
+
+
+def _say(line: str) -> None:
+    """A line on stderr, if there is still one to write to (a closed terminal is why some commands end)."""
+    try:
+        print(line, file=sys.stderr)
+    except OSError:
+        pass
 
 
 if __name__ == "__main__":

@@ -5,7 +5,9 @@ line in a subprocess. The one home of each; imports nothing from the project."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import stat
 import sys
 from importlib import resources
 from pathlib import Path
@@ -27,14 +29,50 @@ def cache_dir(kind: str) -> Path:
 def replacing(path):
     """`with replacing(path) as tmp:` write tmp (beside path, path + ".part"); it replaces path when the block
     ends, and is removed if the block fails (a full disk, a check of what was written): path is then as it was,
-    and no .part is left behind."""
+    and no .part is left behind. The one way every output file is written.
+
+    What is not a regular file is never replaced by one (issue 40: `--trace /dev/null` once renamed a regular
+    file over /dev/null): a character device (/dev/null, a terminal) or a FIFO with a reader is written in
+    place (tmp is path); a FIFO nobody reads, a folder, a block device or a socket is refused (ValueError, one
+    line) before anything is written, never waited on."""
     path = Path(path)
+    held = _special_output(path)
+    if held is not None:
+        try:
+            yield path
+        finally:
+            if held >= 0:
+                os.close(held)
+        return
     tmp = path.with_name(path.name + ".part")
     try:
         yield tmp
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def _special_output(path: Path) -> int | None:
+    """None for no file or a regular file at path; for a special file to write in place, a file descriptor to
+    close once it is written (-1: none): a FIFO's, opened here without waiting and held open, so that its reader
+    does not see the end of its input before the writer's own open; ValueError for one that cannot be an output."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return None
+    if stat.S_ISREG(mode):
+        return None
+    if stat.S_ISCHR(mode):
+        return -1
+    if stat.S_ISFIFO(mode):
+        try:  # opening a FIFO to write waits for a reader: without one, refuse now rather than wait forever
+            return os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+        except OSError as exc:
+            if exc.errno == errno.ENXIO:
+                raise ValueError(f"{path} is a FIFO that nobody reads: start its reader first, or give a file") from None
+            raise
+    kind = "a folder" if stat.S_ISDIR(mode) else "a block device" if stat.S_ISBLK(mode) else "a socket"
+    raise ValueError(f"{path} is {kind}, not a file to write: give a file name")
 
 
 def cli_command(*args: str) -> list[str]:

@@ -54,10 +54,12 @@ uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max)
     return n;
 }
 
-/* commands that act: their replies are kept for repeats; queries are answered afresh */
+/* commands that act: their replies are kept for repeats; queries are answered afresh. ESTOP is not one:
+ * it runs every time it arrives, so a late retry (after a CLEAR_FAULT and new targets) stops the device
+ * again instead of being answered from a reply kept for it (docs/protocol.md, "Repeats"). */
 static int acts(uint8_t id)
 {
-    return id == VRS_MSG_SET_TARGETS || id == VRS_MSG_SET_GAINS || id == VRS_MSG_ESTOP || id == VRS_MSG_CLEAR_FAULT
+    return id == VRS_MSG_SET_TARGETS || id == VRS_MSG_SET_GAINS || id == VRS_MSG_CLEAR_FAULT
            || id == VRS_MSG_SET_TELEMETRY_RATE || id == VRS_MSG_CONFIRM_ZERO || id == VRS_MSG_PULSE
            || id == VRS_MSG_SET_WIRING
            || id == VRS_MSG_PROGRAM;
@@ -666,7 +668,7 @@ static void frame(vrs_core *c, const uint8_t *bytes, uint32_t len)
     c->last_rx_us = c->now_us;
     if (c->state == VRS_STATE_HOLDING)  /* the host is back before the hold ran out */
         c->state = VRS_STATE_ACTIVE;
-    for (i = 0; i < VRS_REPLY_MEMORY; i++) {
+    for (i = 0; i < VRS_REPLY_MEMORY && id != VRS_MSG_ESTOP; i++) {  /* an ESTOP always runs */
         const vrs_reply *m = &c->replies[i];
         if (m->used && m->seq == seq && m->request_crc == crc && c->now_us - m->at_us < VRS_REPLY_KEEP_US) {
             /* a repeat: the original answer, and nothing run again */

@@ -50,7 +50,7 @@ READERS = {
 }
 
 numbers = st.one_of(st.integers(-10 ** 30, 10 ** 30), st.floats(allow_nan=True, allow_infinity=True),
-                    st.sampled_from([1e308, -1e308, 1e-320, "12", "nan", True, None]))
+                    st.sampled_from([1e308, -1e308, 1e-320, "12", "nan", True, None, 10 ** 400, -(10 ** 400)]))
 json_values = st.recursive(st.one_of(numbers, st.text(max_size=8)),
                            lambda inner: st.one_of(st.lists(inner, max_size=8),
                                                    st.dictionaries(st.text(max_size=12), inner, max_size=6)),
@@ -65,7 +65,9 @@ objects = st.dictionaries(st.sampled_from(KEYS), json_values, max_size=6)
 def _toml_value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
-    if isinstance(v, (int, float)) and not isinstance(v, bool):
+    if isinstance(v, int):
+        return repr(v)
+    if isinstance(v, float):
         return repr(v) if math.isfinite(v) else ("nan" if v != v else ("inf" if v > 0 else "-inf"))
     if isinstance(v, list):
         return "[" + ", ".join(_toml_value(x) for x in v if x is not None) + "]"
@@ -129,3 +131,86 @@ def test_deep_nesting_utf16_a_folder_and_a_huge_field(tmp_path, name):
     folder.mkdir(parents=True)
     with pytest.raises(ValueError):
         reader(folder)
+
+
+# ---- a 400-digit integer in place of each number of a valid file ----------------------------------------------
+
+HUGE = 10 ** 400
+
+
+def _valid_files(tmp_path) -> dict:
+    """name -> a valid file of the format, written by the project's own writers."""
+    from controllers.pid import PidGains
+    from twin.formats.gains import write_gains
+    from twin.formats.scenario import Scenario, write_scenario
+    from twin.formats.sweep import write_sweep
+
+    import tomllib
+
+    out = {}
+    write_gains(tmp_path / "gains.json", [PidGains.from_spec(SPEC)] * SPEC.n_hinges)
+    write_scenario(tmp_path / "scenario.toml", Scenario("s", [0.0] * 6, [0.0, 0.5], [[0.1] * 6, [0.2] * 6], 1.0))
+    (tmp_path / "scenario.json").write_text(json.dumps(tomllib.loads((tmp_path / "scenario.toml").read_text())))
+    write_sweep(tmp_path / "sweep.toml", ["cube"], 2, 0, ["full"], {"flap_gap": [0.001, 0.002]})
+    (tmp_path / "spec.toml").write_bytes(SPEC_PATH.read_bytes())
+    for name in ("gains.json", "scenario.toml", "scenario.json", "sweep.toml", "spec.toml"):
+        out[name] = (tmp_path / name).read_text()
+    return out
+
+
+def _json_leaves(doc, at=()):
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            yield from _json_leaves(v, at + (k,))
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc):
+            yield from _json_leaves(v, at + (i,))
+    elif isinstance(doc, (int, float)) and not isinstance(doc, bool):
+        yield at
+
+
+def _with(doc, at, value):
+    doc = json.loads(json.dumps(doc))
+    node = doc
+    for k in at[:-1]:
+        node = node[k]
+    node[at[-1]] = value
+    return doc
+
+
+def test_a_400_digit_integer_anywhere_is_refused_in_one_line(tmp_path):
+    import re
+
+    for name, text in _valid_files(tmp_path).items():
+        READERS[name](tmp_path / name)  # valid as written
+        if name.endswith(".json"):
+            doc = json.loads(text)
+            variants = [json.dumps(_with(doc, at, HUGE)) for at in _json_leaves(doc)]
+        else:
+            spans = [m.span(1) for m in re.finditer(r"(?m)(?:=|\[|,)\s*(-?\d[\d_.eE+-]*)", text)]
+            variants = [text[:a] + str(HUGE) + text[b:] for a, b in spans]
+        assert variants, name
+        for k, variant in enumerate(variants):
+            path = tmp_path / f"huge{k}" / name
+            path.parent.mkdir(exist_ok=True)
+            path.write_text(variant)
+            _refuses_or_reads(READERS[name], path)
+
+
+@pytest.mark.parametrize("name", [n for n in READERS if n.endswith(".json")])
+def test_a_key_given_twice_is_refused(tmp_path, name):
+    path = tmp_path / name
+    path.write_text('{"name": "a", "name": "b"}')
+    with pytest.raises(ValueError, match="given twice"):
+        READERS[name](path)
+
+
+def test_a_records_file_skips_what_it_cannot_trust_and_refuses_what_is_not_a_file(tmp_path):
+    from twin.formats.records import read_jsonl
+
+    path = tmp_path / "results.jsonl"
+    path.write_text('{"key": "a", "msd_mm": 1.0}\n' + "[" * 100_000 + "\n" + '{"key": "b", "key": "c"}\n'
+                    + '{"key": "d", "msd_mm": 2.0}\n')
+    assert [r["key"] for r in read_jsonl(path)] == ["a", "d"]
+    with pytest.raises(ValueError, match="not a regular file"):
+        read_jsonl("/dev/zero")

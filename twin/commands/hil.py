@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime
+import json
 import sys
 from pathlib import Path
 
@@ -32,7 +33,9 @@ from viz.hil_report import write_report
 def add_arguments(p) -> None:
     p.add_argument("scenario", help="scenario file, TOML or JSON (docs/tuning-hil-calibration.md)")
     add_serial(p, required=True)
-    p.add_argument("--out", help="run folder (default hil-<scenario>-<time>)")
+    p.add_argument("--out", help="run folder (default hil-<scenario>-<time>); one that holds a run is refused "
+                   "unless --overwrite")
+    p.add_argument("--overwrite", action="store_true", help="record over the run already in --out (it is lost)")
     p.add_argument("--telemetry-hz", type=within(1, 1000, "Hz", whole=True), default=500, help="telemetry rate (default %(default)s)")
     p.add_argument("--gains", help="gains file (vrscroll tune --out) to push to the device before the run "
                    "(default: the device profile's gains, if it holds any)")
@@ -51,6 +54,7 @@ def run(args) -> int:
     gains = read_gains(args.gains, spec.n_hinges) if args.gains else \
         profile.gains if profile.gains_from != "spec" else None
     out = Path(args.out or f"hil-{scenario.name}-{datetime.datetime.now():%Y%m%d-%H%M%S}")
+    refuse_a_recorded_run(out, args.overwrite)
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -58,6 +62,20 @@ def run(args) -> int:
     finally:
         if created and not any(out.iterdir()):  # nothing recorded (a port that would not open): no empty folder
             out.rmdir()
+
+
+def refuse_a_recorded_run(out: Path, overwrite: bool) -> None:
+    """UserError, before anything is sent or written, when `out` holds a run (its run.json) and the user did
+    not ask to record over it: a run is a measurement that cannot be taken again."""
+    meta = out / "run.json"
+    if overwrite or not (meta.exists() or meta.is_symlink()):
+        return
+    try:
+        status = json.loads(meta.read_text()).get("status", "unknown")
+    except (OSError, ValueError, AttributeError):
+        status = "unreadable"
+    raise UserError(f"{out} holds a run already (run.json, status {status!r}): give another --out, or "
+                    "--overwrite to record over it")
 
 
 def _record(args, profile, spec, scenario, gains, out: Path) -> int:

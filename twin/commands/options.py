@@ -30,6 +30,7 @@ from twin.device.mount import MOUNTS
 from twin.formats.profile import Profile, read_profile, write_profile_mount
 from twin.hil.device_gains import device_spec
 from twin.link.serial_link import Link
+from twin.paths import replacing
 
 # old spelling -> new, refused wherever the new one is an option of the command
 RENAMED = {"--port": "--serial", "--tolerance": "--tolerance-pct", "--max-time": "--max-time-s",
@@ -168,7 +169,8 @@ def write_json(dest: str | None, doc) -> None:
     if dest == "-":
         sys.stdout.write(text)
     else:
-        Path(dest).write_text(text)
+        with replacing(dest) as tmp:
+            Path(tmp).write_text(text)
 
 
 def add_serial(p, required: bool, what: str = "the device") -> None:

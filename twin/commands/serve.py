@@ -12,10 +12,10 @@ from __future__ import annotations
 import asyncio
 import os
 import secrets
-import signal
 import threading
 import time
 
+from twin.commands.interrupts import stop_signals_call
 from twin.commands.options import (
     add_device_option,
     add_mount,
@@ -84,7 +84,7 @@ def run(args) -> int:
               f"variant {args.variant}" + ("; token required" if token else ""), flush=True)
 
     async def main():
-        asyncio.get_running_loop().add_signal_handler(signal.SIGTERM, service.stop)
+        stop_signals_call(asyncio.get_running_loop(), service.stop)  # its device e-stopped as the service ends
         await service.run(ready)
 
     try:

@@ -17,6 +17,7 @@ from pathlib import Path
 import tomlkit
 
 from twin.checks import known_keys, number, parse_toml, read_text, required_keys
+from twin.paths import replacing
 
 _RPM = 2.0 * math.pi / 60.0
 TO_SI = {"deg": math.radians, "rpm": lambda v: v * _RPM}
@@ -105,4 +106,5 @@ def write_spec_toml(path, template, values: dict, source: str, header: str = "")
         entry["value"] = int(round(v)) if isinstance(entry["value"].unwrap(), int) else float(f"{v:.6g}")
         entry["source"] = source
     text = tomlkit.dumps(doc)
-    Path(path).write_text("".join(f"# {line}\n" for line in header.splitlines()) + text)
+    with replacing(path) as tmp:
+        Path(tmp).write_text("".join(f"# {line}\n" for line in header.splitlines()) + text)

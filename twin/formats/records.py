@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from twin.checks import parse_json, read_text
+
 
 class RecordLog:
     """The sweep's records file, opened to append: a line an interruption cut short is removed first, so
@@ -36,16 +38,21 @@ class RecordLog:
         self.close()
 
 
+MAX_RECORDS_BYTES = 1 << 30  # a records file read whole: 1 GiB is a million records of the largest sweep
+
+
 def read_jsonl(path) -> list[dict]:
-    """The objects of a records file, in order; a line cut short, or not an object, is skipped."""
+    """The objects of a records file, in order; a line cut short, nested too deeply, with a key twice (which
+    value would count?) or not an object is skipped (its work is done again). ValueError for a file that is not
+    a regular file (/dev/zero) or over MAX_RECORDS_BYTES, before it is read."""
     path = Path(path)
     if not path.exists():
         return []
     out = []
-    for line in path.read_text().splitlines():
+    for line in read_text(path, MAX_RECORDS_BYTES).splitlines():
         try:
-            record = json.loads(line)
-        except json.JSONDecodeError:
+            record = parse_json(line, str(path))
+        except ValueError:
             continue
         if isinstance(record, dict):
             out.append(record)

@@ -26,6 +26,7 @@ import numpy as np
 from twin.checks import hinge_angles, known_keys, number, parse_json, parse_toml, read_text
 from twin.device.spec import DeviceSpec
 from twin.formats.target import read_target
+from twin.paths import replacing
 
 SCENARIO_KEYS = ("name", "start_deg", "duration_s", "step")
 MAX_DURATION_S = 600.0  # a HIL run records both sides at 1 kHz in memory: ten minutes is ~60 MB of traces
@@ -100,4 +101,5 @@ def write_scenario(path, scenario: Scenario) -> None:
              f"duration_s = {scenario.duration:.6g}"]
     for t, tgt in zip(scenario.times, scenario.targets):
         lines += ["", "[[step]]", f"t_s = {t:.6g}", f"angles_deg = {deg(tgt)}"]
-    Path(path).write_text("\n".join(lines) + "\n")
+    with replacing(path) as tmp:
+        Path(tmp).write_text("\n".join(lines) + "\n")

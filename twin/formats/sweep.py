@@ -31,6 +31,7 @@ import numpy as np
 import tomlkit
 
 from twin.checks import known_keys, number, parse_toml, read_text
+from twin.paths import replacing
 from twin.device.design import FIELDS, INTEGER_FIELDS, design_spec
 from twin.device.spec import SPEC_PATH, load_spec
 from twin.device.spec_toml import spec_units, value_in_si
@@ -173,7 +174,8 @@ def write_sweep(path, shapes: list[str], starts: int, seed: int, methods: list[s
     doc["design"] = design
     if plants:
         doc["plants"] = plants
-    Path(path).write_text(tomlkit.dumps(doc))
+    with replacing(path) as tmp:
+        Path(tmp).write_text(tomlkit.dumps(doc))
 
 
 def read_records(path) -> dict[str, dict]:

@@ -17,6 +17,7 @@ from scipy.spatial.transform import Rotation
 from twin.checks import REACH_M, hinge_angles, json_object, known_keys, number, numbers, required_keys
 from twin.device.kinematics import pose_matrix
 from twin.device.spec import DeviceSpec
+from twin.paths import replacing
 
 APPROXIMATION_KEYS = ("root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm")
 OPTIONAL_KEYS = ("variant", "target", "start_mm_deg", "msd_mm", "hd_mm", "inside_percent", "inside_depth_mm", "time_ms",
@@ -79,4 +80,5 @@ def approximation_fields(doc: dict, spec: DeviceSpec, where: str) -> dict:
 def write_approximation(path, doc: dict) -> None:
     """Write an approximation result (Approximation.to_json() plus target, start and any OPTIONAL_KEYS)."""
     known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, str(path))
-    Path(path).write_text(json.dumps(doc, indent=2) + "\n")
+    with replacing(path) as tmp:
+        Path(tmp).write_text(json.dumps(doc, indent=2) + "\n")

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.checks import read_text
+from twin.paths import replacing
 
 ANSWERS = {"yes": True, "true": True, "1": True, "natural": True,
            "no": False, "false": False, "0": False, "unnatural": False}
@@ -114,7 +115,7 @@ def by_surface(trials: Trials) -> list[tuple[str | None, Trials]]:
 def write_trials(path, rows: list[dict], unit: str) -> None:
     """Write trials (participant, condition, natural, confidence[, surface]) as a trials CSV in `unit`."""
     surface = any("surface" in r for r in rows)
-    with open(path, "w", newline="") as f:
+    with replacing(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["participant", *(["surface"] if surface else []), f"condition_{unit}", "natural", "confidence"])
         for r in rows:

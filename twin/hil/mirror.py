@@ -63,8 +63,35 @@ def faults_text(faults: int) -> str:
 
 
 TIME_SLACK = 0.02  # s the device may lead or lag the prediction before a difference counts as a deviation
+STALE_FRAMES_S = 0.5  # s of host time a run goes on skipping frames stamped before its t = 0
+HOST_SLACK_S = 2.0  # s of host time a move is watched beyond its deadline in device time (a backlog of frames)
 REST_COUNTS = 2  # the device is at rest when no hinge moves more than this ...
 REST_TIME = 0.05  # ... in this many seconds
+
+
+class FrameTimes:
+    """Telemetry frame times (s) since t = 0, the device time (us) the targets took effect (the ACK's).
+
+    A frame stamped before t = 0 was queued before the ACK and is skipped, but only for STALE_FRAMES_S of host
+    time: a device whose frames stay stamped before it (a clock glitch, a restart) is one the host cannot watch,
+    and DeviceUntrusted is raised (the device e-stopped, its watchdog no longer fed) instead of skipping every
+    frame, the FAULT frames and the settle deadline with them, while heartbeats keep the device driving."""
+
+    def __init__(self, link: Link, t0_us: int):
+        self.link, self.t0 = link, t0_us
+        self.last_use = time.monotonic()
+
+    def since(self, fr: P.Telemetry) -> float | None:
+        """s from t = 0 to the frame; None for a frame from before it."""
+        since = ((fr.time_us - self.t0) & 0xFFFFFFFF) / 1e6
+        now = time.monotonic()
+        if since <= 3600:  # after t = 0 (a frame before it wraps to ~71 min)
+            self.last_use = now
+            return since
+        if now - self.last_use > STALE_FRAMES_S:
+            raise self.link.distrust(f"its telemetry has been stamped before the targets took effect ({self.t0} us) "
+                                     f"for {now - self.last_use:.2f} s (the last at {fr.time_us} us)")
+        return None
 
 
 def wait_for_rest(link: Link, spec: DeviceSpec, timeout: float = 3.0) -> P.StateMsg:
@@ -136,7 +163,8 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
     link.set_telemetry_rate(telemetry_hz)
     link.drain_telemetry()
     ack = link.set_targets(target_counts(spec, targets))
-    t0 = ack.time_us
+    times = FrameTimes(link, ack.time_us)
+    watch_until = time.monotonic() + settle_limit + 1.0 + HOST_SLACK_S  # the host's own deadline
     tgt = target_counts(spec, targets)
     max_dev = np.zeros(spec.n_hinges)
     hold_needed = spec.settle_hold
@@ -163,11 +191,15 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
     while elapsed < deadline:
         item = link.telemetry(timeout=0.5)
         if item is None:
-            link.estop()
+            _estop(link)
             return result("timeout", None, "no telemetry from the device for 0.5 s; e-stopped")
+        if time.monotonic() > watch_until:  # the device's clock ran slow: the host's deadline holds
+            _estop(link)
+            return result("timeout", None, f"not settled {settle_limit + 1.0 + HOST_SLACK_S:.1f} s after the "
+                          "move on the host's clock (the device's clock says less); e-stopped")
         _, fr = item
-        since = ((fr.time_us - t0) & 0xFFFFFFFF) / 1e6
-        if since > 3600:  # a frame from before the targets took effect (wrapped negative)
+        since = times.since(fr)
+        if since is None:  # a frame from before the targets took effect
             continue
         elapsed = since
         frames += 1
@@ -183,7 +215,7 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
                           + (f" on hinge {hinge}" if hinge is not None else "") + f" at t={elapsed:.3f} s")
         parted = parted_text(dev, tolerance_deg, elapsed)
         if parted:
-            link.estop()
+            _estop(link)
             return result("diverged", int(np.argmax(dev)), parted)
         if np.all(np.abs(np.asarray(fr.counts) - tgt) <= spec.settle_band):
             in_band_since = elapsed if in_band_since is None else in_band_since
@@ -206,6 +238,14 @@ def parted_text(dev, tolerance_deg: float, t: float) -> str:
         return ""
     return (f"hinge {worst} parted from the twin by {math.degrees(dev[worst]):.1f} deg (tolerance "
             f"{tolerance_deg:.1f} deg) at t={t:.3f} s: device e-stopped")
+
+
+def _estop(link: Link) -> None:
+    """ESTOP; then DeviceUntrusted if its answer showed the device cannot be trusted (a restart: the ACK's
+    clock went back), so that the run's outcome says so rather than "timeout"."""
+    link.estop()
+    if link.untrusted is not None:
+        raise link.untrusted
 
 
 def deviation(device, predicted, row: int, slack: int):

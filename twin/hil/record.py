@@ -32,7 +32,8 @@ from twin.formats.run import run_start, write_run_meta
 from twin.formats.scenario import Scenario
 from twin.formats.trace import TraceWriter
 from twin.hil.device_gains import device_gains, push_gains, restore_gains
-from twin.hil.mirror import TIME_SLACK, deviation, faults_text, mirror, parted_text, start_meta, wait_for_rest
+from twin.hil.mirror import (HOST_SLACK_S, TIME_SLACK, FrameTimes, deviation, faults_text, mirror, parted_text,
+                              start_meta, wait_for_rest)
 from twin.link import protocol as P
 from twin.sim.gate import GateRefused, check_scenario, enforce
 from twin.sim.replay import replay_targets, twin_at_start
@@ -135,6 +136,7 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
         link.drain_telemetry()
         ack = link.set_targets(target_counts(spec, scenario.targets[0]))
         t0 = ack.time_us
+        times = FrameTimes(link, t0)  # frames before t0 skipped, but not for long
         host0 = time.monotonic()
         changes.append((0.0, scenario.targets[0]))
         meta["changes"].append({"t_s": 0.0, "angles_deg": np.degrees(scenario.targets[0]).round(4).tolist()})
@@ -155,9 +157,13 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
             if item is None:
                 link.estop()
                 raise RuntimeError("no telemetry from the device for 0.5 s; e-stopped")
+            if time.monotonic() - host0 > scenario.duration + HOST_SLACK_S:  # the device's clock ran slow
+                link.estop()
+                raise RuntimeError(f"the device's clock says {latest:.2f} s of the run's {scenario.duration:.2f} s "
+                                   f"have passed, the host's {time.monotonic() - host0:.2f} s; e-stopped")
             for _, fr in [item] + link.drain_telemetry():
-                since = ((fr.time_us - t0) & mask) / 1e6
-                if since > 3600:
+                since = times.since(fr)
+                if since is None:
                     continue  # from before the first target took effect
                 if fr.state in (P.State.FAULT, P.State.ESTOP):
                     hinge = "" if fr.fault_hinge == 0xFF else f" on hinge {fr.fault_hinge}"

@@ -61,7 +61,28 @@ class ZeroUnconfirmed(LinkError):
     its counts may not be the flaps' angles, so nothing moves it."""
 
 
+class DeviceUntrusted(LinkError):
+    """The device said something it cannot mean: its clock going back (a restart), stuck or racing ahead; its
+    zero lost mid-session (a restart); a state, fault bit, blamed hinge, hinge count, loop rate or watchdog
+    out of range; gains it ACKed and does not hold. The host stops feeding its watchdog at once, e-stops it if
+    this session moved it, and every later request or telemetry read raises this (docs/protocol.md, "What the
+    host does not take from the device")."""
+
+
 _CLOSED = object()  # put in the telemetry queue when the link ends
+# sent before every frame: it ends whatever is on the line before it (noise, a write cut short by an
+# interrupt), so the frame is read whole (docs/protocol.md, "Frames"); without it a frame that followed garbage
+# with no 0x00 was dropped with it, and under a stream of noise no request was answered
+FRAME_START = b"\x00"
+
+# What a HELLO_REPLY's figures may be (inclusive): a loop the twin can simulate and telemetry can follow, a
+# watchdog the host's 50 ms heartbeat can feed (at least two of them) that fires before long (0, off, would
+# leave a device driving after its host died)
+HELLO_RANGES = {"loop_rate_hz": (100, 10_000), "watchdog_ms": (100, 60_000), "max_telemetry_hz": (1, 10_000)}
+CLOCK_AHEAD_S = 0.25  # s the device's clock may run ahead of the host's over a session ...
+CLOCK_DRIFT = 1e-3  # ... plus this share of the session's length (a crystal is within 1e-4)
+CLOCK_BACK_US = 1000  # µs a stamp may precede the one before it (one tick: a reply and a frame stamped apart)
+CLOCK_STUCK_S = 0.2  # s of host time after which a reply stamped as the last stamp means a stopped clock
 MAX_LOOP_RATE_KHZ = 2  # program samples kept per ms of PROGRAM_MAX_MS: bounded, whatever the device sends
 
 
@@ -131,6 +152,9 @@ class Link:
         self.moved = False  # whether this session sent targets
         self.echoes = 0  # frames that came back as the host sent them (a looped-back line)
         self._samples: dict[int, P.ProgramSample] = {}  # the running program's samples by tick index
+        self.untrusted: DeviceUntrusted | None = None
+        self._clock = None  # (first device stamp us, host time s at it, last stamp us unwrapped, host time s at it)
+        self._last_telemetry_us = None
 
     # ---- session ----------------------------------------------------------------------
     def open(self, hello: bool = True) -> "Link":
@@ -149,7 +173,11 @@ class Link:
         if self.heartbeat_interval:
             self._start(self._heartbeat, "link-heartbeat")
         if hello:
-            self.hello()
+            try:
+                self.hello()
+            except BaseException:
+                self.close()  # the threads and the port, as __exit__ would (it is not called when __enter__ fails)
+                raise
         return self
 
     def _start(self, target, name) -> None:
@@ -181,15 +209,24 @@ class Link:
         return self.open()
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        """Close; an interrupt (Ctrl-C, or SIGTERM: the CLI raises KeyboardInterrupt for both) while this session
-        had sent targets e-stops the device first, so it never keeps driving toward them unwatched."""
-        if exc_type is not None and issubclass(exc_type, KeyboardInterrupt) and self.moved:
-            try:
-                self.estop()
-                self.log("estop_on_interrupt")
-            except Exception as failed:  # the interrupt is what the caller hears about; the log says this
-                self.log("estop_on_interrupt_failed", error=str(failed))
+        """Close; a session that sent targets and ends on an exception e-stops the device first, so it never
+        keeps driving toward them unwatched: an interrupt (Ctrl-C; SIGTERM, SIGHUP, SIGQUIT, which the CLI
+        raises as KeyboardInterrupt: twin.commands.interrupts), a closed terminal (EIO writing to it), a
+        device the host stopped trusting, any error of the host's own."""
+        if exc_type is not None:
+            self.estop_if_moved("estop_on_interrupt" if issubclass(exc_type, KeyboardInterrupt) else "estop_on_error")
         self.close()
+
+    def estop_if_moved(self, event: str) -> None:
+        """ESTOP, logged as `event`, if this session sent targets or a pulse; a failure is logged, not raised
+        (the reason the session ends is what its caller hears about)."""
+        if not self.moved:
+            return
+        try:
+            self.estop()
+            self.log(event)
+        except Exception as failed:
+            self.log(event + "_failed", error=str(failed))
 
     def log(self, event: str, **fields) -> None:
         """One line in the session log, flushed: host time (s since the epoch), event, fields."""
@@ -212,14 +249,41 @@ class Link:
             self._telemetry.put(_CLOSED)
         return self.error
 
-    def _check(self) -> None:
+    def distrust(self, why: str) -> DeviceUntrusted:
+        """Stop trusting the device (the first reason is kept): no more heartbeats, so its watchdog is not fed
+        by a host that cannot read it; an ESTOP sent at once if this session moved it; waiting requests and
+        telemetry reads raise the error. Returns it, to be raised."""
+        with self._pending_lock:
+            first = self.untrusted is None
+            if first:
+                self.untrusted = DeviceUntrusted(f"{self.url}: the device cannot be trusted: {why}")
+        if not first:
+            return self.untrusted
+        self._heartbeat_off.set()
+        self.log("device_untrusted", error=str(self.untrusted), moved=self.moved)
+        if self.moved:
+            try:
+                self._write(FRAME_START + P.encode(P.EStop(), self._next_seq()), estop=True)
+                self.log("estop_untrusted")
+            except LinkError as exc:
+                self.log("estop_untrusted_failed", error=str(exc))
+        with self._pending_lock:
+            for slot in self._pending.values():
+                slot[0].set()
+        self._telemetry.put(_CLOSED)
+        return self.untrusted
+
+    def _check(self, estop: bool = False) -> None:
+        """LinkError when the link failed or is closed; DeviceUntrusted once the device is, except for an ESTOP."""
         if self.error is not None:
             raise self.error
         if self._serial is None:
             raise LinkError(f"{self.url}: link is not open")
+        if self.untrusted is not None and not estop:
+            raise self.untrusted
 
-    def _write(self, frame: bytes) -> None:
-        self._check()
+    def _write(self, frame: bytes, estop: bool = False) -> None:
+        self._check(estop)
         try:
             with self._write_lock:
                 self._serial.write(frame)
@@ -235,7 +299,7 @@ class Link:
     def send(self, msg) -> int:
         """Send a message that expects no reply (HEARTBEAT); returns its sequence number."""
         seq = self._next_seq()
-        self._write(P.encode(msg, seq))
+        self._write(FRAME_START + P.encode(msg, seq))
         return seq
 
     def _next_seq(self) -> int:
@@ -251,16 +315,18 @@ class Link:
         """
         timeout = self.timeout if timeout is None else timeout
         retries = self.retries if retries is None else retries
+        estop = msg.MSG == P.MsgId.ESTOP  # still sent to a device the host does not trust
+        self._check(estop)
         seq = self._next_seq()
-        slot = [threading.Event(), None, msg.MSG]  # answered, the answer, what it answers
+        slot = [threading.Event(), None, msg.MSG, time.monotonic()]  # answered, the answer, what it answers, sent
         with self._pending_lock:
             self._pending[seq] = slot
-        frame = P.encode(msg, seq)
+        frame = FRAME_START + P.encode(msg, seq)
         fields = _fields(msg)
         try:
             for attempt in range(retries + 1):
                 self.log("tx", msg=msg.MSG.name, seq=seq, attempt=attempt, **fields)
-                self._write(frame)
+                self._write(frame, estop)
                 if slot[0].wait(timeout):
                     break
             else:
@@ -275,7 +341,7 @@ class Link:
         finally:
             with self._pending_lock:
                 self._pending.pop(seq, None)
-        self._check()
+        self._check(estop)
         reply = slot[1]
         if isinstance(reply, P.NackMsg):
             raise NackError(msg.MSG.name, reply.reason, reply.detail)
@@ -291,6 +357,18 @@ class Link:
         if self.hinges is not None and reply.n_hinges != self.hinges:
             raise LinkError(f"{self.url}: the device has {reply.n_hinges} hinges, the spec this host uses "
                             f"{self.hinges}: select the device's profile (--device) or calibrate one for it")
+        for key, (low, high) in HELLO_RANGES.items():
+            if not low <= getattr(reply, key) <= high:
+                raise self.distrust(f"HELLO says {key} {getattr(reply, key)}, outside {low}..{high}")
+        if reply.max_telemetry_hz > reply.loop_rate_hz:
+            raise self.distrust(f"HELLO says max_telemetry_hz {reply.max_telemetry_hz}, above its loop rate "
+                                f"{reply.loop_rate_hz} Hz")
+        for key, kind in (("reset_reason", P.ResetReason), ("setup_error", P.SetupStep)):
+            if getattr(reply, key) not in kind._value2member_map_:
+                raise self.distrust(f"HELLO says {key} {getattr(reply, key)}, not one of {kind.__name__}'s")
+        if reply.zero_confirmed not in (0, 1) or reply.wiring_set not in (0, 1):
+            raise self.distrust(f"HELLO says zero_confirmed {reply.zero_confirmed}, wiring_set {reply.wiring_set}: "
+                                "each is 0 or 1")
         self.info = reply
         self.zero_confirmed = bool(reply.zero_confirmed)
         return reply
@@ -302,7 +380,14 @@ class Link:
         return ack
 
     def get_state(self) -> P.StateMsg:
-        return self.request(P.GetState())
+        """STATE; DeviceUntrusted (the device e-stopped if this session moved it) when the zero this session
+        saw confirmed is gone: the device restarted mid-session, and its counts are no longer the flaps'."""
+        state = self.request(P.GetState())
+        if self.zero_confirmed and not state.zero_confirmed:
+            reason = "" if self.info is None else f" (it last started: {P.enum_name(P.ResetReason, self.info.reset_reason)} before this session)"
+            raise self.distrust(f"its zero, confirmed in this session, is unconfirmed now: it restarted mid-session"
+                                f"{reason}; its counts are not the flaps' angles")
+        return state
 
     def get_gains(self, hinge: int) -> P.Gains:
         return self.request(P.GetGains(hinge)).gains
@@ -312,7 +397,14 @@ class Link:
         sent, for a value outside the bounds the firmware takes (docs/protocol.md, Gain bounds)."""
         check_gains({hinge: gains.to_pid() if isinstance(gains, P.Gains) else gains}, "set_gains")
         wire = gains if isinstance(gains, P.Gains) else P.Gains.from_pid(gains)
-        return self.request(P.SetGains(hinge, wire))
+        ack = self.request(P.SetGains(hinge, wire))
+        n = self.info.n_hinges if self.info else MAX_HINGES
+        for k in range(n) if hinge == P.BROADCAST else (hinge,):  # read back: a device may ACK and not keep them
+            held = self.get_gains(k)
+            if not _same_gains(held, wire):
+                raise self.distrust(f"it ACKed hinge {k}'s gains {dataclasses.asdict(wire)} and holds "
+                                    f"{dataclasses.asdict(held)}")
+        return ack
 
     def set_targets(self, counts) -> P.Ack:
         """ZeroUnconfirmed, and nothing sent, when the device has not had its zero confirmed since it started."""
@@ -413,7 +505,7 @@ class Link:
             return None
         if item is _CLOSED:
             self._telemetry.put(_CLOSED)
-            raise self.error or LinkError(f"{self.url}: link closed")
+            raise self.error or self.untrusted or LinkError(f"{self.url}: link closed")
         return item
 
     def drain_telemetry(self) -> list:
@@ -453,6 +545,13 @@ class Link:
                 if len(self._samples) < P.PROGRAM_MAX_MS * MAX_LOOP_RATE_KHZ:
                     self._samples[seq] = msg
             return
+        if self.untrusted is None:
+            why = self._implausible(seq, msg)
+            if why:
+                self.log("rx_untrusted", msg=msg.MSG.name, seq=seq, **_fields(msg))
+                self.distrust(why)  # requests waiting now raise it; an ESTOP's still takes its answer
+                if isinstance(msg, P.Telemetry):
+                    return
         if isinstance(msg, P.Telemetry):
             if self._last_telemetry_seq is not None:
                 self.telemetry_lost += (seq - self._last_telemetry_seq - 1) & 0xFFFF
@@ -477,6 +576,58 @@ class Link:
         slot[1] = msg
         slot[0].set()
 
+    def _implausible(self, seq: int, msg) -> str | None:
+        """Why `msg` cannot be what the device means (None: it can): a state, fault bit, blamed hinge or hinge
+        count out of range; a clock that went back, stopped or ran ahead of the host's."""
+        n = self.info.n_hinges if self.info else self.hinges
+        name = msg.MSG.name
+        if isinstance(msg, (P.StateMsg, P.Telemetry)):
+            if msg.state not in P.State._value2member_map_:
+                return f"{name} says state {msg.state}, not one of {[s.name for s in P.State]}"
+            if msg.faults & ~sum(P.Fault):
+                return f"{name} says fault bits 0x{msg.faults:04X}, of which 0x{msg.faults & ~sum(P.Fault):04X} no fault"
+            if n is not None and len(msg.counts) != n:
+                return f"{name} has {len(msg.counts)} hinges, the device {n}"
+            if msg.fault_hinge != 0xFF and (n is None or msg.fault_hinge >= n):
+                return f"{name} blames hinge {msg.fault_hinge}, of {n}"
+        if isinstance(msg, P.GainsReply) and n is not None and msg.hinge >= n:
+            return f"GAINS for hinge {msg.hinge}, of {n}"
+        stamp = getattr(msg, "time_us", None)
+        return None if stamp is None else self._clock_wrong(name, stamp, isinstance(msg, P.Telemetry), seq)
+
+    def _clock_wrong(self, name: str, stamp: int, telemetry: bool, seq: int) -> str | None:
+        """Why a device time stamp (us, u32 wrapping) cannot follow the ones before it (None: it can).
+
+        Host time minus device time at each stamp is the link's latency plus a constant: never below its
+        smallest so far by more than CLOCK_AHEAD_S (plus CLOCK_DRIFT of the session), whatever the latency."""
+        now = time.monotonic()
+        if self._clock is None:
+            self._clock = (stamp, now, now - stamp / 1e6, now)
+            return None
+        last_us, last_host, least_offset, first_host = self._clock
+        step = ((stamp - last_us + 2**31) & 0xFFFFFFFF) - 2**31  # us since the last stamp, signed
+        if step < -CLOCK_BACK_US or (telemetry and stamp == self._last_telemetry_us):
+            what = "went back" if step < 0 else "stopped"
+            return (f"its clock {what}: {name} stamped {stamp} us after {last_us & 0xFFFFFFFF} us (a restart, or a "
+                    "clock the host cannot compare the device with the twin by)")
+        if telemetry:
+            self._last_telemetry_us = stamp
+        if step <= 0:
+            with self._pending_lock:
+                slot = self._pending.get(seq)
+            if slot is not None and slot[2] != P.MsgId.ESTOP and slot[3] - last_host > CLOCK_STUCK_S:
+                return (f"its clock stopped: {name} stamped {stamp} us, as the stamp the host had "
+                        f"{slot[3] - last_host:.2f} s before asking")
+            return None
+        unwrapped = last_us + step
+        offset = now - unwrapped / 1e6
+        ahead = least_offset - offset
+        if ahead > CLOCK_AHEAD_S + CLOCK_DRIFT * (now - first_host):
+            return (f"its clock ran ahead: {name} stamped {step / 1e6:.3f} s after the last stamp, which came "
+                    f"{now - last_host:.3f} s before on the host's clock")
+        self._clock = (unwrapped, now, min(least_offset, offset), first_host)
+        return None
+
     def _heartbeat(self) -> None:
         interval = self.heartbeat_interval
         while not self._stop.wait(interval / 2) and not self._heartbeat_off.is_set():
@@ -490,6 +641,12 @@ class Link:
         """Stop feeding the device's watchdog (to test it); commands still feed it."""
         self._heartbeat_off.set()
         self.log("heartbeat_stopped")
+
+
+def _same_gains(a: P.Gains, b: P.Gains) -> bool:
+    """Equal within the device's float32 (its wire units back and forth: within a unit, or 1e-6 of a large
+    value)."""
+    return all(abs(x - y) <= 1 + abs(y) * 1e-6 for x, y in zip(dataclasses.astuple(a), dataclasses.astuple(b)))
 
 
 def _fields(msg) -> dict:

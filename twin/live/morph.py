@@ -147,6 +147,9 @@ class DeviceMorpher:
                 "angles_deg": _degrees(angle_from_counts(self.spec, state.counts))}
 
     def close(self) -> None:
+        """The service is ending (a stop signal, an error): a device it moved is e-stopped before the port
+        closes, not left holding (or still driving toward) its last targets unwatched."""
+        self.link.estop_if_moved("estop_on_stop")
         self.link.close()
 
 
