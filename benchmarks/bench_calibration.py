@@ -36,7 +36,8 @@ median interval width (high / low), how many intervals hold the drawn value, how
 and the issue's criteria (speed within 10 %, friction within 15 %, inertia within 20 %, identifiable with an
 interval no wider than x1.5); the wall time of the fits and the experiments' device time per plant.
 
-    python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal] [--scaling | --holding | --repeat N | --effects | --identify]
+    python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal]
+        [--scaling | --holding | --repeat N | --effects | --identify]
 """
 
 from __future__ import annotations

@@ -4,8 +4,9 @@ winding the twin leaves out), lying flat on a table; the drawn values are read o
 
 What is asserted is what the fit achieves on every plant tried (docs/tuning-hil-calibration.md,
 "Identification", has the measured figures): every hinge fitted, each value inside its interval, the no-load
-speed within 10 % of the drawn value, its 95 % interval holding it and no wider than x1.5; the issue's targets for the friction and the
-rotor inertia are measured by benchmarks/bench_calibration.py --identify, not met yet, and not asserted."""
+speed within 10 % of the drawn value, its 95 % interval holding it and no wider than x1.5; the issue's targets
+for the friction and the rotor inertia are measured by benchmarks/bench_calibration.py --identify, not met yet,
+and not asserted."""
 
 import json
 import math

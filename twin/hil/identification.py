@@ -166,8 +166,9 @@ def replay(spec: DeviceSpec, k: int, scales: dict, moves: list[Move]) -> list[np
     scales: as `twin_options`', and resistance (x the winding's: a warm winding, its motor constant kept)."""
     hot = spec.resistance * scales.get("resistance", 1.0)
     # the spec derives K from the datasheet's no-load point and the resistance: the no-load speed moves to keep K
-    body = spec.replace(resistance=hot, no_load_speed=spec.no_load_speed * (spec.rated_voltage - hot * spec.no_load_current)
-                        / (spec.rated_voltage - spec.resistance * spec.no_load_current))
+    v, i0 = spec.rated_voltage, spec.no_load_current
+    keep_k = (v - hot * i0) / (v - spec.resistance * i0)
+    body = spec.replace(resistance=hot, no_load_speed=spec.no_load_speed * keep_k)
     plant = Plant(body, twin_options(body, k, scales), random.Random(0))
     n = spec.n_hinges
     brake = np.ones(n, np.uint8)
@@ -333,8 +334,8 @@ def estimates(fit: HingeFit, spec: DeviceSpec, max_halfwidth: float) -> dict:
         v, lo, hi = float(fit.values[p]), float(fit.low[p]), float(fit.high[p])
         pinned = bool(v / lo <= 1 + max_halfwidth and hi / v <= 1 + max_halfwidth)
         out[p] = Estimate(v, float(getattr(spec, p)), lo, hi, pinned,
-                          f"open-loop moves, replayed on the twin; interval x{lo / v:.3f} .. x{hi / v:.3f} of the value "
-                          f"({held} held, anywhere in their ranges)" + ("" if pinned else ": not identifiable"))
+                          f"open-loop moves, replayed on the twin; interval x{lo / v:.3f} .. x{hi / v:.3f} of the "
+                          f"value ({held} held, anywhere in their ranges)" + ("" if pinned else ": not identifiable"))
     return out
 
 
@@ -345,6 +346,7 @@ def shared_estimates(per_hinge: list[dict]) -> dict:
     for p in per_hinge[0]:
         es = [h[p] for h in per_hinge]
         v = math.exp(sum(math.log(e.value) for e in es) / len(es))
-        out[p] = Estimate(v, es[0].prior, min(e.low for e in es), max(e.high for e in es), all(e.identifiable for e in es),
+        out[p] = Estimate(v, es[0].prior, min(e.low for e in es), max(e.high for e in es),
+                          all(e.identifiable for e in es),
                           "the hinges' geometric mean, the interval spanning each hinge's own")
     return out
