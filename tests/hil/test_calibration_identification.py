@@ -83,6 +83,7 @@ def test_calibrate_serial_writes_each_hinges_values_into_the_profile_and_tune_re
         e, truth = h["parameters"]["no_load_speed"], hinges[h["hinge"]]["no_load_speed"]
         assert e["low"] <= truth <= e["high"]
     profile = select_profile("flat4")
+    assert profile.mount == "flat"  # as the experiments ran: later commands hold the twin on its table
     assert profile.hinge_ranges() == [{p: (h["parameters"][p]["low"], h["parameters"][p]["high"]) for p in PROFILED}
                                       for h in out["hinges"]]
     rc = vrscroll(["tune", "--device", "flat4", "--population", "8", "--generations", "2", "--json", "-"])
@@ -91,6 +92,14 @@ def test_calibrate_serial_writes_each_hinges_values_into_the_profile_and_tune_re
     assert [list(r) for r in tuned["goal"]["hinge_ranges"]] == [list(PROFILED)] * 6
     # where no gains keep the limit over every hinge's intervals, tune says which limit and which interval
     assert rc == 0 or (rc == 1 and tuned["limits_broken"] and tuned["worst_case_range"][0]["parameter"] in PROFILED)
+
+
+def test_calibrate_serial_refuses_a_profile_that_says_the_device_is_not_lying_flat(capsys):
+    assert vrscroll(["device", "create", "hung", "--mount", "hanging"]) == 0
+    capsys.readouterr()
+    assert vrscroll(["calibrate", "--serial", "/dev/no-such-port", "--device", "hung"]) == 2
+    err = capsys.readouterr().err
+    assert "lying flat" in err and "--mount flat" in err and len(err.strip().splitlines()) == 1
 
 
 @pytest.mark.slow

@@ -65,7 +65,8 @@ def run(args) -> int:
             if args.no_move:
                 return 0
             for deg in (FIRST_MOVE_DEG, 0.0):
-                result = mirror(link, spec, np.radians([deg] * spec.n_hinges), args.tolerance_deg)
+                # lying flat for the zero, as it still is: the twin holds it on its table too
+                result = mirror(link, spec, np.radians([deg] * spec.n_hinges), args.tolerance_deg, mount="flat")
                 print(f"move     every hinge to {deg:g} deg: {result.outcome}"
                       + (f" (hinge {result.hinge})" if result.hinge is not None else ""))
                 if result.outcome != "settled":

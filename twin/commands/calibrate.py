@@ -29,7 +29,7 @@ from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
 from twin.device.spec_toml import shown, shown_range, spec_units, write_spec_toml
 from twin.errors import UserError
-from twin.formats.profile import write_profile_spec
+from twin.formats.profile import write_profile_mount, write_profile_spec
 from twin.formats.run import read_run
 from twin.hil.calibration import MAX_HALFWIDTH, calibrate, calibrate_hinges, floor_deg, trace_rmse, unexplained
 from twin.hil.compare import not_followed
@@ -245,7 +245,12 @@ def _print_hinge_fit(fit: dict, units: dict) -> None:
 
 
 def _identify(args, profile, name, new) -> int:
-    """`calibrate --serial`: the experiments on the device, each hinge fitted, the profile written, a report."""
+    """`calibrate --serial`: the experiments on the device, each hinge fitted, the profile written (its mount
+    flat, as the experiments ran), a report."""
+    if not new and profile.name and profile.mount != "flat":  # the experiments raise each flap off a table
+        raise UserError(f"the identification experiments run lying flat on a table, and profile {profile.name!r} "
+                        f"says the device is {profile.mount}: lay it flat and record that (`vrscroll simulate 0 0 0 0 0 0 "
+                        f"--device {profile.name} --mount flat`; docs/device.md, \"Mounts\")")
     quiet = json_to_stdout(args)
     say = None if quiet else (lambda message: print(message, flush=True))
     start = time.monotonic()
@@ -275,6 +280,7 @@ def _identify(args, profile, name, new) -> int:
                        "hinges": [{p: e[p].to_json() for p in PROFILED} for e in per_hinge]}
         written.append(str(write_profile_spec(name, {p: e.value for p, e in shared.items()}, source,
                                               calibration=calibration)))
+        write_profile_mount(name, "flat")
         set_default(name)
     out = {"device_profile": name or profile.label, "prior": "spec defaults" if new else profile.label,
            "written": written, "port": port,

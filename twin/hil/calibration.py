@@ -55,6 +55,7 @@ import math
 import numpy as np
 
 from controllers.encoder import angle_from_counts
+from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec
 from twin.device.variation import PARAMS, SPREAD, bounded_ranges, scaled
 from twin.formats.run import Run
@@ -85,7 +86,8 @@ def replays(run: Run, plants: list[DeviceSpec], spec: DeviceSpec, hinges=None, n
     t = run.device.time
     dt = spec.firmware_dt
     end_tick = int(round(t[-1] / dt)) + 1 if len(t) else 1
-    counts, duty = replay_batch(plants, run.gains, run.start, run.changes, end_tick, spec, hinges, nthread)
+    counts, duty = replay_batch(plants, run.gains, run.start, run.changes, end_tick, spec, hinges, nthread,
+                                mount=run.meta.get("mount", DEFAULT_MOUNT))  # held as the device was
     idx = np.clip(np.rint(t / dt).astype(int), 0, len(counts) - 1)
     return np.degrees(angle_from_counts(spec, counts[idx] + 0.5)).swapaxes(0, 1), duty[idx].swapaxes(0, 1)
 
