@@ -53,7 +53,7 @@ class EmulatedDevice:
             for seq, m in decoder.feed(emu.take_output()):
                 if isinstance(m, P.ProgramSample):
                     samples[seq] = m
-                elif isinstance(m, P.Nack):
+                elif isinstance(m, P.NackMsg):
                     raise ValueError(f"the emulator refused the program: {m}")
                 elif isinstance(m, P.ProgramStatus) and m.end != ProgramEnd.RUNNING and tick > 2:
                     status = m
