@@ -24,6 +24,10 @@ figures depend on it.
 another checkout (a folder holding its `twin` package, e.g. `git worktree add /tmp/old HEAD~3`)
 round by round (order swapped every round), each on a fresh emulator, with the same client: the
 before and after under the same load. Pooled p50 and p99 per side, and per round.
+
+--csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs)
+plays a session on the same service and streams pens at ~360 Hz with poses for --seconds,
+measuring the round trips on its own clock (clients/unity/tests/ScriptedSession.cs).
 """
 
 from __future__ import annotations
@@ -31,7 +35,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import math
+import json
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -156,14 +162,52 @@ def report(m: dict) -> None:
     print(breakdown("where a pen sample's time went in the service", status.get("pen_path_ms")))
     print(stats("client: encoding and sending a sample", m["client_send"], len(m["client_send"])))
     print(stats("client: parsing and queueing a reply", m["client_receive"], len(m["client_receive"])))
+    if "csharp" in m:
+        print(csharp_line(m))
 
 
 def session(args, code=None) -> dict:
-    """One emulator, one service (this code's, or the checkout `code`'s), one measured session."""
+    """One emulator, one service (this code's, or the checkout `code`'s), one measured session; with
+    args.csharp (the compiled C# session), then the C# client's too: m["csharp"] {"pose_ms", "pen_ms":
+    [p50, p99, replies]}."""
     with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed") as emu, \
             ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err", code=code) as service:
-        return asyncio.run(measure(service.url, args.shape, args.seconds))
+        m = asyncio.run(measure(service.url, args.shape, args.seconds))
+        if args.csharp:
+            run = subprocess.run(["mono", str(args.csharp), service.url, args.shape, str(args.seconds)],
+                                 capture_output=True, text=True, timeout=120 + 2 * args.seconds)
+            seen = json.loads(run.stdout.strip().splitlines()[-1]) if run.returncode == 0 else {}
+            m["csharp"] = {"pose_ms": seen.get("measure_pose_ms"), "pen_ms": seen.get("measure_pen_ms"),
+                           "error": None if seen else (run.stderr.strip() or run.stdout.strip())[-300:]}
+        return m
+
+
+def csharp_line(m: dict) -> str:
+    c = m.get("csharp")
+    if c is None:
+        return ""
+    if c["error"]:
+        return f"C# client: failed: {c['error']}"
+    (pose50, pose99, n_pose), (pen50, pen99, n_pen) = c["pose_ms"], c["pen_ms"]
+    return (f"C# client: pose -> approximation p50 {pose50:.3f} / p99 {pose99:.3f} ms ({n_pose} replies), "
+            f"pen -> redirected p50 {pen50:.3f} / p99 {pen99:.3f} ms ({n_pen} replies)")
+
+
+def build_csharp(folder: Path) -> Path:
+    """The C# scripted session compiled with Mono's mcs into folder; SystemExit naming what is missing."""
+    root = Path(__file__).resolve().parents[1] / "clients" / "unity"
+    exe = folder / "ScriptedSession.exe"
+    sources = [root / "VRScrollLive" / "Json.cs", root / "VRScrollLive" / "LiveClient.cs",
+               root / "tests" / "ScriptedSession.cs"]
+    try:
+        build = subprocess.run(["mcs", "-warnaserror", f"-out:{exe}", *map(str, sources)], capture_output=True,
+                               text=True)
+    except FileNotFoundError:
+        raise SystemExit("--csharp needs Mono: apt-get install mono-mcs mono-runtime") from None
+    if build.returncode != 0:
+        raise SystemExit(f"--csharp: mcs failed: {build.stdout}{build.stderr}")
+    return exe
 
 
 def p50_p99(values) -> str:
@@ -186,6 +230,8 @@ def compare(args) -> None:
             rows.append((r + 1, side, load_1min, m))
             print(f"round {r + 1} {side}: load {load_1min}; pose {p50_p99(m['pose'])} ms, "
                   f"pen {p50_p99(m.get('pen', []))} ms, lock {m['lock']}", flush=True)
+            if "csharp" in m:
+                print("  " + csharp_line(m), flush=True)
             if side == "after" and m["status"]:
                 print("  " + breakdown("pose path", m["status"]["pose_path_ms"]))
                 print("  " + breakdown("pen path", m["status"]["pen_path_ms"]))
@@ -207,17 +253,20 @@ def main() -> None:
     p.add_argument("--against", type=Path, help="a checkout of another version (the folder holding its twin "
                                                 "package): alternate its service with this one's")
     p.add_argument("--rounds", type=int, default=3, help="with --against: rounds of before and after (default 3)")
+    p.add_argument("--csharp", action="store_true", help="measure with the C# client too (needs Mono's mcs, mono)")
     args = p.parse_args()
     if args.against is not None and not (args.against / "twin" / "live" / "service.py").is_file():
         p.error(f"--against {args.against}: no twin/live/service.py there")
     if args.rounds < 1:
         p.error("--rounds must be at least 1")
-    print(load())
-    if args.against is not None:
-        compare(args)
-    else:
-        report(session(args))
-    print(load())
+    with tempfile.TemporaryDirectory() as build:
+        args.csharp = build_csharp(Path(build)) if args.csharp else None
+        print(load())
+        if args.against is not None:
+            compare(args)
+        else:
+            report(session(args))
+        print(load())
 
 
 if __name__ == "__main__":
