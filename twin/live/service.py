@@ -6,8 +6,8 @@
   only its newest sample: an older sequence number is dropped as stale, a pose that arrives
   before the previous one was approximated replaces it. Memory per stream is one sample.
 - The worker process approximates the newest pose at most APPROXIMATION_RATE_HZ times a second
-  and builds the reply datagram, which the service forwards from the pipe's reader callback (no
-  task, no await per pose). A pose never moves the device.
+  and sends the reply datagram itself, from the service's socket; the pose goes to it from the
+  callback that made that possible (no task, no await per pose). A pose never moves the device.
 - Each pose's and pen sample's path is stamped stage by stage (twin/live/stages.py); `status`
   reports where the time went.
 - Lock: the newest approximation's hinge angles go through the morpher (gate, then the device or
@@ -156,9 +156,10 @@ class LiveService:
         self.target_gen = 0  # +1 per target change: approximations of an older target are not sent
         self.state = "idle"  # "idle", "morphing" or "locked" (pen samples redirected)
         self.field = None
-        self.latest = None  # (target_gen, pose seq, PoseReply): the newest approximation sent
+        self.latest = None  # (target_gen, pose seq, PoseReply): the newest approximation the worker sent
         self.counts: collections.Counter = collections.Counter()
         self.pose_times = StageTimes(POSE_STAGES, LATENCY_WINDOW)  # s per stage, pose arrival -> approximation sent
+        self.pose_report = collections.deque(maxlen=LATENCY_WINDOW)  # s, the worker's report after the datagram
         self.pen_times = StageTimes(PEN_STAGES, LATENCY_WINDOW)  # s per stage, pen arrival -> redirected sent
         self._pose = None  # (Sample, client, arrival, queued s): the newest pose not yet approximated
         self._in_flight = None  # (target_gen, Sample, client, arrival, queued, sent s): the pose the worker has
@@ -166,6 +167,8 @@ class LiveService:
         self._filled = 0.0
         self._timer = None  # the rate limit's wake-up, while poses wait for a token
         self._restarting = False
+        self._reported = asyncio.Event()  # cleared while a pose is with the worker
+        self._reported.set()
         self._udp = None
         self._stop = None
         self._tasks: set[asyncio.Task] = set()
@@ -187,6 +190,7 @@ class LiveService:
                 self.port = server.sockets[0].getsockname()[1]
                 self._udp, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self),
                                                                    local_addr=(self.config.host, self.port))
+                self.worker.share_socket(self._udp.get_extra_info("socket"))
                 self._filled = time.perf_counter()
                 if ready:
                     ready(self.port)
@@ -281,7 +285,8 @@ class LiveService:
             except WorkerError as exc:
                 raise ProtocolError("bad_target", str(exc)) from None
             return
-        # lock
+        # lock: the client may hold an approximation the worker sent whose report has not reached us yet
+        await self._reported.wait()
         if self.latest is None or self.latest[0] != self.target_gen:
             raise ProtocolError("out_of_order", "lock before any approximation of this target: stream poses first")
         self.state = "morphing"
@@ -321,7 +326,8 @@ class LiveService:
                 "counts": dict(self.counts),
                 "approximation_latency_ms": percentiles_ms(self.pose_times.total()),
                 "pen_latency_ms": percentiles_ms(self.pen_times.total()),
-                "pose_path_ms": self.pose_times.summary(), "pen_path_ms": self.pen_times.summary()}
+                "pose_path_ms": self.pose_times.summary(), "pen_path_ms": self.pen_times.summary(),
+                "pose_report_ms": percentiles_ms(self.pose_report)}
 
     async def _lock(self, seq: int, reply: PoseReply) -> None:
         loop = asyncio.get_running_loop()
@@ -428,7 +434,9 @@ class LiveService:
         self._tokens -= 1.0
         self._pose = None
         self._in_flight = (self.target_gen, sample, client, arrived, queued, time.perf_counter())
-        self.worker.approximate(sample.seq, sample.t_s, sample.position, sample.quat, self._approximated)
+        self._reported.clear()
+        self.worker.approximate(sample.seq, sample.t_s, sample.position, sample.quat, client.udp_addr,
+                                self._approximated)
 
     def _rate_wait_over(self) -> None:
         self._timer = None
@@ -447,14 +455,17 @@ class LiveService:
         self._next_pose()
 
     def _approximated(self, reply: PoseReply | WorkerError, received: float) -> None:
-        """The worker's answer to the pose in flight: its datagram forwarded as it is, then the next pose."""
+        """The worker's report on the pose in flight (its datagram already sent to the client): kept for a lock,
+        timed; then the next pose."""
         gen, sample, client, arrived, queued, sent = self._in_flight
         self._in_flight = None
+        self._reported.set()
         if isinstance(reply, WorkerError):
             client.report("approximation_failed", str(reply))
-        elif gen == self.target_gen and client is self.controller:
-            self._udp.sendto(reply.datagram, client.udp_addr)
-            self.latest = (gen, sample.seq, reply)
+        else:
             self.counts["approximations"] += 1
-            self.pose_times.record((arrived, queued, sent, *reply.stamps, received, time.perf_counter()))
+            self.pose_times.record((arrived, queued, sent, *reply.stamps))
+            self.pose_report.append(received - reply.stamps[-1])
+            if gen == self.target_gen and client is self.controller:
+                self.latest = (gen, sample.seq, reply)
         self._next_pose()

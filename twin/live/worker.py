@@ -6,16 +6,19 @@ stays free for the pen stream (~40 us per redirected sample). The two talk over 
 frames of bytes whose first byte says what follows; requests are answered in order, one at
 a time:
 
-    b"a" + POSE_REQUEST (seq, t_s or NaN, position m, unit quaternion w first)
-        -> b"a" + stamps (4 doubles: received, approximated, estimated, encoded; perf_counter s)
+    b"s" + the service's datagram socket (its descriptor, passed alongside)  -> no reply
+    b"a" + POSE_REQUEST (seq, t_s or NaN, position m, unit quaternion w first, port) + the client's host
+        -> the "approximation" datagram (docs/live.md), built here and sent to the client from the
+           service's socket (so from the service's port), then
+           b"a" + stamps (4 doubles: received, approximated, estimated, datagram sent; perf_counter s)
                 + the approximation (root pose 16, angles, widths, time s: doubles)
-                + the "approximation" datagram itself, built here (docs/live.md)
     b"p" + pickle(("target", shape name or None, vertices (V, 3) m, faces (F, 3)))  -> b"p" + pickle(target info)
     b"p" + pickle(("field", root pose 4x4, angles rad, widths m))  -> b"p" + pickle((RedirectionField, summary))
 
 Errors come back as b"e" + one line, and the worker carries on. A pose, at 90 Hz, goes as
-fixed-size packed doubles and comes back as the finished datagram, so nothing is pickled per
-pose and the service only forwards the bytes; the rare requests keep pickling.
+fixed-size packed doubles and its answer goes straight to the client, so nothing is pickled per
+pose and the service's process is not on the way back (one process wake-up fewer per pose);
+the rare requests keep pickling.
 """
 
 from __future__ import annotations
@@ -24,7 +27,9 @@ import asyncio
 import collections
 import math
 import multiprocessing
+from multiprocessing import reduction
 import pickle
+import socket
 import struct
 import sys
 import time
@@ -44,8 +49,8 @@ from twin.morphpatch.sampling import SAMPLE_SPACING, grid_layout
 from twin.morphpatch.shapes import check_mesh, load_shape
 from twin.perception.thresholds import load_thresholds
 
-POSE_REQUEST = struct.Struct("<qd3d4d")  # seq, t_s (NaN: none), position m, unit quaternion w first
-STAMPS = struct.Struct("<4d")  # the worker's perf_counter s: received, approximated, estimated, encoded
+POSE_REQUEST = struct.Struct("<qd3d4dH")  # seq, t_s (NaN: none), position m, unit quaternion w first, UDP port
+STAMPS = struct.Struct("<4d")  # the worker's perf_counter s: received, approximated, estimated, datagram sent
 
 
 class WorkerError(RuntimeError):
@@ -57,10 +62,11 @@ def _result_struct(spec: DeviceSpec) -> struct.Struct:
     return struct.Struct(f"<{16 + spec.n_hinges + spec.n_flaps + 1}d")
 
 
-def pose_request(seq: int, t_s: float | None, position: np.ndarray, quat: np.ndarray) -> bytes:
+def pose_request(seq: int, t_s: float | None, position: np.ndarray, quat: np.ndarray, addr) -> bytes:
     """The frame that asks the worker to approximate a pose (position m, unit quaternion w first) for the pose
-    datagram `seq` (its t_s echoed)."""
-    return b"a" + POSE_REQUEST.pack(seq, math.nan if t_s is None else t_s, *position.tolist(), *quat.tolist())
+    datagram `seq` (its t_s echoed) and send the answer to addr (host, port, ...)."""
+    return (b"a" + POSE_REQUEST.pack(seq, math.nan if t_s is None else t_s, *position.tolist(), *quat.tolist(),
+                                     addr[1]) + addr[0].encode())
 
 
 def decode_approximation(spec: DeviceSpec, variant: str, values: tuple) -> Approximation:
@@ -71,27 +77,30 @@ def decode_approximation(spec: DeviceSpec, variant: str, values: tuple) -> Appro
 
 
 class PoseReply:
-    """A pose reply as it came off the pipe: `stamps` (the worker's, s), `values` (doubles), `datagram` (bytes)."""
+    """A pose reply as it came off the pipe: `stamps` (the worker's, s), `values` (doubles)."""
 
-    __slots__ = ("stamps", "values", "datagram")
+    __slots__ = ("stamps", "values")
 
     def __init__(self, frame: bytes, result: struct.Struct):
         self.stamps = STAMPS.unpack_from(frame, 1)
         self.values = result.unpack_from(frame, 1 + STAMPS.size)
-        self.datagram = frame[1 + STAMPS.size + result.size:]
 
 
-def _approximate(request: bytes, received: float, spec, variant, fields, thresholds, layout, result) -> bytes:
-    seq, t_s, *values = POSE_REQUEST.unpack_from(request, 1)
-    pose = pose_matrix(np.array(values[:3]), Rotation.from_quat(values[3:], scalar_first=True).as_matrix())
+def _approximate(request: bytes, received: float, spec, variant, fields, thresholds, layout, result, udp) -> bytes:
+    """Approximate the requested pose, send its datagram to the client; the reply frame for the service."""
+    seq, t_s, *values, port = POSE_REQUEST.unpack_from(request, 1)
+    host = request[1 + POSE_REQUEST.size:].decode()
+    pose = pose_matrix(np.array(values[:3]), Rotation.from_quat(values[3:7], scalar_first=True).as_matrix())
     approx = approximate(fields, pose, spec, variant)
     approximated = time.perf_counter()
     msd, share = frame_estimates(spec, fields, thresholds, approx.root_pose, approx.angles, approx.widths, layout)
     estimated = time.perf_counter()
-    datagram = approximation_datagram(seq, None if math.isnan(t_s) else t_s, approx.to_json(), msd, share)
+    udp.sendto(approximation_datagram(seq, None if math.isnan(t_s) else t_s, approx.to_json(), msd, share),
+               (host, port))
+    sent = time.perf_counter()
     values = result.pack(*approx.root_pose.ravel().tolist(), *approx.angles.tolist(), *approx.widths.tolist(),
                          approx.time)
-    return b"a" + STAMPS.pack(received, approximated, estimated, time.perf_counter()) + values + datagram
+    return b"a" + STAMPS.pack(received, approximated, estimated, sent) + values
 
 
 def _serve(conn, spec: DeviceSpec, variant: str) -> None:
@@ -99,7 +108,7 @@ def _serve(conn, spec: DeviceSpec, variant: str) -> None:
     thresholds = load_thresholds()
     layout = grid_layout(spec, SAMPLE_SPACING)
     result = _result_struct(spec)
-    mesh = fields = None
+    mesh = fields = udp = None
     while True:
         try:
             request = conn.recv_bytes()
@@ -107,10 +116,14 @@ def _serve(conn, spec: DeviceSpec, variant: str) -> None:
             return
         received = time.perf_counter()
         try:
+            if request[:1] == b"s":
+                udp = socket.socket(fileno=reduction.recv_handle(conn))
+                continue
             if request[:1] == b"a":
-                if fields is None:
-                    raise WorkerError("no target yet")
-                conn.send_bytes(_approximate(request, received, spec, variant, fields, thresholds, layout, result))
+                if fields is None or udp is None:
+                    raise WorkerError("no target yet" if fields is None else "no datagram socket yet")
+                conn.send_bytes(_approximate(request, received, spec, variant, fields, thresholds, layout, result,
+                                             udp))
                 continue
             kind, *args = pickle.loads(request[1:])
             if kind == "target":
@@ -142,6 +155,7 @@ class Worker:
         self._conn = self._proc = None
         self._waiting: collections.deque = collections.deque()  # per request sent: a Future, or a pose's callback
         self._target = None  # the last target request it took, sent again to a restarted worker
+        self._udp = None  # the service's datagram socket, handed to every worker started
         self.restarts = 0
         self._exitcode = None
 
@@ -157,6 +171,19 @@ class Worker:
         self._proc.start()
         child.close()
         asyncio.get_running_loop().add_reader(self._conn.fileno(), self._readable)
+        if self._udp is not None:
+            self._hand_socket()
+
+    def share_socket(self, udp: socket.socket) -> None:
+        """The socket the worker sends pose answers from (the service's datagram socket: the client sees them
+        come from the port it sends to), handed to this worker and every restarted one."""
+        self._udp = udp
+        if self._proc is not None:
+            self._hand_socket()
+
+    def _hand_socket(self) -> None:
+        self._conn.send_bytes(b"s")
+        reduction.send_handle(self._conn, self._udp.fileno(), self._proc.pid)
 
     def _readable(self) -> None:
         received = time.perf_counter()
@@ -189,11 +216,12 @@ class Worker:
         else:
             waiter(value, received)
 
-    def approximate(self, seq: int, t_s: float | None, position: np.ndarray, quat: np.ndarray, done) -> None:
-        """Ask for a pose's approximation (position m, unit quaternion w first); done(PoseReply or WorkerError, perf_counter s at its arrival) is
-        called from the event loop when it comes back. The worker must be alive (see `ensure_running`)."""
+    def approximate(self, seq: int, t_s: float | None, position: np.ndarray, quat: np.ndarray, addr, done) -> None:
+        """Ask for a pose's approximation (position m, unit quaternion w first), its datagram sent by the worker
+        to addr; done(PoseReply or WorkerError, perf_counter s at its arrival) is called from the event loop
+        when the worker reports back. The worker must be alive (see `ensure_running`)."""
         self._waiting.append(done)
-        self._conn.send_bytes(pose_request(seq, t_s, position, quat))
+        self._conn.send_bytes(pose_request(seq, t_s, position, quat, addr))
 
     def approximation(self, reply: PoseReply) -> Approximation:
         return decode_approximation(self.spec, self.variant, reply.values)
