@@ -1,22 +1,33 @@
-"""The live service's latencies on loopback, with the emulator as the device.
+"""The live service's latencies on loopback, with the emulator as the device, and where the time goes.
 
     .venv/bin/python benchmarks/bench_live.py [--seconds 10] [--shape cylinder] [--variant full]
+    .venv/bin/python benchmarks/bench_live.py --against OLD_TREE [--rounds 3] [--seconds 5]
 
 Starts an emulator and `vrscroll serve --serial` on it (each its own process), then, as one
 client (twin/live/client.py):
 
 1. poses at 90 Hz for --seconds, the device hovering over the shape's start (±10 mm at 0.5 Hz,
-   the player's tremor): pose -> approximation round trip, p50 and p99 (goal p99 <= 11.1 ms,
-   one VR frame);
+   the player's tremor): pose -> approximation round trip, p50 and p99 (goal p99 <= 3 ms);
 2. lock, morph on the emulator;
 3. pen samples at 360 Hz (the player's stroke, back and forth over the device) with the poses
    still at 90 Hz, so approximations run meanwhile: pen -> redirected pen round trip, p50 and
-   p99 (goal p99 <= 2.78 ms, one 360 Hz sample), and the approximations' round trip again.
+   p99 (goal p99 <= 0.5 ms), and the approximations' round trip again.
 
 Round trips are measured by the client (its clock in t_s, echoed by the service). Counted:
 samples that got no reply (dropped by the network or superseded by a newer pose: the newest
-wins), and the service's own counts of stale, superseded and missing samples. The machine's
-load (uptime) is printed before and after: the figures depend on it.
+wins), and the service's own counts of stale, superseded and missing samples. Where the time
+went: the service's per-stage breakdown (its `status`: pose_path_ms, pen_path_ms) and the
+client's own send and receive. The machine's load (uptime) is printed before and after: the
+figures depend on it.
+
+--against OLD_TREE: the same measurement, alternating this code's service with the service of
+another checkout (a folder holding its `twin` package, e.g. `git worktree add /tmp/old HEAD~3`)
+round by round (order swapped every round), each on a fresh emulator, with the same client: the
+before and after under the same load. Pooled p50 and p99 per side, and per round.
+
+--csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs)
+plays a session on the same service and streams pens at ~360 Hz with poses for --seconds,
+measuring the round trips on its own clock (clients/unity/tests/ScriptedSession.cs).
 """
 
 from __future__ import annotations
@@ -24,7 +35,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import math
+import json
 import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -45,6 +58,8 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 HOVER = 0.01  # m, amplitude of the hover
 HOVER_HZ = 0.5
+POSE_GOAL_MS = 3.0  # issue 40: pose -> approximation p99, end to end on loopback
+PEN_GOAL_MS = 0.5  # pen -> redirected pen p99
 
 
 def load() -> str:
@@ -69,9 +84,18 @@ def stats(name: str, values, sent: int, goal_ms: float | None = None) -> str:
                    if goal_ms else "")
 
 
-async def bench(url: str, shape: str, seconds: float) -> None:
-    spec = load_spec()
+def breakdown(name: str, stages: dict | None) -> str:
+    """One line of a status's per-stage p50/p99 (ms)."""
+    if not stages:
+        return f"{name}: not reported by this service"
+    return f"{name} (p50/p99 ms): " + ", ".join(f"{k} {v['p50']:.3f}/{v['p99']:.3f}" for k, v in stages.items() if v)
+
+
+async def measure(url: str, shape: str, seconds: float) -> dict:
+    """One session: {"pose", "worker", "pen", "pose_with_pens", "client_send", "client_receive": [s],
+    "sent": {phase: samples sent}, "status": the service's status at the end (None if the lock failed)}."""
     start = pose_from_mm_deg(shape_table()[shape]["start"])
+    out = {"sent": {}, "status": None}
     async with LiveClient(url) as client:
         await client.set_target(shape=shape)
         for k in range(45):  # settle: half a second of poses, not measured
@@ -87,16 +111,17 @@ async def bench(url: str, shape: str, seconds: float) -> None:
             await asyncio.sleep(max(0.0, t0 + sent / POSE_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
         replies = client.drain("approximation")
-        print(stats("pose -> approximation at 90 Hz", [latency(a) for a in replies], sent, 11.1))
-        print(stats("  of which the approximation itself (worker)", [a["time_ms"] / 1e3 for a in replies], len(replies)))
+        out["pose"] = [latency(a) for a in replies]
+        out["worker"] = [a["time_ms"] / 1e3 for a in replies]
+        out["sent"]["pose"] = sent
 
         locked = await client.lock()
         done = await client.expect("done", "refused", "stopped", timeout=15)
-        print(f"lock: {done['type']} ({done['message']})")
+        out["lock"] = f"{done['type']} ({done['message']})"
         if done["type"] != "done":
-            return
+            return out
         approx = Approximation.from_json(locked)
-        points, quats = stroke(spec, approx.root_pose, np.radians(done["angles_deg"]), approx.widths)
+        points, quats = stroke(load_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths)
         order = np.r_[np.arange(len(points)), np.arange(len(points))[::-1]]
         pens = poses = 0
         t0 = time.perf_counter()
@@ -109,17 +134,115 @@ async def bench(url: str, shape: str, seconds: float) -> None:
                 poses += 1
             await asyncio.sleep(max(0.0, t0 + pens / PEN_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
-        print(stats("pen -> redirected pen at 360 Hz, approximations running",
-                    [latency(r) for r in client.drain("pen_redirected")], pens, 2.78))
-        print(stats("pose -> approximation at 90 Hz meanwhile", [latency(a) for a in client.drain("approximation")],
-                    poses))
-        status = await client.status()
-        counts = status["counts"]
-        print("service counts: " + ", ".join(f"{k} {counts.get(k, 0)}" for k in
-                                             ("pose", "approximations", "superseded", "stale", "missing", "pen",
-                                              "pen_redirected")))
-        print(f"service side (arrival -> reply sent): approximation {status['approximation_latency_ms']}, "
-              f"pen {status['pen_latency_ms']} ms")
+        out["pen"] = [latency(r) for r in client.drain("pen_redirected")]
+        out["pose_with_pens"] = [latency(a) for a in client.drain("approximation")]
+        out["sent"].update(pen=pens, pose_with_pens=poses)
+        out["client_send"], out["client_receive"] = list(client.send_s), list(client.receive_s)
+        out["status"] = await client.status()
+    return out
+
+
+def report(m: dict) -> None:
+    print(stats("pose -> approximation at 90 Hz", m["pose"], m["sent"]["pose"], POSE_GOAL_MS))
+    print(stats("  of which the approximation itself (worker)", m["worker"], len(m["worker"])))
+    print(f"lock: {m['lock']}")
+    if m["status"] is None:
+        return
+    print(stats("pen -> redirected pen at 360 Hz, approximations running", m["pen"], m["sent"]["pen"], PEN_GOAL_MS))
+    print(stats("pose -> approximation at 90 Hz meanwhile", m["pose_with_pens"], m["sent"]["pose_with_pens"],
+                POSE_GOAL_MS))
+    status = m["status"]
+    counts = status["counts"]
+    print("service counts: " + ", ".join(f"{k} {counts.get(k, 0)}" for k in
+                                         ("pose", "approximations", "superseded", "stale", "missing", "pen",
+                                          "pen_redirected")))
+    print(f"service side (arrival -> reply sent): approximation {status['approximation_latency_ms']}, "
+          f"pen {status['pen_latency_ms']} ms")
+    print(breakdown("where a pose's time went in the service", status.get("pose_path_ms")))
+    print(breakdown("where a pen sample's time went in the service", status.get("pen_path_ms")))
+    print(stats("client: encoding and sending a sample", m["client_send"], len(m["client_send"])))
+    print(stats("client: parsing and queueing a reply", m["client_receive"], len(m["client_receive"])))
+    if "csharp" in m:
+        print(csharp_line(m))
+
+
+def session(args, code=None) -> dict:
+    """One emulator, one service (this code's, or the checkout `code`'s), one measured session; with
+    args.csharp (the compiled C# session), then the C# client's too: m["csharp"] {"pose_ms", "pen_ms":
+    [p50, p99, replies]}."""
+    with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed") as emu, \
+            ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
+                           stderr_path=Path(tmp) / "serve.err", code=code) as service:
+        m = asyncio.run(measure(service.url, args.shape, args.seconds))
+        if args.csharp:
+            run = subprocess.run(["mono", str(args.csharp), service.url, args.shape, str(args.seconds)],
+                                 capture_output=True, text=True, timeout=120 + 2 * args.seconds)
+            seen = json.loads(run.stdout.strip().splitlines()[-1]) if run.returncode == 0 else {}
+            m["csharp"] = {"pose_ms": seen.get("measure_pose_ms"), "pen_ms": seen.get("measure_pen_ms"),
+                           "error": None if seen else (run.stderr.strip() or run.stdout.strip())[-300:]}
+        return m
+
+
+def csharp_line(m: dict) -> str:
+    c = m.get("csharp")
+    if c is None:
+        return ""
+    if c["error"]:
+        return f"C# client: failed: {c['error']}"
+    (pose50, pose99, n_pose), (pen50, pen99, n_pen) = c["pose_ms"], c["pen_ms"]
+    return (f"C# client: pose -> approximation p50 {pose50:.3f} / p99 {pose99:.3f} ms ({n_pose} replies), "
+            f"pen -> redirected p50 {pen50:.3f} / p99 {pen99:.3f} ms ({n_pen} replies)")
+
+
+def build_csharp(folder: Path) -> Path:
+    """The C# scripted session compiled with Mono's mcs into folder; SystemExit naming what is missing."""
+    root = Path(__file__).resolve().parents[1] / "clients" / "unity"
+    exe = folder / "ScriptedSession.exe"
+    sources = [root / "VRScrollLive" / "Json.cs", root / "VRScrollLive" / "LiveClient.cs",
+               root / "tests" / "ScriptedSession.cs"]
+    try:
+        build = subprocess.run(["mcs", "-warnaserror", f"-out:{exe}", *map(str, sources)], capture_output=True,
+                               text=True)
+    except FileNotFoundError:
+        raise SystemExit("--csharp needs Mono: apt-get install mono-mcs mono-runtime") from None
+    if build.returncode != 0:
+        raise SystemExit(f"--csharp: mcs failed: {build.stdout}{build.stderr}")
+    return exe
+
+
+def p50_p99(values) -> str:
+    v = np.asarray(values) * 1e3
+    return f"{np.percentile(v, 50):.3f} / {np.percentile(v, 99):.3f}" if len(v) else "-"
+
+
+def compare(args) -> None:
+    """Alternate this code's service and the one in args.against, round by round; pooled and per-round figures."""
+    sides = {"before": args.against, "after": None}
+    pooled = {side: {"pose": [], "pose_with_pens": [], "pen": [], "worker": []} for side in sides}
+    rows = []
+    for r in range(args.rounds):
+        for side in (("before", "after") if r % 2 == 0 else ("after", "before")):
+            before = os.getloadavg()[0]
+            m = session(args, sides[side])
+            load_1min = f"{before:.2f} -> {os.getloadavg()[0]:.2f}"
+            for key in pooled[side]:
+                pooled[side][key] += m.get(key, [])
+            rows.append((r + 1, side, load_1min, m))
+            print(f"round {r + 1} {side}: load {load_1min}; pose {p50_p99(m['pose'])} ms, "
+                  f"pen {p50_p99(m.get('pen', []))} ms, lock {m['lock']}", flush=True)
+            if "csharp" in m:
+                print("  " + csharp_line(m), flush=True)
+            if side == "after" and m["status"]:
+                print("  " + breakdown("pose path", m["status"]["pose_path_ms"]))
+                print("  " + breakdown("pen path", m["status"]["pen_path_ms"]))
+                print("  " + stats("client send", m["client_send"], len(m["client_send"])))
+                print("  " + stats("client receive", m["client_receive"], len(m["client_receive"])))
+    print("\n| side | pose -> approximation p50 / p99 ms | with pens running | of which the worker | "
+          "pen -> redirected p50 / p99 ms |")
+    print("|---|---|---|---|---|")
+    for side, v in pooled.items():
+        print(f"| {side} | {p50_p99(v['pose'])} | {p50_p99(v['pose_with_pens'])} | {p50_p99(v['worker'])} | "
+              f"{p50_p99(v['pen'])} |")
 
 
 def main() -> None:
@@ -127,14 +250,23 @@ def main() -> None:
     p.add_argument("--seconds", type=float, default=10.0, help="length of each measured phase (default 10)")
     p.add_argument("--shape", default="cylinder", choices=list(shape_table()))
     p.add_argument("--variant", default="full")
+    p.add_argument("--against", type=Path, help="a checkout of another version (the folder holding its twin "
+                                                "package): alternate its service with this one's")
+    p.add_argument("--rounds", type=int, default=3, help="with --against: rounds of before and after (default 3)")
+    p.add_argument("--csharp", action="store_true", help="measure with the C# client too (needs Mono's mcs, mono)")
     args = p.parse_args()
-    print(load())
-    with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed") as emu, \
-            ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
-                           stderr_path=Path(tmp) / "serve.err") as service:
-        print(service.banner.strip())
-        asyncio.run(bench(service.url, args.shape, args.seconds))
-    print(load())
+    if args.against is not None and not (args.against / "twin" / "live" / "service.py").is_file():
+        p.error(f"--against {args.against}: no twin/live/service.py there")
+    if args.rounds < 1:
+        p.error("--rounds must be at least 1")
+    with tempfile.TemporaryDirectory() as build:
+        args.csharp = build_csharp(Path(build)) if args.csharp else None
+        print(load())
+        if args.against is not None:
+            compare(args)
+        else:
+            report(session(args))
+        print(load())
 
 
 if __name__ == "__main__":

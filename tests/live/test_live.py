@@ -22,6 +22,7 @@ from twin.live.messages import (MAX_CONTROL_BYTES, MAX_DATAGRAM_BYTES, ProtocolE
                                 parse_datagram, sample_datagram)
 from twin.live.player import stroke
 from twin.live.process import ServiceProcess
+from twin.live.stages import PEN_STAGES, POSE_STAGES
 from twin.device.spec import load_spec
 from twin.morphpatch.approximation import Approximation, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
@@ -309,8 +310,10 @@ def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twi
 
     async def session():
         async with LiveClient(twin_service.url) as client, LiveClient(twin_service.url, "observer") as observer:
-            await first_approximation(client)
+            first = await first_approximation(client)
             locked = await client.lock()
+            # locked the moment the worker's datagram arrived: the service has its report by then
+            assert locked["seq"] >= first["seq"]
             gate = await client.expect("gate")
             progress = await client.expect("progress")
             done = await client.expect("done", timeout=10)
@@ -321,9 +324,15 @@ def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twi
             for p, q in zip(points, quats):
                 client.send_pen(p * 1e3, q)
             replies = [await client.datagram("pen_redirected") for _ in points]
-            return gate, progress, done, points, replies
+            return gate, progress, done, points, replies, await client.status()
 
-    gate, progress, done, points, replies = run(session())
+    gate, progress, done, points, replies, status = run(session())
+    # where the time went, per stage of each path (twin/live/stages.py), each stage within its path's total
+    for path, stages in (("pose_path_ms", POSE_STAGES), ("pen_path_ms", PEN_STAGES)):
+        assert tuple(status[path]) == stages
+        total = status[path]["total"]
+        assert all(0 <= t["p50"] <= t["p99"] and t["p50"] <= total["p99"] for t in status[path].values()), status[path]
+    assert status["pen_path_ms"]["total"] == status["pen_latency_ms"]
     assert gate["passed"] and progress["source"] == "twin"
     # the morph's settle time, as the gate predicted it (one definition: docs/device.md)
     assert done["settle_time_s"] == pytest.approx(next(c["value"] for c in gate["checks"] if c["name"] == "settle"),

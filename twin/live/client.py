@@ -12,7 +12,9 @@
 Events from the control channel and datagrams from the service are queued as they come
 (bounded: the oldest go first when a queue is full); every event is also kept in `history`.
 Times put in `t_s` are this process's `time.perf_counter()`, and each datagram reply is
-stamped `received_s` on arrival, so `latency(reply)` is the round trip of the sample it answers.
+stamped `received_s` on arrival (before it is parsed), so `latency(reply)` is the round trip of
+the sample it answers. The client's own part is kept too (`send_s`: encoding and sending a sample,
+from its `t_s` on; `receive_s`: parsing and queueing a reply; the last QUEUE of each, s).
 """
 
 from __future__ import annotations
@@ -45,10 +47,12 @@ class _Replies(asyncio.DatagramProtocol):
         self.client = client
 
     def datagram_received(self, data, addr) -> None:
+        received = time.perf_counter()
         obj = json.loads(data)
-        obj["received_s"] = time.perf_counter()
+        obj["received_s"] = received
         self.client.received[obj["type"]] += 1
         _put(self.client._datagram_queues[obj["type"]], obj)
+        self.client.receive_s.append(time.perf_counter() - received)
 
 
 class LiveClient:
@@ -65,6 +69,8 @@ class LiveClient:
         self._udp = None
         self._reader = None
         self._seq = {"pose": 0, "pen": 0}
+        self.send_s: collections.deque = collections.deque(maxlen=QUEUE)  # s per sample, t_s -> handed to the socket
+        self.receive_s: collections.deque = collections.deque(maxlen=QUEUE)  # s per reply, arrival -> queued
 
     async def __aenter__(self) -> "LiveClient":
         await self.connect()
@@ -145,8 +151,9 @@ class LiveClient:
     def _send_sample(self, kind: str, position_mm, quat_wxyz, **extra) -> int:
         seq = self._seq[kind]
         self._seq[kind] += 1
-        self._udp.sendto(sample_datagram(kind, self.welcome["session"], seq, position_mm, quat_wxyz,
-                                         t_s=time.perf_counter(), **extra))
+        t_s = time.perf_counter()
+        self._udp.sendto(sample_datagram(kind, self.welcome["session"], seq, position_mm, quat_wxyz, t_s=t_s, **extra))
+        self.send_s.append(time.perf_counter() - t_s)
         return seq
 
     def send_pose(self, position_mm, quat_wxyz) -> int:

@@ -118,10 +118,6 @@ class Sample:
     device_pose: np.ndarray | None  # pen only, optional: the tracked device pose at the sample, 4x4
     t_s: float | None  # the client's clock, echoed in the reply
 
-    def pose(self) -> np.ndarray:
-        """4x4 pose of position and orientation."""
-        return pose_matrix(self.position, Rotation.from_quat(self.quat, scalar_first=True).as_matrix())
-
 
 def _vector(obj: dict, key: str, n: int, limit: float) -> np.ndarray:
     """n finite numbers, each within +-limit; ProtocolError("malformed") naming the key otherwise."""

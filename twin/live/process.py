@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import signal
 import subprocess
@@ -13,11 +14,16 @@ from twin.paths import cli_command, cli_env
 class ServiceProcess:
     """`python -m twin.cli serve --listen 0 ARGS...`; `url` once it is serving, `pid`, `stderr_path`."""
 
-    def __init__(self, *args: str, stderr_path=None, timeout: float = 120.0):
+    def __init__(self, *args: str, stderr_path=None, code=None):
+        """code: a folder holding another `twin` package to serve with (another version, to compare against);
+        default this one."""
         self.stderr_path = Path(stderr_path) if stderr_path else None
         self._stderr = open(self.stderr_path, "w") if self.stderr_path else subprocess.DEVNULL
+        env = cli_env()
+        if code is not None:
+            env["PYTHONPATH"] = os.pathsep.join((str(Path(code).resolve()), env["PYTHONPATH"]))
         self.proc = subprocess.Popen(cli_command("serve", "--listen", "0", *args),
-                                     stdout=subprocess.PIPE, stderr=self._stderr, text=True, env=cli_env())
+                                     stdout=subprocess.PIPE, stderr=self._stderr, text=True, env=env)
         self.banner = ""
         for line in self.proc.stdout:  # a token line may come first; the banner names the URL
             self.banner += line

@@ -6,7 +6,10 @@
   only its newest sample: an older sequence number is dropped as stale, a pose that arrives
   before the previous one was approximated replaces it. Memory per stream is one sample.
 - The worker process approximates the newest pose at most APPROXIMATION_RATE_HZ times a second
-  and the reply goes back as a datagram. A pose never moves the device.
+  and sends the reply datagram itself, from the service's socket; the pose goes to it from the
+  callback that made that possible (no task, no await per pose). A pose never moves the device.
+- Each pose's and pen sample's path is stamped stage by stage (twin/live/stages.py); `status`
+  reports where the time went.
 - Lock: the newest approximation's hinge angles go through the morpher (gate, then the device or
   the twin) in a thread; once done, the redirection field of the reached shape is built by the
   worker and pen samples are redirected here, as they arrive.
@@ -40,7 +43,6 @@ from twin.live.messages import (
     MAX_FRAME_BYTES,
     PROTOCOL_VERSION,
     ProtocolError,
-    approximation_datagram,
     error,
     mesh_arrays,
     parse_control,
@@ -48,7 +50,8 @@ from twin.live.messages import (
     pen_datagram,
 )
 from twin.live.morph import MorphOutcome
-from twin.live.worker import Worker, WorkerError
+from twin.live.stages import PEN_STAGES, POSE_STAGES, StageTimes, percentiles_ms
+from twin.live.worker import PoseReply, Worker, WorkerError
 from twin.morphpatch.redirection import redirect, within_samples
 from twin.morphpatch.shapes import shape_names
 from twin.perception.thresholds import load_thresholds
@@ -153,12 +156,19 @@ class LiveService:
         self.target_gen = 0  # +1 per target change: approximations of an older target are not sent
         self.state = "idle"  # "idle", "morphing" or "locked" (pen samples redirected)
         self.field = None
-        self.latest = None  # (target_gen, pose seq, Approximation)
+        self.latest = None  # (target_gen, pose seq, PoseReply): the newest approximation the worker sent
         self.counts: collections.Counter = collections.Counter()
-        self.latency = collections.deque(maxlen=LATENCY_WINDOW)  # s, pose arrival -> approximation sent
-        self.pen_latency = collections.deque(maxlen=LATENCY_WINDOW)  # s, pen arrival -> redirected sent
-        self._pose = None  # (Sample, client, arrival time): the newest pose not yet approximated
-        self._pose_ready = asyncio.Event()
+        self.pose_times = StageTimes(POSE_STAGES, LATENCY_WINDOW)  # s per stage, pose arrival -> approximation sent
+        self.pose_report = collections.deque(maxlen=LATENCY_WINDOW)  # s, the worker's report after the datagram
+        self.pen_times = StageTimes(PEN_STAGES, LATENCY_WINDOW)  # s per stage, pen arrival -> redirected sent
+        self._pose = None  # (Sample, client, arrival, queued s): the newest pose not yet approximated
+        self._in_flight = None  # (target_gen, Sample, client, arrival, queued, sent s): the pose the worker has
+        self._tokens = RATE_BURST  # the rate limit's token bucket (approximations), and when it was last filled
+        self._filled = 0.0
+        self._timer = None  # the rate limit's wake-up, while poses wait for a token
+        self._restarting = False
+        self._reported = asyncio.Event()  # cleared while a pose is with the worker
+        self._reported.set()
         self._udp = None
         self._stop = None
         self._tasks: set[asyncio.Task] = set()
@@ -180,13 +190,16 @@ class LiveService:
                 self.port = server.sockets[0].getsockname()[1]
                 self._udp, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self),
                                                                    local_addr=(self.config.host, self.port))
-                self._spawn(self._approximate_forever())
+                self.worker.share_socket(self._udp.get_extra_info("socket"))
+                self._filled = time.perf_counter()
                 if ready:
                     ready(self.port)
                 await self._stop.wait()
         finally:
             for task in self._tasks:
                 task.cancel()
+            if self._timer is not None:
+                self._timer.cancel()
             if self._udp is not None:
                 self._udp.close()
             self.worker.stop()
@@ -272,7 +285,8 @@ class LiveService:
             except WorkerError as exc:
                 raise ProtocolError("bad_target", str(exc)) from None
             return
-        # lock
+        # lock: the client may hold an approximation the worker sent whose report has not reached us yet
+        await self._reported.wait()
         if self.latest is None or self.latest[0] != self.target_gen:
             raise ProtocolError("out_of_order", "lock before any approximation of this target: stream poses first")
         self.state = "morphing"
@@ -307,18 +321,17 @@ class LiveService:
 
     async def _status(self) -> dict:
         device = await asyncio.to_thread(self.morpher.status)
-
-        def ms(values, q):
-            return round(float(np.percentile(values, q)) * 1e3, 3) if values else None
-
         return {"type": "status", "state": self.state, "target": self.target, "variant": self.config.variant,
                 "controller": self.controller is not None, "observers": len(self.observers), **device,
                 "counts": dict(self.counts),
-                "approximation_latency_ms": {"p50": ms(self.latency, 50), "p99": ms(self.latency, 99)},
-                "pen_latency_ms": {"p50": ms(self.pen_latency, 50), "p99": ms(self.pen_latency, 99)}}
+                "approximation_latency_ms": percentiles_ms(self.pose_times.total()),
+                "pen_latency_ms": percentiles_ms(self.pen_times.total()),
+                "pose_path_ms": self.pose_times.summary(), "pen_path_ms": self.pen_times.summary(),
+                "pose_report_ms": percentiles_ms(self.pose_report)}
 
-    async def _lock(self, seq: int, approx) -> None:
+    async def _lock(self, seq: int, reply: PoseReply) -> None:
         loop = asyncio.get_running_loop()
+        approx = self.worker.approximation(reply)
         self._broadcast({"type": "locked", "seq": seq, **approx.to_json()})
 
         def emit(event):
@@ -375,52 +388,84 @@ class LiveService:
         if sample.kind == "pose":
             if self._pose is not None:
                 self.counts["superseded"] += 1
-            self._pose = (sample, client, arrived)
-            self._pose_ready.set()
+            self._pose = (sample, client, arrived, time.perf_counter())
+            self._next_pose()
         elif self.state != "locked":
             self.counts["pen_not_locked"] += 1
             client.report("out_of_order", "pen sample before a lock's morph is done: not redirected")
         else:
+            parsed = time.perf_counter()
             r = redirect(self.field, sample.position[None], sample.quat[None],
                          None if sample.device_pose is None else sample.device_pose[None])
             within = bool(within_samples(r, self.thresholds)[0])
-            self._udp.sendto(pen_datagram(sample.seq, sample.t_s, r.position[0], r.orientation[0], r.offset[0],
-                                          r.angle[0], r.height[0], r.flap[0], within), addr)
+            redirected = time.perf_counter()
+            reply = pen_datagram(sample.seq, sample.t_s, r.position[0], r.orientation[0], r.offset[0], r.angle[0],
+                                 r.height[0], r.flap[0], within)
+            encoded = time.perf_counter()
+            self._udp.sendto(reply, addr)
             self.counts["pen_redirected"] += 1
-            self.pen_latency.append(time.perf_counter() - arrived)
+            self.pen_times.record((arrived, parsed, redirected, encoded, time.perf_counter()))
 
-    async def _approximate_forever(self) -> None:
-        # a token bucket: on average at most APPROXIMATION_RATE_HZ, with a burst of RATE_BURST so that
-        # poses sent at that rate are not held back by their arrival jitter
-        loop = asyncio.get_running_loop()
-        rate = APPROXIMATION_RATE_HZ
-        tokens, last = RATE_BURST, loop.time()
-        while True:
-            await self._pose_ready.wait()
-            self._pose_ready.clear()
-            now = loop.time()
-            tokens, last = min(RATE_BURST, tokens + (now - last) * rate), now
-            if tokens < 1.0:
-                await asyncio.sleep((1.0 - tokens) / rate)
-                tokens, last = 1.0, loop.time()
-            tokens -= 1.0
-            if self._pose is None:
-                continue
-            sample, client, arrived = self._pose
+    def _next_pose(self) -> None:
+        """Hand the newest pose to the worker if it is free and the rate limit lets it through: called on each
+        pose's arrival, on each approximation's return and when the rate limit's wait ends, so a pose goes to
+        the worker from the callback that made that possible (no task woken per pose).
+
+        The rate limit is a token bucket: on average at most APPROXIMATION_RATE_HZ, with a burst of RATE_BURST
+        so that poses sent at that rate are not held back by their arrival jitter."""
+        if self._pose is None or self._in_flight is not None or self._timer is not None or self._stop.is_set():
+            return
+        sample, client, arrived, queued = self._pose
+        if self.target is None:
             self._pose = None
-            if self.target is None:
-                client.report("out_of_order", "pose before a target: send target first")
-                continue
-            gen = self.target_gen
-            try:
-                approx, msd, share = await self.worker.call("approximate", sample.pose())
-            except WorkerError as exc:
-                client.report("approximation_failed", str(exc))
-                continue
-            if gen != self.target_gen or client is not self.controller:
-                continue
-            self.latest = (gen, sample.seq, approx)
-            self._udp.sendto(approximation_datagram(sample.seq, sample.t_s, approx.to_json(), msd, share),
-                             client.udp_addr)
+            client.report("out_of_order", "pose before a target: send target first")
+            return
+        if not self.worker.alive:
+            if not self._restarting:
+                self._restarting = True
+                self._spawn(self._restart_worker())
+            return
+        now = time.perf_counter()
+        self._tokens, self._filled = min(RATE_BURST, self._tokens + (now - self._filled) * APPROXIMATION_RATE_HZ), now
+        if self._tokens < 1.0:
+            self._timer = asyncio.get_running_loop().call_later((1.0 - self._tokens) / APPROXIMATION_RATE_HZ,
+                                                                self._rate_wait_over)
+            return
+        self._tokens -= 1.0
+        self._pose = None
+        self._in_flight = (self.target_gen, sample, client, arrived, queued, time.perf_counter())
+        self._reported.clear()
+        self.worker.approximate(sample.seq, sample.t_s, sample.position, sample.quat, client.udp_addr,
+                                self._approximated)
+
+    def _rate_wait_over(self) -> None:
+        self._timer = None
+        self._next_pose()
+
+    async def _restart_worker(self) -> None:
+        """A worker that died is started again with the target; then the newest pose goes to it."""
+        try:
+            await self.worker.ensure_running()
+        except WorkerError as exc:
+            if self._pose is not None:
+                self._pose[1].report("approximation_failed", str(exc))
+                self._pose = None
+        finally:
+            self._restarting = False
+        self._next_pose()
+
+    def _approximated(self, reply: PoseReply | WorkerError, received: float) -> None:
+        """The worker's report on the pose in flight (its datagram already sent to the client): kept for a lock,
+        timed; then the next pose."""
+        gen, sample, client, arrived, queued, sent = self._in_flight
+        self._in_flight = None
+        self._reported.set()
+        if isinstance(reply, WorkerError):
+            client.report("approximation_failed", str(reply))
+        else:
             self.counts["approximations"] += 1
-            self.latency.append(time.perf_counter() - arrived)
+            self.pose_times.record((arrived, queued, sent, *reply.stamps))
+            self.pose_report.append(received - reply.stamps[-1])
+            if gen == self.target_gen and client is self.controller:
+                self.latest = (gen, sample.seq, reply)
+        self._next_pose()

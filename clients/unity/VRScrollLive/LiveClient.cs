@@ -204,8 +204,9 @@ namespace VRScroll.Live
                 while (!stop.IsCancellationRequested)
                 {
                     var result = await udp.ReceiveAsync();
+                    double received = Now;  // stamped before parsing: the round trip is the transport's and the service's
                     var reply = Json.ParseObject(Encoding.UTF8.GetString(result.Buffer));
-                    reply["received_s"] = Now;
+                    reply["received_s"] = received;
                     if ((reply["type"] as string) == "approximation")
                     {
                         latestApproximation = reply;

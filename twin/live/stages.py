@@ -1,0 +1,47 @@
+"""Where a live sample's time goes: its path stamped stage by stage, kept for `status`.
+
+Every stamp is `time.perf_counter()` (s). On Linux that is CLOCK_MONOTONIC, one clock for every
+process on the machine, so the worker's stamps and the service's can be subtracted.
+"""
+
+from __future__ import annotations
+
+import collections
+
+import numpy as np
+
+POSE_STAGES = ("parse", "wait", "to_worker", "approximate", "estimates", "send", "total")
+"""A pose's path: parsed and queued (arrival -> queued), waiting for the worker and the rate limit (-> sent to
+the worker), the pipe there (-> the worker's receive), the approximation, the frame estimates, the reply
+datagram built and sent by the worker."""
+PEN_STAGES = ("parse", "redirect", "encode", "send", "total")
+"""A pen sample's path: parsed and checked, redirected (with the thresholds' verdict), encoded, sent."""
+
+
+class StageTimes:
+    """The last `window` samples' durations per stage, from stamps taken along their path."""
+
+    def __init__(self, stages: tuple[str, ...], window: int):
+        self.stages = stages
+        self._times = {name: collections.deque(maxlen=window) for name in stages}
+
+    def record(self, stamps) -> None:
+        """stamps: len(stages) times, s: the arrival, then the end of each stage but the last ("total")."""
+        for name, start, end in zip(self.stages, stamps, stamps[1:]):
+            self._times[name].append(end - start)
+        self._times["total"].append(stamps[-1] - stamps[0])
+
+    def total(self) -> collections.deque:
+        return self._times["total"]
+
+    def summary(self) -> dict:
+        """{stage: {"p50", "p99"} ms, or None before any sample}."""
+        return {name: percentiles_ms(values) for name, values in self._times.items()}
+
+
+def percentiles_ms(values) -> dict | None:
+    """{"p50", "p99"} of durations in s, as ms (3 decimals); None for no values."""
+    if not values:
+        return None
+    p50, p99 = np.percentile(np.fromiter(values, float), [50, 99]) * 1e3
+    return {"p50": round(float(p50), 3), "p99": round(float(p99), 3)}
