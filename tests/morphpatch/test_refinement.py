@@ -77,18 +77,31 @@ def assert_rests_and_fits(spec, meshes, results):
     full goes through the target where ours may not): every result of ours rests on the target from outside
     (twin.morphpatch.resting's bar, exact mesh), and from every start where full's own pose keeps within ours'
     search's bounds too (no deeper than INSIDE_LIMIT, flaps apart), ours' MSD is at most 0.5 mm above full's."""
+    refused = 0
     for name, by_variant in results.items():
         for full, ours in zip(by_variant["full"], by_variant["refined"]):
             r = resting(spec, meshes[name], None, ours, through=False)
+            if not ours.rests:  # ours found no pose resting from outside: `approximate` refuses it
+                refused += 1
+                continue
             assert r.deepest <= DEEPEST_MAX and r.deep_share <= DEEP_SHARE_MAX, (name, r)
             f = resting(spec, meshes[name], None, full, through=False)
             if f.deepest <= INSIDE_LIMIT and f.gap >= FLAP_APART_MIN:  # full within ours' own search bounds
                 assert ours.msd <= full.msd + 0.5e-3, (name, ours.msd, full.msd)
+    return refused
 
 
 def test_ours_rests_and_fits_where_full_rests_on_every_shape(spec, runs):
     assert_rests_and_fits(spec, {n: m for n, (m, _, _, _) in runs.items()},
                           {name: results for name, (_, _, _, results) in runs.items()})
+
+
+@pytest.mark.xfail(strict=True, reason="issue 37, not met: 14 of these 80 starts find no pose resting from outside "
+                                       "within the anchor's 20 mm ball and are refused (the goal: at most 10 %)")
+def test_ours_refuses_few_of_the_paper_shapes_starts(spec, runs):
+    refused = assert_rests_and_fits(spec, {n: m for n, (m, _, _, _) in runs.items()},
+                                    {name: results for name, (_, _, _, results) in runs.items()})
+    assert refused <= 0.1 * len(runs) * STARTS, refused
 
 
 @pytest.mark.slow  # 11 s; the same bounds on the fixture's starts stay in the default suite
@@ -106,12 +119,7 @@ def test_ours_keeps_the_anchor_where_the_user_brought_the_device(spec, runs):
     for name, (_, fields, starts, results) in runs.items():
         snapped = np.array([root_pose(fields, s, spec)[:3, 3] for s in starts])
         anchors = np.array([r.root_pose[:3, 3] for r in results["refined"]])
-        normals = np.array([r.root_pose[:3, 2] for r in results["full"]])
-        # within the ball about the snapped point, lifted along the pipeline's normal where the start had to be
-        # lifted off the target (issue 37): the distance to that half-line
-        lift = np.maximum(np.einsum("ij,ij->i", anchors - snapped, normals), 0.0)
-        off = np.linalg.norm(anchors - snapped - lift[:, None] * normals, axis=1)
-        assert off.max() <= ANCHOR_RADIUS + 1e-9, name
+        assert np.linalg.norm(anchors - snapped, axis=1).max() <= ANCHOR_RADIUS + 1e-9, name
 
 
 def test_every_result_of_ours_passes_the_gates_range_and_collision_checks(spec, runs):

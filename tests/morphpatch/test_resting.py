@@ -27,7 +27,7 @@ def resting_on(spec, name, mesh):
     """Ours from the mesh's default start: its JSON judged apart (outside_check), or a refusal that says why."""
     fields = build_fields(mesh)
     result = approximate(fields, pose_from_mm_deg(mesh_start(mesh)), spec, "refined").measured(spec, mesh)
-    why = refusal(spec, mesh, resting(spec, mesh, fields, result), "refined")
+    why = refusal(spec, mesh, resting(spec, mesh, fields, result), "refined", result.rests)
     if why is not None:
         assert "cannot rest on this target from outside" in why and "\n" not in why, (name, why)
         return None

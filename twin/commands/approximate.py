@@ -91,7 +91,7 @@ def run(args) -> int:
     approximate(fields, pose, spec, args.variant)  # warm-up: the first call in a process loads compiled code
     result = approximate(fields, pose, spec, args.variant).measured(spec, mesh)
     rest = resting(spec, mesh, fields, result)
-    why = refusal(spec, mesh, rest, args.variant)
+    why = refusal(spec, mesh, rest, args.variant, result.rests)
     if why:
         raise UserError(why)
     write_result(args, name, start, result, mesh, spec, resting_json(rest))

@@ -12,8 +12,7 @@ sum_j r(S_j)^2 with
 
 so a flap buried in the target costs more than one as far above it (a pressed device
 cannot sink into the object; on the torus the largest distances, HD, are flap tips
-20-40 mm inside the tube, which plain squares traded against the mean); TAIL is 2 mm, so a
-sample 2 mm inside costs twice one 2 mm above. Levenberg-Marquardt
+20-40 mm inside the tube, which plain squares traded against the mean). Levenberg-Marquardt
 with analytic Jacobians, dr_j = r'(S_j) dS_j and
 
     dS_j/d(anchor)   = g_j,
@@ -98,7 +97,7 @@ DAMPING = 1e-3  # initial damping, relative to the normal matrix's diagonal
 # the same mean MSD and HD drops to 0.5 %; with the one-step end, 1e-4 took about twice 3e-3's time)
 TOLERANCE = 6e-3
 ANCHOR_DEPTH = 0.5e-3  # m: the anchor may sit this far inside the target, no farther (on the SDF grid)
-TAIL = 2e-3  # m: inside the target, a sample's residual grows as S sqrt(1 + (S/TAIL)^2) (module docstring)
+TAIL = 2e-2  # m: inside the target, a sample's residual grows as S sqrt(1 + (S/TAIL)^2) (module docstring)
 ON_LIMIT = 1e-5  # m: an anchor this close to a bound (its depth, the ball) is on it
 THROUGH_COS = -0.5  # a flap's line leaving the target by a face whose normal is more than 120 deg from the one it
 # entered by has passed through it (a wall, a plate, a tube); a corner it cuts (90 deg) or a face it presses is not
@@ -166,15 +165,14 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
     unrolled = _too_close(boxes, angles)  # the pipeline's pose with flaps too close: the search starts apart
     half = 0.5 * depth
     angles = _uncurled(boxes, angles, root_flap)
+    pipeline = (root_pose.copy(), angles.copy())
     anchor = _bounded(grid, root_pose[:3, 3].copy(), centre, radius)
     passing = _through_at(grid, device, angles, widths, _pose(rot, anchor), half)
     rot, anchor, angles, passing = _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, half,
                                             np.inf, passing, unrolled)
-    lifted, angles, rests = _feasible(grid, device, local, rot, anchor, angles, widths, half)
-    if not rests:  # no lift of that pose, curled or flat, rests on the target from outside
-        return _pose(rot, anchor), angles, False
-    normal = rot[:, 2].copy()
-    centre = centre + ((lifted - anchor) @ normal) * normal  # the anchor's ball lifted with the start
+    lifted, angles, rests = _feasible(grid, device, local, rot, anchor, angles, widths, half, centre, radius)
+    if not rests:  # no lift of that pose, curled or flat, rests on the target from outside within the ball:
+        return pipeline[0], pipeline[1], False  # the pipeline's pose, unrolled (its anchor's path is clear)
     rot, anchor, angles, _ = _descend(grid, device, local, rot, lifted, angles, widths, centre, radius, half,
                                       INSIDE_LIMIT, 0, False)
     return _pose(rot, anchor), angles, True
@@ -183,7 +181,11 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
 @numba.njit(cache=True)
 def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, half, inside_limit, passing, unrolled):
     """One Levenberg-Marquardt search from a state: no sample deeper than inside_limit (m; inf: no bound but
-    the objective's), no more flaps through the target than `passing`. (rot, anchor, angles, flaps through.)"""
+    the objective's), no more flaps through the target than `passing`. (rot, anchor, angles, flaps through.)
+    Within the bound on depth, a kept state's anchor must be reached from the snapped one in a straight line
+    to PATH_DEPTH, not CHORD_DEPTH: a slide round a cup's bottom edge to its wall cut the edge 4 mm deep on the
+    exact mesh, which the grid's rounded edge hid."""
+    chord_depth = CHORD_DEPTH if inside_limit == np.inf else PATH_DEPTH
     boxes, _, _, limit = device
     start = (rot, anchor, angles, passing)
     kept = start  # the last state whose anchor the snapped one reaches in a straight line
@@ -219,7 +221,8 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
             continue
         new_anchor, new_cost, deepest = _lifted(grid, device, local, new_rot, new_anchor, new_angles, widths,
                                                 inside_limit)
-        if deepest > inside_limit or not _path_clear(grid, anchor, new_anchor):  # deeper than allowed: refused
+        if deepest > inside_limit or not _path_clear(grid, anchor, new_anchor) or \
+                _distance(new_anchor, centre) > radius:  # deeper than allowed, or lifted out of the ball: refused
             damping *= 4.0
             continue
         lower = new_cost < cost
@@ -235,7 +238,7 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
             held = frozen.any()  # a small gain with hinges held is not the search's end: they are let go now
             frozen[:] = False
             may_hold = unrolled
-            if _path_clear(grid, centre, anchor, CHORD_DEPTH):
+            if _path_clear(grid, centre, anchor, chord_depth):
                 kept = (rot, anchor, angles, passing)
             cost, jtj, jtr, s_anchor, g_anchor = trial
             damping *= 0.3
@@ -265,9 +268,11 @@ def _lifted(grid, device, local, rot, anchor, angles, widths, inside_limit):
 
 
 @numba.njit(cache=True)
-def _feasible(grid, device, local, rot, anchor, angles, widths, half):
+def _feasible(grid, device, local, rot, anchor, angles, widths, half, centre, radius):
     """A start that rests on the target from outside (no sample deeper than INSIDE_LIMIT, no flap through
-    it): of the hinge angles as given and scaled down (SCALES, to flat), each lifted along the root's normal until it rests
+    it): of the hinge angles as given and scaled down (SCALES, to flat), each lifted along the root's normal (never
+    through the target, nor out of the anchor's ball about `centre`, nor where the snapped anchor does not
+    reach it in a straight line) until it rests
     (by the excess depth each time, at least LIFT_MIN, at most LIFT_STEPS times), the one the objective
     prefers; the pipeline's own pose where it rests as it is. (anchor (3,) m, hinge angles rad, whether any
     rests.)"""
@@ -278,6 +283,9 @@ def _feasible(grid, device, local, rot, anchor, angles, widths, half):
         lift = 0.0
         for _ in range(LIFT_STEPS):
             p = anchor + lift * normal
+            if not _path_clear(grid, anchor, p) or not _path_clear(grid, centre, p, CHORD_DEPTH) or \
+                    _distance(p, centre) > radius:  # through the target, or out of the anchor's ball
+                break
             cost, deepest = _cost(grid, device, local, rot, p, trial, widths)
             if deepest <= INSIDE_LIMIT and _through_at(grid, device, trial, widths, _pose(rot, p), half) == 0:
                 if cost < best_cost:

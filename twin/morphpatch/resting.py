@@ -23,7 +23,7 @@ import trimesh
 
 from twin.device.spec import DeviceSpec
 from twin.morphpatch.fields import Fields
-from twin.morphpatch.refinement import flap_gap, flaps_through
+from twin.morphpatch.refinement import ANCHOR_RADIUS, flap_gap, flaps_through
 from twin.morphpatch.surface_metrics import proxy_distances
 
 DEEPEST_MAX = 3e-3  # m: ours' touch surface goes no deeper into the target than this (exact mesh)
@@ -52,9 +52,10 @@ def resting(spec: DeviceSpec, mesh: trimesh.Trimesh, fields: Fields | None, resu
                    flap_gap(spec, result.angles))
 
 
-def refusal(spec: DeviceSpec, mesh: trimesh.Trimesh, r: Resting, variant: str) -> str | None:
+def refusal(spec: DeviceSpec, mesh: trimesh.Trimesh, r: Resting, variant: str, rests: bool | None = None) -> str | None:
     """Why a pose is refused, in one line, or None: flaps that meet (any variant); for ours, anything short of
-    the bar in the module docstring, said as what the target is to the device."""
+    the bar in the module docstring, or a search that found no resting pose (`rests` False), said as what the
+    target is to the device."""
     if r.gap < FLAP_MEET:
         return (f"the {variant} pose's flaps meet (two flaps two or more apart "
                 + (f"overlap by {-r.gap * 1e3:.1f} mm" if r.gap < 0 else f"{r.gap * 1e3:.2f} mm apart")
@@ -72,6 +73,9 @@ def refusal(spec: DeviceSpec, mesh: trimesh.Trimesh, r: Resting, variant: str) -
                f"{DEEPEST_MAX * 1e3:g} mm and {DEEP_SHARE_MAX:.0%})")
     elif r.gap < FLAP_APART_MIN:
         why = f"its flaps come {r.gap * 1e3:.1f} mm close (at least {FLAP_APART_MIN * 1e3:g} mm)"
+    elif rests is False:
+        why = (f"no pose near where the device met it (within {ANCHOR_RADIUS * 1e3:g} mm) rests on it without "
+               "passing through")
     else:
         return None
     return f"ours cannot rest on this target from outside: {why}; try another --start"
