@@ -3,7 +3,7 @@
 `Link(url)` talks the protocol of twin/link/protocol.py over any pyserial URL: a real
 port (/dev/ttyACM0), a pty path (the emulator's), or socket://host:port. A reader
 thread decodes every byte (resyncing after garbage); replies go to the request
-waiting for them, telemetry into a queue that is never dropped from (or to a
+waiting for them, telemetry into a queue of at most TELEMETRY_KEPT frames, the oldest dropped (or to a
 callback). A heartbeat thread keeps the device's watchdog fed. Everything sent
 and received is written, as it happens, to a JSON-lines session log, one flushed
 line per event, so a crash loses nothing before it.
@@ -73,6 +73,9 @@ _CLOSED = object()  # put in the telemetry queue when the link ends
 # interrupt), so the frame is read whole (docs/protocol.md, "Frames"); without it a frame that followed garbage
 # with no 0x00 was dropped with it, and under a stream of noise no request was answered
 FRAME_START = b"\x00"
+# telemetry frames the link keeps for its reader, the oldest dropped beyond (`telemetry_unread` counts them):
+# 20 s at 500 Hz; a queue nobody read grew by 0.45 MB/s without end (issue 40)
+TELEMETRY_KEPT = 10_000
 
 # What a HELLO_REPLY's figures may be (inclusive): a loop the twin can simulate and telemetry can follow, a
 # watchdog the host's 50 ms heartbeat can feed (at least two of them) that fires before long (0, off, would
@@ -116,7 +119,8 @@ class Link:
         self._heartbeat_off = threading.Event()
         self._threads: list[threading.Thread] = []
         self._last_sent = 0.0
-        self._telemetry: queue.Queue = queue.Queue()
+        self._telemetry: queue.Queue = queue.Queue()  # at most TELEMETRY_KEPT frames: the oldest dropped first
+        self.telemetry_unread = 0  # frames dropped from the queue because nobody read them
         self._last_telemetry_seq = None
         self.decoder = P.Decoder()
         self.error: LinkError | None = None
@@ -173,7 +177,7 @@ class Link:
                 pass
             self._serial = None
             self.log("close", rx_bad_frames=self.decoder.bad_frames, telemetry_received=self.telemetry_received,
-                     telemetry_lost=self.telemetry_lost)
+                     telemetry_lost=self.telemetry_lost, telemetry_unread=self.telemetry_unread)
         if self._log:
             with self._log_lock:
                 self._log.close()
@@ -478,8 +482,16 @@ class Link:
                 self.log("telemetry", seq=seq, **_fields(msg))
             if self.telemetry_callback:
                 self.telemetry_callback(seq, msg)
-            else:
-                self._telemetry.put((seq, msg))
+                return
+            while self._telemetry.qsize() >= TELEMETRY_KEPT:  # nobody reads them (status --watch after mirror)
+                try:
+                    if self._telemetry.get_nowait() is _CLOSED:
+                        self._telemetry.put(_CLOSED)
+                        break
+                    self.telemetry_unread += 1
+                except queue.Empty:
+                    break
+            self._telemetry.put((seq, msg))
             return
         self.log("rx", msg=msg.MSG.name, seq=seq, **_fields(msg))
         with self._pending_lock:
