@@ -194,7 +194,9 @@ def test_approximation_round_trip(tmp_path):
     (dict(angles_deg=[0, 0, 0, float("inf"), 0, 0]), r"angles_deg\[3\]: inf is not a finite number"),
     (dict(angle_deg=[0] * 6), "unknown key 'angle_deg'"),
     (dict(widths_mm=[26.9] * 6), r"widths_mm: expected 7 numbers, got 6"),
-    (dict(root_quat_wxyz=[0, 0, 0, 0]), "root_quat_wxyz is zero"),
+    (dict(root_quat_wxyz=[0, 0, 0, 0]), "root_quat_wxyz is not a unit quaternion"),
+    (dict(root_quat_wxyz=[1e200, 1e200, 1e200, 1e200]), "root_quat_wxyz is not a unit quaternion"),
+    (dict(root_quat_wxyz=[2, 0, 0, 0]), "root_quat_wxyz is not a unit quaternion"),
 ])
 def test_bad_approximations_are_refused_with_the_key(tmp_path, change, message):
     path = tmp_path / "a.json"

@@ -214,3 +214,35 @@ def test_a_records_file_skips_what_it_cannot_trust_and_refuses_what_is_not_a_fil
     assert [r["key"] for r in read_jsonl(path)] == ["a", "d"]
     with pytest.raises(ValueError, match="not a regular file"):
         read_jsonl("/dev/zero")
+
+
+@pytest.mark.parametrize("field, value", [("gear_stiction", 1e6), ("backdrive_efficiency", 5.0),
+                                          ("backdrive_efficiency", 0.0), ("resistance", 0.0),
+                                          ("gear_friction", -0.004), ("no_load_speed", 0.0), ("gear_damping", -1.0),
+                                          ("cogging", 1.5)])
+def test_a_profile_whose_plant_no_gearmotor_has_is_refused(tmp_path, field, value):
+    from twin.device.spec_toml import write_spec_toml
+    from twin.formats.profile import PROFILE_FORMAT
+
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    write_spec_toml(folder / "spec.toml", SPEC_PATH, {field: value}, "attack")
+    (folder / "profile.json").write_text(json.dumps({"format": PROFILE_FORMAT, "name": "mine"}))
+    with pytest.raises(ValueError, match=f"{field} = .* is not a gearmotor's"):
+        read_profile(folder)
+
+
+def test_per_hinge_values_of_a_zero_in_the_spec_are_refused(tmp_path):
+    """A per-hinge cogging scales the spec's: a spec cogging of 0 was a ZeroDivisionError."""
+    from twin.device.spec_toml import write_spec_toml
+    from twin.formats.profile import PROFILE_FORMAT
+
+    folder = tmp_path / "mine"
+    folder.mkdir()
+    write_spec_toml(folder / "spec.toml", SPEC_PATH, {"cogging": 0.0}, "attack")
+    estimate = {"value": 0.03, "prior": 0.03, "low": 0.01, "high": 0.05, "identifiable": True, "note": ""}
+    calibration = {"runs": [], "parameters": {}, "hinges": [{"cogging": estimate}] * SPEC.n_hinges}
+    (folder / "profile.json").write_text(json.dumps({"format": PROFILE_FORMAT, "name": "mine",
+                                                     "calibration": calibration}))
+    with pytest.raises(ValueError, match="cogging = 0, but hinge 0 has its own value"):
+        read_profile(folder)

@@ -82,8 +82,12 @@ def run(args) -> int:
     profile = profile_of(args)
     spec = profile.spec
     step = math.radians(args.step_deg)
-    if not 0 < abs(step) <= spec.hinge_limit:
+    if not abs(step) <= spec.hinge_limit:
         raise UserError(f"--step-deg {args.step_deg}: outside the hinge range")
+    smallest = 2 * spec.settle_band * spec.rad_per_count  # a step inside the settle band is settled before it starts
+    if not abs(step) >= smallest:
+        raise UserError(f"--step-deg {args.step_deg}: a step must leave the settle band to test anything: at least "
+                        f"{math.degrees(smallest):.2f} deg (twice the band of {spec.settle_band} counts)")
     ranges = profile.ranges() or tolerance_ranges(spec, args.tolerance_pct / 100)
     goal = TuneGoal(max_overshoot=math.radians(args.max_overshoot_deg), tolerance=args.tolerance_pct / 100,
                     step=step, duration=args.duration_s, ranges=ranges,

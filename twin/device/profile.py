@@ -18,7 +18,9 @@ from twin.paths import replacing
 ENV = "VRSCROLL_DEVICES"
 DEFAULT_FILE = "default"
 NO_PROFILE = "spec defaults"  # how reports name the absence of a profile
-RESERVED = ("none",)  # `vrscroll device select none` means the spec's defaults: no profile can be called that
+# `vrscroll device select none` means the spec's defaults, and `default` is the file that keeps the selection
+# (a profile folder of that name broke selecting one): no profile can be called either
+RESERVED = ("none", DEFAULT_FILE)
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 
@@ -35,9 +37,9 @@ def check_name(name: str) -> str:
     if not isinstance(name, str) or not _NAME.fullmatch(name):
         raise ValueError(f"device profile name {name!r}: use letters, digits, '_', '.' or '-' (64 at most), "
                          "starting with a letter or digit")
-    if name.lower() in RESERVED:
-        raise ValueError(f"device profile name {name!r} is reserved (`vrscroll device select none` means the "
-                         "spec's defaults): choose another")
+    if name.lower() in RESERVED or name.lower().endswith(".part"):
+        raise ValueError(f"device profile name {name!r} is reserved (`none` means the spec's defaults, `default` "
+                         "keeps the selection, NAME.part is a file being written): choose another")
     return name
 
 

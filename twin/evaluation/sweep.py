@@ -12,6 +12,7 @@ design or a shape computes only what is new.
 
 from __future__ import annotations
 
+import collections
 import csv
 import dataclasses
 import hashlib
@@ -37,8 +38,23 @@ from twin.sim.twin import Twin
 
 RECORDS = "records.jsonl"
 _TARGETS: dict = {}  # per worker process: (shape, starts, seed) -> (mesh, fields, starts)
-_TWINS: dict = {}  # per worker process: (design, plant) -> Twin with the design's firmware, the plant's physics
-_CBS: dict = {}  # per worker process: (design, shape) -> CbsSimulator
+_TWINS: collections.OrderedDict = collections.OrderedDict()  # per worker: (design, plant) -> Twin (its firmware, physics)
+_CBS: collections.OrderedDict = collections.OrderedDict()  # per worker process: (design, shape) -> CbsSimulator
+# twins (about 12 MB each) and CBS simulators a worker keeps, the least recently used dropped first: 300 drawn
+# plants once grew a worker from 0.9 to 3.7 GB (issue 40); plants are the innermost loop, so a design's plants
+# beyond this are built again for each shape and start
+MAX_CACHED = 16
+
+
+def cached(cache: collections.OrderedDict, key, make):
+    """cache[key], made by make() when absent; at most MAX_CACHED entries, the least recently used dropped."""
+    if key in cache:
+        cache.move_to_end(key)
+        return cache[key]
+    cache[key] = value = make()
+    while len(cache) > MAX_CACHED:
+        cache.popitem(last=False)
+    return value
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,19 +124,16 @@ def run_task(task: Task) -> dict:
     """One task's results (a backend task): fit, morph and where the twin ended; see the module docstring."""
     spec = task.spec
     mesh, fields, starts = _target(task.shape, task.starts, task.seed)
-    if (spec, task.plant) not in _TWINS:
-        # the plant differs only in physical values: its MJCF and its drive model (the tuner's rule)
-        _TWINS[(spec, task.plant)] = Twin(scaled(spec, dict(task.plant)))
+    # the plant differs only in physical values: its MJCF and its drive model (the tuner's rule)
+    twin = cached(_TWINS, (spec, task.plant), lambda: Twin(scaled(spec, dict(task.plant))))
     if task.method == "cbs":
-        if (spec, task.shape) not in _CBS:
-            _CBS[(spec, task.shape)] = CbsSimulator(spec, mesh)
-        result = _CBS[(spec, task.shape)].run(starts[task.start])
+        result = cached(_CBS, (spec, task.shape), lambda: CbsSimulator(spec, mesh)).run(starts[task.start])
     else:
         result = approximate(fields, starts[task.start], spec, task.method)
     result = result.measured(spec, mesh)
     return {"msd_mm": result.msd * 1e3, "hd_mm": result.hd * 1e3, "time_ms": result.time * 1e3,
             "angles_deg": np.degrees(result.angles).round(3).tolist(),
-            **twin_outcome(spec, mesh, fields, _TWINS[(spec, task.plant)], result)}
+            **twin_outcome(spec, mesh, fields, twin, result)}
 
 
 def run_sweep(out_dir, sweep: Sweep, backend, progress=True) -> list[dict]:

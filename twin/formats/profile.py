@@ -89,6 +89,32 @@ class Profile:
         return [scaled(self.spec, {p: e["value"] / getattr(self.spec, p) for p, e in row.items()}) for row in rows]
 
 
+def plant_is_physical(spec: DeviceSpec, where, hinge_rows=None) -> None:
+    """ValueError naming the entry when a profile's drive train is not one a gearmotor can have (issue 40: a
+    gear_stiction of 1e6 N*m, a back-driven efficiency of 5, no winding resistance, a negative friction
+    simulated with exit 0 and "settled", and zeros divided by): the winding, the motor's speed, torque and
+    inertia positive; friction, damping and backlash not negative; the static friction at least the Coulomb
+    friction and below the motor's stall torque at the output (else the hinge could never start); the
+    back-driven efficiency in (0, 1]; the cogging a share below 1. hinge_rows: the calibration's per-hinge
+    values (`_calibration`), each scaling the spec's own value, which must then be positive."""
+    checks = [("resistance", spec.resistance > 0, "> 0 ohm"), ("no_load_speed", spec.no_load_speed > 0, "> 0"),
+              ("stall_torque", spec.stall_torque > 0, "> 0 N*m"), ("rotor_inertia", spec.rotor_inertia > 0, "> 0"),
+              ("gear_ratio", spec.gear_ratio >= 1, ">= 1"), ("gear_friction", spec.gear_friction >= 0, ">= 0"),
+              ("gear_stiction", spec.gear_friction <= spec.gear_stiction < spec.stall_torque,
+               f"from gear_friction ({spec.gear_friction:g} N*m) to below the stall torque ({spec.stall_torque:g} N*m)"),
+              ("gear_damping", spec.gear_damping >= 0, ">= 0"), ("backlash", spec.backlash >= 0, ">= 0"),
+              ("backdrive_efficiency", 0 < spec.backdrive_efficiency <= 1, "in (0, 1]"),
+              ("cogging", 0 <= spec.cogging < 1, "in [0, 1)")]
+    for field, ok, wanted in checks:
+        if not ok:
+            raise ValueError(f"{where}: {field} = {getattr(spec, field):g} (SI) is not a gearmotor's: it must be {wanted}")
+    for k, row in enumerate(hinge_rows or []):
+        for p in row:
+            if not getattr(spec, p) > 0:
+                raise ValueError(f"{where}: {p} = {getattr(spec, p):g}, but hinge {k} has its own value of it, a "
+                                 "scale of the spec's: it must be > 0")
+
+
 def _calibration(doc, where: str, n_hinges: int) -> dict:
     if not isinstance(doc, dict):
         raise ValueError(f"{where}: expected an object with runs, parameters")
@@ -181,6 +207,7 @@ def read_profile(folder) -> Profile:
         raise ValueError(f"{folder}: device profile without its {SPEC}")
     spec = load_spec(folder / SPEC, defaults=load_spec())  # (one written before an entry was added: the spec's)
     design_unchanged(spec, load_spec(), folder / SPEC)
+    plant_is_physical(spec, folder / SPEC, (calibration or {}).get("hinges"))
     if (folder / GAINS).is_file():
         gains, source = read_gains(folder / GAINS, spec.n_hinges), str(folder / GAINS)
     else:

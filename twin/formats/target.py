@@ -41,6 +41,9 @@ def read_approximation(path, spec: DeviceSpec) -> dict:
     return approximation_fields(json_object(path), spec, str(path))
 
 
+QUAT_NORM_TOLERANCE = 1e-3  # a written quaternion's norm may miss 1 by its rounding; more is not a rotation
+
+
 def approximation_fields(doc: dict, spec: DeviceSpec, where: str) -> dict:
     """An approximation result (a file's object, or a live message's), checked and in SI: root_pose (4x4, m),
     angles (rad), widths (m), time (s), variant (default "full"), msd/hd/depth (m or None), inside (share 0..1 or None), target (its name, or
@@ -52,8 +55,9 @@ def approximation_fields(doc: dict, spec: DeviceSpec, where: str) -> dict:
     angles = hinge_angles(doc["angles_deg"], spec.n_hinges, spec.hinge_limit, f"{where}: angles_deg")
     position = numbers(doc["root_position_mm"], f"{where}: root_position_mm", 3) / 1e3
     quat = numbers(doc["root_quat_wxyz"], f"{where}: root_quat_wxyz", 4)
-    if np.linalg.norm(quat) < 1e-6:
-        raise ValueError(f"{where}: root_quat_wxyz is zero")
+    norm = float(np.linalg.norm(quat))
+    if not abs(norm - 1.0) <= QUAT_NORM_TOLERANCE:  # 1e200 each: a norm of inf, normalised to NaN ("MSD 0.0 mm")
+        raise ValueError(f"{where}: root_quat_wxyz is not a unit quaternion (its norm is {norm:.6g})")
     if np.linalg.norm(position) > REACH_M:
         raise ValueError(f"{where}: root_position_mm is more than {REACH_M:g} m from the target's origin")
     widths = numbers(doc["widths_mm"], f"{where}: widths_mm", spec.n_flaps) / 1e3

@@ -3,7 +3,7 @@
 `Link(url)` talks the protocol of twin/link/protocol.py over any pyserial URL: a real
 port (/dev/ttyACM0), a pty path (the emulator's), or socket://host:port. A reader
 thread decodes every byte (resyncing after garbage); replies go to the request
-waiting for them, telemetry into a queue that is never dropped from (or to a
+waiting for them, telemetry into a queue of at most TELEMETRY_KEPT frames, the oldest dropped (or to a
 callback). A heartbeat thread keeps the device's watchdog fed. Everything sent
 and received is written, as it happens, to a JSON-lines session log, one flushed
 line per event, so a crash loses nothing before it.
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import queue
 import threading
 import time
@@ -74,6 +75,9 @@ _CLOSED = object()  # put in the telemetry queue when the link ends
 # interrupt), so the frame is read whole (docs/protocol.md, "Frames"); without it a frame that followed garbage
 # with no 0x00 was dropped with it, and under a stream of noise no request was answered
 FRAME_START = b"\x00"
+# telemetry frames the link keeps for its reader, the oldest dropped beyond (`telemetry_unread` counts them):
+# 20 s at 500 Hz; a queue nobody read grew by 0.45 MB/s without end (issue 40)
+TELEMETRY_KEPT = 10_000
 
 # What a HELLO_REPLY's figures may be (inclusive): a loop the twin can simulate and telemetry can follow, a
 # watchdog the host's 50 ms heartbeat can feed (at least two of them) that fires before long (0, off, would
@@ -141,7 +145,8 @@ class Link:
         self._heartbeat_off = threading.Event()
         self._threads: list[threading.Thread] = []
         self._last_sent = 0.0
-        self._telemetry: queue.Queue = queue.Queue()
+        self._telemetry: queue.Queue = queue.Queue()  # at most TELEMETRY_KEPT frames: the oldest dropped first
+        self.telemetry_unread = 0  # frames dropped from the queue because nobody read them
         self._last_telemetry_seq = None
         self.decoder = P.Decoder()
         self.error: LinkError | None = None
@@ -199,7 +204,7 @@ class Link:
                 pass
             self._serial = None
             self.log("close", rx_bad_frames=self.decoder.bad_frames, telemetry_received=self.telemetry_received,
-                     telemetry_lost=self.telemetry_lost)
+                     telemetry_lost=self.telemetry_lost, telemetry_unread=self.telemetry_unread)
         if self._log:
             with self._log_lock:
                 self._log.close()
@@ -561,8 +566,16 @@ class Link:
                 self.log("telemetry", seq=seq, **_fields(msg))
             if self.telemetry_callback:
                 self.telemetry_callback(seq, msg)
-            else:
-                self._telemetry.put((seq, msg))
+                return
+            while self._telemetry.qsize() >= TELEMETRY_KEPT:  # nobody reads them (status --watch after mirror)
+                try:
+                    if self._telemetry.get_nowait() is _CLOSED:
+                        self._telemetry.put(_CLOSED)
+                        break
+                    self.telemetry_unread += 1
+                except queue.Empty:
+                    break
+            self._telemetry.put((seq, msg))
             return
         self.log("rx", msg=msg.MSG.name, seq=seq, **_fields(msg))
         with self._pending_lock:
@@ -598,13 +611,20 @@ class Link:
     def _clock_wrong(self, name: str, stamp: int, telemetry: bool, seq: int) -> str | None:
         """Why a device time stamp (us, u32 wrapping) cannot follow the ones before it (None: it can).
 
-        Host time minus device time at each stamp is the link's latency plus a constant: never below its
-        smallest so far by more than CLOCK_AHEAD_S (plus CLOCK_DRIFT of the session), whatever the latency."""
+        Host time minus device time at any stamp's generation is one constant C (the clocks' offset); received
+        later, a stamp's host time minus its device time is C or more. A reply to a request was generated after
+        the request was sent, so C >= sent - its stamp: the largest such bound so far (`floor`) is one no stamp
+        may fall below by more than CLOCK_AHEAD_S (plus CLOCK_DRIFT of the session). Only replies set it: a
+        stale backlog of telemetry at a session's start says nothing of C."""
         now = time.monotonic()
+        reply_sent = None
+        if not telemetry:
+            with self._pending_lock:
+                slot = self._pending.get(seq)
+            reply_sent = None if slot is None else slot[3]
         if self._clock is None:
-            self._clock = (stamp, now, now - stamp / 1e6, now)
-            return None
-        last_us, last_host, least_offset, first_host = self._clock
+            self._clock = (stamp, now, -math.inf, now)
+        last_us, last_host, floor, first_host = self._clock
         step = ((stamp - last_us + 2**31) & 0xFFFFFFFF) - 2**31  # us since the last stamp, signed
         if step < -CLOCK_BACK_US or (telemetry and stamp == self._last_telemetry_us):
             what = "went back" if step < 0 else "stopped"
@@ -612,20 +632,17 @@ class Link:
                     "clock the host cannot compare the device with the twin by)")
         if telemetry:
             self._last_telemetry_us = stamp
-        if step <= 0:
-            with self._pending_lock:
-                slot = self._pending.get(seq)
-            if slot is not None and slot[2] != P.MsgId.ESTOP and slot[3] - last_host > CLOCK_STUCK_S:
-                return (f"its clock stopped: {name} stamped {stamp} us, as the stamp the host had "
-                        f"{slot[3] - last_host:.2f} s before asking")
-            return None
-        unwrapped = last_us + step
-        offset = now - unwrapped / 1e6
-        ahead = least_offset - offset
+        if step <= 0 and reply_sent is not None and reply_sent - last_host > CLOCK_STUCK_S:
+            return (f"its clock stopped: {name} stamped {stamp} us, as the stamp the host had "
+                    f"{reply_sent - last_host:.2f} s before asking")
+        unwrapped = last_us + max(step, 0)
+        ahead = floor - (now - unwrapped / 1e6)
         if ahead > CLOCK_AHEAD_S + CLOCK_DRIFT * (now - first_host):
-            return (f"its clock ran ahead: {name} stamped {step / 1e6:.3f} s after the last stamp, which came "
-                    f"{now - last_host:.3f} s before on the host's clock")
-        self._clock = (unwrapped, now, min(least_offset, offset), first_host)
+            return (f"its clock ran ahead: {name} stamped {ahead:.3f} s later than the host's clock allows "
+                    f"(the device's clock has run {ahead:.3f} s more than the host's since an earlier reply)")
+        if reply_sent is not None:
+            floor = max(floor, reply_sent - unwrapped / 1e6)
+        self._clock = (unwrapped, now if step > 0 else last_host, floor, first_host)
         return None
 
     def _heartbeat(self) -> None:
