@@ -390,22 +390,13 @@ def test_a_pose_never_moves_the_device_and_a_controller_leaving_mid_morph_leaves
                 return moved_by_poses, locked, done, status
 
         moved_by_poses, locked, done, status = run(session())
-<<<<<<< ours
-        held = not [e for e in emu.events("rx") if e["msg"] == "ESTOP"]  # while the service runs: holding
-=======
         estops_while_serving = [e for e in emu.events("rx") if e["msg"] == "ESTOP"]
->>>>>>> theirs
     assert moved_by_poses == []
     assert done["type"] == "done", done
     assert status["device_state"] == "ACTIVE" and status["faults"] == "none"
     assert np.allclose(status["angles_deg"], locked["angles_deg"], atol=1.0)
-<<<<<<< ours
-    assert held
-    assert [e for e in emu.events("rx") if e["msg"] == "ESTOP"]  # the service, stopping, e-stops what it moved
-=======
     assert not estops_while_serving  # held while the service runs; e-stopped as it stops (tests/hil/test_interrupts.py)
     assert [e for e in emu.events("rx") if e["msg"] == "ESTOP"]
->>>>>>> theirs
     # telemetry is switched off after the morph (the link would queue 500 frames a second for nobody)
     rates = [e["rate_hz"] for e in emu.events("rx") if e["msg"] == "SET_TELEMETRY_RATE"]
     assert rates[-1] == 0 and 500 in rates
