@@ -65,7 +65,8 @@ def test_a_profiles_gains_are_the_twins(capsys, spec, device_profiles):
     assert read_profile(device_profiles / "soft").gains == [soft] * spec.n_hinges
     rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-", "--device", "soft",
                       "--max-time-s", "1.0")
-    assert rc == 0
+    assert rc in (0, 1)  # 1: the gate found the soft gains too slow to settle (the report is written all the same)
+    assert (rc == 0) == json.loads(out)["gate"]["passed"]
     soft_row = json.loads(out)["hinges"][0]
     _run(capsys, "device", "select", "none")
     default_row = json.loads(_run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-",
