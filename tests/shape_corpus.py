@@ -63,7 +63,12 @@ def height_field(rng) -> trimesh.Trimesh:
     for _ in range(int(rng.integers(2, 7))):
         cx, cy = rng.uniform(-size / 2, size / 2, 2)
         z += rng.uniform(-0.02, 0.05) * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / (2 * rng.uniform(0.02, 0.08) ** 2))
-    z = np.maximum(z, 0.01)
+    return slab(x, y, np.maximum(z, 0.01))
+
+
+def slab(x, y, z) -> trimesh.Trimesh:
+    """The closed solid between z = 0 and a height field z (m) over a square grid x, y (n x n, ij-indexed)."""
+    n = len(x)
     top = np.c_[x.ravel(), y.ravel(), z.ravel()]
     bottom = np.c_[x.ravel(), y.ravel(), np.zeros(n * n)]
     idx = np.arange(n * n).reshape(n, n)

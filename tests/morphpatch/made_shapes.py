@@ -6,6 +6,8 @@ import math
 import numpy as np
 import trimesh
 
+from shape_corpus import slab
+
 
 def fat_torus():
     return trimesh.creation.torus(0.085, 0.028, major_sections=96, minor_sections=32)
@@ -40,17 +42,7 @@ def saddle():
     n, size = 48, 0.2
     u = np.linspace(-size / 2, size / 2, n)
     x, y = np.meshgrid(u, u, indexing="ij")
-    top = np.c_[x.ravel(), y.ravel(), (0.06 + (x ** 2 - y ** 2) / 0.24).ravel()]
-    bottom = np.c_[x.ravel(), y.ravel(), np.zeros(n * n)]
-    idx = np.arange(n * n).reshape(n, n)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
-    faces = [np.c_[a, b, c], np.c_[a, c, d], np.c_[a, c, b] + n * n, np.c_[a, d, c] + n * n]
-    ring = np.r_[idx[:, 0], idx[-1, 1:], idx[-2::-1, -1], idx[0, -2:0:-1]]
-    nxt = np.roll(ring, -1)
-    faces += [np.c_[ring, nxt + n * n, nxt], np.c_[ring, ring + n * n, nxt + n * n]]
-    m = trimesh.Trimesh(np.vstack([top, bottom]), np.vstack(faces), process=True)
-    trimesh.repair.fix_normals(m)
-    return m
+    return slab(x, y, 0.06 + (x ** 2 - y ** 2) / 0.24)
 
 
 def cup():
