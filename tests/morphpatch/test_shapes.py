@@ -85,3 +85,21 @@ def test_mesh_error_is_a_value_error():
 def test_a_directory_is_not_reported_as_a_missing_file(tmp_path):
     with pytest.raises(MeshError, match="is a directory, not a mesh file"):
         load_mesh(tmp_path)
+
+
+def test_an_inside_out_mesh_is_refused_in_one_line(tmp_path):
+    """Its signed distances all flip: before, `approximate` reported MSD 206 mm and 100 % inside with exit 0."""
+    from cli import vrscroll
+
+    inverted = trimesh.creation.box((0.1, 0.08, 0.06))
+    inverted.invert()
+    assert inverted.is_watertight and inverted.volume < 0
+    inverted.export(tmp_path / "inside_out.stl")
+    with pytest.raises(MeshError, match="inside-out"):
+        load_mesh(tmp_path / "inside_out.stl")
+    out = vrscroll("approximate", "--mesh", str(tmp_path / "inside_out.stl"), "--variant", "full")
+    assert out.returncode == 2 and "inside-out" in out.stderr and "Traceback" not in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and out.stdout == ""
+    inverted.invert()  # the same box, its faces flipped back: a target like any other
+    inverted.export(tmp_path / "box.stl")
+    assert load_mesh(tmp_path / "box.stl").volume > 0

@@ -119,6 +119,11 @@ def check_mesh(mesh: trimesh.Trimesh, name: str = "mesh") -> trimesh.Trimesh:
     if not mesh.is_watertight:
         raise MeshError(f"{name}: not watertight ({len(mesh.faces)} faces, open or non-manifold edges); "
                         "its inside is undefined, so no signed distance: close the holes first")
+    volume = float(mesh.volume)
+    if not volume > 0:  # inside-out: every signed distance flips, the device fits "inside" what it should rest on
+        raise MeshError(f"{name}: " + ("inside-out (its faces' normals point inwards, volume "
+                                       f"{volume * 1e9:.4g} mm^3): flip its faces (trimesh: mesh.invert())"
+                                       if volume < 0 else "of zero volume: nothing to rest on"))
     return mesh
 
 
