@@ -221,6 +221,8 @@ def test_redirect_command_writes_the_samples_and_the_picture(stairs, tmp_path, c
     ("x_mm,y_mm,z_mm,qw,qx,qy,qz\n1,2,3,0,0,0,0\n", "zero quaternion"),
     ("x_mm,y_mm,z_mm,qw,qx,qy,qz\n", "no pen samples"),
     ("x_mm,y_mm,z_mm,qw,qx,qy,qz,device_x_mm\n1,2,3,1,0,0,0,4\n", "device pose columns"),
+    ("x_mm,y_mm,z_mm,qw,qx,qy,qz,x_mm\n1,2,3,1,0,0,0,9\n", "x_mm given twice"),  # which x was the pen's?
+    ("x_mm,y_mm,z_mm,qw,qx,qy,qz,note\n1,2,3,1,0,0,0,a,b\n", ":2: 9 fields, the header has 8"),  # not dropped
 ])
 def test_bad_pen_files_are_refused_with_the_reason(tmp_path, content, message):
     path = tmp_path / "pens.csv"

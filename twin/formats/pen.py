@@ -37,6 +37,9 @@ def read_pen_samples(path) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | N
         with io.StringIO(read_text(path), newline="") as f:
             reader = csv.DictReader(f)
             header = reader.fieldnames or []
+            twice = sorted({c for c in header if header.count(c) > 1})
+            if twice:  # the csv module keeps one of them: the other's values would be dropped unseen
+                raise ValueError(f"{path}: column(s) {', '.join(twice)} given twice in the header")
             missing = [c for c in PEN_COLUMNS if c not in header]
             if missing:
                 raise ValueError(f"{path}: missing column(s) {', '.join(missing)}; a pen file has "
@@ -47,6 +50,9 @@ def read_pen_samples(path) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | N
             wanted = PEN_COLUMNS + (DEVICE_COLUMNS if has_device else ())
             rows, values = {c: [] for c in header}, []
             for line, row in enumerate(reader, start=2):
+                if None in row:  # the csv module puts a row's fields beyond the header's under None
+                    raise ValueError(f"{path}:{line}: {len(header) + len(row[None])} fields, the header has "
+                                     f"{len(header)}")
                 try:
                     numbers = [float(row[c]) for c in wanted]
                 except (TypeError, ValueError):
