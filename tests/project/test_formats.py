@@ -308,6 +308,26 @@ def test_bad_run_folders_are_refused(tmp_path):
         read_run(run, SPEC)
     with pytest.raises(ValueError, match="no run.json"):
         read_run(tmp_path, SPEC)
+    meta["changes"] = [{"t_s": 0.0, "angles_deg": [10] * N}]
+    for key, bad in (("scenario", {}), ("status", 5)):  # a traceback in compare before
+        (run / "run.json").write_text(json.dumps({**meta, key: bad}))
+        with pytest.raises(ValueError, match=f"run.json: {key}: expected a string"):
+            read_run(run, SPEC)
+
+
+def test_compare_refuses_a_run_without_device_frames_or_twin_in_one_line(tmp_path, capsys):
+    from twin.cli import main
+
+    full, bare = _run(tmp_path / "full"), _run(tmp_path / "bare")
+    _trace(full / "twin.csv", rows=20)
+    _trace(bare / "device.csv", rows=20)
+    for trace, rows, says in (("twin.csv", None, "no twin.csv"), ("twin.csv", 0, "no twin rows"),
+                              ("device.csv", 0, "no device frames")):
+        if rows is not None:
+            _trace(bare / trace, rows=rows)
+        rc = main(["compare", str(full), str(bare), "--png", str(tmp_path / "c.png")])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"bare: {says}" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
 
 
 # ---- trials CSV ------------------------------------------------------------------------------

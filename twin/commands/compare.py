@@ -25,6 +25,11 @@ def run(args) -> int:
     spec = profile.spec
     print(profile_line(profile))
     runs = [read_run(r, spec, incomplete=True) for r in args.runs]
+    for path, r in zip(args.runs, runs):
+        if r.twin is None or not len(r.device.time) or not len(r.twin.time):
+            what = "no device frames" if not len(r.device.time) else "no twin.csv" if r.twin is None else \
+                "no twin rows"
+            raise UserError(f"{path}: {what}: a run is compared device against twin, both recorded")
     if len({r.scenario for r in runs}) > 1:
         print("note: the runs played different scenarios (" + ", ".join(sorted({r.scenario for r in runs}))
               + "): their metrics are compared, the traces not time-aligned")

@@ -106,6 +106,9 @@ def read_run_meta(run_dir, spec: DeviceSpec) -> dict:
     meta = json_object(path)
     known_keys(meta, RUN_KEYS, str(path))
     required_keys(meta, ("scenario", "status", "changes", "start_counts", "start_target_counts"), str(path))
+    for key in ("scenario", "status"):  # names, shown in reports and compared between runs
+        if not isinstance(meta[key], str):
+            raise ValueError(f"{path}: {key}: expected a string, got {type(meta[key]).__name__}")
     n = spec.n_hinges
     _counts(meta["start_counts"], n, f"{path}: start_counts")
     _counts(meta["start_target_counts"], n, f"{path}: start_target_counts")
