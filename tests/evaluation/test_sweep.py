@@ -261,6 +261,15 @@ def test_a_sweep_that_asks_for_too_much_is_refused_before_anything_is_built(tmp_
         _read(path)
 
 
+@pytest.mark.parametrize("text, words", [("spec = 5", "spec: expected the path of a spec file"),  # a traceback once
+                                         ('spec = "."', "spec: no such file")])  # a folder is not a spec file
+def test_a_sweeps_spec_must_name_a_spec_file(tmp_path, text, words):
+    path = tmp_path / "s.toml"
+    path.write_text(text + "\n")
+    with pytest.raises(ValueError, match=words):
+        _read(path)
+
+
 def test_a_flap_count_the_spec_cannot_divide_by_is_refused(tmp_path):
     path = tmp_path / "zero.toml"
     path.write_text("[design]\nn_flaps = [0]\n")  # a ZeroDivisionError traceback once

@@ -67,8 +67,10 @@ def read_sweep(path, shapes: list[str], methods: list[str]) -> Sweep:
     path = Path(path)
     doc = parse_toml(read_text(path), str(path))
     known_keys(doc, TOP_KEYS, str(path))
+    if "spec" in doc and not isinstance(doc["spec"], str):
+        raise ValueError(f"{path}: spec: expected the path of a spec file (a string), got {doc['spec']!r}")
     spec_path = (path.parent / doc["spec"]) if "spec" in doc else SPEC_PATH
-    if not spec_path.exists():
+    if not spec_path.is_file():
         raise ValueError(f"{path}: spec: no such file {spec_path}")
     base = load_spec(spec_path)
     units = spec_units(spec_path)
