@@ -50,6 +50,15 @@ def _start_moving(args, emu, tmp_path, **popen):
     return proc, _rx(emu, "SET_TARGETS")[-1]["t"]
 
 
+def _signalled(proc, sig) -> int:
+    """Send sig to the command and wait for it (killed if it has not ended in 20 s); its exit status."""
+    try:
+        proc.send_signal(sig)
+        return proc.wait(20)
+    finally:
+        proc.kill()
+
+
 def _assert_e_stopped(emu, moved_at):
     """The ESTOP arrived after the targets (none of the command's own before), the device stopped in that
     tick, and the device, asked now, is in ESTOP."""
@@ -72,12 +81,7 @@ def test_an_interrupt_e_stops_the_device(command, sig, emulator, tmp_path):
     # a tolerance no slow plant exceeds: the command is still watching the move when the signal comes
     args = {"mirror": MIRROR, "hil": ["hil", str(scenario), "--out", str(tmp_path / "run"), "--tolerance-deg", "170"]}
     proc, moved_at = _start_moving(args[command], emu, tmp_path)
-    try:
-        proc.send_signal(sig)
-        rc = proc.wait(20)
-    finally:
-        proc.kill()
-    assert rc == 130, proc.stderr.read()
+    assert _signalled(proc, sig) == 130, proc.stderr.read()
     _assert_e_stopped(emu, moved_at)
     assert "interrupted" in proc.stderr.read()
 
@@ -88,12 +92,7 @@ def test_a_closed_terminal_or_ctrl_backslash_e_stops_the_device(sig, emulator, t
     """SIGHUP (the terminal closed) and SIGQUIT (Ctrl-\\) used to end `mirror` at once, the device ACTIVE."""
     emu = emulator("--speed-scale", "0.3")
     proc, moved_at = _start_moving(MIRROR, emu, tmp_path)
-    try:
-        proc.send_signal(sig)
-        rc = proc.wait(20)
-    finally:
-        proc.kill()
-    assert rc == 130, proc.stderr.read()
+    assert _signalled(proc, sig) == 130, proc.stderr.read()
     _assert_e_stopped(emu, moved_at)
 
 
