@@ -150,7 +150,8 @@ def test_the_twin_predicts_a_step_from_the_integral_the_device_holds(emulator):
     in: a device at rest holds an integral set by how it came there, and the next step starts from it. On
     the twin's own plant (--ideal), after a history that winds it (the boot sag lifted to flat, a step out
     and back), the twin started with the integral STATE reports predicts the step on every hinge; started
-    empty, the hanging hinges' came out 10-13 % slower than the device's."""
+    empty, the hanging hinges' came out 10-13 % slower than the device's. The device's settle time is read from
+    its telemetry frames (2 ms apart at mirror's 500 Hz): one frame's time is allowed beside the 5 %."""
     spec = load_spec()
     emu = emulator("--ideal", "--no-warming")
     targets = np.full(spec.n_hinges, math.radians(30))
@@ -166,7 +167,8 @@ def test_the_twin_predicts_a_step_from_the_integral_the_device_holds(emulator):
     pred = [r["settle_time_s"] for r in move_report(spec, twin.move_to(targets, max_time=1.0,
                                                                        stop_when_settled=False))]
     dev = [step_metrics(t, deg[:, k], goal, band, hold=spec.settle_hold).settle_time for k in range(spec.n_hinges)]
-    assert np.allclose(dev, pred, rtol=0.05), (dev, pred, np.round(np.array(dev) / pred - 1, 3))
+    frame = 1.0 / spec.max_telemetry_rate  # s: the device's settle time is known to a telemetry frame
+    assert np.allclose(dev, pred, rtol=0.05, atol=frame), (dev, pred, np.round(np.array(dev) / pred - 1, 3))
 
 
 def test_tuned_gains_on_the_emulator_settle_as_the_twin_predicts(tuned, emulator, tmp_path):
