@@ -173,17 +173,20 @@ def test_a_second_evaluate_into_one_folder_is_refused(tmp_path, capsys):
         pass
 
 
+RESULT = {"msd_mm": 1.0, "hd_mm": 2.0, "time_ms": 3.0}  # what summarize takes from each record
+
+
 def test_results_resume_past_a_cut_line_and_count_each_start_once(tmp_path):
     """A write cut short (a full disk) left half a line; a start was recorded twice, another only in part:
     Table 1 counts each complete start once, and the next record starts on a line of its own."""
     log = tmp_path / "results.jsonl"
-    rows = [{"shape": "cube", "start": s, "method": m, "msd_mm": 1.0} for s in (0, 1) for m in METHODS]
-    rows += [rows[0]] + [{"shape": "cube", "start": 2, "method": METHODS[0], "msd_mm": 9.0}]  # repeated, partial
+    rows = [{"shape": "cube", "start": s, "method": m, **RESULT} for s in (0, 1) for m in METHODS]
+    rows += [rows[0]] + [{"shape": "cube", "start": 2, "method": METHODS[0], **RESULT}]  # repeated, partial
     log.write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"shape": "cube", "sta')
     records = read_records(log)
     assert sorted({(r["start"], r["method"]) for r in records}) == sorted((s, m) for s in (0, 1) for m in METHODS)
     assert len(records) == 2 * len(METHODS)  # start 0 once, start 2 not yet complete
     with RecordLog(log) as f:
-        f.write({"shape": "cube", "start": 2, "method": METHODS[-1], "msd_mm": 2.0})
+        f.write({"shape": "cube", "start": 2, "method": METHODS[-1], **RESULT})
     lines = log.read_text().splitlines()
     assert all(json.loads(line) for line in lines)  # the cut line went, nothing was appended onto it

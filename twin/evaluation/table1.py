@@ -27,6 +27,7 @@ import mujoco
 import numpy as np
 from tqdm import tqdm
 
+from twin.checks import json_object
 from twin.device.spec import load_spec
 from twin.evaluation.backends import LocalBackend
 from twin.evaluation.cbs import CbsSimulator
@@ -114,7 +115,7 @@ def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: 
     settings = {"starts": n_starts, "seed": seed, "methods": list(METHODS)}
     meta = out / "settings.json"
     if meta.exists():
-        old = json.loads(meta.read_text())
+        old = json_object(meta)
         if old != settings:
             raise ValueError(f"{out} holds a run with {old}; use another --out for {settings}")
     else:
@@ -137,11 +138,15 @@ def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: 
     return records
 
 
+REQUIRED = ("shape", "start", "method", "msd_mm", "hd_mm", "time_ms")  # what summarize takes from every record
+
+
 def read_records(path) -> list[dict]:
     """Records of a results.jsonl: each (shape, start, method) once (the first written), and only the starts
-    whose every method is there; a start cut short is computed again."""
+    whose every method is there; a start cut short is computed again. ValueError naming the line for a record
+    without REQUIRED or with a field that is not what evaluate_start writes (twin.formats.records)."""
     first = {}
-    for r in read_jsonl(path):
+    for r in read_jsonl(path, REQUIRED):
         key = (r.get("shape"), r.get("start"), r.get("method"))
         first.setdefault(key, r)
     by_start = {}

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from twin.checks import parse_json, read_text
+from twin.checks import number, numbers, parse_json, read_text
 
 
 class RecordLog:
@@ -40,20 +40,57 @@ class RecordLog:
 
 MAX_RECORDS_BYTES = 1 << 30  # a records file read whole: 1 GiB is a million records of the largest sweep
 
+# what each result field of a record must be where present (both records files share these: table1's
+# evaluate_start and sweep's run_task write them); the summaries compute with them, so a word or NaN there was
+# a TypeError traceback or a NaN mean with exit 0
+NUMBER_FIELDS = ("msd_mm", "hd_mm", "time_ms", "twin_msd_mm", "share_within", "inside_percent", "inside_depth_mm",
+                 "anchor_depth_mm", "mass_g")
+FLAG_FIELDS = ("gate_range_ok", "gate_collision_ok")
+TEXT_FIELDS = ("key", "shape", "method", "design")  # the labels a record is grouped by
+WHOLE_FIELDS = ("start", "design_index", "plant")
 
-def read_jsonl(path) -> list[dict]:
+
+def read_jsonl(path, required=()) -> list[dict]:
     """The objects of a records file, in order; a line cut short, nested too deeply, with a key twice (which
     value would count?) or not an object is skipped (its work is done again). ValueError for a file that is not
-    a regular file (/dev/zero) or over MAX_RECORDS_BYTES, before it is read."""
+    a regular file (/dev/zero) or over MAX_RECORDS_BYTES, before it is read, and for a whole record missing a
+    `required` key or whose result fields are not what was written (check_record), naming the line."""
     path = Path(path)
     if not path.exists():
         return []
     out = []
-    for line in read_text(path, MAX_RECORDS_BYTES).splitlines():
+    for n, line in enumerate(read_text(path, MAX_RECORDS_BYTES).splitlines(), 1):
         try:
             record = parse_json(line, str(path))
         except ValueError:
             continue
         if isinstance(record, dict):
-            out.append(record)
+            out.append(check_record(record, required, f"{path} line {n}"))
     return out
+
+
+def check_record(record: dict, required, where: str) -> dict:
+    """record, once each `required` key is there and each result field present is what the programs write:
+    NUMBER_FIELDS finite numbers, `morph_time_s` one or null, FLAG_FIELDS true or false, `angles_deg` a list of
+    numbers; TEXT_FIELDS strings and WHOLE_FIELDS whole numbers; ValueError naming `where` and the field
+    otherwise."""
+    for key in required:
+        if key not in record:
+            raise ValueError(f"{where}: missing {key!r}")
+    for key in TEXT_FIELDS:
+        if key in record and not isinstance(record[key], str):
+            raise ValueError(f"{where}: {key}: expected a string, got {record[key]!r:.40}")
+    for key in WHOLE_FIELDS:
+        if key in record and (isinstance(record[key], bool) or not isinstance(record[key], int)):
+            raise ValueError(f"{where}: {key}: expected a whole number, got {record[key]!r:.40}")
+    for key in NUMBER_FIELDS:
+        if key in record:
+            number(record[key], f"{where}: {key}")
+    if record.get("morph_time_s") is not None:
+        number(record["morph_time_s"], f"{where}: morph_time_s")
+    for key in FLAG_FIELDS:
+        if key in record and not isinstance(record[key], bool):
+            raise ValueError(f"{where}: {key}: expected true or false, got {record[key]!r:.40}")
+    if "angles_deg" in record:
+        numbers(record["angles_deg"], f"{where}: angles_deg")
+    return record

@@ -180,11 +180,16 @@ def write_sweep(path, shapes: list[str], starts: int, seed: int, methods: list[s
         Path(tmp).write_text(tomlkit.dumps(doc))
 
 
+# what summarize_designs takes from every record (the labels come from the sweep file)
+REQUIRED = ("key", "msd_mm", "twin_msd_mm", "morph_time_s", "gate_range_ok", "gate_collision_ok")
+
+
 def read_records(path) -> dict[str, dict]:
-    """key -> record of a records file; a line cut short or not a record is skipped, a repeated key read once."""
+    """key -> record of a records file; a line cut short or not a record is skipped, a repeated key read once.
+    ValueError naming the line for a record without REQUIRED or with a field that is not what a sweep writes
+    (twin.formats.records)."""
     out = {}
-    for record in read_jsonl(path):
-        if isinstance(record.get("key"), str):
-            out.setdefault(record["key"], record)
+    for record in read_jsonl(path, REQUIRED):
+        out.setdefault(record["key"], record)
     return out
 

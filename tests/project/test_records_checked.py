@@ -1,0 +1,90 @@
+"""A records file (evaluate's results.jsonl, sweep's records.jsonl) is read back to resume and to summarise:
+what the programs did not write there is refused in one line naming the file and line, before any work, never
+a traceback or a NaN in a table (issue 40 attacks 7 and 9)."""
+
+import json
+
+import pytest
+
+from twin.cli import main
+from twin.evaluation.table1 import METHODS
+from twin.formats.sweep import read_records as read_sweep_records
+
+
+def _evaluation(folder, line: str):
+    """An evaluate folder of one complete start whose first record is `line`, and its settings."""
+    folder.mkdir()
+    (folder / "settings.json").write_text(json.dumps({"starts": 2, "seed": 0, "methods": list(METHODS)}))
+    rows = [json.dumps({"shape": "cube", "start": 0, "method": m, "msd_mm": 1.0, "hd_mm": 2.0, "time_ms": 3.0})
+            for m in METHODS]
+    (folder / "results.jsonl").write_text("\n".join([line] + rows[1:]) + "\n")
+
+
+@pytest.mark.parametrize("field, value, says", [
+    ("msd_mm", '"abc"', "msd_mm: expected a number, got 'abc'"),
+    ("msd_mm", "NaN", "msd_mm: nan is not a finite number"),
+    ("hd_mm", "1e999", "hd_mm: inf is not a finite number"),
+    ("time_ms", "null", "time_ms: expected a number, got None"),
+    ("start", '"0"', "start: expected a whole number"),
+    ("shape", "[1]", "shape: expected a string"),
+    ("gate_range_ok", '"yes"', "gate_range_ok: expected true or false"),
+    ("angles_deg", '[1, "x"]', "angles_deg[1]: expected a number"),
+])
+def test_evaluate_refuses_a_record_it_did_not_write(tmp_path, capsys, field, value, says):
+    record = {"shape": "cube", "start": 0, "method": METHODS[0], "msd_mm": 1.0, "hd_mm": 2.0, "time_ms": 3.0}
+    line = json.dumps(record).replace(f'"{field}": {json.dumps(record[field])}', f'"{field}": {value}') \
+        if field in record else json.dumps(record)[:-1] + f', "{field}": {value}}}'
+    folder = tmp_path / "ev"
+    _evaluation(folder, line)
+    assert main(["evaluate", "--out", str(folder), "--shapes", "cube", "--starts", "2"]) == 2
+    err = capsys.readouterr().err
+    assert f"{folder / 'results.jsonl'} line 1: {says}" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_a_record_without_what_the_table_needs_is_refused(tmp_path, capsys):
+    folder = tmp_path / "ev"
+    _evaluation(folder, json.dumps({"shape": "cube", "start": 0, "method": METHODS[0], "msd_mm": 1.0}))
+    assert main(["evaluate", "--out", str(folder), "--shapes", "cube", "--starts", "2"]) == 2
+    assert "line 1: missing 'hd_mm'" in capsys.readouterr().err
+
+
+def test_nesting_a_special_file_and_a_huge_sparse_file_are_one_line_each(tmp_path, capsys):
+    folder = tmp_path / "ev"
+    _evaluation(folder, "[" * 100_000)  # that line is skipped as a cut one: the start is computed again...
+    log = folder / "results.jsonl"
+    from twin.evaluation.table1 import read_records
+    assert {r["method"] for r in read_records(log)} == set()  # ...so no start is complete yet
+    log.unlink()
+    log.symlink_to("/dev/zero")
+    assert main(["evaluate", "--out", str(folder), "--shapes", "cube", "--starts", "2"]) == 2
+    assert f"{log}: not a regular file" in capsys.readouterr().err
+    log.unlink()
+    with open(log, "wb") as f:  # 3 GB sparse: no disk used, and refused before a byte is read
+        f.truncate(3 << 30)
+    assert main(["evaluate", "--out", str(folder), "--shapes", "cube", "--starts", "2"]) == 2
+    err = capsys.readouterr().err
+    assert f"{log}: 3,221,225,472 bytes; at most 1,073,741,824" in err and len(err.strip().splitlines()) == 1
+
+
+def test_settings_that_are_not_a_json_object_are_one_line(tmp_path, capsys):
+    folder = tmp_path / "ev"
+    _evaluation(folder, "")
+    (folder / "settings.json").unlink()
+    (folder / "settings.json").symlink_to("/dev/zero")
+    assert main(["evaluate", "--out", str(folder), "--shapes", "cube", "--starts", "2"]) == 2
+    assert "settings.json: not a regular file" in capsys.readouterr().err
+
+
+def test_sweep_records_are_checked_alike(tmp_path):
+    log = tmp_path / "records.jsonl"
+    good = {"key": "a", "msd_mm": 1.0, "twin_msd_mm": 1.5, "morph_time_s": None, "gate_range_ok": True,
+            "gate_collision_ok": True}
+    log.write_text(json.dumps(good) + "\n" + json.dumps({**good, "key": "b", "morph_time_s": "slow"}) + "\n")
+    with pytest.raises(ValueError, match="line 2: morph_time_s: expected a number, got 'slow'"):
+        read_sweep_records(log)
+    log.write_text(json.dumps(good) + "\n" + json.dumps({**good, "key": 5}) + "\n")
+    with pytest.raises(ValueError, match="line 2: key: expected a string"):
+        read_sweep_records(log)
+    log.write_text(json.dumps(good) + "\n")
+    assert read_sweep_records(log) == {"a": good}
