@@ -16,6 +16,7 @@ import pytest
 from twin.cli import main
 from twin.device.design import bevel_limit, design_spec
 from twin.device.mjcf import load_model
+from twin.device.spec import MAX_HINGES
 from twin.evaluation.backends import LocalBackend, RayBackend, make_backend
 from twin.evaluation.starts import approach_starts
 from twin.evaluation.sweep import RECORDS, run_sweep, summarize_designs, sweep_plants, sweep_tasks
@@ -82,6 +83,16 @@ def test_a_design_weighs_what_it_is_made_of(spec):
     ({"drive_cap": 9.0}, "drive_cap = 9 V is more than the supply's 7.4 V"),
     ({"flaps": 5}, "'flaps' is not a spec value"),
     ({"n_flaps": 5.5}, "n_flaps = 5.5: expected a whole number"),
+    # sizes the twin would allocate by, bounded (issue 40 attack 7: a design 1e6 m long or a loop rate of 1e9 Hz
+    # asked for 5.6e9 metric points or 89 GiB of trace), and flaps that overlap (attack 8: a negative gap was
+    # Pareto-optimal)
+    ({"length": 1e6}, "length = 1e+06 m is over a hand-held display's 1 m (MAX_EXTENT)"),
+    ({"depth": 2.0, "usable_depth": 1.9}, "depth = 2 m is over a hand-held display's 1 m (MAX_EXTENT)"),
+    ({"loop_rate": 1e9}, "loop_rate = 1e+09 Hz is outside the 100-10000 Hz a control loop may run at"),
+    ({"loop_rate": 10.0}, "loop_rate = 10 Hz is outside the 100-10000 Hz"),
+    ({"n_flaps": 10}, "n_flaps = 10: the firmware core drives at most 8 hinges (9 flaps, MAX_HINGES)"),
+    ({"flap_gap": -0.001}, "flap_gap = -1 mm: neighbouring flaps would overlap (7 flaps 27.9 mm wide make 195.0 mm, "
+                           "more than the 188 mm length)"),
 ])
 def test_a_design_the_device_cannot_be_is_refused_with_the_reason(spec, overrides, reason):
     with pytest.raises(ValueError) as err:
@@ -92,7 +103,7 @@ def test_a_design_the_device_cannot_be_is_refused_with_the_reason(spec, override
 def test_the_hinge_range_the_thickness_allows_is_the_bevel_limit(spec):
     rng = np.random.default_rng(0)
     for _ in range(5):  # flaps of random thickness and count, the limit just inside and just beyond
-        shape = {"thickness": float(rng.uniform(0.003, 0.012)), "n_flaps": int(rng.integers(3, 12))}
+        shape = {"thickness": float(rng.uniform(0.003, 0.012)), "n_flaps": int(rng.integers(3, MAX_HINGES + 2))}
         limit = bevel_limit(design_spec(spec, {**shape, "hinge_limit": 0.1}))
         if limit < math.pi:
             assert design_spec(spec, {**shape, "hinge_limit": limit * 0.999}).hinge_limit < limit
@@ -142,6 +153,9 @@ tolerance_pct = { gear_friction = 30 }
     ("[plants]\ncount = 1", "[plants]: unknown key 'count'"),
     ("[plants]\ndraws = 1\ntolerance_pct = { n_flaps = 10 }", "n_flaps is a whole number, not a value a plant varies"),
     ("starts = [", "not TOML"),
+    ("[design]\nlength = [0.188, 1e6]", "[design] length = 1e+06: the device cannot be built: length = 1e+06 m is over"),
+    ("[design]\nloop_rate = [1e9]", "[design] loop_rate = 1e+09: the device cannot be built: loop_rate = 1e+09 Hz"),
+    ("[design]\nflap_gap = [-0.001]", "[design] flap_gap = -0.001: the device cannot be built: flap_gap = -1 mm"),
 ])
 def test_the_sweep_file_reader_refuses_bad_input(tmp_path, capsys, text, message):
     path = _sweep_file(tmp_path / "bad.toml", text + "\n")

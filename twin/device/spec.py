@@ -15,6 +15,14 @@ from twin.device.spec_toml import read_spec_toml
 from twin.paths import MODELS_DIR
 
 MAX_HINGES = 8  # the firmware core's VRS_MAX_HINGES (vrs_core.h): hinges one device may have
+# Hz, inclusive: a control loop the twin simulates tick by tick and telemetry can follow (the host refuses a
+# device reporting another in HELLO); beyond it a morph's trace is unbounded (a design's loop rate of 1e9 Hz
+# once asked for 89 GiB), and the core's loop_rate_hz is 16 bits
+LOOP_RATE_RANGE = (100, 10_000)
+# m: the most a design's row of flaps (length) or its hinges (depth) may measure: a hand-held display (the
+# paper's is 0.188 x 0.175 m); it keeps the touch surface's 2 mm metric grid under 250,000 points (a design
+# 1e6 m long once asked for 5.6e9)
+MAX_EXTENT = 1.0
 SPEC_PATH = MODELS_DIR / "vrscroll" / "spec.toml"
 
 

@@ -28,6 +28,7 @@ import serial
 
 from controllers.core import MAX_HINGES
 from controllers.program import ProgramEnd, ProgramRun, end_name
+from twin.device.spec import LOOP_RATE_RANGE
 from twin.formats.gains import check_gains
 from twin.link import protocol as P
 
@@ -79,10 +80,10 @@ FRAME_START = b"\x00"
 # 20 s at 500 Hz; a queue nobody read grew by 0.45 MB/s without end (issue 40)
 TELEMETRY_KEPT = 10_000
 
-# What a HELLO_REPLY's figures may be (inclusive): a loop the twin can simulate and telemetry can follow, a
-# watchdog the host's 50 ms heartbeat can feed (at least two of them) that fires before long (0, off, would
-# leave a device driving after its host died)
-HELLO_RANGES = {"loop_rate_hz": (100, 10_000), "watchdog_ms": (100, 60_000), "max_telemetry_hz": (1, 10_000)}
+# What a HELLO_REPLY's figures may be (inclusive): a loop the twin can simulate and telemetry can follow (any
+# design's, LOOP_RATE_RANGE), a watchdog the host's 50 ms heartbeat can feed (at least two of them) that fires
+# before long (0, off, would leave a device driving after its host died)
+HELLO_RANGES = {"loop_rate_hz": LOOP_RATE_RANGE, "watchdog_ms": (100, 60_000), "max_telemetry_hz": (1, 10_000)}
 CLOCK_AHEAD_S = 0.25  # s the device's clock may run ahead of the host's over a session ...
 CLOCK_DRIFT = 1e-3  # ... plus this share of the session's length (a crystal is within 1e-4)
 CLOCK_BACK_US = 1000  # µs a stamp may precede the one before it (one tick: a reply and a frame stamped apart)
