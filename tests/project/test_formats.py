@@ -315,6 +315,27 @@ def test_bad_run_folders_are_refused(tmp_path):
             read_run(run, SPEC)
 
 
+def test_a_run_longer_than_any_run_is_refused_before_it_is_replayed(tmp_path, capsys):
+    """A device.csv whose last time was 1e9 s asked calibration's replay for 43.7 TiB (issue 40 attack 7)."""
+    from twin.cli import main
+    from twin.formats.run import MAX_RUN_S
+
+    run = _run(tmp_path / "r")
+    lines = (run / "device.csv").read_text().splitlines()
+    (run / "device.csv").write_text("\n".join(lines + [_cell(lines[-1], 0, "1e9")]) + "\n")
+    assert main(["calibrate", str(run), "--out", str(tmp_path / "spec.toml")]) == 2
+    err = capsys.readouterr().err
+    assert f"device.csv: its last time 1e+09 s is past the longest a run spans, {MAX_RUN_S:g} s" in err
+    assert len(err.strip().splitlines()) == 1
+    (run / "device.csv").write_text("\n".join(lines + [_cell(lines[-1], 0, f"{MAX_RUN_S}")]) + "\n")
+    assert read_run(run, SPEC).device.time[-1] == MAX_RUN_S  # the bound itself is a run
+    meta = json.loads((run / "run.json").read_text())
+    meta["changes"].append({"t_s": 1e9, "angles_deg": [0] * N})
+    (run / "run.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"changes\[1\]: t_s 1e\+09 s is past the longest a run spans"):
+        read_run(run, SPEC)
+
+
 def test_compare_refuses_a_run_without_device_frames_or_twin_in_one_line(tmp_path, capsys):
     from twin.cli import main
 
@@ -331,6 +352,26 @@ def test_compare_refuses_a_run_without_device_frames_or_twin_in_one_line(tmp_pat
 
 
 # ---- trials CSV ------------------------------------------------------------------------------
+
+def test_more_surfaces_than_a_fit_and_a_panel_each_are_refused(tmp_path, capsys):
+    """5,000 surfaces once asked psychometric for a figure 3 million pixels wide (issue 40 attack 7)."""
+    from twin.cli import main
+    from twin.formats.trials import MAX_SURFACES
+
+    def trials(n):
+        rows = [{"participant": "p", "surface": f"s{k}", "condition": c, "natural": c < 2, "confidence": 4}
+                for k in range(n) for c in (0.0, 1.0, 2.0, 4.0)]
+        write_trials(tmp_path / f"{n}.csv", rows, "deg")
+        return tmp_path / f"{n}.csv"
+
+    assert len(set(read_trials(trials(MAX_SURFACES)).surface)) == MAX_SURFACES
+    path = trials(5000)
+    with pytest.raises(ValueError, match=f"{path}:{2 + 4 * MAX_SURFACES}: surface 's{MAX_SURFACES}' is the "
+                                         f"{MAX_SURFACES + 1}th; a trials file holds at most {MAX_SURFACES}"):
+        read_trials(path)
+    assert main(["psychometric", str(path)]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
 
 def test_trials_round_trip(tmp_path):
     rows = [{"participant": f"p{i % 3}", "condition": c, "natural": i % 2 == 0, "confidence": 1 + i % 5}

@@ -21,6 +21,10 @@ from collections.abc import Callable, Iterable, Iterator
 
 BACKENDS = ("local", "ray")
 IN_FLIGHT_PER_CPU = 4  # Ray: tasks submitted ahead per cluster CPU
+# --workers per core of this machine at most: a task keeps a core busy, so a worker beyond the cores only waits,
+# holding its ~0.9 GB (MuJoCo, the target's fields, its twins); four a core leaves room to oversubscribe on
+# purpose, and `--workers 5000` (some 4.5 TB) is refused before a process starts
+WORKERS_PER_CORE = 4
 
 
 def _indexed(fn: Callable, item: tuple):
@@ -102,7 +106,12 @@ class RayBackend:
 
 
 def make_backend(name: str, workers: int | None = None):
-    """A backend by name ('local' or 'ray'); workers: local processes, or a local Ray's CPUs (default all cores)."""
+    """A backend by name ('local' or 'ray'); workers: local processes, or a local Ray's CPUs (default all cores);
+    ValueError for workers below 1 or over WORKERS_PER_CORE a core."""
+    cores = os.cpu_count() or 1
+    if workers is not None and not 1 <= workers <= WORKERS_PER_CORE * cores:
+        raise ValueError(f"--workers {workers}: from 1 to {WORKERS_PER_CORE * cores} ({WORKERS_PER_CORE} per core, "
+                         f"WORKERS_PER_CORE; this machine has {cores})")
     if name == "local":
         return LocalBackend(workers)
     if name == "ray":

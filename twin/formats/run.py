@@ -27,6 +27,7 @@ from controllers.pid import PidGains
 from twin.checks import hinge_angles, json_object, known_keys, number, required_keys
 from twin.device.spec import DeviceSpec
 from twin.formats.gains import read_gains
+from twin.formats.scenario import MAX_DURATION_S
 from twin.formats.trace import Recording, read_trace
 from twin.paths import replacing
 
@@ -35,6 +36,10 @@ RUN_KEYS = ("scenario", "start_counts", "start_target_counts", "start_integral_d
             "mount", "tolerance_deg")
 BEFORE_KEYS = ("state", "counts", "target_counts")
 COMPLETE = "complete"
+# s of device time a run may span: its scenario (at most MAX_DURATION_S) and the telemetry drained after the
+# scenario's end, which is the last batch and never a minute of it; calibration and view play a run from 0 to
+# its last frame at the firmware's rate, so a device.csv whose last time was 1e9 s asked for 43.7 TiB
+MAX_RUN_S = MAX_DURATION_S + 60.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,6 +137,8 @@ def read_run_meta(run_dir, spec: DeviceSpec) -> dict:
             raise ValueError(f"{where}: expected {{t_s, angles_deg}}")
         known_keys(c, ("t_s", "angles_deg"), where)
         t = number(c.get("t_s"), f"{where}: t_s")
+        if t > MAX_RUN_S:
+            raise ValueError(f"{where}: t_s {t:g} s is past the longest a run spans, {MAX_RUN_S:g} s (MAX_RUN_S)")
         if t < last:
             raise ValueError(f"{where}: t_s {t} is before the previous change's {last}")
         last = t
@@ -155,7 +162,11 @@ def read_run(run_dir, spec: DeviceSpec, incomplete: bool = False) -> Run:
         raise ValueError(f"{d}: the run did not complete (status {meta['status']!r}: killed, interrupted or failed "
                          "while it was recorded)")
     n = spec.n_hinges
-    return Run(d, meta["scenario"], meta["status"], run_start(meta), run_changes(meta),
-               read_trace(d / "device.csv", n, spec.hinge_limit),
-               read_trace(d / "twin.csv", n, spec.hinge_limit) if (d / "twin.csv").exists() else None,
-               read_gains(d / "gains.json", n), meta)
+    traces = {name: read_trace(d / name, n, spec.hinge_limit) if name == "device.csv" or (d / name).exists() else None
+              for name in ("device.csv", "twin.csv")}
+    for name, trace in traces.items():
+        if trace is not None and len(trace.time) and trace.time[-1] > MAX_RUN_S:
+            raise ValueError(f"{d / name}: its last time {trace.time[-1]:g} s is past the longest a run spans, "
+                             f"{MAX_RUN_S:g} s (MAX_RUN_S)")
+    return Run(d, meta["scenario"], meta["status"], run_start(meta), run_changes(meta), traces["device.csv"],
+               traces["twin.csv"], read_gains(d / "gains.json", n), meta)

@@ -21,6 +21,10 @@ from twin.paths import replacing
 ANSWERS = {"yes": True, "true": True, "1": True, "natural": True,
            "no": False, "false": False, "0": False, "unnatural": False}
 CONDITION_COLUMN = re.compile(r"condition_([a-z][a-z0-9]*)")
+# surfaces one trials file may hold: each is fitted and bootstrapped on its own and drawn as a panel of one row
+# of psychometric.png (5.5 in at 110 dpi: 16 make 9,680 px; 5,000 once asked for a figure 3 million px wide);
+# the paper's studies have 4
+MAX_SURFACES = 16
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,6 +73,7 @@ def read_trials(path) -> Trials:
     if not rows:
         raise ValueError(f"{path}: no trials after the header")
     values = {name: [] for name in col}
+    surfaces = set()
     for (lineno, _), cells in rows:
         where = f"{path}:{lineno}"
         if len(cells) != len(columns):
@@ -94,6 +99,11 @@ def read_trials(path) -> Trials:
         for name in ("participant", "surface"):
             if name in cell:
                 values[name].append(cell[name])
+        if "surface" in cell and cell["surface"] not in surfaces:
+            surfaces.add(cell["surface"])
+            if len(surfaces) > MAX_SURFACES:
+                raise ValueError(f"{where}: surface {cell['surface']!r:.40} is the {len(surfaces)}th; a trials file "
+                                 f"holds at most {MAX_SURFACES} (MAX_SURFACES: a fit and a plot panel each)")
     trials = Trials(np.array(values["condition"]), np.array(values["natural"]), np.array(values["confidence"]),
                     np.array(values["participant"]) if "participant" in col else None,
                     np.array(values["surface"]) if "surface" in col else None, units[0])
