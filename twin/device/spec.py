@@ -20,8 +20,8 @@ MAX_HINGES = 8  # the firmware core's VRS_MAX_HINGES (vrs_core.h): hinges one de
 # once asked for 89 GiB), and the core's loop_rate_hz is 16 bits
 LOOP_RATE_RANGE = (100, 10_000)
 # m: the most a design's row of flaps (length) or its hinges (depth) may measure: a hand-held display (the
-# paper's is 0.188 x 0.175 m); it keeps the touch surface's 2 mm metric grid under 250,000 points (a design
-# 1e6 m long once asked for 5.6e9)
+# paper's is 0.188 x 0.175 m); it keeps the touch surface's 2 mm metric grid within about 250,000 points (6 MB;
+# a design 1e6 m long once asked for 3.9e10, 880 GiB)
 MAX_EXTENT = 1.0
 SPEC_PATH = MODELS_DIR / "vrscroll" / "spec.toml"
 
