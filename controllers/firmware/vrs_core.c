@@ -27,6 +27,19 @@ static int gains_valid(const vrs_gains *g)
              || (int32_t)g->hold_band - VRS_BOUND_HOLD_BAND_MIN < 0 || g->hold_band > VRS_BOUND_HOLD_BAND_MAX);
 }
 
+/* a SET_GAINS block (its 7 fields as the wire carries them) within the bounds, compared in wire units: decoded to
+ * float first, a value at a bound could land a rounding past it (a deadband of 0.5 the host passes, 16384, is
+ * 0.500015) */
+static int wire_gains_valid(const uint32_t *v)
+{
+    static const int32_t lo[] = VRS_WIRE_GAINS_MIN, hi[] = VRS_WIRE_GAINS_MAX;
+    uint8_t i;
+    for (i = 0; i < sizeof lo / sizeof lo[0]; i++)
+        if ((int32_t)v[i] < lo[i] || (int32_t)v[i] > hi[i])  /* kp, ki, kd signed; the rest 16 bits */
+            return 0;
+    return 1;
+}
+
 /* ---- transmit queue (ring) ------------------------------------------------------------ */
 
 /* queue n bytes whole, or nothing (0) when they would leave less than `spare` bytes free */
@@ -425,10 +438,11 @@ int vrs_set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us)
     return set_targets(c, counts, now_us, &detail);
 }
 
-int vrs_set_gains(vrs_core *c, uint8_t hinge, const vrs_gains *g)
+/* g for hinge (VRS_BROADCAST: all), its bounds already checked */
+static int store_gains(vrs_core *c, uint8_t hinge, const vrs_gains *g)
 {
     uint8_t k;
-    if ((hinge != VRS_BROADCAST && hinge >= c->cfg.n_hinges) || !gains_valid(g))
+    if (hinge != VRS_BROADCAST && hinge >= c->cfg.n_hinges)
         return VRS_NACK_BAD_VALUE;
     for (k = 0; k < c->cfg.n_hinges; k++)
         if (hinge == VRS_BROADCAST || hinge == k) {
@@ -436,6 +450,11 @@ int vrs_set_gains(vrs_core *c, uint8_t hinge, const vrs_gains *g)
             c->alpha[k] = vrs_pid_alpha(g->cutoff_hz, c->dt);
         }
     return 0;
+}
+
+int vrs_set_gains(vrs_core *c, uint8_t hinge, const vrs_gains *g)
+{
+    return gains_valid(g) ? store_gains(c, hinge, g) : VRS_NACK_BAD_VALUE;
 }
 
 int vrs_set_telemetry_rate(vrs_core *c, uint16_t rate_hz)
@@ -563,7 +582,7 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
     case VRS_MSG_SET_GAINS:
         gains_from_wire(v + 1, &g);
         detail = v[0];
-        r = vrs_set_gains(c, (uint8_t)v[0], &g);
+        r = wire_gains_valid(v + 1) ? store_gains(c, (uint8_t)v[0], &g) : VRS_NACK_BAD_VALUE;
         break;
     case VRS_MSG_GET_GAINS:
         if (v[0] >= nh) {

@@ -136,6 +136,10 @@
 #define VRS_BOUND_DEADBAND_DUTY_MAX 0.5f
 #define VRS_BOUND_HOLD_BAND_MIN 0
 #define VRS_BOUND_HOLD_BAND_MAX 50
+/* ... and in wire units, the gains block's fields in order: the bounds as the host encodes them, so
+ * whatever the host's check passes the device takes (a deadband of 0.5 is 16384, 0.500015 decoded) */
+#define VRS_WIRE_GAINS_MIN {0, 0, 0, 10, 0, 0, 0}
+#define VRS_WIRE_GAINS_MAX {10000000, 100000000, 500000, 4500, 32767, 16384, 50}
 
 /* the device (models/vrscroll/spec.toml): config and default gains, for the sketch */
 #define VRS_DEVICE_N_HINGES 6

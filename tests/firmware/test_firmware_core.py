@@ -1,6 +1,7 @@
 """The C firmware core's supervisor, through its serial bytes and its control tick: refusals that
 change nothing, the watchdog, repeated commands, stall, limit, overcurrent, e-stop, telemetry."""
 
+import dataclasses
 import struct
 
 import numba
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 from controllers import core
-from controllers.pid import PidGains
+from controllers.pid import GAIN_BOUNDS, PidGains
 from twin.link import protocol as P
 
 
@@ -133,6 +134,29 @@ def test_host_api_refusals_change_nothing(spec):
     assert snapshot(c) == before
     g = PidGains.from_spec(spec).replace(kp=1.0, ki=10.0, kd=0.05, derivative_cutoff=450.0, hold_band=50)
     assert c.set_gains(2, g) == 0 and c.gains(2).hold_band == 50  # the bounds are inclusive
+
+
+def test_gains_at_their_bounds_pass_the_host_and_the_device_alike(spec):
+    """Bounds compared in wire units (issue 40 item 6): the device decoded a gain to float and compared that, so
+    a deadband of 0.5, which the host's check passes and sends as 16384, was 0.500015 and refused. Each gain at
+    each end, as the host checks and encodes it, is taken; one wire unit beyond is refused."""
+    from twin.formats.gains import check_gains
+
+    for (field, bounds), (wire_field, code) in zip(GAIN_BOUNDS.items(), P.GAINS_BLOCK):
+        for side, step in ((0, -1), (1, 1)):
+            g = PidGains.from_spec(spec).replace(**{field: bounds[side]})
+            check_gains([g])
+            c = make(spec)
+            wire = P.Gains.from_pid(g)
+            assert ask(c, P.SetGains(2, wire), 1)[1] == P.Ack(P.MsgId.SET_GAINS, 0), (field, bounds[side])
+            assert ask(c, P.GetGains(2), 2)[1] == P.GainsReply(2, wire)
+            beyond = getattr(wire, wire_field) + step
+            if code == "H" and beyond < 0:
+                continue  # not a value the wire can carry
+            before = snapshot(c)
+            got = ask(c, P.SetGains(2, dataclasses.replace(wire, **{wire_field: beyond})), 3)[1]
+            assert got == P.NackMsg(P.MsgId.SET_GAINS, P.Nack.BAD_VALUE, 2), (field, beyond)
+            assert snapshot(c) == before
 
 
 def test_gains_set_on_the_wire_read_back_exactly(spec):

@@ -70,6 +70,11 @@ def header(spec: DeviceSpec | None = None) -> str:
     for name, (lo, hi) in GAIN_BOUNDS.items():
         fmt = str if isinstance(lo, int) else _float
         out += [f"#define VRS_BOUND_{name.upper()}_MIN {fmt(lo)}", f"#define VRS_BOUND_{name.upper()}_MAX {fmt(hi)}"]
+    out += ["/* ... and in wire units, the gains block's fields in order: the bounds as the host encodes them, so",
+            " * whatever the host's check passes the device takes (a deadband of 0.5 is 16384, 0.500015 decoded) */"]
+    for end, side in (("MIN", 0), ("MAX", 1)):
+        wire = P.Gains.from_pid(PidGains(**{name: bounds[side] for name, bounds in GAIN_BOUNDS.items()}))
+        out.append(f"#define VRS_WIRE_GAINS_{end} {{{', '.join(str(getattr(wire, f)) for f, _ in P.GAINS_BLOCK)}}}")
     out += ["", "/* the device (models/vrscroll/spec.toml): config and default gains, for the sketch */"]
     for name, _ in cfg._fields_:
         v = getattr(cfg, name)
