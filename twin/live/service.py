@@ -26,12 +26,14 @@ import dataclasses
 import hmac
 import json
 import math
+import resource
 import secrets
 import time
 
 import numpy as np
-from websockets.asyncio.server import serve
+from websockets.asyncio.server import ServerConnection, serve
 from websockets.exceptions import ConnectionClosed
+from websockets.protocol import State
 
 from twin.device.spec import DeviceSpec
 from twin.live.messages import (
@@ -64,6 +66,14 @@ LATENCY_WINDOW = 2000  # service-side latencies kept for `status` (most recent)
 MAX_CONNECTIONS = 32  # control-channel connections at once: one controller and observers
 MAX_UNGREETED = 8  # of them, connections that have not said hello yet
 HELLO_TIMEOUT = 5.0  # s a connection may stay without hello before it is closed
+# TCP connections the service holds at once, those still in their WebSocket handshake included (the handler's
+# limits above count only connections past it): twice MAX_CONNECTIONS, and at most a quarter of the process's file
+# descriptors (the rest for the device, the worker, the files it writes, and connections accepted, ACCEPT_BACKLOG
+# at a time, before the oldest are dropped). A connection past it drops the oldest one still in its handshake: 400
+# half-open connections under `ulimit -n 256` ran the service out of descriptors (an accept error a second), and a
+# client waited for their handshake timeout (10 s) to be served
+MAX_SOCKETS = 2 * MAX_CONNECTIONS
+ACCEPT_BACKLOG = 16  # connections the kernel queues for accept, and asyncio accepts in one go (its default 100)
 WRONG_TOKEN_DELAY = 1.0  # s before a wrong token's connection is closed: at most one guess a second per connection
 
 
@@ -131,6 +141,34 @@ class _Client:
             pass
 
 
+def socket_bound() -> int:
+    """How many TCP connections the service holds at once: MAX_SOCKETS, or a quarter of the file descriptors it may
+    open."""
+    return max(1, min(MAX_SOCKETS, resource.getrlimit(resource.RLIMIT_NOFILE)[0] // 4))
+
+
+def bounded_connections(held: dict, most: int, counts: collections.Counter) -> type:
+    """A ServerConnection class whose instances, the TCP connections `serve` accepts, are kept in `held` (oldest
+    first), at most `most`: one past it aborts the oldest still in its handshake (a half-open one that never sent
+    its request), or itself when every other is past it (counted in counts["evicted_connections"])."""
+
+    class BoundedConnection(ServerConnection):
+        def connection_made(self, transport) -> None:
+            super().connection_made(transport)
+            held[self] = None
+            if len(held) > most:
+                victim = next(c for c in held if c is self or c.protocol.state is State.CONNECTING)
+                del held[victim]
+                counts["evicted_connections"] += 1
+                victim.transport.abort()
+
+        def connection_lost(self, exc) -> None:
+            held.pop(self, None)
+            super().connection_lost(exc)
+
+    return BoundedConnection
+
+
 class _Datagrams(asyncio.DatagramProtocol):
     def __init__(self, service: "LiveService"):
         self.service = service
@@ -186,7 +224,9 @@ class LiveService:
                 await self._load_target(self.config.shape, vertices, faces)
             await asyncio.to_thread(self.morpher.open)
             async with serve(self._connection, self.config.host, self.config.listen, max_size=MAX_FRAME_BYTES,
-                             ping_interval=PING_INTERVAL, ping_timeout=PING_INTERVAL) as server:
+                             ping_interval=PING_INTERVAL, ping_timeout=PING_INTERVAL,
+                             create_connection=bounded_connections({}, socket_bound(), self.counts),
+                             backlog=ACCEPT_BACKLOG) as server:
                 self.port = server.sockets[0].getsockname()[1]
                 self._udp, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self),
                                                                    local_addr=(self.config.host, self.port))
