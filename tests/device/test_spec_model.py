@@ -1,6 +1,7 @@
 """The spec, the generated MJCF and the kinematics agree."""
 
 import math
+import re
 
 import mujoco
 import numpy as np
@@ -24,6 +25,24 @@ def test_spec_rejects_missing_and_unknown_fields(tmp_path):
     bad.write_text(text.replace("loop_rate", "loop_rat"))
     with pytest.raises(ValueError, match="missing \\['loop_rate'\\], unknown \\['loop_rat'\\]"):
         load_spec(bad)
+
+
+@pytest.mark.parametrize("line, value, says", [
+    ("loop_rate      = { value = 1000,", "1e9", "loop_rate = 1e+09 Hz is outside the 100-10000 Hz"),
+    ("length         = { value = 0.188,", "1e6", "length = 1e+06 m is over a hand-held display's 1 m"),
+])
+def test_a_spec_whose_sizes_the_twin_cannot_hold_is_refused_as_read(tmp_path, capsys, line, value, says):
+    """A sweep's base spec of 1e6 m or 1e9 Hz (issue 40 attack 7) is refused where it is read, naming the file."""
+    text = SPEC_PATH.read_text()
+    assert line in text
+    bad = tmp_path / "spec.toml"
+    bad.write_text(text.replace(line, line.split("=")[0] + "= { value = " + value + ","))
+    with pytest.raises(ValueError, match=re.escape(f"{bad}: {says}")):
+        load_spec(bad)
+    (tmp_path / "sweep.toml").write_text('spec = "spec.toml"\nshapes = ["cube"]\n')
+    assert main(["sweep", str(tmp_path / "sweep.toml"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert says in err and len(err.strip().splitlines()) == 1
 
 
 def test_derived_values(spec):

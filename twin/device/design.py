@@ -16,7 +16,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from twin.device.spec import LOOP_RATE_RANGE, MAX_EXTENT, MAX_HINGES, DeviceSpec
+from twin.device.spec import DeviceSpec, sizes_beyond_bounds
 
 FIELDS = tuple(f.name for f in dataclasses.fields(DeviceSpec))
 INTEGER_FIELDS = {f.name for f in dataclasses.fields(DeviceSpec) if f.type in (int, "int")}
@@ -102,21 +102,3 @@ def impossible(spec: DeviceSpec) -> list[str]:
         reasons.append(f"drive_cap = {spec.drive_cap:g} V is more than the supply's {spec.supply_voltage:g} V")
     return reasons + sizes_beyond_bounds(spec)
 
-
-def sizes_beyond_bounds(spec: DeviceSpec) -> list[str]:
-    """Why the spec's sizes are beyond what the twin allocates for (each naming its bound's constant in
-    twin.device.spec): hinges over the firmware core's MAX_HINGES, a loop rate outside LOOP_RATE_RANGE, a length
-    or depth over MAX_EXTENT."""
-    reasons = []
-    if spec.n_hinges > MAX_HINGES:
-        reasons.append(f"n_flaps = {spec.n_flaps}: the firmware core drives at most {MAX_HINGES} hinges "
-                       f"({MAX_HINGES + 1} flaps, MAX_HINGES)")
-    low, high = LOOP_RATE_RANGE
-    if not low <= spec.loop_rate <= high:
-        reasons.append(f"loop_rate = {spec.loop_rate:g} Hz is outside the {low:g}-{high:g} Hz a control loop may run "
-                       "at (LOOP_RATE_RANGE)")
-    for key in ("length", "depth"):
-        if getattr(spec, key) > MAX_EXTENT:
-            reasons.append(f"{key} = {getattr(spec, key):g} m is over a hand-held display's {MAX_EXTENT:g} m "
-                           "(MAX_EXTENT)")
-    return reasons

@@ -160,8 +160,32 @@ class DeviceSpec:
 
 def load_spec(path: str | Path = SPEC_PATH, defaults: DeviceSpec | None = None) -> DeviceSpec:
     """Read a spec TOML (twin.device.spec_toml); every DeviceSpec field must be there exactly once, but for those
-    `defaults` gives (a device profile written before an entry was added takes the spec's)."""
-    return DeviceSpec(**read_spec_toml(path, _NAMES, dataclasses.asdict(defaults) if defaults else None)[0])
+    `defaults` gives (a device profile written before an entry was added takes the spec's). ValueError naming the
+    file for sizes beyond what the twin allocates for (sizes_beyond_bounds)."""
+    spec = DeviceSpec(**read_spec_toml(path, _NAMES, dataclasses.asdict(defaults) if defaults else None)[0])
+    beyond = sizes_beyond_bounds(spec)
+    if beyond:
+        raise ValueError(f"{path}: {'; '.join(beyond)}")
+    return spec
+
+
+def sizes_beyond_bounds(spec: DeviceSpec) -> list[str]:
+    """Why the spec's sizes are beyond what the twin allocates for (each naming its bound's constant in
+    twin.device.spec): hinges over the firmware core's MAX_HINGES, a loop rate outside LOOP_RATE_RANGE, a length
+    or depth over MAX_EXTENT."""
+    reasons = []
+    if spec.n_hinges > MAX_HINGES:
+        reasons.append(f"n_flaps = {spec.n_flaps}: the firmware core drives at most {MAX_HINGES} hinges "
+                       f"({MAX_HINGES + 1} flaps, MAX_HINGES)")
+    low, high = LOOP_RATE_RANGE
+    if not low <= spec.loop_rate <= high:
+        reasons.append(f"loop_rate = {spec.loop_rate:g} Hz is outside the {low:g}-{high:g} Hz a control loop may run "
+                       "at (LOOP_RATE_RANGE)")
+    for key in ("length", "depth"):
+        if getattr(spec, key) > MAX_EXTENT:
+            reasons.append(f"{key} = {getattr(spec, key):g} m is over a hand-held display's {MAX_EXTENT:g} m "
+                           "(MAX_EXTENT)")
+    return reasons
 
 
 def spec_sources(path: str | Path = SPEC_PATH, defaults: DeviceSpec | None = None) -> dict[str, str]:
