@@ -42,11 +42,15 @@ def test_evaluate_refuses_a_record_it_did_not_write(tmp_path, capsys, field, val
     assert len(err.strip().splitlines()) == 1
 
 
-def test_a_record_without_what_the_table_needs_is_refused(tmp_path, capsys):
+@pytest.mark.parametrize("extra, says", [({}, "missing 'hd_mm'"),
+                                         ({"hd_mm": 2.0, "time_ms": 3.0, "twin_msd_mm": 1.5},
+                                          "missing 'share_within' (it comes with 'twin_msd_mm')")])
+def test_a_record_without_what_the_table_needs_is_refused(tmp_path, capsys, extra, says):
+    """(A record with the twin's MSD but not its share within the thresholds was a KeyError in the summary.)"""
     folder = tmp_path / "ev"
-    _evaluation(folder, json.dumps({"shape": "cube", "start": 0, "method": METHODS[0], "msd_mm": 1.0}))
+    _evaluation(folder, json.dumps({"shape": "cube", "start": 0, "method": METHODS[0], "msd_mm": 1.0, **extra}))
     assert main(["evaluate", "--out", str(folder), "--shapes", "cube", "--starts", "2"]) == 2
-    assert "line 1: missing 'hd_mm'" in capsys.readouterr().err
+    assert f"line 1: {says}" in capsys.readouterr().err
 
 
 def test_nesting_a_special_file_and_a_huge_sparse_file_are_one_line_each(tmp_path, capsys):

@@ -139,14 +139,18 @@ def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: 
 
 
 REQUIRED = ("shape", "start", "method", "msd_mm", "hd_mm", "time_ms")  # what summarize takes from every record
+# ... and what it takes together where a record has any of them (records written before a group was measured lack it)
+TOGETHER = (("inside_percent", "inside_depth_mm"),
+            ("twin_msd_mm", "share_within", "gate_range_ok", "gate_collision_ok", "anchor_depth_mm"))
 
 
 def read_records(path) -> list[dict]:
     """Records of a results.jsonl: each (shape, start, method) once (the first written), and only the starts
     whose every method is there; a start cut short is computed again. ValueError naming the line for a record
-    without REQUIRED or with a field that is not what evaluate_start writes (twin.formats.records)."""
+    without REQUIRED, with part of a TOGETHER group, or with a field that is not what evaluate_start writes
+    (twin.formats.records)."""
     first = {}
-    for r in read_jsonl(path, REQUIRED):
+    for r in read_jsonl(path, REQUIRED, TOGETHER):
         key = (r.get("shape"), r.get("start"), r.get("method"))
         first.setdefault(key, r)
     by_start = {}

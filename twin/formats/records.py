@@ -50,11 +50,12 @@ TEXT_FIELDS = ("key", "shape", "method", "design")  # the labels a record is gro
 WHOLE_FIELDS = ("start", "design_index", "plant")
 
 
-def read_jsonl(path, required=()) -> list[dict]:
+def read_jsonl(path, required=(), together=()) -> list[dict]:
     """The objects of a records file, in order; a line cut short, nested too deeply, with a key twice (which
     value would count?) or not an object is skipped (its work is done again). ValueError for a file that is not
     a regular file (/dev/zero) or over MAX_RECORDS_BYTES, before it is read, and for a whole record missing a
-    `required` key or whose result fields are not what was written (check_record), naming the line."""
+    `required` key or one of a `together` group it has another of, or whose result fields are not what was
+    written (check_record), naming the line."""
     path = Path(path)
     if not path.exists():
         return []
@@ -65,12 +66,13 @@ def read_jsonl(path, required=()) -> list[dict]:
         except ValueError:
             continue
         if isinstance(record, dict):
-            out.append(check_record(record, required, f"{path} line {n}"))
+            out.append(check_record(record, required, f"{path} line {n}", together))
     return out
 
 
-def check_record(record: dict, required, where: str) -> dict:
-    """record, once each `required` key is there and each result field present is what the programs write:
+def check_record(record: dict, required, where: str, together=()) -> dict:
+    """record, once each `required` key is there, each group of `together` there whole or not at all (fields one
+    summary takes together, which older records lack), and each result field present is what the programs write:
     NUMBER_FIELDS finite numbers, `morph_time_s` one or null, FLAG_FIELDS true or false, `angles_deg` a list of
     numbers; TEXT_FIELDS strings and WHOLE_FIELDS whole numbers; ValueError naming `where` and the field
     otherwise."""
@@ -93,4 +95,9 @@ def check_record(record: dict, required, where: str) -> dict:
             raise ValueError(f"{where}: {key}: expected true or false, got {record[key]!r:.40}")
     if "angles_deg" in record:
         numbers(record["angles_deg"], f"{where}: angles_deg")
+    for group in together:
+        present = [k for k in group if k in record]
+        if present and len(present) < len(group):
+            key = next(k for k in group if k not in record)
+            raise ValueError(f"{where}: missing {key!r} (it comes with {present[0]!r})")
     return record
