@@ -5,6 +5,8 @@ a traceback or a NaN in a table (issue 40 attacks 7 and 9)."""
 import json
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from twin.cli import main
 from twin.evaluation.table1 import METHODS
@@ -92,3 +94,39 @@ def test_sweep_records_are_checked_alike(tmp_path):
         read_sweep_records(log)
     log.write_text(json.dumps(good) + "\n")
     assert read_sweep_records(log) == {"a": good}
+
+
+# ---- drawn records: read and summarised, or refused in one line naming the file ----------------------------
+
+RESULT_KEYS = ["shape", "start", "method", "msd_mm", "hd_mm", "time_ms", "twin_msd_mm", "share_within",
+               "gate_range_ok", "gate_collision_ok", "anchor_depth_mm", "inside_percent", "inside_depth_mm",
+               "morph_time_s", "angles_deg"]
+values = st.one_of(st.integers(-3, 3), st.floats(allow_nan=True, allow_infinity=True), st.booleans(), st.none(),
+                   st.sampled_from(["cube", "abc", *METHODS]), st.lists(st.floats(-90, 90), max_size=3))
+good = {"shape": "cube", "start": 0, "method": METHODS[0], "msd_mm": 1.0, "hd_mm": 2.0, "time_ms": 3.0,
+        "twin_msd_mm": 1.5, "share_within": 0.5, "gate_range_ok": True, "gate_collision_ok": True,
+        "anchor_depth_mm": -1.0}
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(changes=st.lists(st.tuples(st.integers(0, 2 * len(METHODS) - 1), st.sampled_from(RESULT_KEYS),
+                                  st.one_of(values, st.just(...))), max_size=4))
+def test_drawn_records_are_summarised_or_refused_naming_the_line(tmp_path, changes):
+    """Two complete starts, then fields changed or (...) removed at random: evaluate's reader and summary either
+    give a table or refuse in one line naming the file; never another exception."""
+    from twin.evaluation.table1 import read_records, summarize
+
+    rows = [{**good, "start": s, "method": m} for s in (0, 1) for m in METHODS]
+    for row, key, value in changes:
+        if value is ...:
+            rows[row].pop(key, None)
+        else:
+            rows[row][key] = value
+    path = tmp_path / "results.jsonl"
+    path.write_text("".join(json.dumps(r, allow_nan=True) + "\n" for r in rows))
+    try:
+        records = read_records(path)
+    except ValueError as exc:
+        assert str(exc).startswith(f"{path} line ") and "\n" not in str(exc), exc
+        return
+    summarize(records)

@@ -198,18 +198,23 @@ def summarize(records: list[dict]) -> list[dict]:
             means[method] = row
             rows.append(row)
         if "full" in means and "cbs" in means:
-            means["full"]["msd_ratio_full_to_cbs"] = means["full"]["msd_mean_mm"] / means["cbs"]["msd_mean_mm"]
+            means["full"]["msd_ratio_full_to_cbs"] = _ratio(means["full"]["msd_mean_mm"], means["cbs"]["msd_mean_mm"])
             if (shape, "full") in paper:
                 means["full"]["paper_msd_ratio_full_to_cbs"] = (paper[(shape, "full")]["msd_mean_mm"]
                                                                 / paper[(shape, "cbs")]["msd_mean_mm"])
         if "full" in means and "refined" in means:
             for key in ("msd", "hd"):
-                means["refined"][f"{key}_drop_from_full"] = 1 - means["refined"][f"{key}_mean_mm"] / means["full"][
-                    f"{key}_mean_mm"]
+                means["refined"][f"{key}_drop_from_full"] = 1 - _ratio(means["refined"][f"{key}_mean_mm"],
+                                                                        means["full"][f"{key}_mean_mm"])
             pairs = {(r["start"], r["method"]): r["msd_mm"] for r in records if r["shape"] == shape}
             means["refined"]["msd_worst_over_full_mm"] = max(pairs[(i, "refined")] - pairs[(i, "full")]
                                                              for i, m in pairs if m == "full")
     return rows
+
+
+def _ratio(a: float, b: float) -> float:
+    """a / b, NaN where b is 0 (every start fitted exactly: no ratio to show)."""
+    return a / b if b else math.nan
 
 
 def write_tables(rows: list[dict], out_dir, wall_s: float | None = None) -> tuple[Path, Path]:

@@ -5,6 +5,7 @@ appended and flushed one at a time, so an interrupted run resumes from what it w
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from twin.checks import number, numbers, parse_json, read_text
@@ -43,8 +44,10 @@ MAX_RECORDS_BYTES = 1 << 30  # a records file read whole: 1 GiB is a million rec
 # what each result field of a record must be where present (both records files share these: table1's
 # evaluate_start and sweep's run_task write them); the summaries compute with them, so a word or NaN there was
 # a TypeError traceback or a NaN mean with exit 0
-NUMBER_FIELDS = ("msd_mm", "hd_mm", "time_ms", "twin_msd_mm", "share_within", "inside_percent", "inside_depth_mm",
-                 "anchor_depth_mm", "mass_g")
+NUMBER_FIELDS = {"msd_mm": (0, math.inf), "hd_mm": (0, math.inf), "time_ms": (0, math.inf),
+                 "twin_msd_mm": (0, math.inf), "share_within": (0, 1), "inside_percent": (0, 100),
+                 "inside_depth_mm": (0, math.inf), "anchor_depth_mm": (-math.inf, math.inf), "mass_g": (0, math.inf),
+                 "morph_time_s": (0, math.inf)}  # each within (low, high), inclusive
 FLAG_FIELDS = ("gate_range_ok", "gate_collision_ok")
 TEXT_FIELDS = ("key", "shape", "method", "design")  # the labels a record is grouped by
 WHOLE_FIELDS = ("start", "design_index", "plant")
@@ -73,9 +76,9 @@ def read_jsonl(path, required=(), together=()) -> list[dict]:
 def check_record(record: dict, required, where: str, together=()) -> dict:
     """record, once each `required` key is there, each group of `together` there whole or not at all (fields one
     summary takes together, which older records lack), and each result field present is what the programs write:
-    NUMBER_FIELDS finite numbers, `morph_time_s` one or null, FLAG_FIELDS true or false, `angles_deg` a list of
-    numbers; TEXT_FIELDS strings and WHOLE_FIELDS whole numbers; ValueError naming `where` and the field
-    otherwise."""
+    NUMBER_FIELDS finite numbers within their ranges (`morph_time_s` also null), FLAG_FIELDS true or false,
+    `angles_deg` a list of numbers, TEXT_FIELDS strings and WHOLE_FIELDS whole numbers; ValueError naming `where`
+    and the field otherwise."""
     for key in required:
         if key not in record:
             raise ValueError(f"{where}: missing {key!r}")
@@ -85,11 +88,11 @@ def check_record(record: dict, required, where: str, together=()) -> dict:
     for key in WHOLE_FIELDS:
         if key in record and (isinstance(record[key], bool) or not isinstance(record[key], int)):
             raise ValueError(f"{where}: {key}: expected a whole number, got {record[key]!r:.40}")
-    for key in NUMBER_FIELDS:
-        if key in record:
-            number(record[key], f"{where}: {key}")
-    if record.get("morph_time_s") is not None:
-        number(record["morph_time_s"], f"{where}: morph_time_s")
+    for key, (low, high) in NUMBER_FIELDS.items():
+        if key in record and not (key == "morph_time_s" and record[key] is None):
+            x = number(record[key], f"{where}: {key}")
+            if not low <= x <= high:
+                raise ValueError(f"{where}: {key}: {x:g} is outside [{low:g}, {high:g}]")
     for key in FLAG_FIELDS:
         if key in record and not isinstance(record[key], bool):
             raise ValueError(f"{where}: {key}: expected true or false, got {record[key]!r:.40}")
