@@ -30,7 +30,7 @@ from twin.device.spec import SPEC_PATH
 from twin.device.spec_toml import shown_range, spec_units
 from twin.device.variation import tolerance_ranges
 from twin.errors import UserError
-from twin.evaluation.backends import BACKENDS, make_backend
+from twin.evaluation.backends import BACKENDS, WORKERS_PER_CORE, make_backend
 from twin.formats.gains import write_gains
 from twin.formats.profile import write_profile_gains
 from twin.hil.device_gains import push_gains
@@ -60,8 +60,8 @@ def add_arguments(p) -> None:
     p.add_argument("--backend", choices=BACKENDS,
                    help="run each plant's batch as a task on local worker processes or on Ray (RAY_ADDRESS, or a "
                         "local Ray; the ray extra) (default: every plant in one batch here, on --threads)")
-    p.add_argument("--workers", type=int, help="with --backend: worker processes, or a local Ray's CPUs "
-                                               "(default all cores)")
+    p.add_argument("--workers", type=int, help="with --backend: worker processes, or a local Ray's CPUs, at most "
+                                               f"{WORKERS_PER_CORE} per core (default all cores)")
     p.add_argument("--out", type=output_file,
                    help="also write the gains to this file, JSON (default: into the device profile; gains.json "
                         "without one)")

@@ -125,5 +125,5 @@ def add_backend_arguments(p, workers_default: int | None = None) -> None:
                    help="where tasks run: local worker processes, or Ray (RAY_ADDRESS, or a local Ray when unset; "
                         "needs the ray extra) (default %(default)s)")
     p.add_argument("--workers", type=int, default=workers_default,
-                   help="worker processes, or a local Ray's CPUs (default " +
+                   help=f"worker processes, or a local Ray's CPUs, at most {WORKERS_PER_CORE} per core (default " +
                         (f"{workers_default})" if workers_default else "all cores)"))
