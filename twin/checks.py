@@ -87,15 +87,22 @@ REACH_M = 100.0
 MAX_FILE_BYTES = 64 << 20  # a JSON or TOML file a reader takes (the largest the project writes is a few MB)
 
 
-def read_text(path, limit: int = MAX_FILE_BYTES) -> str:
-    """A text file's content; ValueError naming the file for one over `limit` bytes, not a regular file (a
-    folder, a FIFO: never waited on), or not UTF-8."""
+def regular_file(path, limit: int = MAX_FILE_BYTES) -> Path:
+    """path, once it is a regular file (not a folder, a FIFO or a device: never waited on) of at most `limit`
+    bytes; ValueError naming it otherwise."""
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: not a regular file" if path.exists() else f"{path}: no such file")
     size = path.stat().st_size
     if size > limit:
         raise ValueError(f"{path}: {size:,} bytes; at most {limit:,}")
+    return path
+
+
+def read_text(path, limit: int = MAX_FILE_BYTES) -> str:
+    """A text file's content; ValueError naming the file for one over `limit` bytes, not a regular file (a
+    folder, a FIFO: never waited on), or not UTF-8."""
+    path = regular_file(path, limit)
     try:
         return path.read_bytes().decode("utf-8")
     except UnicodeDecodeError as exc:

@@ -3,6 +3,7 @@ what the programs did not write there is refused in one line naming the file and
 a traceback or a NaN in a table (issue 40 attacks 7 and 9)."""
 
 import json
+import os
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -55,12 +56,22 @@ def test_a_record_without_what_the_table_needs_is_refused(tmp_path, capsys, extr
     assert f"line 1: {says}" in capsys.readouterr().err
 
 
-def test_nesting_a_special_file_and_a_huge_sparse_file_are_one_line_each(tmp_path, capsys):
-    folder = tmp_path / "ev"
-    _evaluation(folder, "[" * 100_000)  # that line is skipped as a cut one: the start is computed again...
-    log = folder / "results.jsonl"
+def test_nesting_a_long_line_a_special_file_and_a_huge_sparse_file_are_one_line_each(tmp_path, capsys):
     from twin.evaluation.table1 import read_records
+    from twin.formats.records import MAX_LINE_BYTES, RecordLog
+
+    folder = tmp_path / "ev"
+    _evaluation(folder, "[" * 60_000)  # nested too deeply: skipped as a cut line, the start computed again...
+    log = folder / "results.jsonl"
     assert {r["method"] for r in read_records(log)} == set()  # ...so no start is complete yet
+    _evaluation(tmp_path / "long", "[" * 100_000)  # longer than any record: refused, not parsed
+    assert main(["evaluate", "--out", str(tmp_path / "long"), "--shapes", "cube", "--starts", "2"]) == 2
+    err = capsys.readouterr().err
+    assert f"results.jsonl line 1: over {MAX_LINE_BYTES:,} bytes, not a record" in err and len(err.splitlines()) == 1
+    with open(log, "ab") as f:  # a last line cut short is removed before the next record, read from the end
+        f.write(b'{"shape": "cube", "sta')
+    RecordLog(log).close()
+    assert log.read_bytes().endswith(b'"time_ms": 3.0}\n')
     log.unlink()
     log.symlink_to("/dev/zero")
     assert main(["evaluate", "--out", str(folder), "--shapes", "cube", "--starts", "2"]) == 2
@@ -71,6 +82,9 @@ def test_nesting_a_special_file_and_a_huge_sparse_file_are_one_line_each(tmp_pat
     assert main(["evaluate", "--out", str(folder), "--shapes", "cube", "--starts", "2"]) == 2
     err = capsys.readouterr().err
     assert f"{log}: 3,221,225,472 bytes; at most 1,073,741,824" in err and len(err.strip().splitlines()) == 1
+    os.truncate(log, 500 << 20)  # 500 MB of zeros, within the size bound: one line too long, read no further
+    assert main(["evaluate", "--out", str(folder), "--shapes", "cube", "--starts", "2"]) == 2
+    assert f"{log} line 1: over {MAX_LINE_BYTES:,} bytes" in capsys.readouterr().err
 
 
 def test_settings_that_are_not_a_json_object_are_one_line(tmp_path, capsys):

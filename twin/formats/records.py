@@ -8,7 +8,7 @@ import json
 import math
 from pathlib import Path
 
-from twin.checks import number, numbers, parse_json, read_text
+from twin.checks import number, numbers, parse_json, regular_file
 
 
 class RecordLog:
@@ -18,10 +18,14 @@ class RecordLog:
     def __init__(self, path):
         self.path = Path(path)
         if self.path.exists():
-            data = self.path.read_bytes()
-            if data and not data.endswith(b"\n"):
-                with open(self.path, "r+b") as f:
-                    f.truncate(data.rfind(b"\n") + 1)
+            with open(regular_file(self.path, MAX_RECORDS_BYTES), "r+b") as f:
+                start = max(0, f.seek(0, 2) - MAX_LINE_BYTES - 1)  # a cut line is shorter than a whole one
+                f.seek(start)
+                tail = f.read()
+                if tail and not tail.endswith(b"\n"):
+                    if start and b"\n" not in tail:
+                        raise ValueError(f"{self.path}: its last line is over {MAX_LINE_BYTES:,} bytes, not a record")
+                    f.truncate(start + tail.rfind(b"\n") + 1)
         self._f = open(self.path, "a")
 
     def write(self, record: dict) -> None:
@@ -39,7 +43,10 @@ class RecordLog:
         self.close()
 
 
-MAX_RECORDS_BYTES = 1 << 30  # a records file read whole: 1 GiB is a million records of the largest sweep
+MAX_RECORDS_BYTES = 1 << 30  # a records file: 1 GiB is a million records of the largest sweep
+# bytes of one line: the largest record the programs write, a sweep's over every spec key, is about 3 kB; a file
+# read line by line holds no more than this of a line (a 3 GB line of zeros was read whole)
+MAX_LINE_BYTES = 64 << 10
 
 # what each result field of a record must be where present (both records files share these: table1's
 # evaluate_start and sweep's run_task write them); the summaries compute with them, so a word or NaN there was
@@ -54,22 +61,25 @@ WHOLE_FIELDS = ("start", "design_index", "plant")
 
 
 def read_jsonl(path, required=(), together=()) -> list[dict]:
-    """The objects of a records file, in order; a line cut short, nested too deeply, with a key twice (which
-    value would count?) or not an object is skipped (its work is done again). ValueError for a file that is not
-    a regular file (/dev/zero) or over MAX_RECORDS_BYTES, before it is read, and for a whole record missing a
-    `required` key or one of a `together` group it has another of, or whose result fields are not what was
-    written (check_record), naming the line."""
+    """The objects of a records file, in order, read a line at a time; a line cut short, nested too deeply, with a
+    key twice (which value would count?) or not an object is skipped (its work is done again). ValueError for a
+    file that is not a regular file (/dev/zero) or over MAX_RECORDS_BYTES, before it is read, for a line over
+    MAX_LINE_BYTES, and for a whole record missing a `required` key or one of a `together` group it has another
+    of, or whose result fields are not what was written (check_record), naming the line."""
     path = Path(path)
     if not path.exists():
         return []
     out = []
-    for n, line in enumerate(read_text(path, MAX_RECORDS_BYTES).splitlines(), 1):
-        try:
-            record = parse_json(line, str(path))
-        except ValueError:
-            continue
-        if isinstance(record, dict):
-            out.append(check_record(record, required, f"{path} line {n}", together))
+    with open(regular_file(path, MAX_RECORDS_BYTES), "rb") as f:
+        for n, line in enumerate(iter(lambda: f.readline(MAX_LINE_BYTES + 1), b""), 1):
+            if len(line.rstrip(b"\r\n")) > MAX_LINE_BYTES:
+                raise ValueError(f"{path} line {n}: over {MAX_LINE_BYTES:,} bytes, not a record (MAX_LINE_BYTES)")
+            try:
+                record = parse_json(line, str(path))
+            except ValueError:
+                continue
+            if isinstance(record, dict):
+                out.append(check_record(record, required, f"{path} line {n}", together))
     return out
 
 
