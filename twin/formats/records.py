@@ -44,7 +44,7 @@ class RecordLog:
 
 
 MAX_RECORDS_BYTES = 1 << 30  # a records file: 1 GiB is a million records of the largest sweep
-# bytes of one line: the largest record the programs write, a sweep's over every spec key, is about 3 kB; a file
+# bytes of one line: the largest record the programs write, a sweep's over all 62 spec keys, is about 4.5 kB; a file
 # read line by line holds no more than this of a line (a 3 GB line of zeros was read whole)
 MAX_LINE_BYTES = 64 << 10
 
