@@ -45,7 +45,7 @@ class RecordLog:
 
 MAX_RECORDS_BYTES = 1 << 30  # a records file: 1 GiB is a million records of the largest sweep
 # bytes of one line: the largest record the programs write, a sweep's over all 62 spec keys, is about 4.5 kB; a file
-# read line by line holds no more than this of a line (a 3 GB line of zeros was read whole)
+# read line by line holds no more than this of a line (500 MB of zeros, within MAX_RECORDS_BYTES, was read whole)
 MAX_LINE_BYTES = 64 << 10
 
 # what each result field of a record must be where present (both records files share these: table1's
