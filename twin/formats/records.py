@@ -43,7 +43,8 @@ class RecordLog:
         self.close()
 
 
-MAX_RECORDS_BYTES = 1 << 30  # a records file: 1 GiB holds a million (MAX_RUNS) records of about 650 bytes, a sweep over two keys
+# a records file's bytes: 1 GiB holds a million (a sweep's MAX_RUNS) records of about 650 bytes, a sweep's over two keys
+MAX_RECORDS_BYTES = 1 << 30
 # bytes of one line: the largest record the programs write, a sweep's over all 62 spec keys, is about 4.5 kB; a file
 # read line by line holds no more than this of a line (500 MB of zeros, within MAX_RECORDS_BYTES, was read whole)
 MAX_LINE_BYTES = 64 << 10
