@@ -154,7 +154,7 @@ def test_serves_twin_moves_each_hinge_with_its_own_plant(spec):
     for name, hinges in (("shared", None), ("own", slow)):
         morpher = TwinMorpher(spec, hinges=hinges)
         morpher.open()
-        morpher.on_move = lambda _, trace, name=name: at.__setitem__(name, np.degrees(trace.angle[30]))
+        morpher.on_move = lambda _, trace, name=name: at.__setitem__(name, np.degrees(trace.true_angle[30]))
         assert morpher.morph(np.radians([20.0] * spec.n_hinges), lambda event: None).status == "done"
     assert at["own"][4] < at["shared"][4] - 0.5, at
     assert at["own"][1] == pytest.approx(at["shared"][1], abs=0.05)

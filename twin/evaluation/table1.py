@@ -32,7 +32,7 @@ from twin.evaluation.backends import LocalBackend
 from twin.evaluation.cbs import CbsSimulator
 from twin.evaluation.starts import approach_starts
 from twin.formats.records import RecordLog, read_jsonl
-from twin.morphpatch.approximation import approximate
+from twin.morphpatch.approximation import approximate, measured
 from twin.morphpatch.fields import build_fields, exact_signed_distance
 from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import load_shape
@@ -76,7 +76,7 @@ def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
         results[variant] = approximate(fields, pose, spec, variant)
     records = []
     for method, r in results.items():
-        r = r.measured(spec, mesh)
+        r = measured(spec, mesh, r)
         depth = -float(exact_signed_distance(mesh, r.root_pose[None, :3, 3])[0][0])
         records.append({"shape": shape, "start": index, "method": method, "msd_mm": r.msd * 1e3,
                         "hd_mm": r.hd * 1e3, "inside_percent": r.inside * 100, "inside_depth_mm": r.depth * 1e3,
@@ -99,10 +99,10 @@ def twin_outcome(spec, mesh, fields, twin, result) -> dict:
     reached = twin.angles  # flat where the gate refused the range: the device does not move
     msd, _ = msd_hd(spec, mesh, result.root_pose, reached, result.widths)
     summary = threshold_summary(build_field(spec, result.root_pose, reached, result.widths, mesh, fields))
-    settle = [math.nan] if gate.prediction is None else [r["settle_time_s"] for r in move_report(spec, gate.prediction)]
+    settle = math.nan if gate.prediction is None else move_report(spec, gate.prediction).slowest
     return {"twin_msd_mm": msd * 1e3, "gate_range_ok": verdict["range"], "gate_collision_ok": verdict.get("collision", False),
             "share_within": summary["share_within"],
-            "morph_time_s": None if any(math.isnan(t) for t in settle) else max(settle)}
+            "morph_time_s": None if math.isnan(settle) else round(settle, 4)}
 
 
 def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: int = 2, progress=True,

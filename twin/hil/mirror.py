@@ -24,7 +24,7 @@ from controllers.encoder import angle_from_counts, target_counts
 from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec
 from twin.formats.run import run_start
-from twin.formats.trace import Recording
+from twin.records.trace import Trace
 from twin.hil.device_gains import device_gains
 from twin.link import protocol as P
 from twin.link.serial_link import Link
@@ -48,7 +48,7 @@ class MirrorResult:
     frames: int
     final_deg: np.ndarray  # device hinge angles at the end, deg
     message: str
-    telemetry: Recording | None = None  # the device's frames, time s from the moment the targets took effect
+    telemetry: Trace | None = None  # the device's frames, time s from the moment the targets took effect
 
     @property
     def ok(self) -> bool:
@@ -259,12 +259,12 @@ def deviation(device, predicted, row: int, slack: int):
     return predicted[min(row, last)], dev
 
 
-def _recording(spec: DeviceSpec, rows) -> Recording | None:
-    """Telemetry frames as a Recording in SI (None without frames)."""
+def _recording(spec: DeviceSpec, rows) -> Trace | None:
+    """Telemetry frames as a Trace in SI (None without frames)."""
     if not rows:
         return None
     t, counts, targets, duty, current = (np.array(c) for c in zip(*rows))
-    return Recording(time=t.astype(float), target=targets * spec.rad_per_count, angle=counts * spec.rad_per_count,
+    return Trace(time=t.astype(float), target=targets * spec.rad_per_count, angle=counts * spec.rad_per_count,
                      counts=counts.astype(np.int64), duty=duty / P.DUTY_SCALE, current=current / 1000.0)
 
 
