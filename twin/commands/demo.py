@@ -25,15 +25,14 @@ from twin.commands.options import (
     write_json,
 )
 from twin.device.kinematics import flap_frames
+from twin.evaluation.morph_outcome import morph_outcome
 from twin.formats.move_report import move_rows
 from twin.formats.target import approximation_json
 from twin.morphpatch.approximation import VARIANTS, approximate, measured
 from twin.morphpatch.fields import build_fields
-from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import shape_names
-from twin.morphpatch.surface_metrics import inside_text, match, match_json
-from twin.sim.gate import check_move, redirection_check
-from twin.sim.response import move_report
+from twin.morphpatch.surface_metrics import inside_text, match_json
+from twin.sim.gate import redirection_check
 from viz.scene import render_approximation
 from viz.traces import hinge_figure
 from viz.viewer import show_move
@@ -77,19 +76,15 @@ def run(args) -> int:
           + ("" if approx.rests is not False else "; ours found no pose resting on it from outside"), flush=True)
 
     print("[3/5] validating and simulating the morph on the twin (firmware PID at 1 kHz) ...", flush=True)
-    gate = check_move(spec, np.zeros(spec.n_hinges), approx.angles, profile.gains, twin=profile_twin(profile))
-    trace = gate.prediction
-    report = move_report(spec, trace) if trace is not None else None
+    outcome = morph_outcome(spec, mesh, fields, approx, profile_twin(profile), profile.gains)
+    gate, trace, report, end, redirection = (outcome.gate, outcome.gate.prediction, outcome.report, outcome.end,
+                                             outcome.redirection)
+    end_angles = outcome.reached
     hinges = move_rows(report) if report is not None else []
-    end_angles = trace.true_angle[-1] if trace is not None else np.zeros(spec.n_hinges)
-    end = match(spec, mesh, approx.root_pose, end_angles, approx.widths)
-    settle = round(report.slowest, 4) if report is not None else float("nan")
+    settle = round(outcome.settle_time, 4)
     final_err = (round(math.degrees(np.abs(report.steady_state_error).max()), 3) if report is not None
                  else float("nan"))
-
     # the residual mismatch where the twin ended, as the pen redirection must cover it
-    field = build_field(spec, approx.root_pose, end_angles, approx.widths, mesh, fields)
-    redirection = threshold_summary(field)
     gate.checks.append(redirection_check(redirection, strict=args.strict))
     print(gate.text())
     print(f"      morph settled in {settle:.3f} s (slowest hinge), largest final error {final_err:.2f} deg; "
