@@ -271,7 +271,8 @@ def test_what_holding_measured_survives_a_later_calibration(spec, device_profile
                                                                      "high": 0.01}}}
     write_profile_spec("kept", {"gear_friction": spec.gear_friction}, "test", calibration=calibration)
     profile = read_profile(device_profiles / "kept")
-    assert profile.holding == holding and profile.calibration == calibration
+    assert profile.holding == holding and profile.calibration.runs == calibration["runs"]
+    assert {p: e.to_json() for p, e in profile.calibration.parameters.items()} == calibration["parameters"]
     assert profile.spec.backdrive_efficiency == 0.3
     meta = device_profiles / "kept" / "profile.json"
     doc = json.loads(meta.read_text())

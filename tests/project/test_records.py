@@ -21,12 +21,12 @@ from twin.records.trace import Trace, joined
 from twin.sim.response import move_report, move_settle_time
 from twin.sim.twin import Twin
 
-RECORDS = ("Approximation", "Trace", "MoveReport")
+RECORDS = ("Approximation", "Trace", "MoveReport", "Calibration", "Estimate")
 # functions of twin.formats that still return a dict, each with why: what issue 39 has not yet made a record
 NOT_YET = {
-    "twin.formats.profile.Profile.ranges": "calibration's intervals: the Calibration record (issue 39, item 1)",
-    "twin.formats.profile.Profile.hinge_ranges": "per-hinge intervals: the Calibration record (issue 39, item 1)",
-    "twin.formats.profile.spec_source_of": "the profile's spec source: the Profile record (issue 39, item 1)",
+    "twin.formats.profile.Profile.ranges": "the Calibration record's intervals as the tuner's goal takes them",
+    "twin.formats.profile.Profile.hinge_ranges": "the same per hinge",
+    "twin.formats.profile.spec_source_of": "the profile's spec source: a Profile record (issue 39) would hold it",
     "twin.formats.run.read_run_meta": "run.json before it is checked whole; read_run gives the Run record",
     "twin.formats.pen.read_pen_samples": "the pen CSV's extra columns, passed through to the writer unread",
     "twin.formats.records.read_jsonl": "append-only logs of any JSON objects (sweep, Table 1): no one record",
