@@ -158,7 +158,7 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
         link.log("gate_override", reason=report.refusal())
 
     trace = report.prediction  # None only when an override sent a target the twin could not simulate
-    predicted = None if trace is None else angle_from_counts(spec, trace.counts)  # as the encoders would read
+    predicted = None if trace is None else trace.angle  # the encoder's angle, as the device reads it
     dt = spec.firmware_dt
     link.set_telemetry_rate(telemetry_hz)
     link.drain_telemetry()
