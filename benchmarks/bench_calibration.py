@@ -1,10 +1,10 @@
 """Calibration on plants nobody told the twin: per-hinge held-out RMSE before and after, fitted against drawn.
 
-For each seed, the emulator draws its plant within its stated ranges (tests/random_plant.py); the device is
+For each seed, the emulator draws its plant within its stated ranges (twin/link/drawn_plant.py); the device is
 woken to flat, the calibration scenario (seed 0, for the device's gains) and a held-out one (seed 1) are
 recorded with `vrscroll hil`, and `vrscroll calibrate --per-hinge` fits the first and scores the second. The
 drawn values are read from the emulator's log only to print beside the fit and to tally issue 20's criteria
-(tests/random_plant.py `judged`: over (hinge, parameter), how many intervals hold the drawn value, how many
+(twin/hil/calibration_verdict.py `judged`: over (hinge, parameter), how many intervals hold the drawn value, how many
 values called identifiable are within 15 % of it; and whether the held-out criterion is met). A seed whose
 folder under --out holds its recordings already is calibrated again, not recorded again. Two floors: the held-out error of a
 twin given the drawn values the twin can take (the shared ones: each hinge's own values and the effects the
@@ -15,10 +15,10 @@ With --scaling: on the first seed's recordings, the wall time of the shared fit 
 per-hinge fit with 1, 2 and 4 parameters per hinge (6, 12, 24 values), and of `vrscroll tune` on the
 profile calibrated from them (its plants the corners of the calibrated intervals).
 
-With --repeat N: the shared plant of tests/hil/test_tuning_hil.py's calibration test (every hinge alike, no
+With --repeat N: the shared plant of tests/hil/test_tuning_hil.py's calibration test (twin/hil/shared_plant.py) (every hinge alike, no
 cogging, ripple or warming: a plant the shared fit can represent), recorded N times with that test's recipe
 and calibrated: each recording's held-out RMSE before and after beside the floor the plant's own values
-leave, whether it meets the held-out criterion (tests/random_plant.py), and the verdicts.
+leave, whether it meets the held-out criterion (twin/hil/calibration_verdict.py), and the verdicts.
 
 With --effects: per seed, its plant as drawn and with each effect the twin does not model (cogging, the
 friction ripple, the warming winding) taken out, one at a time and all three, each recorded and calibrated
@@ -29,7 +29,7 @@ With --holding: per seed, the calibration scenario recorded and calibrated per h
 interval, and each hinge's sag over the release on the device and on the twin before and after.
 
 With --identify: per seed, the plant drawn lying flat, the identification experiments (`vrscroll calibrate
---serial`'s) run on the emulator in-process (tests/emulated_programs.py: the firmware core and the plant, as
+--serial`'s) run on the emulator in-process (twin/link/drawn_plant.py's EmulatedDevice: the firmware core and the plant, as
 fast as the CPU steps them) and each hinge fitted on the twin's replays: per hinge each value's error against
 the drawn one and its interval; then per parameter over every (seed, hinge) the median and worst error, the
 median interval width (high / low), how many intervals hold the drawn value, how many are called identifiable,
@@ -56,17 +56,16 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
 
-from emulated_programs import EmulatedDevice  # noqa: E402
-from hil.test_tuning_hil import ALIKE, SHARED_PLANT, record_soft, shared_truth  # noqa: E402
-from random_plant import drawn_plant, emulator_args, held_out_improved, judged  # noqa: E402
 from twin.cli import main as vrscroll  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
 from twin.formats.run import read_run  # noqa: E402
 from twin.hil.calibration import HINGE_PARAMS, MAX_HALFWIDTH, calibrate, calibrate_hinges, trace_rmse  # noqa: E402
+from twin.hil.calibration_verdict import held_out_improved, judged  # noqa: E402
 from twin.hil.identification import PROFILED, estimates, experiments, fit_hinge  # noqa: E402
 from twin.hil.mirror import mirror  # noqa: E402
+from twin.hil.shared_plant import ALIKE, SHARED_PLANT, record_soft, shared_truth  # noqa: E402
+from twin.link.drawn_plant import EmulatedDevice, drawn_plant, emulator_args  # noqa: E402
 from twin.link.emulator_process import EmulatorProcess  # noqa: E402
 from twin.link.serial_link import Link  # noqa: E402
 
@@ -198,7 +197,7 @@ def holding(seed: int, folder: Path) -> None:
 
 def one(seed: int, folder: Path) -> dict:
     """Calibrate (shared, then per hinge) on seed's drawn plant and print the fit beside the truth; returns the
-    tally of issue 20's criteria (random_plant.judged, and whether the held-out criterion is met). A folder that
+    tally of issue 20's criteria (twin.hil.calibration_verdict.judged, and whether the held-out criterion is met). A folder that
     has the seed's recordings already (an earlier --out) is calibrated again, not recorded again."""
     spec = load_spec()
     truth = _drawn(folder)["plant"] if (folder / "hold" / "run.json").exists() else record(seed, folder)

@@ -1,4 +1,4 @@
-"""The approximation on shapes nobody tuned it for (tests/shape_corpus.py, issue 22): per shape and variant the
+"""The approximation on shapes nobody tuned it for (twin/evaluation/shape_corpus.py, issue 22): per shape and variant the
 mean MSD and HD over seeded starts all round it (exact mesh, mm), whether any anchor crossed the solid, the
 default start outside it; the share of each one's touch surface inside the shape and how deep; how many of
 full's poses have flaps in contact (the gate refuses them), and full's MSD with its angles unrolled from the tips until
@@ -7,7 +7,7 @@ over those where full's flaps are apart; how many poses of full's and ours have 
 target (twin.morphpatch.refinement.flaps_through: a wall, a plate, a tube); ours' time per approximation (median, p99, one core); each shape's field build (s,
 peak memory of the process, MB) against its face count.
 
-    PYTHONPATH=$PWD:$PWD/tests .venv/bin/python benchmarks/bench_corpus.py [--seed 0] [--starts 10] [--out results/corpus]
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_corpus.py [--seed 0] [--starts 10] [--out results/corpus]
 
 Writes OUT/corpus.json and OUT/corpus.md; prints the table.
 """
@@ -26,9 +26,9 @@ from pathlib import Path  # noqa: E402
 import igl  # noqa: E402
 import numpy as np  # noqa: E402
 
-from shape_corpus import corpus, crossed, starts  # noqa: E402
 from twin.device.flap_collision import collides, flap_boxes  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
+from twin.evaluation.shape_corpus import corpus, crossed, starts  # noqa: E402
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
 from twin.morphpatch.shapes import mesh_start  # noqa: E402

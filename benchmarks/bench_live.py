@@ -52,7 +52,8 @@ from twin.link.emulator_process import EmulatorProcess  # noqa: E402
 from twin.live.client import LiveClient, latency  # noqa: E402
 from twin.live.player import POSE_HZ, PEN_HZ, TREMOR, stroke  # noqa: E402
 from twin.live.process import ServiceProcess  # noqa: E402
-from twin.morphpatch.approximation import Approximation, pose_from_mm_deg  # noqa: E402
+from twin.formats.target import message_approximation  # noqa: E402
+from twin.morphpatch.approximation import pose_from_mm_deg  # noqa: E402
 from twin.morphpatch.shapes import shape_table  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
@@ -120,7 +121,7 @@ async def measure(url: str, shape: str, seconds: float) -> dict:
         out["lock"] = f"{done['type']} ({done['message']})"
         if done["type"] != "done":
             return out
-        approx = Approximation.from_json(locked)
+        approx = message_approximation(locked, load_spec(), "locked")
         points, quats = stroke(load_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths)
         order = np.r_[np.arange(len(points)), np.arange(len(points))[::-1]]
         pens = poses = 0

@@ -1,6 +1,6 @@
 """How low a pose within ours' bounds can take each corpus shape's MSD: ours' search restarted many times.
 
-Issue 22 asks ours to be 20 % below full in mean MSD on every shape of the corpus (tests/shape_corpus.py). Where
+Issue 22 asks ours to be 20 % below full in mean MSD on every shape of the corpus (twin/evaluation/shape_corpus.py). Where
 ours is not, this asks whether any pose within the same bounds is: from each of the benchmark's starts
 (benchmarks/bench_corpus.py's, seed 0), ours' refinement (twin.morphpatch.refinement.refine) is run again from
 RESTARTS random starts about full's pose: the root turned by up to 0.5 rad about a random axis, the anchor
@@ -14,7 +14,7 @@ exact mesh the bar of twin.morphpatch.resting (deepest point 3 mm, 5 % more than
 of ours itself is the start's figure: a lower estimate of what the bounds allow, not a proof, since the search
 minimises its own objective (samples inside the target weighted more), not the MSD.
 
-    PYTHONPATH=$PWD:$PWD/tests .venv/bin/python benchmarks/bench_reachable.py [--shapes a,b] [--restarts 100]
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_reachable.py [--shapes a,b] [--restarts 100]
 
 Default shapes: those where results/corpus/corpus.json has ours less than 20 % below full. Writes
 results/corpus/reachable.json and .md; prints a line per start and per shape.
@@ -32,15 +32,15 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from shape_corpus import corpus, crossed, starts  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
+from twin.evaluation.shape_corpus import corpus, crossed, starts  # noqa: E402
 from twin.morphpatch.approximation import approximate, root_pose  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
-from twin.morphpatch.approximation import Approximation  # noqa: E402
 from twin.morphpatch.refinement import ANCHOR_RADIUS, refine  # noqa: E402
 from twin.morphpatch.resting import DEEP_SHARE_MAX, DEEPEST_MAX, FLAP_APART_MIN, resting  # noqa: E402
 from twin.morphpatch.sampling import SAMPLE_SPACING, grid_layout  # noqa: E402
 from twin.morphpatch.surface_metrics import match  # noqa: E402
+from twin.records.approximation import Approximation  # noqa: E402
 
 TURN = 0.5  # rad: a restart's root turned by up to this about a random axis
 NOISE = 0.4  # rad: the spread added to full's angles in the second kind of restart

@@ -1,13 +1,13 @@
 """Whether ours rests on its target from outside (issue 37): from each shape's default start, ours' MSD (exact
 mesh), the deepest point of its touch surface inside the target, the share more than 2 mm inside and the gap of
-flaps two or more apart, judged by tests/morphpatch/outside_check.py (kinematics written apart from the
-approximation's, from the result's JSON), and ours' time (best of 3 warm calls, one core). Shapes: those made in
-tests/morphpatch/test_resting.py (`--shapes generated`) or the corpus (`--shapes corpus`, tests/shape_corpus.py,
+flaps two or more apart, judged by twin/evaluation/outside_check.py (kinematics written apart from the
+approximation's, from the result's JSON), and ours' time (best of 3 warm calls, one core). Shapes: those made for
+tests/morphpatch/test_resting.py (`--shapes generated`, twin/evaluation/made_shapes.py) or the corpus (`--shapes corpus`, twin/evaluation/shape_corpus.py,
 seed 0).
 
-    PYTHONPATH=$PWD:$PWD/tests:$PWD/tests/morphpatch .venv/bin/python benchmarks/bench_resting.py [--shapes corpus]
+    PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_resting.py [--shapes corpus]
 
-Before and after in one run: run it once with the old code first on PYTHONPATH (tests from this tree), once
+Before and after in one run: run it once with the old code first on PYTHONPATH (the shapes and the judge from this tree), once
 with this tree's. Prints a line per shape and a summary.
 """
 
@@ -20,11 +20,12 @@ import argparse  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from outside_check import holds, judge  # noqa: E402
-from shape_corpus import corpus  # noqa: E402
-from made_shapes import SHAPES  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
-from twin.morphpatch.approximation import approximate, pose_from_mm_deg  # noqa: E402
+from twin.evaluation.made_shapes import SHAPES  # noqa: E402
+from twin.evaluation.outside_check import holds, judge  # noqa: E402
+from twin.evaluation.shape_corpus import corpus  # noqa: E402
+from twin.formats.target import approximation_json  # noqa: E402
+from twin.morphpatch.approximation import approximate, measured, pose_from_mm_deg  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
 from twin.morphpatch.shapes import mesh_start  # noqa: E402
 
@@ -45,8 +46,8 @@ def main() -> None:
         start = pose_from_mm_deg(mesh_start(mesh))
         approximate(fields, start, spec, args.variant)
         times = [approximate(fields, start, spec, args.variant).time for _ in range(3)]
-        a = approximate(fields, start, spec, args.variant).measured(spec, mesh)
-        v = judge(spec, mesh, a.to_json())
+        a = measured(spec, mesh, approximate(fields, start, spec, args.variant))
+        v = judge(spec, mesh, approximation_json(a))
         rows.append((a.msd, v.deepest, v.share_2mm, v.gap, min(times), holds(v)))
         print(f"{name:15s} MSD {a.msd * 1e3:6.2f} mm  deepest {v.deepest * 1e3:6.2f} mm  >2 mm {v.share_2mm:6.1%}  "
               f"flap gap {v.gap * 1e3:6.2f} mm  {min(times) * 1e3:6.2f} ms  {'holds' if holds(v) else 'FAILS'}",

@@ -5,8 +5,9 @@ Entities (units in the names; the timeline `time` is s from the record's start):
     world/<source>/<geom>               the flaps, motors and electronics of the MJCF (Boxes3D in the geom's
                                         frame, its pose per frame a Transform3D), <source> = device | twin
     world/target                        the target mesh (Mesh3D), coloured by distance to the device at the end
-    hinge<k>/angle_deg/<source>         the hinge's angle (target, twin, device)
-    hinge<k>/difference_deg             device - twin (at the device's sample times), where both are there
+    hinge<k>/angle_deg/<source>         the hinge's encoder angle (target, twin, device): like with like
+    hinge<k>/true_angle_deg/twin        the twin's flap angle, which the encoder does not see (backlash, its floor)
+    hinge<k>/difference_deg             device - twin, encoder angles (at the device's sample times), where both are there
     hinge<k>/duty/<source>              the commanded duty, -1..1
     hinge<k>/current_A/<source>         the winding current, A
 
@@ -128,12 +129,15 @@ class RerunRecording:
                                  columns=self.rr.Scalars.columns(scalars=np.asarray(values, float)))
 
     def _traces(self, series: dict, shift: float) -> None:
-        """series: source -> an object with time (s), target, angle (rad), duty, current (A) arrays (samples, n)."""
+        """series: source -> a Trace (twin.records.trace); the angles compared are the encoder's, the device's and
+        the twin's alike."""
         first = next(iter(series.values()))
         for k in range(first.angle.shape[1]):
             self._scalars(f"hinge{k}/angle_deg/target", first.time + shift, np.degrees(first.target[:, k]))
             for source, s in series.items():
                 self._scalars(f"hinge{k}/angle_deg/{source}", s.time + shift, np.degrees(s.angle[:, k]))
+                if s.true_angle is not None:
+                    self._scalars(f"hinge{k}/true_angle_deg/{source}", s.time + shift, np.degrees(s.true_angle[:, k]))
                 self._scalars(f"hinge{k}/duty/{source}", s.time + shift, s.duty[:, k])
                 self._scalars(f"hinge{k}/current_A/{source}", s.time + shift, s.current[:, k])
             if "device" in series and "twin" in series:
@@ -159,8 +163,8 @@ def log_move(path, spec: DeviceSpec, trace, mesh=None, root=None, widths=None) -
     with RerunRecording(path, spec) as rec:
         if mesh is not None:
             rec.target(mesh, None if root is None or widths is None else
-                       _vertex_distances(spec, mesh, trace.angle[-1], root, widths))
-        rec.add(0.0, {"twin": trace}, {"twin": (trace.time, trace.angle)}, root)
+                       _vertex_distances(spec, mesh, trace.true_angle[-1], root, widths))
+        rec.add(0.0, {"twin": trace}, {"twin": (trace.time, trace.true_angle)}, root)
     return f"rerun recording {path} (the twin's move, {trace.duration:.2f} s)"
 
 
@@ -178,13 +182,14 @@ def _vertex_distances(spec: DeviceSpec, mesh, angles, root, widths) -> np.ndarra
 
 
 def add_move(rec: RerunRecording, at: float, telemetry=None, prediction=None) -> None:
-    """One move at `at` s on the timeline: the device's telemetry (a Recording, time from the moment the
-    targets took effect; None without a device) and the twin's prediction (a Trace, or None)."""
+    """One move at `at` s on the timeline: the device's telemetry (a Trace, time from the moment the
+    targets took effect; None without a device) and the twin's prediction (a Trace, or None). In 3-D the device
+    at its encoder's angles, the twin at its true ones."""
     series, panels = {}, {}
     if telemetry is not None and len(telemetry.time) > 1:
         series["device"], panels["device"] = telemetry, (telemetry.time, telemetry.angle)
     if prediction is not None and len(prediction.time) > 1:
         pred = dataclasses.replace(prediction, time=prediction.time - prediction.time[0])
-        series["twin"], panels["twin"] = pred, (pred.time, pred.angle)
+        series["twin"], panels["twin"] = pred, (pred.time, pred.true_angle)
     if panels:
         rec.add(at, series, panels)

@@ -37,7 +37,7 @@ def render_approximation(spec: DeviceSpec, mesh: trimesh.Trimesh, frames: np.nda
     lower left; where start_frames are given, the device where it started, as a black outline; where `failed`
     is given (what refused the pose, e.g. the gate's failed checks), FAILED and it in red, upper right.
 
-    frames, start_frames: world flap frames (n_flaps, 4, 4), e.g. `Approximation.frames(spec)`; widths: m.
+    frames, start_frames: world flap frames (n_flaps, 4, 4), e.g. `twin.morphpatch.approximation.frames`; widths: m.
     """
     plotter = pv.Plotter(off_screen=True, window_size=window_size)
     plotter.add_mesh(pv.wrap(mesh), color="lightgrey", opacity=0.35, smooth_shading=True)

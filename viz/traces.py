@@ -2,8 +2,8 @@
 
 One function serves the HIL report (device and twin, the error device - twin), `compare` (several runs)
 and the step responses of `simulate` and `demo` (the twin alone, the error target - angle against the
-settle band). Series are any objects with time (s), target and angle (rad), duty and current (A) arrays
-(samples, hinges): a twin's Trace or a Recording read from a trace CSV.
+settle band). Series are traces (twin.records.trace.Trace), a twin's or a device's: their angle is the
+encoder's, the one the settle band is about and the one both have, so device and twin compare like with like.
 """
 
 from __future__ import annotations

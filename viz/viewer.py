@@ -89,9 +89,9 @@ def view_run(run: Run, spec: DeviceSpec) -> str:
 
 
 def play_trace(spec: DeviceSpec, trace) -> str:
-    """A twin's move (twin.sim.trace.Trace) in real time."""
+    """A twin's move (twin.records.trace.Trace, its true angles) in real time."""
     model = mujoco.MjModel.from_xml_string(mjcf(spec))
-    return play(model, hinge_qadr(model, spec.n_hinges), trace.time - trace.time[0], trace.angle, "the twin's move")
+    return play(model, hinge_qadr(model, spec.n_hinges), trace.time - trace.time[0], trace.true_angle, "the twin's move")
 
 
 def _files(spec: DeviceSpec, t, panels, out_stem, title: str) -> str:
@@ -106,7 +106,7 @@ def show_move(spec: DeviceSpec, trace, out_stem, files: bool = False) -> str:
     """A twin's move: MuJoCo's viewer where there is a display and files is False, else out_stem.mp4 and
     out_stem.png rendered off-screen. A line saying what was shown or written."""
     if files or display_missing():
-        return _files(spec, trace.time, [trace.angle], out_stem, "the twin's move (true hinge angles)")
+        return _files(spec, trace.time, [trace.true_angle], out_stem, "the twin's move (true hinge angles)")
     return play_trace(spec, trace)
 
 

@@ -46,7 +46,7 @@ def test_the_flap_wanders_in_the_backlash_while_the_encoder_is_still(spec):
     for push in (0.003, -0.003, 0.003):
         twin.data.qfrc_applied[dof] = push  # N*m on the flap; the loop writes only the gear joints' entries
         trace = twin.hold(0.3)
-        positions.append(trace.angle[-100:, k].mean())
+        positions.append(trace.true_angle[-100:, k].mean())
         counts.append(trace.counts[:, k])
     twin.data.qfrc_applied[dof] = 0.0
     swing = abs(positions[1] - positions[0])
@@ -69,7 +69,7 @@ def test_static_friction_holds_below_it_and_slides_above_it(spec):
         twin.firmware.clear_fault()  # IDLE: zero duty, braked
         twin.data.qfrc_applied[twin.hinges.dadr[0]] = torque
         trace = twin.hold(0.5)
-        moved[torque] = abs(trace.angle[-1, 0])
+        moved[torque] = abs(trace.true_angle[-1, 0])
     low, high = moved
     assert spec.gear_friction < low < spec.gear_stiction < high
     assert moved[low] < spec.backlash / 2 + math.radians(0.2)  # LuGre creeps a little below the static friction
@@ -84,7 +84,7 @@ def test_zero_volts_from_flat_hinge_2_falls_slowly_braked(spec):
     pose within half a second: tests/device/test_motor.py checks coast at the winding.)"""
     braked = Twin(spec)
     braked.firmware.estop()
-    fall = np.degrees(braked.hold(2.0).angle)
+    fall = np.degrees(braked.hold(2.0).true_angle)
     assert -80 < fall[-1, 2] < -50 and fall[999, 2] > fall[-1, 2]
     assert np.abs(fall[-1, [0, 5]]).max() < 0.5
 
@@ -117,7 +117,7 @@ def test_six_hinges_settle_later_on_a_low_pack_as_the_twin_predicts_for_the_emul
     for volts in (spec.pack_low_voltage, spec.pack_full_voltage):
         pack = spec.replace(supply_voltage=volts)
         report = move_report(pack, Twin(pack).move_to(targets, max_time=1.5, stop_when_settled=False))
-        predicted = np.mean([r["settle_time_s"] for r in report])
+        predicted = np.mean(report.settle_time)
         opt = EmulatorOptions(plant=dataclasses.replace(as_twin(spec), pack_voltage=volts),
                               faults=FaultOptions(latency_ms=1.0), zeroed=True)
         measured = emulated_settle(spec, opt, targets, 1.5).mean()

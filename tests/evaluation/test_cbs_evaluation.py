@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from twin.morphpatch.approximation import pose_from_mm_deg
+from twin.morphpatch.approximation import frames, pose_from_mm_deg
 from twin.cli import main
 from twin.evaluation.cbs import CbsSimulator
 from twin.evaluation.lock import folder_lock
@@ -45,14 +45,14 @@ def test_cbs_on_a_cylinder_wraps_without_going_through(spec):
     sim = CbsSimulator(spec, cyl)
     result = sim.run(pose_from_mm_deg([0, 0, top + 20, 0, 0, 0]))
     assert np.all(result.angles < 0)  # convex touch surface, the way a cylinder bends it
-    frames = result.frames(spec)
-    pts = touch_surface_points(spec, frames, result.widths)
+    flaps = frames(spec, result)
+    pts = touch_surface_points(spec, flaps, result.widths)
     depth, _ = exact_signed_distance(cyl, pts)
     assert depth.min() > -PENETRATION
     # the root and both tips end in contact (within 1 mm); flaps between may be held off by the tips,
     # as bending until contact leaves them on a convex target
     for i in (0, spec.root_flap, spec.n_flaps - 1):
-        flap_depth, _ = exact_signed_distance(cyl, touch_surface_points(spec, frames[i:i + 1], result.widths[i:i + 1]))
+        flap_depth, _ = exact_signed_distance(cyl, touch_surface_points(spec, flaps[i:i + 1], result.widths[i:i + 1]))
         assert np.abs(flap_depth).min() < 1e-3, i
 
 

@@ -22,7 +22,7 @@ from twin.evaluation.starts import approach_starts
 from twin.evaluation.sweep import RECORDS, run_sweep, summarize_designs, sweep_plants, sweep_tasks
 from twin.evaluation.table1 import METHODS
 from twin.formats.sweep import read_records, read_sweep
-from twin.morphpatch.approximation import approximate
+from twin.morphpatch.approximation import approximate, measured
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import load_shape, shape_names
 from twin.sim.twin import Twin
@@ -54,7 +54,7 @@ def test_designs_of_other_flap_counts_compile_move_and_approximate(spec, n_flaps
     twin.move_to(targets, max_time=2.0)
     assert np.abs(twin.angles - targets).max() < 8 * design.settle_band * design.rad_per_count
     mesh = load_shape("cylinder")
-    result = approximate(build_fields(mesh), approach_starts(mesh, 1, seed=1)[0], design, "full").measured(design, mesh)
+    result = measured(design, mesh, approximate(build_fields(mesh), approach_starts(mesh, 1, seed=1)[0], design, "full"))
     assert result.angles.shape == (n_flaps - 1,) and np.all(np.abs(result.angles) <= design.hinge_limit)
     assert result.widths.shape == (n_flaps,) and 0 < result.msd < 0.02
 

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from cli import vrscroll
-from random_plant import emulator_args
 from twin.commands import emulate
 from twin.hil.bringup import BringupError, bring_up
 from twin.hil.mirror import mirror
 from twin.link import protocol as P
+from twin.link.drawn_plant import emulator_args
 from twin.link.emulator import Emulator, EmulatorOptions
 from twin.link.faults import FaultOptions, Miswiring
 from twin.link.pty_device import open_pty, serve

@@ -14,11 +14,10 @@ import math
 import numpy as np
 import pytest
 
-from emulated_programs import EmulatedDevice
-from random_plant import drawn_hinges, emulator_args
 from twin.cli import main as vrscroll
 from twin.commands.options import select_profile
 from twin.hil.identification import FITTED, PROFILED, WINDOW_DEG, experiments, fit_hinge, programs
+from twin.link.drawn_plant import EmulatedDevice, drawn_hinges, emulator_args
 from twin.link.serial_link import program_message
 
 SPEED_WIDTH = 1.5  # the no-load speed's 95 % interval at most this wide (high / low): the bound

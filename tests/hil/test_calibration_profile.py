@@ -1,6 +1,6 @@
 """Calibration and tuning on plants nobody told the twin (issue 20): the emulator draws its plant within its
 stated ranges from a seed, each hinge its own values and the effects the twin leaves out; the drawn values stay
-in its log, read here only to judge (random_plant.judged: every interval against the drawn value, every value
+in its log, read here only to judge (twin.hil.calibration_verdict.judged: every interval against the drawn value, every value
 called identifiable within 15 % of it; the held-out criterion against the twin given the drawn shared values)."""
 
 import json
@@ -8,13 +8,14 @@ import json
 import numpy as np
 import pytest
 
-from random_plant import drawn_hinges, drawn_plant, emulator_args, held_out_improved, judged
 from twin.commands.options import select_profile
 from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
 from twin.formats.run import read_run
 from twin.hil.calibration import trace_rmse
+from twin.hil.calibration_verdict import held_out_improved, judged
 from twin.hil.mirror import mirror
+from twin.link.drawn_plant import drawn_hinges, drawn_plant, emulator_args
 from twin.link.serial_link import Link
 
 COVERAGE = 0.95  # of (seed, hinge, parameter) intervals must hold the drawn value

@@ -6,12 +6,12 @@ import json
 import numpy as np
 import pytest
 
-from random_plant import drawn_plant
 from twin.cli import main as vrscroll
 from twin.commands.options import select_profile
 from twin.device.spec import load_spec
 from twin.hil.holding import Release, fit_backdrive, sag_after_cut, twin_release
 from twin.link import protocol as P
+from twin.link.drawn_plant import drawn_plant
 from twin.link.serial_link import Link
 from twin.sim.twin import Twin
 
@@ -46,10 +46,10 @@ def test_unpowered_the_windings_open_whatever_the_firmware_commands(spec):
     """A pack pulled: the PID, still holding its targets, moves nothing, and without the windings' braking the
     hinges that carry three flaps fall faster than braked (after an e-stop) and far from where powered ones hold."""
     powered, cut, braked = (Twin(spec) for _ in range(3))
-    held = np.degrees(powered.hold(0.2).angle[-1])
-    fallen = np.degrees(cut.unpowered(0.2).angle[-1])
+    held = np.degrees(powered.hold(0.2).true_angle[-1])
+    fallen = np.degrees(cut.unpowered(0.2).true_angle[-1])
     braked.firmware.estop()
-    slowed = np.degrees(braked.hold(0.2).angle[-1])
+    slowed = np.degrees(braked.hold(0.2).true_angle[-1])
     assert np.abs(held).max() < 1.0, held
     for k in (2, 3):
         assert fallen[k] < slowed[k] - 5.0 and fallen[k] < -20.0, (fallen, slowed)

@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-from random_plant import emulator_args
 
 from controllers.pid import PidGains
 from twin.cli import main as vrscroll
@@ -16,6 +15,7 @@ from twin.formats.scenario import read_scenario
 from twin.formats.trace import read_trace
 from twin.hil.mirror import TIME_SLACK
 from twin.link import protocol as P
+from twin.link.drawn_plant import emulator_args
 from twin.link.serial_link import Link
 from twin.sim.gate import below_table, check_move
 from twin.sim.twin import Twin

@@ -154,7 +154,7 @@ def test_serves_twin_moves_each_hinge_with_its_own_plant(spec):
     for name, hinges in (("shared", None), ("own", slow)):
         morpher = TwinMorpher(spec, hinges=hinges)
         morpher.open()
-        morpher.on_move = lambda _, trace, name=name: at.__setitem__(name, np.degrees(trace.angle[30]))
+        morpher.on_move = lambda _, trace, name=name: at.__setitem__(name, np.degrees(trace.true_angle[30]))
         assert morpher.morph(np.radians([20.0] * spec.n_hinges), lambda event: None).status == "done"
     assert at["own"][4] < at["shared"][4] - 0.5, at
     assert at["own"][1] == pytest.approx(at["shared"][1], abs=0.05)
@@ -271,7 +271,8 @@ def test_what_holding_measured_survives_a_later_calibration(spec, device_profile
                                                                      "high": 0.01}}}
     write_profile_spec("kept", {"gear_friction": spec.gear_friction}, "test", calibration=calibration)
     profile = read_profile(device_profiles / "kept")
-    assert profile.holding == holding and profile.calibration == calibration
+    assert profile.holding == holding and profile.calibration.runs == calibration["runs"]
+    assert {p: e.to_json() for p, e in profile.calibration.parameters.items()} == calibration["parameters"]
     assert profile.spec.backdrive_efficiency == 0.3
     meta = device_profiles / "kept" / "profile.json"
     doc = json.loads(meta.read_text())

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from random_plant import held_out_improved
 
 from controllers.encoder import target_counts
 from controllers.pid import PidGains
@@ -20,13 +19,14 @@ from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
 from twin.formats.gains import read_gains, write_gains
 from twin.formats.run import read_run, write_run_meta
-from twin.formats.scenario import read_scenario
 from twin.formats.trace import TraceWriter, read_trace
 from twin.hil.calibration import trace_rmse
+from twin.hil.calibration_verdict import held_out_improved
 from twin.hil.compare import compare
 from twin.hil.device_gains import device_gains
 from twin.hil.mirror import device_step, mirror
-from twin.hil.record import run_hil
+from twin.hil.shared_plant import (ALIKE, SCENARIO, SHARED_BACKLASH_DEG, SHARED_PLANT, SHARED_SCALES, record_soft,
+                                   shared_truth)
 from twin.link import protocol as P
 from twin.link.serial_link import Link
 from twin.sim.batch import TwinBatch
@@ -34,37 +34,10 @@ from twin.sim.gate import check_move
 from twin.sim.replay import twin_at_start
 from twin.sim.response import move_report, step_metrics
 from twin.sim.twin import Twin
-from twin.device.variation import scaled, tolerance_ranges
+from twin.device.variation import tolerance_ranges
 from twin.tuning.tuner import RobustEvaluator, TuneGoal, chains, step_report, tune
 
 ROOT = Path(__file__).resolve().parents[2]
-
-SCENARIO = """name = "steps"
-duration_s = {duration}
-[[step]]
-t_s = 0.0
-angles_deg = [30, 20, 10, 10, 20, 30]
-[[step]]
-t_s = {t1}
-angles_deg = [5, 40, 25, 0, -10, 60]
-[[step]]
-t_s = {t2}
-angles_deg = [8, 8, 8, 8, 8, 8]
-"""
-
-HOLDOUT = """name = "holdout"
-duration_s = 1.8
-[[step]]
-t_s = 0.0
-angles_deg = [45, 5, 20, 30, 10, 15]
-[[step]]
-t_s = 0.6
-angles_deg = [10, 30, 5, 15, 50, 40]
-[[step]]
-t_s = 1.2
-angles_deg = [25, 15, 35, 5, 20, 0]
-"""
-
 
 @pytest.fixture(scope="module")
 def tuned():
@@ -78,9 +51,8 @@ def test_tuned_gains_beat_the_spec_defaults_on_the_twin(tuned, tmp_path):
     before, _ = step_report(spec, PidGains.from_spec(spec), goal)
     after, _ = step_report(spec, result.gains, goal)
     limit = math.degrees(goal.max_overshoot)
-    for b, a in zip(before, after):
-        assert a["settle_time_s"] < b["settle_time_s"]
-        assert a["overshoot_deg"] <= max(b["overshoot_deg"], limit) + 1e-9
+    assert np.all(after.settle_time < before.settle_time), (before, after)
+    assert np.all(np.degrees(after.overshoot) <= np.maximum(np.degrees(before.overshoot), limit) + 1e-9), (before, after)
     # robust: the worst of the five plants also keeps the overshoot limit
     assert np.all(np.degrees(result.overshoot) <= limit) and np.all(np.isfinite(result.settle))
     assert np.all(result.peak_current <= spec.driver_peak_current) and np.all(result.cost < goal.duration)
@@ -164,8 +136,7 @@ def test_the_twin_predicts_a_step_from_the_integral_the_device_holds(emulator):
     assert res.ok, res.message
     assert np.abs(start.integral).max() > 0.01  # what the hanging hinges hold their weight with
     twin = twin_at_start(spec, PidGains.from_spec(spec), start)
-    pred = [r["settle_time_s"] for r in move_report(spec, twin.move_to(targets, max_time=1.0,
-                                                                       stop_when_settled=False))]
+    pred = move_report(spec, twin.move_to(targets, max_time=1.0, stop_when_settled=False)).settle_time
     dev = [step_metrics(t, deg[:, k], goal, band, hold=spec.settle_hold).settle_time for k in range(spec.n_hinges)]
     frame = 1.0 / spec.max_telemetry_rate  # s: the device's settle time is known to a telemetry frame
     assert np.allclose(dev, pred, rtol=0.05, atol=frame), (dev, pred, np.round(np.array(dev) / pred - 1, 3))
@@ -185,7 +156,7 @@ def test_tuned_gains_on_the_emulator_settle_as_the_twin_predicts(tuned, emulator
     band = math.degrees(spec.settle_band * spec.rad_per_count)
     tgt = math.degrees(round(goal.step / spec.rad_per_count) * spec.rad_per_count)
     dev = [step_metrics(t, deg[:, k], tgt, band).settle_time for k in range(spec.n_hinges)]
-    twin_s = [r["settle_time_s"] for r in pred]
+    twin_s = pred.settle_time
     assert abs(np.mean(dev) - np.mean(twin_s)) <= 0.25 * np.mean(twin_s), (dev, twin_s)
 
 
@@ -261,38 +232,7 @@ def test_gear_damping_shows_in_the_motion(spec):
         twin = Twin(plant, soft)
         traces.append(twin.move_to(np.radians([30, 20, 10, 10, 20, 30]), max_time=0.8, stop_when_settled=False))
     assert not np.array_equal(traces[0].counts, traces[1].counts)
-    assert np.degrees(np.abs(traces[0].angle - traces[1].angle).max()) > 0.1
-
-
-SHARED_SCALES = {"no_load_speed": 0.75, "gear_friction": 1.6, "rotor_inertia": 1.3, "gear_damping": 1.0}
-SHARED_BACKLASH_DEG = 0.05
-OPTION = {"no_load_speed": "--speed-scale", "gear_friction": "--friction-scale", "rotor_inertia": "--armature-scale",
-          "gear_damping": "--damping-scale"}  # the emulator's option for each
-SHARED_PLANT = (*(a for p, x in SHARED_SCALES.items() for a in (OPTION[p], str(x))),
-                "--backlash-deg", str(SHARED_BACKLASH_DEG))  # the calibration tests' plant, as the emulator's options
-# every hinge alike, no cogging, no ripple, windings that do not warm: a plant the shared fit can represent
-ALIKE = ("--hinge-scale", "1", "--cogging-pct", "0", "--ripple-pct", "0", "--winding-c", "25", "--no-warming")
-
-
-def shared_truth(spec):
-    """SHARED_PLANT, ALIKE, as a spec: the twin given the emulator's own values (no cogging: ALIKE has none)."""
-    return scaled(spec, SHARED_SCALES).replace(backlash=math.radians(SHARED_BACKLASH_DEG), cogging=0.0)
-
-
-def record_soft(emu, spec, folder):
-    """Wake the emulated device and record a training run and a held-out one with soft gains (slow creeps:
-    friction shows in the duty), another recipe than the calibration scenario's
-    (tests/hil/test_calibration_profile.py); returns the two run folders and a path for the calibrated spec."""
-    soft = PidGains.from_spec(spec).replace(kp=0.015, ki=0.05, kd=0.0003)
-    train, hold = folder / "train", folder / "hold"
-    (folder / "a.toml").write_text(SCENARIO.format(duration=2.0, t1=0.7, t2=1.4))
-    (folder / "b.toml").write_text(HOLDOUT)
-    with Link(emu.port) as link:
-        # wake the device: from its limp boot pose (hanging under gravity) to flat, allowing for its difference
-        assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
-        run_hil(link, spec, read_scenario(folder / "a.toml", spec), train, gains=[soft] * 6)
-        run_hil(link, spec, read_scenario(folder / "b.toml", spec), hold, gains=[soft] * 6)
-    return train, hold, folder / "cal.toml"
+    assert np.degrees(np.abs(traces[0].true_angle - traces[1].true_angle).max()) > 0.1
 
 
 # slow until calibration's intervals hold on every recording (issue 20): in four CI-style runs of 2026-11-26 it
@@ -328,7 +268,7 @@ def test_calibration_recovers_the_emulators_plant(emulator, tmp_path, capsys):
     speed = res["parameters"]["no_load_speed"]
     assert speed["low"] <= spec.no_load_speed * truth["no_load_speed"] <= speed["high"], speed
     # held-out trace error (RMS over every frame of every hinge): at least half of what can go is gone, or the
-    # rest is at the floor the emulator's own values leave (tests/random_plant.py)
+    # rest is at the floor the emulator's own values leave (twin/hil/calibration_verdict.py)
     h = res["holdout"]
     truth_replay = trace_rmse(read_run(hold, spec), shared_truth(spec), spec)  # per hinge, deg: the twin given the truth
     floor = float(np.sqrt(np.mean(truth_replay ** 2)))

@@ -247,7 +247,7 @@ def test_mirror_simulate_and_a_move_on_a_target_write_rerun_recordings(spec, emu
     assert vrscroll(["simulate", "20", "0", "0", "0", "0", "-20", "--rerun", str(tmp_path / "s.rrd"), "--json", "-",
                      "--plot", str(tmp_path / "s.png")]) == 0
     s = read_rrd(tmp_path / "s.rrd")
-    final = [s[(f"/hinge{k}/angle_deg/twin", "Scalars:scalars")][-1][0] for k in range(spec.n_hinges)]
+    final = [s[(f"/hinge{k}/true_angle_deg/twin", "Scalars:scalars")][-1][0] for k in range(spec.n_hinges)]
     assert final == pytest.approx([h["final_deg"] for h in json.loads(capsys.readouterr().out)["hinges"]], abs=1e-3)
     assert not any(k[0].startswith("/world/device") for k in s)  # no device in a twin's move
     # a move on a target (demo's): the target mesh too, coloured by distance to the device where it ended

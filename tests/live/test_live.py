@@ -24,7 +24,8 @@ from twin.live.player import stroke
 from twin.live.process import ServiceProcess
 from twin.live.stages import PEN_STAGES, POSE_STAGES
 from twin.device.spec import load_spec
-from twin.morphpatch.approximation import Approximation, approximate, pose_from_mm_deg
+from twin.formats.target import message_approximation
+from twin.morphpatch.approximation import approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.frame_metrics import frame_estimates
 from twin.morphpatch.redirection import build_field, threshold_summary
@@ -133,13 +134,13 @@ def test_the_twin_without_a_device_is_one_device_across_morphs(spec):
     one = Twin(spec)
     one.move_to(first, max_time=2.0)
     one.hold(spec.settle_hold)
-    both = [r["settle_time_s"] for r in move_report(spec, one.move_to(second, max_time=2.0))]
+    both = move_report(spec, one.move_to(second, max_time=2.0)).settle_time
     morpher, moves = TwinMorpher(spec), []
     morpher.open()
     morpher.on_move = lambda _, trace: moves.append(trace)
     for targets in (first, second):
         assert morpher.morph(targets, lambda message: None).status == "done"
-    assert [r["settle_time_s"] for r in move_report(spec, moves[-1])] == pytest.approx(both, abs=0.002)
+    assert move_report(spec, moves[-1]).settle_time == pytest.approx(both, abs=0.002)
 
 
 def test_bad_command_lines_are_one_line_errors(capsys):
@@ -318,7 +319,7 @@ def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twi
             progress = await client.expect("progress")
             done = await client.expect("done", timeout=10)
             assert (await observer.expect("done", timeout=10))["seq"] == locked["seq"]
-            approx = Approximation.from_json(locked)
+            approx = message_approximation(locked, load_spec(), "locked")
             points, quats = stroke(load_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths,
                                    duration=0.1)
             for p, q in zip(points, quats):
@@ -358,8 +359,10 @@ def test_serve_records_every_morph_for_rerun(tmp_path):
 
         done = run(session())
     columns = read_rrd(rrd)
-    final = [columns[(f"/hinge{k}/angle_deg/twin", "Scalars:scalars")][-1][0] for k in range(6)]
-    assert final == pytest.approx(done["angles_deg"], abs=1e-3)
+    final = [columns[(f"/hinge{k}/true_angle_deg/twin", "Scalars:scalars")][-1][0] for k in range(6)]
+    assert final == pytest.approx(done["angles_deg"], abs=1e-3)  # the flaps' true angles, where the morph ended
+    encoder = [columns[(f"/hinge{k}/angle_deg/twin", "Scalars:scalars")][-1][0] for k in range(6)]
+    assert encoder == pytest.approx(final, abs=1.0) and encoder != final  # the encoder's, as a device's reads
     assert ("/world/twin/flap0_visual", "Transform3D:translation") in columns
 
 

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 
 from twin import cli
-from twin.morphpatch.approximation import Approximation, approximate, pose_from_mm_deg
+from twin.formats.target import approximation_json, approximation_record
+from twin.morphpatch.approximation import approximate, frames, measured, pose_from_mm_deg
+from twin.records.approximation import Approximation
 from twin.morphpatch.fields import build_fields
 from twin.device.kinematics import hinge_axis_sign, pose_matrix
 from twin.morphpatch.shapes import load_shape, shape_names
@@ -31,7 +33,7 @@ def level(x, y, z):
 def test_lying_on_a_cube_face_fits_exactly(spec):
     mesh, fields = fields_of("cube")
     for variant in ("full", "no_hcevf"):
-        result = approximate(fields, level(0.003, -0.002, 0.23), spec, variant).measured(spec, mesh)
+        result = measured(spec, mesh, approximate(fields, level(0.003, -0.002, 0.23), spec, variant))
         assert result.msd < 0.2e-3 and result.hd < 0.5e-3, variant
         assert np.all(np.abs(result.angles) < math.radians(0.5))
         assert result.root_pose[2, 3] == pytest.approx(0.2, abs=0.2e-3)
@@ -47,7 +49,7 @@ def test_hinges_follow_a_cylinders_chords(spec):
     radius = 0.075
     chord = 2 * math.asin(spec.flap_pitch / (2 * radius))
     for variant in ("full", "no_hcevf"):
-        result = approximate(fields, level(0.004, 0.01, 0.19), spec, variant).measured(spec, mesh)
+        result = measured(spec, mesh, approximate(fields, level(0.004, 0.01, 0.19), spec, variant))
         assert np.degrees(result.angles) == pytest.approx(np.full(spec.n_hinges, -math.degrees(chord)), abs=1.0)
         assert result.msd < 1e-3
 
@@ -103,17 +105,17 @@ def test_the_touch_surface_inside_the_target_is_measured(spec):
     angles = np.zeros(spec.n_hinges)
     angles[[0, -1]] = np.radians(30) * np.array([-1, 1]) * hinge_axis_sign(spec)[[0, -1]]
     bent = Approximation(level(0.0, 0.0, 0.203), angles, np.full(spec.n_flaps, spec.flap_pitch), 0.0, "full")
-    bent = bent.measured(spec, mesh)
-    tips = touch_surface_points(spec, bent.frames(spec), bent.widths)[:, 2]
+    bent = measured(spec, mesh, bent)
+    tips = touch_surface_points(spec, frames(spec, bent), bent.widths)[:, 2]
     assert 0.0 < bent.inside < 0.5 and 0.005 < bent.depth <= 0.2 - tips.min() + 1e-9  # (the cube's sides are near)
-    out = bent.to_json()
+    out = approximation_json(bent)
     assert out["inside_percent"] == pytest.approx(bent.inside * 100, abs=0.01) and out["inside_depth_mm"] > 0
-    assert Approximation.from_json(out, spec).depth == pytest.approx(bent.depth, abs=1e-6)
+    assert approximation_record(out, spec, "bent").depth == pytest.approx(bent.depth, abs=1e-6)
 
 
 def test_to_json_has_units_in_keys(spec):
     _, fields = fields_of("cylinder")
-    out = approximate(fields, pose_from_mm_deg([0, 0, 190, 0, 0, 0]), spec).to_json()
+    out = approximation_json(approximate(fields, pose_from_mm_deg([0, 0, 190, 0, 0, 0]), spec))
     assert set(out) == {"variant", "root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm",
                         "msd_mm", "hd_mm", "inside_percent", "inside_depth_mm", "time_ms"}
     assert out["root_position_mm"][2] == pytest.approx(150.0, abs=0.2)
@@ -142,7 +144,7 @@ def test_frames_of_a_result(spec):
     _, fields = fields_of("cylinder")
     result = approximate(fields, level(0, 0, 0.19), spec)
     assert isinstance(result, Approximation)
-    assert np.allclose(result.frames(spec)[spec.root_flap], result.root_pose)
+    assert np.allclose(frames(spec, result)[spec.root_flap], result.root_pose)
 
 
 @pytest.fixture

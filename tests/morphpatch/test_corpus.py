@@ -1,4 +1,4 @@
-"""Shapes nobody tuned the approximation for (tests/shape_corpus.py): from seeded starts all round each, no
+"""Shapes nobody tuned the approximation for (twin/evaluation/shape_corpus.py): from seeded starts all round each, no
 variant's anchor crosses the solid, ours passes no more flaps through it than full (its flaps apart), and each shape's default
 start is outside it; lowered onto a cup narrower than the device, no variant goes into it. The default suite takes a
 bowl and a cup (the concave families, where crossing is possible); the slow suite the whole corpus, 10 starts
@@ -8,8 +8,8 @@ docs/approximation.md "Shapes nobody tuned for"."""
 import igl
 import pytest
 
-from shape_corpus import corpus, crossed, starts
 from twin.device.flap_collision import collides, flap_boxes
+from twin.evaluation.shape_corpus import corpus, crossed, starts
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.refinement import flaps_through, uncurled

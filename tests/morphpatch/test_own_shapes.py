@@ -11,7 +11,7 @@ import pytest
 import trimesh
 
 from cli import vrscroll
-from shape_corpus import crossed, starts
+from twin.evaluation.shape_corpus import crossed, starts
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import mesh_start

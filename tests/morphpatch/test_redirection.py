@@ -15,6 +15,7 @@ from twin.cli import main
 from twin.morphpatch.fields import build_fields
 from twin.perception.thresholds import load_thresholds
 from twin.formats.pen import read_pen_samples
+from twin.formats.target import approximation_json, read_approximation
 from twin.morphpatch.redirection import (build_field, largest_virtual_step, redirect, surface_points,
                               threshold_summary, within_samples)
 from twin.morphpatch.shapes import load_shape, shape_table, sweep_solid
@@ -192,7 +193,7 @@ def _write_pens(path, positions, orientations):
 def test_redirect_command_writes_the_samples_and_the_picture(stairs, tmp_path, capsys):
     mesh, fields, approx = stairs
     approx_json = tmp_path / "a.json"
-    approx_json.write_text(json.dumps({"target": "stairs", **approx.to_json()}))
+    approx_json.write_text(json.dumps({"target": "stairs", **approximation_json(approx)}))
     rng = np.random.default_rng(3)
     positions, orientations = _random_pens(rng, 50, spread=0.08)
     positions += approx.root_pose[:3, 3]
@@ -204,8 +205,8 @@ def test_redirect_command_writes_the_samples_and_the_picture(stairs, tmp_path, c
     with open(out) as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 50 and rows[0]["t_s"] == "0.0"
-    field = build_field(SPEC, *(lambda a: (a.root_pose, a.angles, a.widths))(
-        type(approx).from_json(json.loads(approx_json.read_text()))), mesh, fields)
+    field = build_field(SPEC, *(lambda a: (a.root_pose, a.angles, a.widths))(read_approximation(approx_json, SPEC)),
+                        mesh, fields)
     expected = redirect(field, *read_pen_samples(pens)[1:3])
     got = np.array([[float(r[f"virtual_{c}_mm"]) for c in "xyz"] for r in rows]) / 1e3
     assert np.abs(got - expected.position).max() < 1e-6

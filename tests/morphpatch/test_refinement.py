@@ -14,7 +14,7 @@ import trimesh
 from twin.device.flap_collision import collides, flap_boxes, flap_overlap
 from twin.device.kinematics import pose_matrix
 from twin.evaluation.starts import approach_starts
-from twin.morphpatch.approximation import VARIANTS, approximate, root_pose
+from twin.morphpatch.approximation import VARIANTS, approximate, measured, root_pose
 from twin.morphpatch.fields import build_fields, exact_signed_distance
 from twin.morphpatch.refinement import ANCHOR_RADIUS, INSIDE_LIMIT, uncurled
 from twin.morphpatch.resting import DEEP_SHARE_MAX, DEEPEST_MAX, FLAP_APART_MIN, resting
@@ -35,7 +35,7 @@ def runs(spec):
         mesh = load_shape(name)
         fields = build_fields(mesh)  # (the session's cache: conftest's VRSCROLL_CACHE)
         starts = approach_starts(mesh, STARTS, seed=SEED)
-        out[name] = (mesh, fields, starts, {v: [approximate(fields, s, spec, v).measured(spec, mesh) for s in starts]
+        out[name] = (mesh, fields, starts, {v: [measured(spec, mesh, approximate(fields, s, spec, v)) for s in starts]
                                             for v in VARIANTS})
     return out
 
@@ -116,7 +116,7 @@ def test_ours_rests_and_fits_from_starts_nobody_tuned_for(spec, runs):
     results = {}
     for name, (mesh, fields, _, _) in runs.items():
         starts = approach_starts(mesh, FRESH_STARTS, seed=FRESH_SEED)
-        results[name] = {v: [approximate(fields, s, spec, v).measured(spec, mesh) for s in starts]
+        results[name] = {v: [measured(spec, mesh, approximate(fields, s, spec, v)) for s in starts]
                          for v in ("full", "refined")}
     assert_rests_and_fits(spec, {n: m for n, (m, _, _, _) in runs.items()}, results)
 
@@ -183,5 +183,5 @@ def test_ours_curls_round_a_can_it_was_brought_to_lengthwise(spec):
         row = np.array([0.0, math.sin(yaw), math.cos(yaw)])
         out = np.array([1.0, 0.0, 0.0])  # the device's +z: it approaches along -x
         start = pose_matrix([0.1, 0.0, 0.0], np.column_stack([row, np.cross(out, row), out]))
-        full, ours = (approximate(fields, start, spec, v).measured(spec, can) for v in ("full", "refined"))
+        full, ours = (measured(spec, can, approximate(fields, start, spec, v)) for v in ("full", "refined"))
         assert ours.msd < 4e-3 < full.msd, (math.degrees(yaw), ours.msd, full.msd)

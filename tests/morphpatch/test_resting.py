@@ -1,7 +1,7 @@
 """Ours rests on the target from outside, never through it (issue 37): from the default start, on shapes made
 here that nobody tuned for (a fat torus, bars thinner than the device, a 12 mm sphere, a noisy sphere, a saddle,
 a cup, a thin plate) and on the corpus, ours' pose, judged by kinematics written apart from the approximation's
-(outside_check.py, from the JSON's angles_deg, root_position_mm, root_quat_wxyz), has its deepest point inside
+(twin/evaluation/outside_check.py, from the JSON's angles_deg, root_position_mm, root_quat_wxyz), has its deepest point inside
 at most 3 mm, at most 5 % of its touch surface more than 2 mm inside, flaps two or more apart at least 3 mm
 apart; or `approximate` refuses it in one line. A pose whose flaps meet is refused for any variant."""
 
@@ -13,25 +13,27 @@ import pytest
 import trimesh
 
 from cli import vrscroll
-from made_shapes import SHAPES, fat_torus
-from outside_check import flap_gap, holds, judge
-from shape_corpus import corpus
-from twin.morphpatch.approximation import Approximation, approximate, pose_from_mm_deg
+from twin.evaluation.made_shapes import SHAPES, fat_torus
+from twin.evaluation.outside_check import flap_gap, holds, judge
+from twin.evaluation.shape_corpus import corpus
+from twin.formats.target import approximation_json
+from twin.morphpatch.approximation import approximate, measured, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.refinement import flap_gap as ours_flap_gap
 from twin.morphpatch.resting import refusal, resting
 from twin.morphpatch.shapes import mesh_start
+from twin.records.approximation import Approximation
 
 
 def resting_on(spec, name, mesh):
     """Ours from the mesh's default start: its JSON judged apart (outside_check), or a refusal that says why."""
     fields = build_fields(mesh)
-    result = approximate(fields, pose_from_mm_deg(mesh_start(mesh)), spec, "refined").measured(spec, mesh)
+    result = measured(spec, mesh, approximate(fields, pose_from_mm_deg(mesh_start(mesh)), spec, "refined"))
     why = refusal(spec, mesh, resting(spec, mesh, fields, result), "refined", result.rests)
     if why is not None:
         assert "cannot rest on this target from outside" in why and "\n" not in why, (name, why)
         return None
-    verdict = judge(spec, mesh, result.to_json())
+    verdict = judge(spec, mesh, approximation_json(result))
     assert holds(verdict), (name, verdict)
     return verdict
 

@@ -182,9 +182,9 @@ APPROX = {"target": "cube", "variant": "full", "root_position_mm": [0, 0, 30], "
 def test_approximation_round_trip(tmp_path):
     write_approximation(tmp_path / "a.json", APPROX)
     a = read_approximation(tmp_path / "a.json", SPEC)
-    assert np.degrees(a["angles"]) == pytest.approx(APPROX["angles_deg"])
-    assert a["root_pose"][2, 3] == pytest.approx(0.03) and a["widths"] == pytest.approx([0.0269] * 7)
-    assert read_target(tmp_path / "a.json", SPEC) == pytest.approx(a["angles"])
+    assert np.degrees(a.angles) == pytest.approx(APPROX["angles_deg"])
+    assert a.root_pose[2, 3] == pytest.approx(0.03) and a.widths == pytest.approx([0.0269] * 7)
+    assert read_target(tmp_path / "a.json", SPEC) == pytest.approx(a.angles)
 
 
 @pytest.mark.parametrize("change, message", [

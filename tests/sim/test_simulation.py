@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 
+from twin.formats.trace import write_trace
 from twin.sim.batch import TwinBatch
 from twin.sim.response import move_report
 from twin.sim.targets import TargetError
@@ -24,11 +25,10 @@ def test_every_hinge_reaches_and_settles(twin):
     trace = twin.move_to(np.radians(TARGETS_DEG), max_time=1.0)
     report = move_report(twin.spec, trace)
     band = twin.spec.settle_band
-    for r in report:
-        assert r["settle_time_s"] <= 0.5, r
-        assert abs(r["steady_state_error_counts"]) <= band, r
+    assert np.all(report.settle_time <= 0.5), report
+    assert np.all(np.abs(report.steady_state_error_counts) <= band), report
     assert np.all(np.abs(trace.target_counts[-1] - trace.counts[-1]) <= band)
-    assert np.degrees(trace.angle[-1]) == pytest.approx(TARGETS_DEG, abs=band * 360 / 1204.44 + 0.5)
+    assert np.degrees(trace.true_angle[-1]) == pytest.approx(TARGETS_DEG, abs=band * 360 / 1204.44 + 0.5)
     # currents stay at or below stall; duty within [-1, 1]
     assert np.abs(trace.current).max() <= twin.spec.stall_current + 1e-9
     assert np.abs(trace.duty).max() <= 1.0
@@ -48,7 +48,7 @@ def test_encoder_counts_are_quantized(spec):
     tests/device/test_drive_train.py)."""
     twin = Twin(spec.replace(backlash=0.0))
     trace = twin.move_to(np.radians([20.0, 0, 0, 0, 0, 0]), max_time=0.3)
-    motor_turns = trace.angle[:, 0] * twin.spec.gear_ratio / (2 * math.pi)
+    motor_turns = trace.true_angle[:, 0] * twin.spec.gear_ratio / (2 * math.pi)
     assert np.array_equal(trace.counts[:, 0], np.floor(motor_turns * 12).astype(int))
 
 
@@ -59,7 +59,7 @@ def test_gravity_held_flat(twin, quat):
     twin.reset()
     twin.set_root_pose([0, 0, 0], quat)
     trace = twin.hold(2.0)
-    assert np.abs(np.degrees(trace.angle)).max() < 1.0  # deg
+    assert np.abs(np.degrees(trace.true_angle)).max() < 1.0  # deg
     twin.set_root_pose([0, 0, 0])
 
 
@@ -67,14 +67,14 @@ def test_gravity_sags_without_motors(spec):
     """The test above can fail: with the motors unable to push, gravity bends the outer flaps."""
     weak = Twin(spec.replace(drive_cap=0.0001, gear_friction=0.0, gear_stiction=0.0))
     trace = weak.hold(1.0)
-    assert np.abs(np.degrees(trace.angle[-1])).max() > 5.0
+    assert np.abs(np.degrees(trace.true_angle[-1])).max() > 5.0
 
 
 def test_trace_csv(tmp_path, twin, spec):
     twin.reset()
     trace = twin.move_to(np.radians(TARGETS_DEG), max_time=0.2, stop_when_settled=False)
     path = tmp_path / "trace.csv"
-    trace.write_csv(path, spec)
+    write_trace(path, trace)
     rows = list(csv.DictReader(open(path)))
     assert len(rows) == 200
     assert {"time_s", "h0_target_deg", "h0_angle_deg", "h0_counts", "h0_duty", "h0_current_A", "h5_torque_Nm"} <= set(rows[0])
@@ -88,7 +88,7 @@ def test_batch_matches_single_twin(spec):
     out = batch.run(np.radians(TARGETS_DEG), 0.3)
     for i in range(3):
         assert np.array_equal(out["counts"][:, i], single.counts)
-        assert out["angle"][:, i] == pytest.approx(single.angle, abs=1e-9)
+        assert out["angle"][:, i] == pytest.approx(single.true_angle, abs=1e-9)
 
 
 def test_batch_runs_perturbed_plants(spec):

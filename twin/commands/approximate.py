@@ -25,8 +25,8 @@ import numpy as np
 from twin.commands.options import add_json, add_target, output_file
 from twin.device.spec import load_spec
 from twin.errors import UserError
-from twin.formats.target import write_approximation
-from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
+from twin.formats.target import approximation_json, write_approximation
+from twin.morphpatch.approximation import VARIANTS, approximate, frames, measured, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.resting import refusal, resting, resting_json
 from twin.morphpatch.shapes import load_mesh, load_shape, mesh_start, shape_names, shape_table
@@ -74,13 +74,13 @@ def target_and_start(args):
 
 def write_result(args, name, start, result, mesh, spec, extra: dict | None = None) -> None:
     """Print the result's JSON (and write --json, --png) with the target, start and any extra fields."""
-    out = {"target": name, "start_mm_deg": start, **result.to_json(), **(extra or {})}
+    out = {"target": name, "start_mm_deg": start, **approximation_json(result), **(extra or {})}
     text = json.dumps(out, indent=2)
     print(text)
     if args.json not in (None, "-"):
         write_approximation(args.json, out)
     if args.png:
-        render_approximation(spec, mesh, result.frames(spec), result.widths, args.png,
+        render_approximation(spec, mesh, frames(spec, result), result.widths, args.png,
                              title=f"{name} ({result.variant}): MSD {out['msd_mm']:.1f} mm, HD {out['hd_mm']:.1f} mm")
 
 
@@ -89,7 +89,7 @@ def run(args) -> int:
     name, mesh, start, pose = target_and_start(args)
     fields = build_fields(mesh)
     approximate(fields, pose, spec, args.variant)  # warm-up: the first call in a process loads compiled code
-    result = approximate(fields, pose, spec, args.variant).measured(spec, mesh)
+    result = measured(spec, mesh, approximate(fields, pose, spec, args.variant))
     rest = resting(spec, mesh, fields, result)
     why = refusal(spec, mesh, rest, args.variant, result.rests)
     if why:

@@ -11,6 +11,7 @@ from __future__ import annotations
 from twin.commands.approximate import add_target_arguments, target_and_start, write_result
 from twin.device.spec import load_spec
 from twin.evaluation.cbs import CbsSimulator
+from twin.morphpatch.approximation import measured
 
 
 def add_arguments(p) -> None:
@@ -21,7 +22,7 @@ def run(args) -> int:
     spec = load_spec()
     name, mesh, start, pose = target_and_start(args)
     sim = CbsSimulator(spec, mesh)
-    result = sim.run(pose).measured(spec, mesh)
+    result = measured(spec, mesh, sim.run(pose))
     extra = {
         "collision_parts": sim.parts,
         "collision_error_mean_mm": round(sim.error.mean * 1e3, 3),

@@ -25,13 +25,14 @@ from twin.commands.options import (
     write_json,
 )
 from twin.device.kinematics import flap_frames
-from twin.morphpatch.approximation import VARIANTS, approximate
+from twin.evaluation.morph_outcome import morph_outcome
+from twin.formats.move_report import move_rows
+from twin.formats.target import approximation_json
+from twin.morphpatch.approximation import VARIANTS, approximate, measured
 from twin.morphpatch.fields import build_fields
-from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import shape_names
-from twin.morphpatch.surface_metrics import inside_text, match, match_json
-from twin.sim.gate import check_move, redirection_check
-from twin.sim.response import move_report
+from twin.morphpatch.surface_metrics import inside_text, match_json
+from twin.sim.gate import redirection_check
 from viz.scene import render_approximation
 from viz.traces import hinge_figure
 from viz.viewer import show_move
@@ -68,24 +69,22 @@ def run(args) -> int:
     print(f"[1/5] fields of {name} (cached after the first run) ...", flush=True)
     fields = build_fields(mesh)
     approximate(fields, pose, spec, args.variant)  # warm-up: loads compiled code
-    approx = approximate(fields, pose, spec, args.variant).measured(spec, mesh)
+    approx = measured(spec, mesh, approximate(fields, pose, spec, args.variant))
     print(f"[2/5] {args.variant} approximated in {approx.time * 1e3:.2f} ms: MSD {approx.msd * 1e3:.2f} mm, "
           f"HD {approx.hd * 1e3:.2f} mm; hinges {np.degrees(approx.angles).round(1).tolist()} deg", flush=True)
     print(f"      {approx.inside:.0%} of the touch surface inside the target, up to {approx.depth * 1e3:.1f} mm deep"
           + ("" if approx.rests is not False else "; ours found no pose resting on it from outside"), flush=True)
 
     print("[3/5] validating and simulating the morph on the twin (firmware PID at 1 kHz) ...", flush=True)
-    gate = check_move(spec, np.zeros(spec.n_hinges), approx.angles, profile.gains, twin=profile_twin(profile))
-    trace = gate.prediction
-    hinges = move_report(spec, trace) if trace is not None else []
-    end_angles = trace.angle[-1] if trace is not None else np.zeros(spec.n_hinges)
-    end = match(spec, mesh, approx.root_pose, end_angles, approx.widths)
-    settle = max((h["settle_time_s"] for h in hinges), default=float("nan"))
-    final_err = max((abs(h["steady_state_error_deg"]) for h in hinges), default=float("nan"))
-
+    outcome = morph_outcome(spec, mesh, fields, approx, profile_twin(profile), profile.gains)
+    gate, trace, report, end, redirection = (outcome.gate, outcome.gate.prediction, outcome.report, outcome.end,
+                                             outcome.redirection)
+    end_angles = outcome.reached
+    hinges = move_rows(report) if report is not None else []
+    settle = round(outcome.settle_time, 4)
+    final_err = (round(math.degrees(np.abs(report.steady_state_error).max()), 3) if report is not None
+                 else float("nan"))
     # the residual mismatch where the twin ended, as the pen redirection must cover it
-    field = build_field(spec, approx.root_pose, end_angles, approx.widths, mesh, fields)
-    redirection = threshold_summary(field)
     gate.checks.append(redirection_check(redirection, strict=args.strict))
     print(gate.text())
     print(f"      morph settled in {settle:.3f} s (slowest hinge), largest final error {final_err:.2f} deg; "
@@ -109,7 +108,7 @@ def run(args) -> int:
     if trace is not None:
         hinge_figure(args.plot, f"demo: {name} morph on the twin", [("twin", trace)], range(spec.n_hinges),
                      math.degrees(spec.settle_band * spec.rad_per_count),
-                     settle={"twin": [h["settle_time_s"] for h in hinges]})
+                     settle={"twin": report.settle_time})
         print(f"      step response: {args.plot}")
         if args.rerun:
             from viz.rerun_log import log_move
@@ -122,7 +121,7 @@ def run(args) -> int:
         "device_profile": profile.label,
         "target": name,
         "start_mm_deg": start,
-        "approximation": approx.to_json(),
+        "approximation": approximation_json(approx),
         "gate": gate.to_dict(),
         "redirection": redirection,
         "morph": {"settle_time_s": settle, "largest_final_error_deg": final_err, "hinges": hinges,

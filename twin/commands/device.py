@@ -55,16 +55,16 @@ def run(args) -> int:
     sources = spec_source_of(profile)
     units = spec_units(SPEC_PATH)  # each value in the unit the spec file gives it in
     if profile.calibration:
-        print("calibration from " + ", ".join(profile.calibration["runs"]) + ":")
-        for p, e in profile.calibration["parameters"].items():
+        print("calibration from " + ", ".join(profile.calibration.runs) + ":")
+        for p, e in profile.calibration.parameters.items():
             u = units.get(p, "")
-            print(f"  {p:<14} {shown(e['value'], u, '.6g')}  (prior {shown(e['prior'], u, '.6g')}; interval "
-                  f"{shown_range(e['low'], e['high'], u, '.6g')}; "
-                  f"{'identifiable' if e['identifiable'] else 'NOT identifiable'}): {e['note']}")
-        for k, row in enumerate(profile.calibration.get("hinges", [])):
+            print(f"  {p:<14} {shown(e.value, u, '.6g')}  (prior {shown(e.prior, u, '.6g')}; interval "
+                  f"{shown_range(e.low, e.high, u, '.6g')}; "
+                  f"{'identifiable' if e.identifiable else 'NOT identifiable'}): {e.note}")
+        for k, row in enumerate(profile.calibration.hinges or []):
             print(f"  hinge {k}'s own, x the shared value (95 % interval): " + "; ".join(
-                f"{p} x{e['value'] / e['prior']:.3f} (x{e['low'] / e['prior']:.2f} .. x{e['high'] / e['prior']:.2f}"
-                f"{', identifiable' if e['identifiable'] else ''})" for p, e in row.items()))
+                f"{p} x{e.value / e.prior:.3f} (x{e.low / e.prior:.2f} .. x{e.high / e.prior:.2f}"
+                f"{', identifiable' if e.identifiable else ''})" for p, e in row.items()))
     else:
         print("not calibrated")
     for p, e in (profile.holding or {}).get("parameters", {}).items():

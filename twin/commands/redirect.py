@@ -20,7 +20,6 @@ from twin.device.spec import load_spec
 from twin.errors import UserError
 from twin.formats.pen import read_pen_samples, write_redirected
 from twin.formats.target import read_approximation
-from twin.morphpatch.approximation import Approximation
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.redirection import PADDING, SIGMA, build_field, redirect, threshold_summary, within_samples
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
@@ -42,10 +41,8 @@ def add_arguments(p) -> None:
 
 def _load(args, spec):
     """(approximation, target name, mesh) from APPROX.json and --shape/--mesh."""
-    doc = read_approximation(args.approximation, spec)
-    approx = Approximation(doc["root_pose"], doc["angles"], doc["widths"], doc["time"], doc["variant"],
-                           doc["msd"], doc["hd"])
-    name = args.shape or args.mesh or doc["target"]
+    approx = read_approximation(args.approximation, spec)
+    name = args.shape or args.mesh or approx.target
     if not name:
         raise UserError(f"{args.approximation} names no target: give --shape or --mesh")
     mesh = load_shape(name) if name in shape_names() else load_mesh(name)

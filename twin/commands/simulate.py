@@ -25,9 +25,12 @@ from twin.commands.options import (
 )
 from twin.checks import cell, hinge_angles
 from twin.errors import UserError
+from twin.formats.move_report import move_rows
 from twin.formats.target import read_approximation
+from twin.formats.trace import write_trace
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
 from twin.morphpatch.surface_metrics import match, match_json
+from twin.records.approximation import Approximation
 from twin.sim.gate import check_move
 from twin.sim.response import move_report
 from twin.sim.targets import check_targets
@@ -64,7 +67,7 @@ def run(args) -> int:
     approx = None
     if len(args.targets) == 1 and not _number(args.targets[0]):
         approx = read_approximation(args.targets[0], spec)
-        targets = approx["angles"]
+        targets = approx.angles
     else:
         targets = np.radians([cell(v, f"target {k}") for k, v in enumerate(args.targets)])
     check_targets(spec, targets)
@@ -78,13 +81,14 @@ def run(args) -> int:
     if args.hold:  # ... or the whole --max-time-s
         twin.reset(start)
         trace = twin.move_to(targets, max_time=args.max_time_s, stop_when_settled=False)
-    rows = move_report(twin.spec, trace)
+    report = move_report(twin.spec, trace)
+    rows = move_rows(report)
     summary = {
         "device_profile": profile.label,
         "simulated_s": round(trace.duration, 3),
         "wall_s": round(trace.wall_time, 4),
         "real_time_factor": round(trace.real_time_factor, 1),
-        "settled": all(not math.isnan(r["settle_time_s"]) for r in rows),
+        "settled": report.settled,
         "start_deg": np.degrees(start).round(3).tolist(),
         "gate": gate.to_dict(),
         "hinges": rows,
@@ -92,11 +96,11 @@ def run(args) -> int:
     if approx is not None:
         summary.update(_on_target(spec, approx, trace, args.targets[0]))
     if args.trace:
-        trace.write_csv(args.trace, twin.spec)
+        write_trace(args.trace, trace)
         summary["trace_csv"] = args.trace
     band = math.degrees(twin.spec.settle_band * twin.spec.rad_per_count)
     hinge_figure(args.plot, f"simulate: the twin's step response ({profile.label})", [("twin", trace)],
-                 range(twin.spec.n_hinges), band, settle={"twin": [r["settle_time_s"] for r in rows]})
+                 range(twin.spec.n_hinges), band, settle={"twin": report.settle_time})
     summary["plot_png"] = args.plot
     lines = []
     if args.rerun:
@@ -140,11 +144,11 @@ def _number(text: str) -> bool:
     return True
 
 
-def _on_target(spec, approx: dict, trace, path: str) -> dict:
+def _on_target(spec, approx: Approximation, trace, path: str) -> dict:
     """The MSD, HD (mm) and the share of the touch surface inside the target (match_json) where the twin ended, on the approximation's target (a shape's name, or a mesh path
     relative to the approximation file or the working folder); a note where the target cannot be read."""
-    target = approx["target"]
-    out = {"target": target, "approximation_msd_mm": None if approx["msd"] is None else round(approx["msd"] * 1e3, 3)}
+    target = approx.target
+    out = {"target": target, "approximation_msd_mm": None if approx.msd is None else round(approx.msd * 1e3, 3)}
     if target is None:
         return {**out, "target_note": f"{path} names no target"}
     if target in shape_names():
@@ -154,5 +158,5 @@ def _on_target(spec, approx: dict, trace, path: str) -> dict:
         if mesh_path is None:
             return {**out, "target_note": f"its target {target!r} is neither a shape nor a mesh file found here"}
         mesh = load_mesh(mesh_path)
-    return {**out, **match_json(match(spec, mesh, approx["root_pose"], trace.angle[-1], approx["widths"]),
+    return {**out, **match_json(match(spec, mesh, approx.root_pose, trace.true_angle[-1], approx.widths),
                                 "_after_morph")}

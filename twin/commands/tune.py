@@ -32,6 +32,7 @@ from twin.device.variation import tolerance_ranges
 from twin.errors import UserError
 from twin.evaluation.backends import BACKENDS, WORKERS_PER_CORE, make_backend
 from twin.formats.gains import write_gains
+from twin.formats.move_report import move_rows
 from twin.formats.profile import write_profile_gains
 from twin.hil.device_gains import push_gains
 from twin.hil.mirror import DeviceNotReady, device_step
@@ -111,8 +112,8 @@ def run(args) -> int:
                       progress=None if quiet else lambda g, c, t: print(
                           f"generation {g + 1}/{args.generations}: worst-plant cost per hinge "
                           + " ".join(f"{x * 1000:5.0f}" for x in c) + f" ms  ({t:.1f} s)", flush=True))
-    rows_before, _ = step_report(spec, before, goal, hinges=profile.hinges)
-    rows_after, _ = step_report(spec, result.gains, goal, hinges=profile.hinges)
+    rows_before = move_rows(step_report(spec, before, goal, hinges=profile.hinges)[0])
+    rows_after = move_rows(step_report(spec, result.gains, goal, hinges=profile.hinges)[0])
     meta = {"device_profile": profile.label,
             "goal": {"max_overshoot_deg": args.max_overshoot_deg, "step_deg": args.step_deg,
                      "duration_s": args.duration_s,
@@ -180,7 +181,7 @@ def confirm_on_device(args, spec, gains, step, pushed, quiet=False, hinges=None,
         raise UserError(f"link: {exc} (session log: {args.log})") from None
     twin = twin_at_start(spec, gains, start, hinges=hinges, mount=mount)  # where the device is, with the integral it holds
     trace = twin.move_to(targets, max_time=args.duration_s, stop_when_settled=False)
-    pred = move_report(spec, trace)
+    pred = move_rows(move_report(spec, trace))
     band = math.degrees(spec.settle_band * spec.rad_per_count)
     tgt = np.degrees(target_counts(spec, targets) * spec.rad_per_count)
     rows = []

@@ -42,8 +42,9 @@ import trimesh
 from twin.device.kinematics import outer_flap
 from twin.device.spec import DeviceSpec
 from twin.evaluation.target_collision import CollisionError, collision_error, convex_parts, scene_model
-from twin.morphpatch.approximation import Approximation, root_pose
+from twin.morphpatch.approximation import root_pose
 from twin.morphpatch.fields import build_fields
+from twin.records.approximation import Approximation
 from twin.sim.targets import TargetError
 from twin.sim.twin import Twin
 

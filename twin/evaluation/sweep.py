@@ -31,7 +31,7 @@ from twin.evaluation.starts import approach_starts
 from twin.evaluation.table1 import _shape_seed, twin_outcome
 from twin.formats.records import RecordLog
 from twin.formats.sweep import Sweep, read_records
-from twin.morphpatch.approximation import approximate
+from twin.morphpatch.approximation import approximate, measured
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import load_shape
 from twin.sim.twin import Twin
@@ -130,7 +130,7 @@ def run_task(task: Task) -> dict:
         result = cached(_CBS, (spec, task.shape), lambda: CbsSimulator(spec, mesh)).run(starts[task.start])
     else:
         result = approximate(fields, starts[task.start], spec, task.method)
-    result = result.measured(spec, mesh)
+    result = measured(spec, mesh, result)
     return {"msd_mm": result.msd * 1e3, "hd_mm": result.hd * 1e3, "time_ms": result.time * 1e3,
             "angles_deg": np.degrees(result.angles).round(3).tolist(),
             **twin_outcome(spec, mesh, fields, twin, result)}

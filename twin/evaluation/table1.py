@@ -11,7 +11,8 @@ Two columns only a twin gives, per record: the MSD where the twin actually ended
 held at that root pose, firmware in the loop, gravity, settled and held), with the
 gate's range and collision verdicts; and the share of the touch surface whose pen
 redirection, from the shape the twin reached, is within the perception thresholds
-(twin.morphpatch.redirection.threshold_summary).
+(twin.morphpatch.redirection.threshold_summary). Both from twin.evaluation.morph_outcome, the one
+`vrscroll demo` reports too.
 """
 
 from __future__ import annotations
@@ -31,16 +32,13 @@ from twin.checks import json_object
 from twin.device.spec import load_spec
 from twin.evaluation.backends import LocalBackend
 from twin.evaluation.cbs import CbsSimulator
+from twin.evaluation.morph_outcome import morph_outcome
 from twin.evaluation.starts import approach_starts
 from twin.formats.records import RecordLog, read_jsonl
-from twin.morphpatch.approximation import approximate
+from twin.morphpatch.approximation import approximate, measured
 from twin.morphpatch.fields import build_fields, exact_signed_distance
-from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.shapes import load_shape
-from twin.morphpatch.surface_metrics import msd_hd
 from twin.paths import MODELS_DIR
-from twin.sim.gate import check_move
-from twin.sim.response import move_report
 from twin.sim.twin import Twin
 
 METHODS = ("cbs", "no_hcevf", "full", "refined")
@@ -77,7 +75,7 @@ def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
         results[variant] = approximate(fields, pose, spec, variant)
     records = []
     for method, r in results.items():
-        r = r.measured(spec, mesh)
+        r = measured(spec, mesh, r)
         depth = -float(exact_signed_distance(mesh, r.root_pose[None, :3, 3])[0][0])
         records.append({"shape": shape, "start": index, "method": method, "msd_mm": r.msd * 1e3,
                         "hd_mm": r.hd * 1e3, "inside_percent": r.inside * 100, "inside_depth_mm": r.depth * 1e3,
@@ -88,22 +86,18 @@ def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
 
 
 def twin_outcome(spec, mesh, fields, twin, result) -> dict:
-    """The morph to a result on the twin held at its root pose: MSD (mm) where it ended, the gate's range
-    and collision verdicts, the share of the touch surface within the perception thresholds, and the
-    morph time (s, the last hinge's settle time; None where a hinge did not settle or the range was refused)."""
-
+    """The morph to a result on the twin held at its root pose (twin.evaluation.morph_outcome): MSD (mm) where
+    it came to rest, the gate's range and collision verdicts, the share of the touch surface within the
+    perception thresholds, and the morph time (s, the last hinge's settle time; None where a hinge did not
+    settle or the range was refused)."""
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, np.ascontiguousarray(result.root_pose[:3, :3]).ravel())
     twin.set_root_pose(result.root_pose[:3, 3], quat)
-    gate = check_move(spec, np.zeros(spec.n_hinges), result.angles, twin=twin)
-    verdict = {c.name: c.passed for c in gate.checks}  # collision is not checked once range fails
-    reached = twin.angles  # flat where the gate refused the range: the device does not move
-    msd, _ = msd_hd(spec, mesh, result.root_pose, reached, result.widths)
-    summary = threshold_summary(build_field(spec, result.root_pose, reached, result.widths, mesh, fields))
-    settle = [math.nan] if gate.prediction is None else [r["settle_time_s"] for r in move_report(spec, gate.prediction)]
-    return {"twin_msd_mm": msd * 1e3, "gate_range_ok": verdict["range"], "gate_collision_ok": verdict.get("collision", False),
-            "share_within": summary["share_within"],
-            "morph_time_s": None if any(math.isnan(t) for t in settle) else max(settle)}
+    out = morph_outcome(spec, mesh, fields, result, twin)
+    verdict = {c.name: c.passed for c in out.gate.checks}  # collision is not checked once range fails
+    return {"twin_msd_mm": out.end.msd * 1e3, "gate_range_ok": verdict["range"],
+            "gate_collision_ok": verdict.get("collision", False), "share_within": out.redirection["share_within"],
+            "morph_time_s": None if math.isnan(out.settle_time) else round(out.settle_time, 4)}
 
 
 def run_evaluation(out_dir, shapes, n_starts: int = 50, seed: int = 0, workers: int = 2, progress=True,

@@ -39,6 +39,7 @@ from twin.device.spec_toml import write_spec_toml
 from twin.device.variation import PLANT_FIELDS, scaled
 from twin.formats.gains import read_gains, write_gains
 from twin.paths import replacing
+from twin.records.calibration import Calibration, Estimate
 
 PROFILE_FORMAT = "vrscroll-profile/1"
 META, SPEC, GAINS, WIRING = "profile.json", "spec.toml", "gains.json", "wiring.json"
@@ -56,7 +57,7 @@ class Profile:
     spec: DeviceSpec
     gains: list[PidGains]  # per hinge
     gains_from: str  # where the gains came from: the profile's gains.json or the spec
-    calibration: dict | None  # profile.json's "calibration", if the profile was calibrated
+    calibration: Calibration | None  # profile.json's "calibration", if the profile was calibrated
     holding: dict | None = None  # profile.json's "holding", if a release was measured (`vrscroll holding`)
     mount: str = DEFAULT_MOUNT  # how the device is held (twin.device.mount.MOUNTS): the twin is held so too
 
@@ -71,22 +72,22 @@ class Profile:
         calibrated)."""
         if not self.calibration:
             return {}
-        return {p: _runs_range(e) for p, e in self.calibration["parameters"].items()}
+        return {p: e.runs_range for p, e in self.calibration.parameters.items()}
 
     def hinge_ranges(self) -> list[dict] | None:
         """Per hinge, parameter -> (low, high) SI, as `ranges` for its own values (None where calibration
         fitted none)."""
-        rows = (self.calibration or {}).get("hinges")
-        return [{p: _runs_range(e) for p, e in row.items()} for row in rows] if rows else None
+        rows = self.calibration.hinges if self.calibration else None
+        return [{p: e.runs_range for p, e in row.items()} for row in rows] if rows else None
 
     @property
     def hinges(self) -> list[DeviceSpec] | None:
         """Each hinge's own spec where calibration fitted per-hinge values (None where it did not): the
         profile's spec with that hinge's values, the fields that move with one moved alike."""
-        rows = (self.calibration or {}).get("hinges")
+        rows = self.calibration.hinges if self.calibration else None
         if not rows:
             return None
-        return [scaled(self.spec, {p: e["value"] / getattr(self.spec, p) for p, e in row.items()}) for row in rows]
+        return [scaled(self.spec, {p: e.value / getattr(self.spec, p) for p, e in row.items()}) for row in rows]
 
 
 def plant_is_physical(spec: DeviceSpec, where, hinge_rows=None) -> None:
@@ -115,7 +116,8 @@ def plant_is_physical(spec: DeviceSpec, where, hinge_rows=None) -> None:
                                  "scale of the spec's: it must be > 0")
 
 
-def _calibration(doc, where: str, n_hinges: int) -> dict:
+def _calibration(doc, where: str, n_hinges: int) -> Calibration:
+    """profile.json's "calibration", checked, as the record; ValueError naming the key."""
     if not isinstance(doc, dict):
         raise ValueError(f"{where}: expected an object with runs, parameters")
     known_keys(doc, ("runs", "parameters", "hinges"), where)
@@ -128,7 +130,9 @@ def _calibration(doc, where: str, n_hinges: int) -> dict:
             raise ValueError(f"{where}: hinges: expected a list of {n_hinges} objects, one per hinge")
         for k, row in enumerate(doc["hinges"]):
             _parameters(row, f"{where}: hinges[{k}]")
-    return doc
+    estimates = (lambda row: {p: Estimate(**e) for p, e in row.items()})
+    return Calibration(list(doc["runs"]), estimates(doc["parameters"]),
+                       [estimates(row) for row in doc["hinges"]] if "hinges" in doc else None)
 
 
 def _holding(doc, where: str) -> dict:
@@ -138,12 +142,6 @@ def _holding(doc, where: str) -> dict:
     required_keys(doc, ("port", "releases", "parameters"), where)
     _parameters(doc["parameters"], f"{where}: parameters")
     return doc
-
-
-def _runs_range(e: dict) -> tuple[float, float]:
-    """An estimate's interval of the twin's values that reproduce the runs, SI: runs_low .. runs_high, or low ..
-    high where it has none."""
-    return e.get("runs_low", e["low"]), e.get("runs_high", e["high"])
 
 
 def _parameters(doc, where: str) -> None:
@@ -207,7 +205,7 @@ def read_profile(folder) -> Profile:
         raise ValueError(f"{folder}: device profile without its {SPEC}")
     spec = load_spec(folder / SPEC, defaults=load_spec())  # (one written before an entry was added: the spec's)
     design_unchanged(spec, load_spec(), folder / SPEC)
-    plant_is_physical(spec, folder / SPEC, (calibration or {}).get("hinges"))
+    plant_is_physical(spec, folder / SPEC, calibration.hinges if calibration else None)
     if (folder / GAINS).is_file():
         gains, source = read_gains(folder / GAINS, spec.n_hinges), str(folder / GAINS)
     else:

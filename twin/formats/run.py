@@ -28,8 +28,9 @@ from twin.checks import hinge_angles, json_object, known_keys, number, required_
 from twin.device.spec import DeviceSpec
 from twin.formats.gains import read_gains
 from twin.formats.scenario import MAX_DURATION_S
-from twin.formats.trace import Recording, read_trace
+from twin.formats.trace import read_trace
 from twin.paths import replacing
+from twin.records.trace import Trace
 
 RUN_KEYS = ("scenario", "start_counts", "start_target_counts", "start_integral_duty", "before", "telemetry_hz",
             "firmware_dt_s", "changes", "status", "port", "device_t0_us", "device_rows", "twin_rows", "device_profile",
@@ -63,8 +64,8 @@ class Run:
     status: str
     start: RunStart
     changes: list  # [(device time s, targets rad (n,))], the first at 0: each target from its ACK on
-    device: Recording
-    twin: Recording | None
+    device: Trace
+    twin: Trace | None
     gains: list[PidGains]  # per hinge, the gains the device held
     meta: dict  # run.json as written: the report's other lines (port, telemetry rate, device profile)
 

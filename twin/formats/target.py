@@ -3,7 +3,8 @@ MorphPatch approximation found.
 
 A target is `{"angles_deg": [one per hinge]}`. An approximation result (`vrscroll approximate
 --json`, `vrscroll cbs --json`) is a target with the root pose, the flap widths and its measures
-beside the angles, so it serves as a target too.
+beside the angles, so it serves as a target too. The reader returns, and the writer takes, the
+approximation record (twin.records.approximation.Approximation), in SI.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from twin.checks import REACH_M, hinge_angles, json_object, known_keys, number, 
 from twin.device.kinematics import pose_matrix
 from twin.device.spec import DeviceSpec
 from twin.paths import replacing
+from twin.records.approximation import Approximation
 
 APPROXIMATION_KEYS = ("root_position_mm", "root_quat_wxyz", "angles_deg", "widths_mm")
 OPTIONAL_KEYS = ("variant", "target", "start_mm_deg", "msd_mm", "hd_mm", "inside_percent", "inside_depth_mm", "time_ms",
@@ -36,19 +38,19 @@ def read_target(path, spec: DeviceSpec) -> np.ndarray:
     return hinge_angles(doc["angles_deg"], spec.n_hinges, spec.hinge_limit, f"{path}: angles_deg")
 
 
-def read_approximation(path, spec: DeviceSpec) -> dict:
-    """An approximation result file, checked and in SI (see `approximation_fields`)."""
+def read_approximation(path, spec: DeviceSpec) -> Approximation:
+    """An approximation result file, checked, as the record (see `approximation_record`)."""
     path = Path(path)
-    return approximation_fields(json_object(path), spec, str(path))
+    return approximation_record(json_object(path), spec, str(path))
 
 
 QUAT_NORM_TOLERANCE = 1e-3  # a written quaternion's norm may miss 1 by its rounding; more is not a rotation
 
 
-def approximation_fields(doc: dict, spec: DeviceSpec, where: str) -> dict:
-    """An approximation result (a file's object, or a live message's), checked and in SI: root_pose (4x4, m),
-    angles (rad), widths (m), time (s), variant (default "full"), msd/hd/depth (m or None), inside (share 0..1 or None), target (its name, or
-    None). ValueError naming `where` and the key."""
+def approximation_record(doc: dict, spec: DeviceSpec, where: str) -> Approximation:
+    """An approximation result (a file's object, or a live message's), checked, as the record in SI: root_pose
+    (4x4, m), angles (rad), widths (m), time (s), variant (default "full"), msd/hd/depth (m or None), inside
+    (share 0..1 or None), target (its name, or None). ValueError naming `where` and the key."""
     if not isinstance(doc, dict):
         raise ValueError(f"{where}: expected an approximation result {{...}}, got {type(doc).__name__}")
     known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, where)
@@ -77,13 +79,38 @@ def approximation_fields(doc: dict, spec: DeviceSpec, where: str) -> dict:
     target = doc.get("target")
     if target is not None and not isinstance(target, str):
         raise ValueError(f"{where}: target: expected a shape name or mesh path, got {target!r}")
-    return {"root_pose": pose_matrix(position, Rotation.from_quat(quat, scalar_first=True).as_matrix()),
-            "angles": angles, "widths": widths, "variant": str(doc.get("variant", "full")),
-            "time": number(doc.get("time_ms", 0.0), f"{where}: time_ms") / 1e3, **measure, "target": target}
+    return Approximation(pose_matrix(position, Rotation.from_quat(quat, scalar_first=True).as_matrix()), angles,
+                         widths, number(doc.get("time_ms", 0.0), f"{where}: time_ms") / 1e3,
+                         str(doc.get("variant", "full")), **measure, target=target)
+
+
+def message_approximation(message: dict, spec: DeviceSpec, where: str) -> Approximation:
+    """The approximation a live message carries beside its own keys (type, seq, ...), as the record."""
+    return approximation_record({k: v for k, v in message.items() if k in APPROXIMATION_KEYS + OPTIONAL_KEYS}, spec,
+                                where)
+
+
+def approximation_json(a: Approximation) -> dict:
+    """The record as the result's keys, the unit in every key (mm, deg, ms); the inverse of
+    `approximation_record` (the target, a start and the OPTIONAL_KEYS a command adds are its own)."""
+    quat = Rotation.from_matrix(a.root_pose[:3, :3]).as_quat(scalar_first=True)
+    mm = (lambda v: None if v is None else round(v * 1e3, 3))
+    return {
+        "variant": a.variant,
+        "root_position_mm": [round(v, 3) for v in (a.root_pose[:3, 3] * 1e3).tolist()],
+        "root_quat_wxyz": [round(v, 6) for v in quat.tolist()],
+        "angles_deg": [round(v, 3) for v in np.degrees(a.angles).tolist()],
+        "widths_mm": [round(v, 3) for v in (a.widths * 1e3).tolist()],
+        "msd_mm": mm(a.msd),
+        "hd_mm": mm(a.hd),
+        "inside_percent": None if a.inside is None else round(a.inside * 100, 2),
+        "inside_depth_mm": mm(a.depth),
+        "time_ms": round(a.time * 1e3, 4),
+    }
 
 
 def write_approximation(path, doc: dict) -> None:
-    """Write an approximation result (Approximation.to_json() plus target, start and any OPTIONAL_KEYS)."""
+    """Write an approximation result (`approximation_json` plus target, start and any OPTIONAL_KEYS)."""
     known_keys(doc, APPROXIMATION_KEYS + OPTIONAL_KEYS, str(path))
     with replacing(path) as tmp:
         Path(tmp).write_text(json.dumps(doc, indent=2) + "\n")

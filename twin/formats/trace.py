@@ -5,13 +5,13 @@ trace has (TRACE_COLUMNS): target_deg, angle_deg (the encoder's angle: counts x 
 the device reports it), counts, duty, current_A. Columns only a twin has (TWIN_COLUMNS):
 true_angle_deg (the simulated hinge's true angle), target_counts, torque_Nm. One line per row,
 written and flushed as it comes, so an interrupted recording keeps every row up to its last
-line; the reader drops a cut-off last line and refuses any other bad line, and returns a `Recording`:
-the same columns in SI (rad, A, N*m), so no degree travels past the reader.
+line; the reader drops a cut-off last line and refuses any other bad line, and returns a `Trace`
+(twin.records.trace): the same columns in SI (rad, A, N*m), so no degree travels past the reader;
+`write_trace` writes a whole one.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import re
 from pathlib import Path
@@ -19,43 +19,19 @@ from pathlib import Path
 import numpy as np
 
 from twin.checks import cell, read_text
+from twin.paths import replacing
+from twin.records.trace import Trace
 
 TRACE_COLUMNS = ("target_deg", "angle_deg", "counts", "duty", "current_A")
 TWIN_COLUMNS = ("true_angle_deg", "target_counts", "torque_Nm")
 _INTEGER = ("counts", "target_counts")
 _HEADER = re.compile(r"h(\d+)_(.+)")
 MAX_TRACE_BYTES = 512 << 20  # a 600 s HIL run at 1 kHz is about 210 MB
-# column -> (Recording field, its unit in SI from the file's)
+# column -> (Trace field, its unit in SI from the file's)
 _FIELDS = {"target_deg": ("target", math.radians(1.0)), "angle_deg": ("angle", math.radians(1.0)),
            "counts": ("counts", 1), "duty": ("duty", 1.0), "current_A": ("current", 1.0),
            "true_angle_deg": ("true_angle", math.radians(1.0)), "target_counts": ("target_counts", 1),
            "torque_Nm": ("torque", 1.0)}
-
-
-@dataclasses.dataclass(frozen=True)
-class Recording:
-    """A trace read back, in SI: `time` (rows,) and per hinge (rows, hinges) the rest; the twin's own columns
-    None in a device's trace."""
-
-    time: np.ndarray  # s
-    target: np.ndarray  # rad, the target the firmware held
-    angle: np.ndarray  # rad, the encoder's angle (counts x rad per count)
-    counts: np.ndarray  # encoder counts (whole numbers)
-    duty: np.ndarray  # the commanded duty, -1 .. 1
-    current: np.ndarray  # A, the winding current
-    true_angle: np.ndarray | None = None  # rad, the simulated flap's true angle (a twin's trace)
-    target_counts: np.ndarray | None = None  # the target in counts (a twin's trace)
-    torque: np.ndarray | None = None  # N*m at the hinge (a twin's trace)
-
-    @property
-    def n_hinges(self) -> int:
-        return self.angle.shape[1]
-
-    def until(self, end: float) -> "Recording":
-        """The rows at or before `end` s."""
-        sel = self.time <= end + 1e-9
-        return dataclasses.replace(self, **{f.name: None if getattr(self, f.name) is None else getattr(self, f.name)[sel]
-                                            for f in dataclasses.fields(self)})
 
 
 class TraceWriter:
@@ -91,8 +67,8 @@ class TraceWriter:
         self.close()
 
 
-def read_trace(path, n: int | None = None, hinge_limit: float | None = None) -> Recording:
-    """A trace CSV as a Recording (SI).
+def read_trace(path, n: int | None = None, hinge_limit: float | None = None) -> Trace:
+    """A trace CSV as a Trace (SI).
 
     n: the hinge count it must have; hinge_limit (rad): targets must lie within it. A cut-off
     last line (an interrupted recording) is dropped; any other bad line is a ValueError naming it.
@@ -158,4 +134,14 @@ def read_trace(path, n: int | None = None, hinge_limit: float | None = None) -> 
                                  f"range +-{math.degrees(hinge_limit):g} deg")
         field, unit = _FIELDS[c]
         out[field] = column.astype(np.int64) if c in _INTEGER else column * unit
-    return Recording(time=t, **out)
+    return Trace(time=t, **out)
+
+
+def write_trace(path, trace: Trace) -> None:
+    """A whole trace as a trace CSV, written to a temporary file and moved into place: every column it holds
+    (a twin's: true_angle_deg, target_counts, torque_Nm beside the device's)."""
+    extra = tuple(c for c in TWIN_COLUMNS if getattr(trace, _FIELDS[c][0]) is not None)
+    columns = {c: getattr(trace, field) for c, (field, _) in _FIELDS.items() if c in TRACE_COLUMNS + extra}
+    with replacing(path) as tmp, TraceWriter(tmp, trace.n_hinges, extra=extra) as w:
+        for i in range(len(trace.time)):
+            w.write(trace.time[i], **{c: np.degrees(v[i]) if c.endswith("_deg") else v[i] for c, v in columns.items()})

@@ -8,7 +8,7 @@ import math
 import numpy as np
 
 from twin.device.spec import DeviceSpec
-from twin.formats.trace import Recording
+from twin.records.trace import Trace
 from twin.sim.response import step_metrics
 
 # compare()'s per-hinge metrics: (key, column label, what it means), for reports and the command line
@@ -84,7 +84,7 @@ def segment_steps(spec: DeviceSpec, t, angle_deg, target_deg, changes_t, end_t):
     return settle, over
 
 
-def compare(spec: DeviceSpec, device: Recording, twin: Recording, changes_t=(0.0,)) -> list[dict]:
+def compare(spec: DeviceSpec, device: Trace, twin: Trace, changes_t=(0.0,)) -> list[dict]:
     """Per hinge: RMSE and largest |device - twin| (deg, encoder angles, at the device's sample times),
     lag (s, positive: the device later than the twin), mean settle time and largest overshoot per side over the
     steps (METRICS says each)."""

@@ -193,4 +193,4 @@ def sag_after_cut(plant: DeviceSpec, duration: float, hinges=None, braked: bool 
     twin = Twin(plant, hinges=hinges)
     twin.reset(np.full(plant.n_hinges, POSE))
     twin.firmware.estop()
-    return np.degrees((twin.hold(duration) if braked else twin.unpowered(duration)).angle[-1])
+    return np.degrees((twin.hold(duration) if braked else twin.unpowered(duration)).true_angle[-1])

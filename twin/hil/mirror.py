@@ -24,7 +24,7 @@ from controllers.encoder import angle_from_counts, target_counts
 from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec
 from twin.formats.run import run_start
-from twin.formats.trace import Recording
+from twin.records.trace import Trace
 from twin.hil.device_gains import device_gains
 from twin.link import protocol as P
 from twin.link.serial_link import Link
@@ -48,7 +48,7 @@ class MirrorResult:
     frames: int
     final_deg: np.ndarray  # device hinge angles at the end, deg
     message: str
-    telemetry: Recording | None = None  # the device's frames, time s from the moment the targets took effect
+    telemetry: Trace | None = None  # the device's frames, time s from the moment the targets took effect
 
     @property
     def ok(self) -> bool:
@@ -158,7 +158,7 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
         link.log("gate_override", reason=report.refusal())
 
     trace = report.prediction  # None only when an override sent a target the twin could not simulate
-    predicted = None if trace is None else angle_from_counts(spec, trace.counts)  # as the encoders would read
+    predicted = None if trace is None else trace.angle  # the encoder's angle, as the device reads it
     dt = spec.firmware_dt
     link.set_telemetry_rate(telemetry_hz)
     link.drain_telemetry()
@@ -259,12 +259,12 @@ def deviation(device, predicted, row: int, slack: int):
     return predicted[min(row, last)], dev
 
 
-def _recording(spec: DeviceSpec, rows) -> Recording | None:
-    """Telemetry frames as a Recording in SI (None without frames)."""
+def _recording(spec: DeviceSpec, rows) -> Trace | None:
+    """Telemetry frames as a Trace in SI (None without frames)."""
     if not rows:
         return None
     t, counts, targets, duty, current = (np.array(c) for c in zip(*rows))
-    return Recording(time=t.astype(float), target=targets * spec.rad_per_count, angle=counts * spec.rad_per_count,
+    return Trace(time=t.astype(float), target=targets * spec.rad_per_count, angle=counts * spec.rad_per_count,
                      counts=counts.astype(np.int64), duty=duty / P.DUTY_SCALE, current=current / 1000.0)
 
 

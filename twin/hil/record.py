@@ -110,14 +110,13 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
         """Play the twin up to device time to_time (s), writing every stride-th tick."""
         nonlocal twin_ticks
         for first, tr in replay_targets(twin, changes, twin_ticks, int(math.floor(to_time / dt + 1e-9))):
-            enc = angle_from_counts(spec, tr.counts)
-            predicted[first:first + len(enc)] = enc
+            predicted[first:first + len(tr.angle)] = tr.angle
             for i in range(len(tr.time)):
                 tick = first + i
                 if tick % stride == 0:
-                    twin_w.write(tick * dt, target_deg=np.degrees(tr.target[i]), angle_deg=np.degrees(enc[i]),
+                    twin_w.write(tick * dt, target_deg=np.degrees(tr.target[i]), angle_deg=np.degrees(tr.angle[i]),
                                  counts=tr.counts[i], duty=tr.duty[i], current_A=tr.current[i],
-                                 true_angle_deg=np.degrees(tr.angle[i]))
+                                 true_angle_deg=np.degrees(tr.true_angle[i]))
             twin_ticks = first + len(tr.time)
 
     def compare_frames(final: bool):

@@ -177,7 +177,7 @@ def sample_datagram(kind: str, session: str, seq: int, position_mm, quat_wxyz, t
 
 def approximation_datagram(seq: int, t_s: float | None, approximation: dict, msd_estimate: float,
                            share_estimate: float) -> bytes:
-    """The reply to a pose: `Approximation.to_json()` plus the frame estimates (m, 0..1)."""
+    """The reply to a pose: `twin.formats.target.approximation_json` plus the frame estimates (m, 0..1)."""
     obj = {"type": "approximation", "seq": seq, "t_s": t_s, **approximation,
            "msd_estimate_mm": round(msd_estimate * 1e3, 3), "share_within_estimate": round(share_estimate, 4)}
     return json.dumps(obj, separators=(",", ":")).encode()

@@ -79,7 +79,7 @@ class _ReportingLink(Link):
 class DeviceMorpher:
     """The device on a serial port (or the emulator's pty); the link stays open, so the device holds.
 
-    on_move(telemetry, prediction), where set, gets every move sent: the device's frames (a Recording) and
+    on_move(telemetry, prediction), where set, gets every move sent: the device's frames (a Trace) and
     the twin's predicted Trace (e.g. for a Rerun recording of the session)."""
 
     on_move = None
@@ -184,10 +184,10 @@ class TwinMorpher:
         for k in range(int(trace.duration / step) + 1):
             time.sleep(max(0.0, t0 + k * step - time.monotonic()))
             row = min(int(round(k * step / self.spec.firmware_dt)), len(trace.time) - 1)
-            angles = _degrees(trace.angle[row])
+            angles = _degrees(trace.true_angle[row])
             emit({"type": "progress", "elapsed_s": round(k * step, 4), "source": "twin",
                   "angles_deg": angles, "predicted_deg": angles})
-        self.angles = trace.angle[-1].copy()
+        self.angles = trace.true_angle[-1].copy()
         self.integral = self.twin.pid.integral.copy()
         if self.on_move is not None:
             self.on_move(None, trace)

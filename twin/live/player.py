@@ -30,8 +30,9 @@ from scipy.spatial.transform import Rotation
 from twin.device.kinematics import flap_frames
 from twin.device.spec import DeviceSpec
 from twin.evaluation.starts import approach_starts
+from twin.formats.target import message_approximation
 from twin.live.client import LiveClient, LiveError, latency
-from twin.morphpatch.approximation import Approximation, pose_from_mm_deg
+from twin.morphpatch.approximation import pose_from_mm_deg
 from twin.morphpatch.redirection import flap_boundaries, rotation_between, surface_points
 from twin.morphpatch.shapes import load_shape, shape_table
 
@@ -123,7 +124,7 @@ async def play_shape(client: LiveClient, spec: DeviceSpec, name: str, attempts: 
             continue
         record["morphed"] = True
         record["redirection"] = outcome["redirection"]
-        approx = Approximation.from_json(locked, spec, "the service's locked approximation")
+        approx = message_approximation(locked, spec, "the service's locked approximation")
         points, orientations = stroke(spec, approx.root_pose, np.radians(outcome["angles_deg"]), approx.widths)
         sent = []
         async for k in _paced(len(points), PEN_HZ):

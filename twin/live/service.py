@@ -36,6 +36,7 @@ from websockets.exceptions import ConnectionClosed
 from websockets.protocol import State
 
 from twin.device.spec import DeviceSpec
+from twin.formats.target import approximation_json
 from twin.live.messages import (
     APPROXIMATION_RATE_HZ,
     DEFAULT_LISTEN_PORT,
@@ -372,7 +373,7 @@ class LiveService:
     async def _lock(self, seq: int, reply: PoseReply) -> None:
         loop = asyncio.get_running_loop()
         approx = self.worker.approximation(reply)
-        self._broadcast({"type": "locked", "seq": seq, **approx.to_json()})
+        self._broadcast({"type": "locked", "seq": seq, **approximation_json(approx)})
 
         def emit(event):
             loop.call_soon_threadsafe(self._broadcast, event)

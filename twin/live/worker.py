@@ -40,14 +40,16 @@ from scipy.spatial.transform import Rotation
 
 from twin.device.kinematics import pose_matrix
 from twin.device.spec import DeviceSpec
+from twin.formats.target import approximation_json
 from twin.live.messages import approximation_datagram
-from twin.morphpatch.approximation import Approximation, approximate
+from twin.morphpatch.approximation import approximate
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.frame_metrics import frame_estimates
 from twin.morphpatch.redirection import build_field, threshold_summary
 from twin.morphpatch.sampling import SAMPLE_SPACING, grid_layout
 from twin.morphpatch.shapes import check_mesh, load_shape
 from twin.perception.thresholds import load_thresholds
+from twin.records.approximation import Approximation
 
 POSE_REQUEST = struct.Struct("<qd3d4dH")  # seq, t_s (NaN: none), position m, unit quaternion w first, UDP port
 STAMPS = struct.Struct("<4d")  # the worker's perf_counter s: received, approximated, estimated, datagram sent
@@ -95,7 +97,7 @@ def _approximate(request: bytes, received: float, spec, variant, fields, thresho
     approximated = time.perf_counter()
     msd, share = frame_estimates(spec, fields, thresholds, approx.root_pose, approx.angles, approx.widths, layout)
     estimated = time.perf_counter()
-    udp.sendto(approximation_datagram(seq, None if math.isnan(t_s) else t_s, approx.to_json(), msd, share),
+    udp.sendto(approximation_datagram(seq, None if math.isnan(t_s) else t_s, approximation_json(approx), msd, share),
                (host, port))
     sent = time.perf_counter()
     values = result.pack(*approx.root_pose.ravel().tolist(), *approx.angles.tolist(), *approx.widths.tolist(),

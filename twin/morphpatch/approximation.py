@@ -47,7 +47,8 @@ Variant "refined" (ours, beyond the paper) is "full" followed by a bounded local
 least-squares refinement of the root pose and hinge angles (twin.morphpatch.refinement),
 and, where it promises better, a second one from full's pose with the root turned a quarter
 about its normal (`_refined`).
-SI units throughout (m, rad, s); `Approximation.to_json` gives mm and degrees.
+SI units throughout (m, rad, s); the result is the record twin.records.approximation.Approximation, whose
+file form (mm and degrees) is twin.formats.target's.
 """
 
 from __future__ import annotations
@@ -64,11 +65,11 @@ from scipy.spatial.transform import Rotation
 from twin.checks import REACH_M
 from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_flap, pose_matrix
 from twin.device.spec import DeviceSpec, load_spec
-from twin.formats.target import APPROXIMATION_KEYS, OPTIONAL_KEYS, approximation_fields
 from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate, _path_clear
 from twin.morphpatch.refinement import objective, refine, uncurled
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
 from twin.morphpatch.surface_metrics import match
+from twin.records.approximation import Approximation
 
 VARIANTS = ("full", "no_hcevf", "refined")
 SNAP_REACH = 0.25  # m, how far along +-z a snap looks for the surface (here, and CBS's press along its normal)
@@ -91,59 +92,16 @@ TURN_TRIED = 3.0
 WIDTH_RANGE = (0.5, 1.5)  # flap widths stay within these multiples of the pitch
 
 
-@dataclasses.dataclass
-class Approximation:
-    """Result of one approximation: SI units (m, rad, s); `to_json` converts."""
-
-    root_pose: np.ndarray  # 4x4, the anchor in the world
-    angles: np.ndarray  # rad, (n_hinges,)
-    widths: np.ndarray  # m, (n_flaps,)
-    time: float  # s, wall time of the approximation itself
-    variant: str
-    msd: float | None = None  # m, once `measured`
-    hd: float | None = None  # m
-    inside: float | None = None  # share (0..1) of the touch surface inside the target, once `measured`
-    depth: float | None = None  # m, the deepest of it
-    rests: bool | None = None  # ours: whether the search found a pose resting on the target from outside
-
-    def frames(self, spec: DeviceSpec) -> np.ndarray:
-        """World poses (n_flaps, 4, 4) of the flaps' touch-surface frames."""
-        return flap_frames(spec, self.angles, self.root_pose, self.widths)
-
-    def measured(self, spec: DeviceSpec, mesh) -> "Approximation":
-        """A copy with MSD, HD (m) and the share inside the target and its depth against the exact mesh (see
-        twin.morphpatch.surface_metrics)."""
-        m = match(spec, mesh, self.root_pose, self.angles, self.widths)
-        return dataclasses.replace(self, msd=m.msd, hd=m.hd, inside=m.inside, depth=m.depth)
-
-    def to_json(self) -> dict:
-        """Plain dict with the unit in every key (mm, deg, ms)."""
-        quat = Rotation.from_matrix(self.root_pose[:3, :3]).as_quat(scalar_first=True)
-        mm = (lambda v: None if v is None else round(v * 1e3, 3))
-        return {
-            "variant": self.variant,
-            "root_position_mm": [round(v, 3) for v in (self.root_pose[:3, 3] * 1e3).tolist()],
-            "root_quat_wxyz": [round(v, 6) for v in quat.tolist()],
-            "angles_deg": [round(v, 3) for v in np.degrees(self.angles).tolist()],
-            "widths_mm": [round(v, 3) for v in (self.widths * 1e3).tolist()],
-            "msd_mm": mm(self.msd),
-            "hd_mm": mm(self.hd),
-            "inside_percent": None if self.inside is None else round(self.inside * 100, 2),
-            "inside_depth_mm": mm(self.depth),
-            "time_ms": round(self.time * 1e3, 4),
-        }
+def frames(spec: DeviceSpec, a: Approximation) -> np.ndarray:
+    """World poses (n_flaps, 4, 4) of an approximation's flaps' touch-surface frames."""
+    return flap_frames(spec, a.angles, a.root_pose, a.widths)
 
 
-    @classmethod
-    def from_json(cls, d: dict, spec: DeviceSpec | None = None, where: str = "approximation result") -> "Approximation":
-        """The inverse of `to_json`, checked by the approximation JSON's one reader (twin.formats.target);
-        keys other than the result's (a live message's type, seq, ...) are ignored."""
-        keys = APPROXIMATION_KEYS + OPTIONAL_KEYS
-        f = approximation_fields({k: v for k, v in d.items() if k in keys}, spec or load_spec(), where)
-        return cls(f["root_pose"], f["angles"], f["widths"], f["time"], f["variant"], f["msd"], f["hd"], f["inside"],
-                   f["depth"])
-
-
+def measured(spec: DeviceSpec, mesh, a: Approximation) -> Approximation:
+    """A copy of `a` with MSD, HD (m) and the share inside the target and its depth against the exact mesh (see
+    twin.morphpatch.surface_metrics)."""
+    m = match(spec, mesh, a.root_pose, a.angles, a.widths)
+    return dataclasses.replace(a, msd=m.msd, hd=m.hd, inside=m.inside, depth=m.depth)
 
 
 def pose_from_mm_deg(values) -> np.ndarray:

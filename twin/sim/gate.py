@@ -40,9 +40,9 @@ from twin.device.kinematics import flap_frames
 from twin.device.mount import DEFAULT_MOUNT, table_height
 from twin.device.spec import DeviceSpec
 from twin.formats.scenario import Scenario
+from twin.records.trace import Trace, joined
 from twin.sim.replay import replay_targets
 from twin.sim.response import move_settle_time
-from twin.sim.trace import Trace, join_traces
 from twin.sim.twin import Twin
 
 
@@ -170,7 +170,7 @@ def check_scenario(spec: DeviceSpec, scenario: Scenario, gains=None, settle_limi
     twin = _twin_at(spec, start, gains, twin, mount=mount)
     dt = spec.firmware_dt
     end = int(round(max(scenario.duration, scenario.times[-1] + settle_limit) / dt))
-    trace = join_traces([tr for _, tr in replay_targets(twin, list(zip(scenario.times, scenario.targets)), 0, end)])
+    trace = joined([tr for _, tr in replay_targets(twin, list(zip(scenario.times, scenario.targets)), 0, end)])
     moved = _heat(twin)
     hold = twin.hold(spec.settle_hold)
 
@@ -248,7 +248,7 @@ def _collision_check(spec: DeviceSpec, twin: Twin, trace: Trace, collision_step:
     rows = list(range(0, len(trace.time), every)) + [len(trace.time) - 1]
     hit, deepest = None, 0.0
     for i in rows:
-        contacts = flap_contacts(m, d, twin.hinges.qadr, trace.angle[i])
+        contacts = flap_contacts(m, d, twin.hinges.qadr, trace.true_angle[i])
         if contacts:
             a, b, depth = max(contacts, key=lambda c: c[2])
             if depth > deepest:

@@ -8,12 +8,12 @@ step, never settled), never a made-up number.
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
 from twin.device.spec import DeviceSpec
-from twin.sim.trace import Trace
+from twin.records.move_report import MoveReport
+from twin.records.trace import Trace
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,25 +101,18 @@ def move_settle_time(spec: DeviceSpec, time_s, counts, target_counts, start: flo
                        start)
 
 
-def move_report(spec: DeviceSpec, trace: Trace) -> list[dict]:
-    """Per hinge: settle time (s), overshoot (deg), steady-state error (deg and counts), peak current (A).
+def move_report(spec: DeviceSpec, trace: Trace) -> MoveReport:
+    """A twin's move, per hinge: settle time (s), overshoot and steady-state error (rad, of the true angle;
+    the error also in counts), peak current (A).
 
     Settling uses the firmware's settle band in encoder counts; the step starts
     at the trace's first tick.
     """
-    rows = []
-    for k in range(trace.angle.shape[1]):
-        in_counts, in_angle = hinge_metrics(spec, trace.time, float(trace.target_counts[0, k]), trace.counts[:, k],
-                                            float(trace.target[0, k]), trace.angle[:, k])
-        rows.append({
-            "hinge": k,
-            "target_deg": round(math.degrees(trace.target[0, k]), 3),
-            "final_deg": round(math.degrees(trace.angle[-1, k]), 3),
-            "settle_time_s": round(in_counts.settle_time, 4),
-            "overshoot_deg": round(math.degrees(in_angle.overshoot), 3),
-            "steady_state_error_deg": round(math.degrees(in_angle.steady_state_error), 3),
-            "steady_state_error_counts": round(in_counts.steady_state_error, 2),
-            "peak_current_A": round(float(np.max(np.abs(trace.current[:, k]))), 3),
-        })
-    return rows
-
+    metrics = [hinge_metrics(spec, trace.time, float(trace.target_counts[0, k]), trace.counts[:, k],
+                             float(trace.target[0, k]), trace.true_angle[:, k]) for k in range(trace.n_hinges)]
+    return MoveReport(target=trace.target[0].copy(), final=trace.true_angle[-1].copy(),
+                      settle_time=np.array([c.settle_time for c, _ in metrics]),
+                      overshoot=np.array([a.overshoot for _, a in metrics]),
+                      steady_state_error=np.array([a.steady_state_error for _, a in metrics]),
+                      steady_state_error_counts=np.array([c.steady_state_error for c, _ in metrics]),
+                      peak_current=np.abs(trace.current).max(axis=0))

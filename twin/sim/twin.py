@@ -24,16 +24,16 @@ import mujoco
 import numpy as np
 
 from controllers.core import per_hinge, pid_memory, program_spec, set_core_gains, start_core, tick_us
-from controllers.encoder import counts_from_motor_angles, target_counts
+from controllers.encoder import angle_from_counts, counts_from_motor_angles, target_counts
 from controllers.pid import PidGains
 from controllers.program import ProgramEnd, ProgramRun, end_name
 from twin.device.mjcf import load_model, motor_attributes
 from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec, load_spec
+from twin.records.trace import Trace
 from twin.sim.drive import drive_params
 from twin.sim.hinges import Hinges, contact_free_spreads, physics_substeps, place_hinges
 from twin.sim.targets import TargetError, check_targets
-from twin.sim.trace import Trace
 
 
 class Twin:
@@ -204,6 +204,7 @@ class Twin:
             time=t0 + np.arange(done) * s.firmware_dt,
             target=np.tile(targets, (done, 1)),
             target_counts=np.tile(self._target, (done, 1)).astype(np.int64),
-            angle=angle, counts=counts, duty=duty, current=current, torque=torque, wall_time=wall,
+            angle=angle_from_counts(s, counts), counts=counts, duty=duty, current=current, true_angle=angle,
+            torque=torque, wall_time=wall,
         )
 

@@ -332,7 +332,7 @@ def range_sensitivity(spec: DeviceSpec, goal: TuneGoal, gains, nthread: int = 0,
 
 
 def step_report(spec: DeviceSpec, gains, goal: TuneGoal, plant: DeviceSpec | None = None, hinges=None):
-    """move_report rows (settle s, overshoot deg, ...) of one twin step from flat to goal.step on every
+    """The move report (twin.records.move_report) of one twin step from flat to goal.step on every
     hinge, over the tuner's window (goal.duration); and the trace. hinges: each hinge's own spec (Twin's)."""
     twin = Twin(plant or spec, gains, hinges=hinges, mount=goal.mount)
     trace = twin.move_to(np.full(spec.n_hinges, goal.step), max_time=goal.duration, stop_when_settled=False)

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import trimesh
 
-from shape_corpus import slab
+from twin.evaluation.shape_corpus import slab
 
 
 def fat_torus():

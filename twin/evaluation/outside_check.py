@@ -3,7 +3,9 @@
 its own flap kinematics (each flap a segment in the root's x-z plane, the chain walked out from the root flap),
 the exact signed distance of its touch surface to the mesh (libigl), and the gap between flaps two or more
 apart (each flap a rectangle, the flap's length less the gap at its hinges by its thickness behind the touch
-surface; the distance of two convex polygons). Nothing here calls twin.device or twin.morphpatch."""
+surface; the distance of two convex polygons). Nothing here calls twin.device or twin.morphpatch: a check
+written apart on purpose (tests/morphpatch/test_resting.py, benchmarks/bench_resting.py), not a second copy of
+the kinematics to keep in step."""
 
 from __future__ import annotations
 

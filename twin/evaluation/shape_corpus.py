@@ -5,7 +5,8 @@ and benchmarks/bench_corpus.py; docs/approximation.md reports on it.
 Families: superquadrics, bumpy and displaced spheres, organic blobs (star-shaped surfaces: an icosphere's
 vertices moved along their directions), height fields (a closed slab whose top is a random smooth surface),
 bowls and cups with handles (revolved profiles; the handle joined with manifold3d, trimesh's boolean engine),
-thin plates, tori of many ratios. Sizes and parameters are drawn, the families fixed.
+thin plates, tori of many ratios. Sizes and parameters are drawn, the families fixed. (manifold3d, for the cups'
+handles, comes with the test extra: pip install '.[test]'.)
 """
 
 from __future__ import annotations

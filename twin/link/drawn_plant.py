@@ -1,7 +1,14 @@
-"""A drawn plant lying flat, its programs run by the emulator in-process (the firmware core, the plant, the
-protocol's frames both ways) as fast as the CPU steps it: the calibration tests and benchmarks/bench_calibration.py
-run the identification experiments on it without a pty's real time. The pty path (`vrscroll calibrate
---serial`) is the same core answering the same frames."""
+"""A device plant nobody chose: the emulator draws its parameters at random within its stated ranges (twin.sim.plant's
+PlantRanges), and an emulated device on one run in-process.
+
+`emulator_args` are the `vrscroll emulate` options that draw every parameter from a seed; the drawn values are
+in the emulator's log only (its "start" event: `drawn_plant`, `drawn_hinges`), so the twin never sees them and
+only a judge reads them (twin.hil.calibration_verdict). `EmulatedDevice` is one drawn plant lying flat, its
+programs run by the emulator in-process (the firmware core, the plant, the protocol's frames both ways) as fast
+as the CPU steps it: the calibration tests and benchmarks/bench_calibration.py run the identification
+experiments on it without a pty's real time. The pty path (`vrscroll calibrate --serial`) is the same core
+answering the same frames.
+"""
 
 from __future__ import annotations
 
@@ -17,7 +24,28 @@ from twin.link.faults import FaultOptions
 from twin.link.serial_link import program_message
 from twin.sim.plant import PlantRanges, draw_plant
 
-ENCODER_MISS = 0.0005  # as tests/random_plant.py's
+# the stated ranges (the emulator's documented defaults), as its options: x the spec's value, or deg and ms
+RANGES = {f.name.replace("_", "-"): "{:g},{:g}".format(*getattr(PlantRanges(), f.name))
+          for f in dataclasses.fields(PlantRanges)}
+ENCODER_MISS = 0.0005  # probability per edge the encoder's counter misses it
+
+
+def emulator_args(seed: int) -> list[str]:
+    """`vrscroll emulate` options: every parameter drawn within RANGES from the seed."""
+    args = ["--seed", str(seed), "--encoder-miss", str(ENCODER_MISS)]
+    for k, v in RANGES.items():
+        args += ["--" + k, v]
+    return args
+
+
+def drawn_plant(emulator) -> dict:
+    """The plant the emulator drew (spec field -> SI value), from its log."""
+    return next(e for e in emulator.events("start"))["plant"]
+
+
+def drawn_hinges(emulator) -> list[dict]:
+    """Each hinge's drawn values (spec field -> SI value), from the emulator's log."""
+    return next(e for e in emulator.events("start"))["hinges"]
 
 
 class EmulatedDevice:
