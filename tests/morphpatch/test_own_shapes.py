@@ -36,19 +36,46 @@ def signed(mesh, points) -> np.ndarray:
     return igl.signed_distance(np.asarray(points, float), mesh.vertices, mesh.faces)[0]
 
 
-def test_the_default_start_is_above_the_top_where_a_hand_lowers_the_device():
+def approach(start) -> np.ndarray:
+    """The direction (unit) a start [mm, deg] brings the device along: its -z."""
+    return -pose_from_mm_deg(start)[:3, 2]
+
+
+def test_the_default_start_faces_the_broadest_side_near_its_middle():
+    """Issue 37: facing the mesh's broadest side, over the open surface nearest its middle, 40 mm out; from
+    above where sides tie; never from below; a cup's wall where it is taller than wide, its rim (never its
+    open middle) where it is wider."""
+    down = np.array([0.0, 0.0, -1.0])
     box = trimesh.creation.box((0.2, 0.1, 0.05))
-    sphere = trimesh.creation.icosphere(4, 0.06)
+    start = mesh_start(box)
+    assert approach(start) == pytest.approx(down, abs=1e-6) and start[:2] == pytest.approx([0, 0], abs=10)
+    assert start[2] / 1e3 == pytest.approx(box.bounds[1, 2] + 0.04)
+    assert abs(pose_from_mm_deg(start)[0, 0]) == pytest.approx(1.0)  # the row along the box's 200 mm
+    standing = trimesh.creation.box((0.05, 0.1, 0.2))  # its broadest sides face +-x
+    start = mesh_start(standing)
+    assert abs(approach(start)[0]) == pytest.approx(1.0, abs=1e-6) and start[1:3] == pytest.approx([0, 0], abs=10)
+    assert abs(start[0]) / 1e3 == pytest.approx(0.025 + 0.04)
+    plate = trimesh.creation.box((0.3, 0.2, 0.004))  # tilted 30 deg: on its face's middle, from the upper side
+    plate.apply_transform(trimesh.transformations.euler_matrix(0.5, 0.0, 0.0))
+    start = mesh_start(plate)
+    assert approach(start)[2] < -0.8 and np.linalg.norm(np.array(start[:3]) / 1e3 - 0.044 * plate.face_normals[
+        np.argmax(plate.face_normals[:, 2])]) < 0.02
     torus = trimesh.creation.torus(0.08, 0.02)
-    for mesh in (box, sphere, torus, cup()):
-        start = np.array(mesh_start(mesh))
-        assert start[2] / 1e3 == pytest.approx(mesh.bounds[1, 2] + 0.04)
-        assert signed(mesh, [start[:3] / 1e3])[0] > 0.035
-        assert start[3:] == pytest.approx([0, 0, 0])  # level: the touch surface faces down
-    assert mesh_start(box)[:2] == pytest.approx([0.0, 0.0], abs=10)  # the top face's middle (mm)
-    # a cup: over its rim, never over its open middle
-    x, y = mesh_start(cup())[:2]
-    assert INNER * 1e3 - 1 <= math.hypot(x, y) <= OUTER * 1e3 + 1
+    start = mesh_start(torus)
+    assert approach(start) == pytest.approx(down, abs=1e-6) and 60 <= math.hypot(*start[:2]) <= 100  # its tube
+    sphere = trimesh.creation.icosphere(4, 0.06)
+    assert approach(mesh_start(sphere)) == pytest.approx(down, abs=1e-6)
+    start = mesh_start(cup())  # 90 mm across, 100 mm high: its wall, the middle of its height
+    assert abs(approach(start)[2]) < 1e-6 and math.hypot(*start[:2]) == pytest.approx(OUTER * 1e3 + 40, abs=1)
+    assert abs(start[2] - HEIGHT * 1e3 / 2) < 10
+    bowl = trimesh.creation.revolve(np.array([[0, 0], [0.06, 0], [0.06, 0.07], [0.055, 0.07], [0.055, 0.005],
+                                              [0, 0.005]]), sections=64)  # 120 mm across, 70 mm high
+    start = mesh_start(bowl)
+    assert approach(start) == pytest.approx(down, abs=1e-6) and 54 <= math.hypot(*start[:2]) <= 61  # its rim
+    for mesh in (box, standing, plate, torus, sphere, cup(), bowl):
+        assert signed(mesh, [np.array(mesh_start(mesh)[:3]) / 1e3])[0] > 0.035
+    upside_down = trimesh.creation.box((0.3, 0.3, 0.02))  # broadest from above and from below: from above
+    assert approach(mesh_start(upside_down))[2] == pytest.approx(-1.0)
 
 
 def test_a_start_inside_the_target_is_refused(tmp_path):
@@ -59,7 +86,7 @@ def test_a_start_inside_the_target_is_refused(tmp_path):
 
 def test_a_cup_narrower_than_the_device_from_above_and_from_the_side(spec, cup_fields):
     mesh, fields = cup_fields
-    from_above = pose_from_mm_deg(mesh_start(mesh))
+    from_above = pose_from_mm_deg([(OUTER + INNER) * 500, 0, HEIGHT * 1e3 + 40, 0, 0, 0])  # over the rim
     from_side = pose_from_mm_deg([-110, 0, 60, 0, -90, 0])  # the device's -z along +x, towards the wall
     for variant in VARIANTS:
         side = approximate(fields, from_side, spec, variant).root_pose[:3, 3]
