@@ -1,4 +1,4 @@
-"""The default start for a mesh (twin.morphpatch.shapes.mesh_start, issue 37) against the starts a person would try
+"""The default start for a mesh (twin.morphpatch.default_start, issue 37) against the starts a person would try
 (tests/shape_corpus.py's person_starts: from above and from each side, over the middle): per corpus shape (seed 0),
 ours (refined) from the default start and from each of the person's, its MSD (exact mesh) and whether `approximate`
 would refuse it (twin.morphpatch.resting's bar); a summary: refusals and mean MSD from the default start, from the
@@ -24,7 +24,7 @@ from twin.device.spec import load_spec  # noqa: E402
 from twin.morphpatch.approximation import approximate, pose_from_mm_deg  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
 from twin.morphpatch.resting import refusal, resting  # noqa: E402
-from twin.morphpatch.shapes import mesh_start  # noqa: E402
+from twin.morphpatch.default_start import default_start  # noqa: E402
 
 
 def ours(spec, mesh, fields, start) -> tuple[float, bool]:
@@ -45,7 +45,7 @@ def main() -> None:
         if args.shapes and name not in args.shapes.split(","):
             continue
         fields = build_fields(mesh)
-        default = ours(spec, mesh, fields, mesh_start(mesh))
+        default = ours(spec, mesh, fields, default_start(mesh, fields, spec))
         person = [ours(spec, mesh, fields, s) for s in person_starts(mesh)]
         delivered = sorted(m for m, refused in person if not refused) or [np.inf]
         rows.append((default[0], default[1], delivered[0], delivered[(len(delivered) - 1) // 2],

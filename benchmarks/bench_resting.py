@@ -26,7 +26,7 @@ from made_shapes import SHAPES  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
 from twin.morphpatch.approximation import approximate, pose_from_mm_deg  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
-from twin.morphpatch.shapes import mesh_start  # noqa: E402
+from twin.morphpatch.default_start import default_start  # noqa: E402
 
 
 def main() -> None:
@@ -42,7 +42,7 @@ def main() -> None:
     for name, mesh in items:
         mesh.apply_translation([-mesh.bounds.mean(0)[0], -mesh.bounds.mean(0)[1], -mesh.bounds[0, 2]])
         fields = build_fields(mesh)
-        start = pose_from_mm_deg(mesh_start(mesh))
+        start = pose_from_mm_deg(default_start(mesh, fields, spec))
         approximate(fields, start, spec, args.variant)
         times = [approximate(fields, start, spec, args.variant).time for _ in range(3)]
         a = approximate(fields, start, spec, args.variant).measured(spec, mesh)

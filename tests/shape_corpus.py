@@ -147,7 +147,7 @@ def starts(mesh: trimesh.Trimesh, n: int, seed: int) -> list[np.ndarray]:
 def person_starts(mesh: trimesh.Trimesh) -> list[list[float]]:
     """The starts a person would try on an object lying on a table (issue 37), [x, y, z mm, roll, pitch, yaw deg]:
     from above and from each of its four sides, the device square to that face of the bounding box, over its
-    middle, 40 mm out from it, the row level; never from below. Written apart from twin.morphpatch.shapes.mesh_start
+    middle, 40 mm out from it, the row level; never from below. Written apart from twin.morphpatch.shapes.side_starts
     (no principal axes, no depth images): what the default start is judged against."""
     lo, hi = mesh.bounds * 1e3
     mid = (lo + hi) / 2

@@ -29,7 +29,8 @@ from twin.formats.target import write_approximation
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.resting import refusal, resting, resting_json
-from twin.morphpatch.shapes import load_mesh, load_shape, mesh_start, shape_names, shape_table
+from twin.morphpatch.default_start import default_start
+from twin.morphpatch.shapes import load_mesh, load_shape, shape_names, shape_table
 from viz.scene import render_approximation
 
 def add_arguments(p) -> None:
@@ -60,11 +61,11 @@ def target_and_start(args):
     a start inside the target is refused (a UserError)."""
     if args.shape:
         mesh, name = load_shape(args.shape), args.shape
-        default_start = shape_table()[args.shape]["start"]
+        default = shape_table()[args.shape]["start"]
     else:
         mesh, name = load_mesh(args.mesh), args.mesh
-        default_start = mesh_start(mesh)
-    start = _parse_start(args.start) if args.start else default_start
+        default = None if args.start else default_start(mesh, build_fields(mesh), load_spec())
+    start = _parse_start(args.start) if args.start else default
     pose = pose_from_mm_deg(start)
     if igl.signed_distance(pose[None, :3, 3], mesh.vertices, mesh.faces)[0][0] < 0:
         raise UserError(f"--start {','.join(f'{v:g}' for v in start)}: the anchor starts inside the target; give a "

@@ -22,7 +22,7 @@ from twin.paths import MODELS_DIR
 
 SHAPES_PATH = MODELS_DIR / "shapes" / "shapes.toml"
 
-START_HEIGHT = 0.04  # m: a mesh's default start is this far out from the side it faces (mesh_start)
+START_HEIGHT = 0.04  # m: a mesh's starts are this far out from the side each faces (side_starts)
 SIDE_BAND = 0.05  # m: an open cell's surface lies within this of the convex hull (a cup's floor is 92 mm below its
 # rim, a saddle's centre 42 mm below the hull over its high corners: the device curls into a saddle, not a cup)
 SIDE_FACING = math.radians(30)  # an open cell's surface faces the device within this (a torus's top, not its slope)
@@ -63,22 +63,23 @@ def load_shape(name: str) -> trimesh.Trimesh:
     return check_mesh(mesh, name)
 
 
-def mesh_start(mesh: trimesh.Trimesh) -> list[float]:
-    """The default start for a mesh file, [x, y, z mm, roll, pitch, yaw deg]: facing the mesh's broadest side,
-    over the open surface nearest its middle, START_HEIGHT out from it, where a person would bring the device
-    (issue 37).
+def side_starts(mesh: trimesh.Trimesh) -> list[list[float]]:
+    """The starts a person would bring the device to a mesh from, [x, y, z mm, roll, pitch, yaw deg] each, the
+    broadest side's first: each facing one of the mesh's sides, over the open surface nearest its middle,
+    START_HEIGHT out from it (issue 37; twin.morphpatch.default_start picks among them).
 
     The sides are seen along the mesh's principal axes (of inertia), both ways, and straight down (a hand
     lowering the device onto an object on a table); none from below (approaching upwards by more than
     FROM_BELOW). Each side is a depth image of square cells (SIDE_CELL, or 1/SIDE_CELLS of the mesh's size where
     that is larger): its area is the mesh's silhouette seen that way; its open cells are those whose surface,
     first met, faces the device (within SIDE_FACING) and lies within SIDE_BAND of the convex hull met on the
-    same line (not down a cavity: a cup's floor, a torus's hole). The broadest side is taken (within SIDE_TIE of
-    it, the one most from above: a sphere, a bar, a box from above; a plate on its face; a cup taller than wide
-    on its wall), and the start is over its open cell nearest the silhouette's middle (a saddle's centre, a
-    point of a cup's rim, never its open middle), START_HEIGHT beyond the side's nearest point, the device's
-    -z along the side's direction, its row (x) along the larger of the side's two extents. Ties go to the
-    larger coordinates, and the surface samples are seeded: the same mesh gives the same start."""
+    same line (not down a cavity: a cup's floor, a torus's hole). Sides come broadest first (of those within
+    SIDE_TIE of the broadest, the one most from above first: a sphere, a bar, a box from above; a plate on its
+    face; a cup taller than wide on its wall). Each start is over its side's open cell nearest the silhouette's
+    middle (a saddle's centre, a point of a cup's rim, never its open middle), START_HEIGHT beyond the side's
+    nearest point, the device's -z along the side's direction, its row (x) along the larger of the side's two
+    extents. Ties go to the larger coordinates, and the surface samples are seeded: the same mesh gives the
+    same starts."""
     samples, faces = trimesh.sample.sample_surface(mesh, SIDE_SAMPLES, seed=0)
     points = np.vstack([samples, mesh.vertices]) - mesh.center_mass
     normals = np.vstack([mesh.face_normals[faces], mesh.vertex_normals])
@@ -90,8 +91,13 @@ def mesh_start(mesh: trimesh.Trimesh) -> list[float]:
     sides.append((np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0])))
     seen = [(d, a) + _side(points, normals, planes, d, a, cell) for d, a in sides if d[2] <= FROM_BELOW]
     broadest = max(s[2] for s in seen)
-    d, a, _, near, middle, across = min((s for s in seen if s[2] >= SIDE_TIE * broadest),
-                                        key=lambda s: round(float(s[0][2]), 6))  # the first of equals
+    seen.sort(key=lambda s: (s[2] < SIDE_TIE * broadest, round(float(s[0][2]), 6) if s[2] >= SIDE_TIE * broadest
+                             else -s[2]))  # stable: the first of equals
+    return [_start(mesh, points, *s) for s in seen]
+
+
+def _start(mesh, points, d, a, area, near, middle, across) -> list[float]:
+    """The start facing a side (`_side`'s results along d, a) over its open cell nearest its middle."""
     distance = np.round(np.linalg.norm(across - middle, axis=1), 4)  # to 0.1 mm: ties
     u, v = across[np.lexsort((-across[:, 1], -across[:, 0], distance))[0]]
     b = np.cross(d, a)
@@ -141,6 +147,8 @@ def _side(points, normals, planes, d, a, cell):
     centre = (index[first] + 0.5) * cell
     facing = normals[first] @ -d >= math.cos(SIDE_FACING)
     open_ = facing & (depth[first] - _hull_depth(planes, centre, d, a, b) <= SIDE_BAND)
+    if not open_.any():  # nothing faces the device: its nearest surface then
+        open_ = depth[first] == depth[first].min()
     return len(first) * cell ** 2, float(depth[first].min()), centre.mean(axis=0), uv[first[open_]]
 
 
