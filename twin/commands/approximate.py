@@ -3,8 +3,8 @@
 The target is a named shape (models/shapes/shapes.toml) or a mesh file in metres.
 The start is the anchor's pose as x,y,z (mm), roll,pitch,yaw (deg, fixed axes:
 R = Rz(yaw) Ry(pitch) Rx(roll)); by default the shape's own `start` from
-shapes.toml, or for a mesh file 40 mm above the centre of its bounding box's top,
-level (device z up). The JSON carries MSD and HD (mm) on the exact mesh, how much of
+shapes.toml, or for a mesh file 40 mm out from the side of it ours rests on best, over that
+side's middle (twin.morphpatch.default_start: the sides along its principal axes and from above). The JSON carries MSD and HD (mm) on the exact mesh, how much of
 the touch surface lies inside the target and how deep (inside_percent, inside_depth_mm,
 inside_over_2mm_percent), the smallest gap between flaps two or more apart (flap_gap_mm),
 flaps through the target, and time_ms of a warm call (the process's first call, which
