@@ -31,7 +31,7 @@ from twin.device.spec import load_spec  # noqa: E402
 from twin.evaluation.shape_corpus import corpus, crossed, starts  # noqa: E402
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
-from twin.morphpatch.shapes import mesh_start  # noqa: E402
+from twin.morphpatch.default_start import default_start  # noqa: E402
 from twin.morphpatch.refinement import flaps_through, uncurled  # noqa: E402
 from twin.morphpatch.surface_metrics import match  # noqa: E402
 
@@ -50,7 +50,7 @@ def main() -> None:
         t0 = time.perf_counter()
         fields = build_fields(mesh, disk_cache=False)
         build = time.perf_counter() - t0
-        default = pose_from_mm_deg(mesh_start(mesh))
+        default = pose_from_mm_deg(default_start(mesh, fields, spec))
         default_out = float(igl.signed_distance(default[None, :3, 3], mesh.vertices, mesh.faces)[0][0])
         row = {"shape": name, "faces": len(mesh.faces), "extent_mm": (mesh.extents * 1e3).round(0).tolist(),
                "field_build_s": round(build, 2),

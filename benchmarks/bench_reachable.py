@@ -1,23 +1,24 @@
 """How low a pose within ours' bounds can take each corpus shape's MSD: ours' search restarted many times.
 
-Issue 22 asks ours to be 20 % below full in mean MSD on every shape of the corpus (twin/evaluation/shape_corpus.py). Where
-ours is not, this asks whether any pose within the same bounds is: from each of the benchmark's starts
+Issue 37 asks ours to come within 5 % (median over the corpus's shapes, twin/evaluation/shape_corpus.py) and 15 % (every
+shape) of the best pose within its own bounds. This looks for that pose: from each of the benchmark's starts
 (benchmarks/bench_corpus.py's, seed 0), ours' refinement (twin.morphpatch.refinement.refine) is run again from
 RESTARTS random starts about full's pose: the root turned by up to 0.5 rad about a random axis, the anchor
 moved up to ANCHOR_RADIUS, the hinge angles drawn in one of three ways in turn (anywhere in their range, full's
 plus 0.4 rad of noise, full's times 0-1.2). A result counts only if it keeps every bound ours keeps: the anchor
 within ANCHOR_RADIUS of the snapped point and reached from it without crossing the solid (exact mesh), no flaps
 in contact, no more flaps through the target than full's pose unrolled; since issue 37, ours' resting bounds too: the
-search's own (it starts each restart lifted off the target until it rests, `refine`'s third result), and on the
-exact mesh the bar of twin.morphpatch.resting (deepest point 3 mm, 5 % more than 2 mm inside, no flap through, flaps
-3 mm apart). The best MSD (exact mesh) of those and
+search's own (it starts each restart lifted off the target until it rests, `refine`'s third result; where no
+start within the ball rests, the ball goes up with the lift, by at most LIFT_REACH), and on the exact mesh the bar
+of twin.morphpatch.resting (deepest point 3 mm, 5 % more than 2 mm inside, no flap through, flaps 3 mm apart). The best MSD (exact mesh) of those and
 of ours itself is the start's figure: a lower estimate of what the bounds allow, not a proof, since the search
 minimises its own objective (samples inside the target weighted more), not the MSD.
 
     PYTHONPATH=$PWD .venv/bin/python benchmarks/bench_reachable.py [--shapes a,b] [--restarts 100]
 
-Default shapes: those where results/corpus/corpus.json has ours less than 20 % below full. Writes
-results/corpus/reachable.json and .md; prints a line per start and per shape.
+Default shapes: all 40 (at 100 restarts, hours on one core: give --shapes, --restarts, --starts). Writes
+results/corpus/reachable.json and .md; prints a line per start and per shape, and ours above the best: the median
+over the shapes and the worst.
 """
 
 import os
@@ -36,7 +37,7 @@ from twin.device.spec import load_spec  # noqa: E402
 from twin.evaluation.shape_corpus import corpus, crossed, starts  # noqa: E402
 from twin.morphpatch.approximation import approximate, root_pose  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
-from twin.morphpatch.refinement import ANCHOR_RADIUS, refine  # noqa: E402
+from twin.morphpatch.refinement import ANCHOR_RADIUS, LIFT_REACH, refine  # noqa: E402
 from twin.morphpatch.resting import DEEP_SHARE_MAX, DEEPEST_MAX, FLAP_APART_MIN, resting  # noqa: E402
 from twin.morphpatch.sampling import SAMPLE_SPACING, grid_layout  # noqa: E402
 from twin.morphpatch.surface_metrics import match  # noqa: E402
@@ -59,16 +60,13 @@ def restart(rng, k: int, full, snapped, limit: float):
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--shapes", help="comma-separated corpus shapes (default: those ours is not 20 %% below full on)")
+    parser.add_argument("--shapes", help="comma-separated corpus shapes (default: all)")
     parser.add_argument("--restarts", type=int, default=100, help="restarts per start (default 100)")
     parser.add_argument("--starts", type=int, default=10)
     parser.add_argument("--out", default="results/corpus")
     args = parser.parse_args()
     out = Path(args.out)
-    if args.shapes:
-        names = args.shapes.split(",")
-    else:
-        names = [r["shape"] for r in json.loads((out / "corpus.json").read_text())["shapes"] if r["ours_below_full"] < 0.2]
+    names = args.shapes.split(",") if args.shapes else [name for name, _ in corpus(0)]
     spec = load_spec()
     layout = grid_layout(spec, SAMPLE_SPACING)
     pitch = np.full(spec.n_flaps, spec.flap_pitch)
@@ -81,7 +79,7 @@ def main() -> None:
     for index, (name, mesh) in enumerate(corpus(0)):  # the benchmark's starts: seed 0 * 1000 + the shape's index
         if name not in names:
             continue
-        fields = build_fields(mesh, disk_cache=False)
+        fields = build_fields(mesh)
         per = []
         for s, start in enumerate(starts(mesh, args.starts, index)):
             snapped = root_pose(fields, start, spec)[:3, 3]
@@ -96,6 +94,7 @@ def main() -> None:
                 # the anchor within the ball about the snapped point, lifted along the start's normal
                 lift = max((p[:3, 3] - snapped) @ pose[:3, 2], 0.0)
                 if (not ok or np.linalg.norm(p[:3, 3] - snapped - lift * pose[:3, 2]) > ANCHOR_RADIUS + 1e-4
+                        or lift > LIFT_REACH + ANCHOR_RADIUS
                         or crossed(mesh, snapped, p[:3, 3]) or not rests(p, a)):
                     continue
                 kept += 1
@@ -108,19 +107,31 @@ def main() -> None:
         m = np.array(per).mean(axis=0) * 1e3
         row = {"shape": name, "full_msd_mm": round(m[0], 2), "ours_msd_mm": round(m[1], 2),
                "best_msd_mm": round(m[2], 2), "ours_below_full": round(1 - m[1] / m[0], 3),
-               "best_below_full": round(1 - m[2] / m[0], 3)}
+               "best_below_full": round(1 - m[2] / m[0], 3), "ours_above_best": round(m[1] / m[2] - 1, 3)}
         rows.append(row)
         print(f"== {name}: full {m[0]:.2f} ours {m[1]:.2f} ({row['ours_below_full']:.0%} below) best within the "
-              f"bounds {m[2]:.2f} mm ({row['best_below_full']:.0%} below)", flush=True)
+              f"bounds {m[2]:.2f} mm ({row['best_below_full']:.0%} below); ours {row['ours_above_best']:.1%} above the "
+              "best", flush=True)
+    above = np.array([r["ours_above_best"] for r in rows])
+    summary = {"ours_above_best_median": round(float(np.median(above)), 3),
+               "ours_above_best_worst": round(float(above.max()), 3), "shapes_within_15pct": int(np.sum(above <= 0.15)),
+               "shapes": len(rows)}
+    print(f"ours above the best within the bounds: median {summary['ours_above_best_median']:.1%} (goal 5 %), worst "
+          f"{summary['ours_above_best_worst']:.1%} (goal 15 %); {summary['shapes_within_15pct']} of {len(rows)} shapes "
+          "within 15 %", flush=True)
     out.mkdir(parents=True, exist_ok=True)
     (out / "reachable.json").write_text(json.dumps({"restarts": args.restarts, "starts_per_shape": args.starts,
-                                                    "shapes": rows}, indent=2) + "\n")
+                                                    "summary": summary, "shapes": rows}, indent=2) + "\n")
     lines = [f"Best MSD within ours' bounds: ours and {args.restarts} restarts of its search per start, "
              f"{args.starts} starts per shape (benchmarks/bench_reachable.py).", "",
-             "| shape | full MSD mm | ours | best within the bounds | ours below full | best below full |",
-             "|---|---:|---:|---:|---:|---:|"]
+             "| shape | full MSD mm | ours | best within the bounds | ours below full | best below full | "
+             "ours above best |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
     lines += [f"| {r['shape']} | {r['full_msd_mm']} | {r['ours_msd_mm']} | {r['best_msd_mm']} | "
-              f"{r['ours_below_full']:.0%} | {r['best_below_full']:.0%} |" for r in rows]
+              f"{r['ours_below_full']:.0%} | {r['best_below_full']:.0%} | {r['ours_above_best']:.1%} |" for r in rows]
+    lines += ["", f"Ours above the best: median over the shapes {summary['ours_above_best_median']:.1%} (goal 5 %), worst "
+              f"{summary['ours_above_best_worst']:.1%} (goal 15 %), {summary['shapes_within_15pct']} of {len(rows)} "
+              "shapes within 15 %."]
     (out / "reachable.md").write_text("\n".join(lines) + "\n")
 
 

@@ -27,7 +27,7 @@ from twin.evaluation.shape_corpus import corpus  # noqa: E402
 from twin.formats.target import approximation_json  # noqa: E402
 from twin.morphpatch.approximation import approximate, measured, pose_from_mm_deg  # noqa: E402
 from twin.morphpatch.fields import build_fields  # noqa: E402
-from twin.morphpatch.shapes import mesh_start  # noqa: E402
+from twin.morphpatch.default_start import default_start  # noqa: E402
 
 
 def main() -> None:
@@ -43,7 +43,7 @@ def main() -> None:
     for name, mesh in items:
         mesh.apply_translation([-mesh.bounds.mean(0)[0], -mesh.bounds.mean(0)[1], -mesh.bounds[0, 2]])
         fields = build_fields(mesh)
-        start = pose_from_mm_deg(mesh_start(mesh))
+        start = pose_from_mm_deg(default_start(mesh, fields, spec))
         approximate(fields, start, spec, args.variant)
         times = [approximate(fields, start, spec, args.variant).time for _ in range(3)]
         a = measured(spec, mesh, approximate(fields, start, spec, args.variant))

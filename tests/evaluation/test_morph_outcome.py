@@ -11,7 +11,7 @@ from twin.evaluation.morph_outcome import morph_outcome
 from twin.evaluation.table1 import twin_outcome
 from twin.morphpatch.approximation import approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
-from twin.morphpatch.shapes import load_shape, mesh_start
+from twin.morphpatch.shapes import load_shape, side_starts
 from twin.morphpatch.surface_metrics import match
 from twin.records.approximation import Approximation
 from twin.sim.twin import Twin
@@ -21,7 +21,7 @@ from twin.sim.twin import Twin
 def cylinder(spec):
     mesh = load_shape("cylinder")
     fields = build_fields(mesh)
-    return mesh, fields, approximate(fields, pose_from_mm_deg(mesh_start(mesh)), spec, "full")
+    return mesh, fields, approximate(fields, pose_from_mm_deg(side_starts(mesh)[0]), spec, "full")
 
 
 def test_a_morph_comes_to_rest_where_it_is_measured(spec, cylinder):

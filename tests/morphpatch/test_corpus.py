@@ -1,26 +1,30 @@
 """Shapes nobody tuned the approximation for (twin/evaluation/shape_corpus.py): from seeded starts all round each, no
-variant's anchor crosses the solid, ours passes no more flaps through it than full (its flaps apart), and each shape's default
-start is outside it; lowered onto a cup narrower than the device, no variant goes into it. The default suite takes a
+variant's anchor crosses the solid, ours passes no more flaps through it than full (its flaps apart), and each shape's side
+starts are outside it; lowered onto a cup narrower than the device, no variant goes into it. The default suite takes a
 bowl and a cup (the concave families, where crossing is possible); the slow suite the whole corpus, 10 starts
 each. How well each variant fits them is measured, not asserted: benchmarks/bench_corpus.py,
 docs/approximation.md "Shapes nobody tuned for"."""
 
 import igl
+import numpy as np
 import pytest
 
 from twin.device.flap_collision import collides, flap_boxes
-from twin.evaluation.shape_corpus import corpus, crossed, starts
-from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose
+from twin.evaluation.shape_corpus import corpus, crossed, person_starts, starts
+from twin.morphpatch.approximation import VARIANTS, approximate, measured, pose_from_mm_deg, root_pose
+from twin.morphpatch.default_start import default_start
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.refinement import flaps_through, uncurled
-from twin.morphpatch.shapes import mesh_start
+from twin.morphpatch.resting import refusal, resting
+from twin.morphpatch.shapes import side_starts
 from twin.morphpatch.surface_metrics import match
+
 
 def check_shapes(spec, shapes, n_starts):
     for i, (name, mesh) in enumerate(shapes):
         fields = build_fields(mesh)
-        default = pose_from_mm_deg(mesh_start(mesh))[:3, 3]
-        assert igl.signed_distance(default[None], mesh.vertices, mesh.faces)[0][0] > 0.03, name
+        sides = np.array([pose_from_mm_deg(s)[:3, 3] for s in side_starts(mesh)])
+        assert igl.signed_distance(sides, mesh.vertices, mesh.faces)[0].min() > 0.03, name
         for start in starts(mesh, n_starts, seed=100 + i):
             snapped = root_pose(fields, start, spec)[:3, 3]
             assert not crossed(mesh, start[:3, 3], snapped), (name, start[:3, 3])
@@ -33,18 +37,28 @@ def check_shapes(spec, shapes, n_starts):
             assert through["refined"] <= through["full"], (name, start[:3, 3], through)  # ours adds no flap through it
 
 
+def over_the_rim(mesh) -> list[float]:
+    """A start 40 mm above a corpus cup's rim, level, over the middle of its wall's top on the side away from the
+    handle (the handle is on +x, the cup's axis at y = 0), [mm, deg]."""
+    v = mesh.vertices
+    rim = v[(v[:, 2] > v[:, 2].max() - 1e-4) & (np.abs(v[:, 1]) < 2e-3)]
+    left = rim[rim[:, 0] < np.median(rim[:, 0])]
+    x = float(left[:, 0].min() + left[:, 0].max()) / 2
+    return [x * 1e3, 0.0, float(mesh.bounds[1, 2] + 0.04) * 1e3, 0.0, 0.0, 0.0]
+
+
 CAVITY = 6e-3  # m: an anchor this far inside a cup's convex hull is down in its cavity (the rim is on the hull)
 
 
 @pytest.mark.parametrize("seed", [pytest.param(0, marks=pytest.mark.slow), 3])  # 0: the cups looked at first
 def test_lowered_onto_a_cup_narrower_than_the_device_no_variant_goes_into_it(spec, seed):
-    """Cups with a handle, 60-120 mm across (the device 188 x 175 mm), from their default start above the rim:
+    """Cups with a handle, 60-120 mm across (the device 188 x 175 mm), lowered from above onto the rim:
     every variant's anchor ends on the rim or the outer wall, not down in the cavity with the flaps through the
     wall (ours went 12-17 mm into seed 0's cups before its flaps were kept from passing through the target)."""
     for name, mesh in corpus(seed=seed, families=("cup",)):
         fields = build_fields(mesh)
         hull = mesh.convex_hull
-        start = pose_from_mm_deg(mesh_start(mesh))
+        start = pose_from_mm_deg(over_the_rim(mesh))
         for variant in VARIANTS:
             anchor = approximate(fields, start, spec, variant).root_pose[:3, 3]
             depth = -igl.signed_distance(anchor[None], hull.vertices, hull.faces)[0][0]
@@ -81,3 +95,25 @@ def test_on_tori_whose_full_pose_presses_flaps_together_ours_refines_from_it_unr
             assert ours <= unrolled + 1e-4, (name, start[:3, 3], ours, unrolled)
             if name == "torus_0":
                 assert ours <= 0.99 * unrolled, (name, start[:3, 3], ours, unrolled)
+
+
+@pytest.mark.slow  # 8 fields built: minutes
+def test_the_default_start_does_as_well_as_the_starts_a_person_would_try(spec):
+    """Issue 37: on one shape of each corpus family drawn from a seed the default start was not chosen on (3), ours
+    from the default start (twin.morphpatch.default_start) against ours from the starts a person would try
+    (person_starts: from above and each side, over the middle): delivered wherever one of theirs is, and its MSD
+    (exact mesh; a refused pose counts as infinite) at or below the median of theirs on at least 6 of the 8 shapes
+    (the broadest side alone: 2 of 8). Seed 0's with benchmarks/bench_default_start.py: docs/approximation.md,
+    "Starts"."""
+    def ours(mesh, fields, start) -> float:
+        a = measured(spec, mesh, approximate(fields, pose_from_mm_deg(start), spec, "refined"))
+        refused = refusal(spec, mesh, resting(spec, mesh, fields, a), "refined", a.rests) is not None
+        return float("inf") if refused else a.msd
+    at_or_below = 0
+    for name, mesh in corpus(seed=3, per_family=1):
+        fields = build_fields(mesh)
+        default = ours(mesh, fields, default_start(mesh, fields, spec))
+        theirs = sorted(ours(mesh, fields, s) for s in person_starts(mesh))
+        assert default < float("inf") or theirs[0] == float("inf"), (name, theirs)
+        at_or_below += default <= theirs[2]
+    assert at_or_below >= 6, at_or_below

@@ -14,7 +14,8 @@ from cli import vrscroll
 from twin.evaluation.shape_corpus import crossed, starts
 from twin.morphpatch.approximation import VARIANTS, approximate, pose_from_mm_deg, root_pose
 from twin.morphpatch.fields import build_fields
-from twin.morphpatch.shapes import mesh_start
+from twin.morphpatch.default_start import default_start
+from twin.morphpatch.shapes import side_starts
 
 OUTER, INNER, HEIGHT, FLOOR = 0.045, 0.040, 0.10, 0.008  # m: a cup 90 mm across, the device 188 mm wide
 
@@ -36,19 +37,52 @@ def signed(mesh, points) -> np.ndarray:
     return igl.signed_distance(np.asarray(points, float), mesh.vertices, mesh.faces)[0]
 
 
-def test_the_default_start_is_above_the_top_where_a_hand_lowers_the_device():
+def approach(start) -> np.ndarray:
+    """The direction (unit) a start [mm, deg] brings the device along: its -z."""
+    return -pose_from_mm_deg(start)[:3, 2]
+
+
+def broadest(mesh) -> list[float]:
+    """The first of a mesh's side starts: its broadest side's."""
+    return side_starts(mesh)[0]
+
+
+def test_a_mesh_is_approached_from_its_broadest_side_first_near_its_middle():
+    """Issue 37: the first side start faces the mesh's broadest side, over the open surface nearest its middle,
+    40 mm out; from above where sides tie; never from below; a cup's wall where it is taller than wide, its rim
+    (never its open middle) where it is wider. Every side start is outside the mesh, none from below."""
+    down = np.array([0.0, 0.0, -1.0])
     box = trimesh.creation.box((0.2, 0.1, 0.05))
-    sphere = trimesh.creation.icosphere(4, 0.06)
+    start = broadest(box)
+    assert approach(start) == pytest.approx(down, abs=1e-6) and start[:2] == pytest.approx([0, 0], abs=10)
+    assert start[2] / 1e3 == pytest.approx(box.bounds[1, 2] + 0.04)
+    assert abs(pose_from_mm_deg(start)[0, 0]) == pytest.approx(1.0)  # the row along the box's 200 mm
+    standing = trimesh.creation.box((0.05, 0.1, 0.2))  # its broadest sides face +-x
+    start = broadest(standing)
+    assert abs(approach(start)[0]) == pytest.approx(1.0, abs=1e-6) and start[1:3] == pytest.approx([0, 0], abs=10)
+    assert abs(start[0]) / 1e3 == pytest.approx(0.025 + 0.04)
+    plate = trimesh.creation.box((0.3, 0.2, 0.004))  # tilted 30 deg: on its face's middle, from the upper side
+    plate.apply_transform(trimesh.transformations.euler_matrix(0.5, 0.0, 0.0))
+    start = broadest(plate)
+    assert approach(start)[2] < -0.8 and np.linalg.norm(np.array(start[:3]) / 1e3 - 0.044 * plate.face_normals[
+        np.argmax(plate.face_normals[:, 2])]) < 0.02
     torus = trimesh.creation.torus(0.08, 0.02)
-    for mesh in (box, sphere, torus, cup()):
-        start = np.array(mesh_start(mesh))
-        assert start[2] / 1e3 == pytest.approx(mesh.bounds[1, 2] + 0.04)
-        assert signed(mesh, [start[:3] / 1e3])[0] > 0.035
-        assert start[3:] == pytest.approx([0, 0, 0])  # level: the touch surface faces down
-    assert mesh_start(box)[:2] == pytest.approx([0.0, 0.0], abs=10)  # the top face's middle (mm)
-    # a cup: over its rim, never over its open middle
-    x, y = mesh_start(cup())[:2]
-    assert INNER * 1e3 - 1 <= math.hypot(x, y) <= OUTER * 1e3 + 1
+    start = broadest(torus)
+    assert approach(start) == pytest.approx(down, abs=1e-6) and 60 <= math.hypot(*start[:2]) <= 100  # its tube
+    sphere = trimesh.creation.icosphere(4, 0.06)
+    assert approach(broadest(sphere)) == pytest.approx(down, abs=1e-6)
+    start = broadest(cup())  # 90 mm across, 100 mm high: its wall, the middle of its height
+    assert abs(approach(start)[2]) < 1e-6 and math.hypot(*start[:2]) == pytest.approx(OUTER * 1e3 + 40, abs=1)
+    assert abs(start[2] - HEIGHT * 1e3 / 2) < 10
+    bowl = trimesh.creation.revolve(np.array([[0, 0], [0.06, 0], [0.06, 0.07], [0.055, 0.07], [0.055, 0.005],
+                                              [0, 0.005]]), sections=64)  # 120 mm across, 70 mm high
+    start = broadest(bowl)
+    assert approach(start) == pytest.approx(down, abs=1e-6) and 54 <= math.hypot(*start[:2]) <= 61  # its rim
+    for mesh in (box, standing, plate, torus, sphere, cup(), bowl):
+        for start in side_starts(mesh):
+            assert signed(mesh, [np.array(start[:3]) / 1e3])[0] > 0.035 and approach(start)[2] <= 0.5
+    upside_down = trimesh.creation.box((0.3, 0.3, 0.02))  # broadest from above and from below: from above
+    assert approach(broadest(upside_down))[2] == pytest.approx(-1.0)
 
 
 def test_a_start_inside_the_target_is_refused(tmp_path):
@@ -59,7 +93,7 @@ def test_a_start_inside_the_target_is_refused(tmp_path):
 
 def test_a_cup_narrower_than_the_device_from_above_and_from_the_side(spec, cup_fields):
     mesh, fields = cup_fields
-    from_above = pose_from_mm_deg(mesh_start(mesh))
+    from_above = pose_from_mm_deg([(OUTER + INNER) * 500, 0, HEIGHT * 1e3 + 40, 0, 0, 0])  # over the rim
     from_side = pose_from_mm_deg([-110, 0, 60, 0, -90, 0])  # the device's -z along +x, towards the wall
     for variant in VARIANTS:
         side = approximate(fields, from_side, spec, variant).root_pose[:3, 3]
@@ -86,13 +120,14 @@ def test_the_anchor_never_goes_through_the_solid_from_starts_around_a_target(spe
                 assert np.linalg.norm(anchor - position) <= 0.25 + 0.02 + 1e-6  # SNAP_REACH + ANCHOR_RADIUS
 
 
-def test_demo_on_a_mesh_and_simulate_on_its_approximation(tmp_path):
+def test_demo_on_a_mesh_and_simulate_on_its_approximation(spec, tmp_path):
     cup().export(tmp_path / "cup.stl")
     out = vrscroll("demo", "--mesh", tmp_path / "cup.stl", "--png", tmp_path / "d.png", "--plot", tmp_path / "s.png",
                    "--json", tmp_path / "d.json", timeout=300)
     assert out.returncode in (0, 1), out.stderr  # 1: a gate check failed (a report, not an error)
     report = json.loads((tmp_path / "d.json").read_text())
-    assert report["target"] == str(tmp_path / "cup.stl") and report["start_mm_deg"] == pytest.approx(mesh_start(cup()))
+    expected = default_start(cup(), build_fields(cup()), spec)  # the STL's float32 vertices: the same start
+    assert report["target"] == str(tmp_path / "cup.stl") and report["start_mm_deg"] == pytest.approx(expected, abs=0.01)
     assert report["morph"]["msd_after_morph_mm"] > 0 and (tmp_path / "s.png").stat().st_size > 20_000
     approx = tmp_path / "a.json"
     assert vrscroll("approximate", "--mesh", tmp_path / "cup.stl", "--json", approx, timeout=300).returncode == 0

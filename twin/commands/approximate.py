@@ -3,8 +3,8 @@
 The target is a named shape (models/shapes/shapes.toml) or a mesh file in metres.
 The start is the anchor's pose as x,y,z (mm), roll,pitch,yaw (deg, fixed axes:
 R = Rz(yaw) Ry(pitch) Rx(roll)); by default the shape's own `start` from
-shapes.toml, or for a mesh file 40 mm above the centre of its bounding box's top,
-level (device z up). The JSON carries MSD and HD (mm) on the exact mesh, how much of
+shapes.toml, or for a mesh file 40 mm out from the side of it ours rests on best, over that
+side's middle (twin.morphpatch.default_start: the sides along its principal axes and from above). The JSON carries MSD and HD (mm) on the exact mesh, how much of
 the touch surface lies inside the target and how deep (inside_percent, inside_depth_mm,
 inside_over_2mm_percent), the smallest gap between flaps two or more apart (flap_gap_mm),
 flaps through the target, and time_ms of a warm call (the process's first call, which
@@ -29,7 +29,8 @@ from twin.formats.target import approximation_json, write_approximation
 from twin.morphpatch.approximation import VARIANTS, approximate, frames, measured, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.resting import refusal, resting, resting_json
-from twin.morphpatch.shapes import load_mesh, load_shape, mesh_start, shape_names, shape_table
+from twin.morphpatch.default_start import default_start
+from twin.morphpatch.shapes import load_mesh, load_shape, shape_names, shape_table
 from viz.scene import render_approximation
 
 def add_arguments(p) -> None:
@@ -60,11 +61,11 @@ def target_and_start(args):
     a start inside the target is refused (a UserError)."""
     if args.shape:
         mesh, name = load_shape(args.shape), args.shape
-        default_start = shape_table()[args.shape]["start"]
+        default = shape_table()[args.shape]["start"]
     else:
         mesh, name = load_mesh(args.mesh), args.mesh
-        default_start = mesh_start(mesh)
-    start = _parse_start(args.start) if args.start else default_start
+        default = None if args.start else default_start(mesh, build_fields(mesh), load_spec())
+    start = _parse_start(args.start) if args.start else default
     pose = pose_from_mm_deg(start)
     if igl.signed_distance(pose[None, :3, 3], mesh.vertices, mesh.faces)[0][0] < 0:
         raise UserError(f"--start {','.join(f'{v:g}' for v in start)}: the anchor starts inside the target; give a "

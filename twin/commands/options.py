@@ -206,7 +206,7 @@ def add_target(p, shapes, required: bool, role: str = "the target", start: bool 
     if start:
         p.add_argument("--start", metavar="X,Y,Z,ROLL,PITCH,YAW",
                        help="the anchor's start in the target's frame: x, y, z in mm, then roll, pitch, yaw in deg "
-                            "(R = Rz(yaw) Ry(pitch) Rx(roll), fixed axes; the device's -z points at the target); default: the shape's start, or 40 mm above the top of a mesh (docs/approximation.md, \"Starts\")")
+                            "(R = Rz(yaw) Ry(pitch) Rx(roll), fixed axes; the device's -z points at the target); default: the shape's start, or 40 mm out from the side of a mesh ours fits best, over its middle (docs/approximation.md, \"Starts\")")
 
 
 def add_device_option(p) -> None:

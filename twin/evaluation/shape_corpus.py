@@ -145,6 +145,18 @@ def starts(mesh: trimesh.Trimesh, n: int, seed: int) -> list[np.ndarray]:
     return out
 
 
+def person_starts(mesh: trimesh.Trimesh) -> list[list[float]]:
+    """The starts a person would try on an object lying on a table (issue 37), [x, y, z mm, roll, pitch, yaw deg]:
+    from above and from each of its four sides, the device square to that face of the bounding box, over its
+    middle, 40 mm out from it, the row level; never from below. Written apart from twin.morphpatch.shapes.side_starts
+    (no principal axes, no depth images): what the default start is judged against."""
+    lo, hi = mesh.bounds * 1e3
+    mid = (lo + hi) / 2
+    return [[mid[0], mid[1], hi[2] + 40, 0, 0, 0],  # from above, level
+            [hi[0] + 40, mid[1], mid[2], 0, 90, 0], [lo[0] - 40, mid[1], mid[2], 0, -90, 0],  # -z along -x, +x
+            [mid[0], hi[1] + 40, mid[2], -90, 0, 0], [mid[0], lo[1] - 40, mid[2], 90, 0, 0]]  # -z along -y, +y
+
+
 def corpus(seed: int = 0, families=FAMILIES, per_family: int = PER_FAMILY) -> list[tuple[str, trimesh.Trimesh]]:
     """[(name, mesh)]: per_family shapes of each family, drawn from `seed`, each resting on z = 0, centred."""
     rng = np.random.default_rng(seed)

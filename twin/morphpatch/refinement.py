@@ -26,7 +26,8 @@ target from outside (issue 37; docs/approximation.md, "Resting from outside"):
 - no touch-surface sample deeper in the target than INSIDE_LIMIT (on the grid): a trial step that
   goes deeper is lifted back along the root's normal (`_lifted`) and refused if it still does; the
   search starts from a pose that rests (`_feasible`: the pipeline's pose unrolled, its angles
-  scaled down (SCALES), lifted along its normal until it rests), or, where none does, returns saying so;
+  scaled down (SCALES), lifted along its normal until it rests, by at most LIFT_REACH; where no lift within
+  the anchor's ball rests, the ball goes up with the lift), or, where none does, returns saying so;
 - the anchor stays (nearly) out of the target, at most ANCHOR_DEPTH in: where a step
   would take it deeper, it is moved back along grad S, and while it is at that depth
   with the sum falling inwards, steps keep to the surface's tangent plane there (least
@@ -47,7 +48,8 @@ target from outside (issue 37; docs/approximation.md, "Resting from outside"):
   into the cavity with the root flap's ends through the wall (issue 22);
 - the anchor stays within ANCHOR_RADIUS of the snapped point (the pipeline's step 1:
   where the user brought the device; unbounded, it drifts up to 150 mm to the easiest
-  flat patch, which is not the region the user chose); on the ball's surface, steps
+  flat patch, which is not the region the user chose), or of the point above it the start was
+  lifted to where it could rest no nearer; on the ball's surface, steps
   slide along it, and one that still leaves the ball is cut back to it;
 - hinge angles are clipped inside +-spec.hinge_limit;
 - flaps two or more apart at least FLAP_APART apart (`_flap_gap`: the collision boxes of
@@ -86,6 +88,8 @@ INSIDE_LIMIT = 1.5e-3  # m: no touch-surface sample of a refined pose lies deepe
 # the exact mesh between samples and the grid's error add up to 1.5 mm: the stated bound is 3 mm, exact)
 LIFT_STEPS = 40  # at most this many lifts of the start along its normal until it rests outside (`_feasible`)
 LIFT_MIN = 1e-3  # m: the smallest such lift
+LIFT_REACH = 0.06  # m: ... and the most, beyond which the ball goes with it (a torus start wrapped 39 mm into the
+# tube rests lifted by about that; within the 20 mm ball alone, 14 of the tests' 80 paper-shape starts found none)
 SCALES = (1.0, 0.5, 0.0)  # the pipeline's hinge angles times these, each lifted (`_feasible`; finer steps,
 # 1, 0.9, 0.8, 0.65, 0.5, 0.25, 0, left a can's wrap 16.4 mm MSD where these leave 14.2)
 LIFT_TRIES = 3  # a search step that goes deeper is lifted back along the normal at most this many times (`_lifted`)
@@ -110,7 +114,8 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
 
     local: (n_flaps, M, 3) sample points in each flap's frame at its width (m); widths (m)
     stay as given; centre (3,) m: the snapped anchor, which the anchor stays within
-    `radius` of (of the lifted start, where it had to be lifted). The whole search runs compiled (`_search`).
+    `radius` of (of the point above it the start was lifted to, where no nearer start rests: `_feasible`).
+    The whole search runs compiled (`_search`).
     Where no start rests from outside (`_feasible`), the pose returned is the pipeline's, unrolled, and False.
     """
     pose = np.ascontiguousarray(root_pose, dtype=float)
@@ -170,8 +175,8 @@ def _search(grid, device, local, root_pose, angles, widths, centre, radius, dept
     passing = _through_at(grid, device, angles, widths, _pose(rot, anchor), half)
     rot, anchor, angles, passing = _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, half,
                                             np.inf, passing, unrolled)
-    lifted, angles, rests = _feasible(grid, device, local, rot, anchor, angles, widths, half, centre, radius)
-    if not rests:  # no lift of that pose, curled or flat, rests on the target from outside within the ball:
+    lifted, angles, centre, rests = _feasible(grid, device, local, rot, anchor, angles, widths, half, centre, radius)
+    if not rests:  # no lift of that pose, curled or flat, rests on the target from outside:
         return pipeline[0], pipeline[1], False  # the pipeline's pose, unrolled (its anchor's path is clear)
     rot, anchor, angles, _ = _descend(grid, device, local, rot, lifted, angles, widths, centre, radius, half,
                                       INSIDE_LIMIT, 0, False)
@@ -270,31 +275,36 @@ def _lifted(grid, device, local, rot, anchor, angles, widths, inside_limit):
 @numba.njit(cache=True)
 def _feasible(grid, device, local, rot, anchor, angles, widths, half, centre, radius):
     """A start that rests on the target from outside (no sample deeper than INSIDE_LIMIT, no flap through
-    it): of the hinge angles as given and scaled down (SCALES, to flat), each lifted along the root's normal (never
-    through the target, nor out of the anchor's ball about `centre`, nor where the snapped anchor does not
-    reach it in a straight line) until it rests
-    (by the excess depth each time, at least LIFT_MIN, at most LIFT_STEPS times), the one the objective
-    prefers; the pipeline's own pose where it rests as it is. (anchor (3,) m, hinge angles rad, whether any
-    rests.)"""
-    best_cost, best_anchor, best_angles = np.inf, anchor, angles
+    it): of the hinge angles as given and scaled down (SCALES, to flat), each lifted along the root's normal
+    (never through the target, nor where the snapped anchor does not reach it in a straight line, at most
+    LIFT_REACH) until it rests (by the excess depth each time, at least LIFT_MIN, at most LIFT_STEPS times), the
+    one the objective prefers, preferring one within the anchor's ball about `centre` to one lifted out of it;
+    the pipeline's own pose where it rests as it is. Where the one taken left the ball, the ball's centre goes
+    up with it along the normal: the search goes on about the point above the snapped one the device was
+    lifted to. (anchor (3,) m, hinge angles rad, the ball's centre (3,) m, whether any rests.)"""
+    best_cost, best_anchor, best_angles, best_out = np.inf, anchor, angles, True
     normal = rot[:, 2].copy()
     for scale in SCALES:
         trial = angles * scale
         lift = 0.0
         for _ in range(LIFT_STEPS):
             p = anchor + lift * normal
-            if not _path_clear(grid, anchor, p) or not _path_clear(grid, centre, p, CHORD_DEPTH) or \
-                    _distance(p, centre) > radius:  # through the target, or out of the anchor's ball
-                break
+            if lift > LIFT_REACH or not _path_clear(grid, anchor, p) or not _path_clear(grid, centre, p, CHORD_DEPTH):
+                break  # too far, through the target, or off the side the device came from
             cost, deepest = _cost(grid, device, local, rot, p, trial, widths)
             if deepest <= INSIDE_LIMIT and _through_at(grid, device, trial, widths, _pose(rot, p), half) == 0:
-                if cost < best_cost:
-                    best_cost, best_anchor, best_angles = cost, p, trial
+                out = _distance(p, centre) > radius
+                if out and not _path_clear(grid, centre, centre + ((p - centre) @ normal) * normal, CHORD_DEPTH):
+                    break  # the ball's centre lifted with it would be off the side the device came from
+                if (not out and best_out) or (out == best_out and cost < best_cost):
+                    best_cost, best_anchor, best_angles, best_out = cost, p, trial, out
                 break
             lift += max(deepest - 0.5 * INSIDE_LIMIT, LIFT_MIN)
         if scale == 1.0 and best_cost < np.inf and lift == 0.0:
             break
-    return best_anchor, best_angles, best_cost < np.inf
+    if best_cost < np.inf and best_out:
+        centre = centre + ((best_anchor - centre) @ normal) * normal
+    return best_anchor, best_angles, centre, best_cost < np.inf
 
 
 @numba.njit(cache=True)

@@ -23,7 +23,7 @@ import trimesh
 
 from twin.device.spec import DeviceSpec
 from twin.morphpatch.fields import Fields
-from twin.morphpatch.refinement import ANCHOR_RADIUS, flap_gap, flaps_through
+from twin.morphpatch.refinement import ANCHOR_RADIUS, LIFT_REACH, flap_gap, flaps_through
 from twin.morphpatch.surface_metrics import proxy_distances
 
 DEEPEST_MAX = 3e-3  # m: ours' touch surface goes no deeper into the target than this (exact mesh)
@@ -74,8 +74,8 @@ def refusal(spec: DeviceSpec, mesh: trimesh.Trimesh, r: Resting, variant: str, r
     elif r.gap < FLAP_APART_MIN:
         why = f"its flaps come {r.gap * 1e3:.1f} mm close (at least {FLAP_APART_MIN * 1e3:g} mm)"
     elif rests is False:
-        why = (f"no pose near where the device met it (within {ANCHOR_RADIUS * 1e3:g} mm) rests on it without "
-               "passing through")
+        why = (f"no pose near where the device met it (within {ANCHOR_RADIUS * 1e3:g} mm, or lifted off it by up to "
+               f"{LIFT_REACH * 1e3:g} mm) rests on it without passing through")
     else:
         return None
     return f"ours cannot rest on this target from outside: {why}; try another --start"

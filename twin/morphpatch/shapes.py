@@ -10,20 +10,28 @@ from __future__ import annotations
 
 import math
 import tomllib
+import warnings
 from functools import lru_cache
 from pathlib import Path
 
-import igl
 import numpy as np
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from twin.paths import MODELS_DIR
 
 SHAPES_PATH = MODELS_DIR / "shapes" / "shapes.toml"
 
-START_HEIGHT = 0.04  # m: a mesh's default start is this far above its top (mesh_start)
-TOP_BAND = 0.002  # m: the top of a mesh is its upward faces within this of its highest point
-TOP_SUPPORT = 0.002  # m: a start is over a point of the top with solid this far under it (at least half of it)
+START_HEIGHT = 0.04  # m: a mesh's starts are this far out from the side each faces (side_starts)
+SIDE_BAND = 0.05  # m: an open cell's surface lies within this of the convex hull (a cup's floor is 92 mm below its
+# rim, a saddle's centre 42 mm below the hull over its high corners: the device curls into a saddle, not a cup)
+SIDE_FACING = math.radians(30)  # an open cell's surface faces the device within this (a torus's top, not its slope)
+SIDE_CELL = 0.005  # m: the cells of the depth image a side is seen in ...
+SIDE_CELLS = 200  # ... or the mesh's size over this, where larger (a 5 m mesh: 25 mm)
+SIDE_SAMPLES = 50_000  # surface samples (and the vertices) the sides are seen by
+SIDE_TIE = 0.9  # of the sides at least this share of the broadest one's area, the one most from above
+AXES_TIE = 0.02  # principal moments within this share of the largest are equal (`_principal_axes`)
+FROM_BELOW = 0.5  # no default start approaches upwards by more than this sine (30 deg): from under an object
 MIN_SIZE = 0.002  # m: a target whose bounding box is smaller than this is an error (a 1 cm sphere is a target)
 MAX_SIZE = 5.0  # m: ... or larger than this
 
@@ -55,28 +63,105 @@ def load_shape(name: str) -> trimesh.Trimesh:
     return check_mesh(mesh, name)
 
 
-def mesh_start(mesh: trimesh.Trimesh) -> list[float]:
-    """The default start for a mesh file, [x, y, z mm, roll, pitch, yaw deg]: the device level (its touch
-    surface facing down, -z), START_HEIGHT above the top of the object, over the point of the top nearest
-    the top's middle that has solid under it (TOP_SUPPORT): where a hand lowering the device onto the object
-    first meets it (a box's top face's middle, a sphere's pole, a point of a cup's rim, never the open middle
-    of a cup). Ties go to the larger x, then y, so the start does not depend on the order of the faces."""
-    top = mesh.vertices[:, 2].max()
-    up = (mesh.face_normals[:, 2] > 0.5) & (mesh.triangles_center[:, 2] >= top - TOP_BAND)
-    if not up.any():  # no upward face at the top (a point, an edge): over its highest vertex
-        x, y = mesh.vertices[np.argmax(mesh.vertices[:, 2]), :2]
-        return [float(x) * 1e3, float(y) * 1e3, float(top + START_HEIGHT) * 1e3, 0.0, 0.0, 0.0]
-    triangles = mesh.triangles[up]
-    middle = np.average(mesh.triangles_center[up], axis=0, weights=mesh.area_faces[up])
-    nearest = trimesh.triangles.closest_point(triangles, np.tile(middle, (len(triangles), 1)))
-    candidates = np.vstack([nearest, mesh.triangles_center[up]])
-    below = candidates - [0.0, 0.0, TOP_SUPPORT]
-    supported = igl.signed_distance(below, mesh.vertices, mesh.faces)[0] < -TOP_SUPPORT / 2
-    if supported.any():
-        candidates = candidates[supported]
-    d = np.round(np.linalg.norm(candidates[:, :2] - middle[:2], axis=1), 4)  # to 0.1 mm: ties
-    x, y = candidates[np.lexsort((-candidates[:, 1], -candidates[:, 0], d))[0], :2]
-    return [float(x) * 1e3, float(y) * 1e3, float(top + START_HEIGHT) * 1e3, 0.0, 0.0, 0.0]
+def side_starts(mesh: trimesh.Trimesh) -> list[list[float]]:
+    """The starts a person would bring the device to a mesh from, [x, y, z mm, roll, pitch, yaw deg] each, the
+    broadest side's first: each facing one of the mesh's sides, over the open surface nearest its middle,
+    START_HEIGHT out from it (issue 37; twin.morphpatch.default_start picks among them).
+
+    The sides are seen along the mesh's principal axes (of inertia), both ways, and straight down (a hand
+    lowering the device onto an object on a table); none from below (approaching upwards by more than
+    FROM_BELOW). Each side is a depth image of square cells (SIDE_CELL, or 1/SIDE_CELLS of the mesh's size where
+    that is larger): its area is the mesh's silhouette seen that way; its open cells are those whose surface,
+    first met, faces the device (within SIDE_FACING) and lies within SIDE_BAND of the convex hull met on the
+    same line (not down a cavity: a cup's floor, a torus's hole). Sides come broadest first (of those within
+    SIDE_TIE of the broadest, the one most from above first: a sphere, a bar, a box from above; a plate on its
+    face; a cup taller than wide on its wall). Each start is over its side's open cell nearest the silhouette's
+    middle (a saddle's centre, a point of a cup's rim, never its open middle), START_HEIGHT beyond the side's
+    nearest point, the device's -z along the side's direction, its row (x) along the larger of the side's two
+    extents. Ties go to the larger coordinates, and the surface samples are seeded: the same mesh gives the
+    same starts."""
+    samples, faces = trimesh.sample.sample_surface(mesh, SIDE_SAMPLES, seed=0)
+    points = np.vstack([samples, mesh.vertices]) - mesh.center_mass
+    normals = np.vstack([mesh.face_normals[faces], mesh.vertex_normals])
+    hull = mesh.convex_hull
+    planes = np.c_[hull.face_normals, np.einsum("ij,ij->i", hull.face_normals, hull.triangles[:, 0] - mesh.center_mass)]
+    cell = max(SIDE_CELL, float(mesh.extents.max()) / SIDE_CELLS)
+    axes = _principal_axes(mesh)
+    sides = [(sign * axes[i], axes[(i + 1) % 3]) for i in range(3) for sign in (1.0, -1.0)]
+    sides.append((np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0])))
+    seen = [(d, a) + _side(points, normals, planes, d, a, cell) for d, a in sides if d[2] <= FROM_BELOW]
+    broadest = max(s[2] for s in seen)
+    seen.sort(key=lambda s: (s[2] < SIDE_TIE * broadest, round(float(s[0][2]), 6) if s[2] >= SIDE_TIE * broadest
+                             else -s[2]))  # stable: the first of equals
+    return [_start(mesh, points, *s) for s in seen]
+
+
+def _start(mesh, points, d, a, area, near, middle, across) -> list[float]:
+    """The start facing a side (`_side`'s results along d, a) over its open cell nearest its middle."""
+    distance = np.round(np.linalg.norm(across - middle, axis=1), 4)  # to 0.1 mm: ties
+    u, v = across[np.lexsort((-across[:, 1], -across[:, 0], distance))[0]]
+    b = np.cross(d, a)
+    position = mesh.center_mass + u * a + v * b + (near - START_HEIGHT) * d
+    x = a if np.ptp(points @ a) >= np.ptp(points @ b) else b
+    rotation = np.column_stack([x, np.cross(-d, x), -d])
+    with warnings.catch_warnings():  # a gimbal lock (pitch +-90 deg) is said by an angle of 0, which is right
+        warnings.simplefilter("ignore", UserWarning)
+        angles = Rotation.from_matrix(rotation).as_euler("xyz", degrees=True)
+    return [round(float(c), 3) for c in position * 1e3] + [round(float(c), 3) for c in angles]
+
+
+def _principal_axes(mesh: trimesh.Trimesh) -> np.ndarray:
+    """The mesh's principal axes of inertia (rows), each sign fixed (its largest component positive). Where moments
+    are within AXES_TIE of each other their axes are any in their plane (a body of revolution, a cube, a sphere),
+    and a file read again (an STL's float32 vertices) turns them at random: there they are the world's axes
+    (all three equal), or the unequal one and the world axis (z, x, y first) nearest the plane of the two equal."""
+    moments = np.asarray(mesh.principal_inertia_components, float)
+    axes = np.array(mesh.principal_inertia_vectors, float)
+    tie = AXES_TIE * moments.max()
+    equal = [abs(moments[(i + 1) % 3] - moments[(i + 2) % 3]) <= tie for i in range(3)]
+    if sum(equal) >= 2:
+        return np.eye(3)
+    if any(equal):
+        unique = axes[equal.index(True)]
+        world = np.eye(3)[[2, 0, 1]]
+        along = np.linalg.norm(world - np.outer(world @ unique, unique), axis=1)
+        e = world[np.flatnonzero(along >= along.max() - 1e-3)[0]]
+        a = e - (e @ unique) * unique
+        a /= np.linalg.norm(a)
+        axes = np.array([unique, a, np.cross(unique, a)])
+    return axes * np.sign(axes[np.arange(3), np.argmax(np.abs(axes) + 1e-9 * np.arange(3), axis=1)])[:, None]
+
+
+def _side(points, normals, planes, d, a, cell):
+    """The mesh's side seen along d (a unit vector; a, another, across it) from its surface `points` (m) and
+    their `normals`, its convex hull's `planes` (n, 4: unit normal, offset m): (its area m^2, the depth along d
+    of its nearest point m, its silhouette's middle (u, v) m, its open cells' (u, v) (k, 2) m, along a and
+    d x a)."""
+    b = np.cross(d, a)
+    uv, depth = np.c_[points @ a, points @ b], points @ d
+    index = np.floor(uv / cell).astype(np.int64)
+    low = index.min(axis=0)
+    key = (index[:, 0] - low[0]) * (index[:, 1].max() - low[1] + 1) + index[:, 1] - low[1]
+    order = np.lexsort((depth, key))
+    first = order[np.r_[True, key[order][1:] != key[order][:-1]]]  # per cell, the sample met first along d
+    centre = (index[first] + 0.5) * cell
+    facing = normals[first] @ -d >= math.cos(SIDE_FACING)
+    open_ = facing & (depth[first] - _hull_depth(planes, centre, d, a, b) <= SIDE_BAND)
+    if not open_.any():  # nothing faces the device: its nearest surface then
+        open_ = depth[first] == depth[first].min()
+    return len(first) * cell ** 2, float(depth[first].min()), centre.mean(axis=0), uv[first[open_]]
+
+
+def _hull_depth(planes, uv, d, a, b):
+    """Where lines along d through (u, v) (k, 2) m first meet a convex hull of `planes` (n, 4): the depth along
+    d (m), in chunks of cells (the hull of a scanned mesh has thousands of faces)."""
+    out = np.empty(len(uv))
+    facing = planes[planes[:, :3] @ d < 0]  # a line along d enters through the planes facing against it
+    nd = facing[:, :3] @ d
+    for lo in range(0, len(uv), 4096):
+        p = uv[lo:lo + 4096, :1] * a + uv[lo:lo + 4096, 1:] * b  # the lines' points at depth 0
+        out[lo:lo + 4096] = ((facing[:, 3] - p @ facing[:, :3].T) / nd).max(axis=1)
+    return out
 
 
 def load_mesh(path: str | Path) -> trimesh.Trimesh:
