@@ -53,16 +53,19 @@ class BringupError(UserError):
 
 @dataclasses.dataclass(frozen=True)
 class HingeCheck:
-    """What the pulses found for one hinge (its bridge's motor)."""
+    """What the pulses (and the hand) found for one hinge: the input its encoder is on, the bridge its motor is on."""
 
     hinge: int
-    encoder: int  # the encoder input that answered
+    encoder: int  # the encoder input that is the hinge's
     encoder_reversed: bool
     motor_reversed: bool
     counts: float  # |counts| the encoder moved per pulse
     expected: float  # |counts| the spec's no-load speed would give, an upper bound
     note: str  # what was wrong, "" if nothing
     decided: bool = True  # False: not corrected here (named, nothing stored): a person decides or rewires
+    bridge: int | None = None  # the H-bridge that drives its motor (None: bridge `hinge`, until bring_up maps them)
+    turns: int | None = None  # the encoder input bridge `hinge`'s pulses turned (None: `encoder`)
+    turns_up: bool = True  # whether positive drive of bridge `hinge` turned that input up
 
     @property
     def flags(self) -> int:
@@ -124,29 +127,19 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
                           f"{down[j]:+.0f} at negative): bridge {hinge}'s {pin}, which drives the {way} way, is "
                           "open (the board's pull-up holds it high: that way brakes); check its wire and solder",
                           decided=False)
-    notes = []
-    encoder_reversed = False
     if hand is not None:
         bent = np.asarray(hand(hinge))
         # of the input that answered the bridge and the hinge's own, the one the bend moved more (the others may be
-        # sagging meanwhile)
+        # sagging meanwhile): the flap's encoder; the bridge that turns it is its motor's (bring_up maps them)
         k = j if abs(bent[j]) >= abs(bent[hinge]) else hinge
         if abs(bent[k]) < HAND_COUNTS:
             return HingeCheck(hinge, j, False, False, moved, expected,
                               f"hinge {hinge}: the hand's bend moved input {j} by {bent[j]:.0f} counts and input "
                               f"{hinge} by {bent[hinge]:.0f}: bend flap {hinge}'s free end up by about 20 deg and run "
                               "again", decided=False)
-        if k != j:  # the flap's own encoder is on its own input: the bridge drives another flap
-            return HingeCheck(hinge, j, False, False, moved, expected,
-                              f"hinge {hinge}: bending flap {hinge} turns input {hinge}, but bridge {hinge} turns "
-                              f"input {j}: the motors of hinges {hinge} and {j} are on each other's bridges; swap "
-                              "their motor wires between the two bridges (the wiring correction maps encoders, not "
-                              "bridges)", decided=False)
-        encoder_reversed = bool(bent[j] < 0)
-        if encoder_reversed:
-            notes.append(f"hinge {hinge}: its encoder counts down when the flap bends up: A and B swapped "
-                         "(corrected: counted the other way)")
-    elif j != hinge or swing[j] < 0:
+        return HingeCheck(hinge, k, bool(bent[k] < 0), False, moved, expected, "", turns=j,
+                          turns_up=bool(swing[j] > 0))
+    if j != hinge or swing[j] < 0:
         what = [f"hinge {hinge}: its bridge turns encoder input {j}: the encoder cables of hinges {hinge} and {j} "
                 "are crossed, or their motors are on each other's bridges"] if j != hinge else []
         what += [f"hinge {hinge}: positive drive turns encoder input {j} down: its motor's leads or its encoder's "
@@ -157,17 +150,41 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
                           f"--watch`: the input that moves is its encoder's; counting down, swap that encoder's A and "
                           "B; counting up with positive drive still counting down, swap the motor's leads)",
                           decided=False)
-    if j != hinge:
-        notes.insert(0, f"hinge {hinge}: its motor turns encoder input {j}: the encoder cables of hinges {hinge} and "
-                        f"{j} are crossed (corrected: hinge {hinge} reads input {j})")
-    motor_reversed = bool((swing[j] < 0) != encoder_reversed)
-    if motor_reversed:
-        notes.append(f"hinge {hinge}: positive drive turns it the negative way: motor leads swapped "
-                     f"(corrected: driven the other way)")
-    if moved > MAX_SHARE * expected:
-        notes.append(f"hinge {hinge}: {moved:.0f} counts per pulse, more than the spec's no-load speed allows "
-                     f"({expected:.0f}): counts per degree unlike the spec's (gear ratio, encoder CPR)")
-    return HingeCheck(hinge, j, encoder_reversed, motor_reversed, moved, expected, "; ".join(notes))
+    return HingeCheck(hinge, j, False, False, moved, expected, "", turns=j, turns_up=True)
+
+
+def mapped(checks: list[HingeCheck], spec: DeviceSpec) -> list[HingeCheck]:
+    """Each hinge's bridge (the one whose pulses turned the hinge's encoder input) and flags, with what was wrong
+    said; a hinge whose input no bridge turned, named and not decided. Units: counts."""
+    by_input = {c.turns: c for c in checks}
+    out = []
+    for c in checks:
+        b = by_input.get(c.encoder)
+        if b is None:
+            out.append(dataclasses.replace(c, decided=False, note=(
+                f"hinge {c.hinge}: bending flap {c.hinge} turns input {c.encoder}, which no bridge's pulse turned: "
+                "its motor is not connected (check its leads and its bridge's wires)")))
+            continue
+        notes = []
+        if c.encoder != c.hinge:
+            notes.append(f"hinge {c.hinge}: its encoder is on input {c.encoder}: the encoder cables of hinges "
+                         f"{c.hinge} and {c.encoder} are crossed (corrected: hinge {c.hinge} reads input {c.encoder})")
+        if b.hinge != c.hinge:
+            notes.append(f"hinge {c.hinge}: its motor is on bridge {b.hinge}: the motors of hinges {c.hinge} and "
+                         f"{b.hinge} are on each other's bridges (corrected: hinge {c.hinge} drives bridge {b.hinge})")
+        if c.encoder_reversed:
+            notes.append(f"hinge {c.hinge}: its encoder counts down when the flap bends up: A and B swapped "
+                         "(corrected: counted the other way)")
+        motor_reversed = b.turns_up == c.encoder_reversed
+        if motor_reversed:
+            notes.append(f"hinge {c.hinge}: positive drive turns it the negative way: motor leads swapped "
+                         f"(corrected: driven the other way)")
+        if b.counts > MAX_SHARE * b.expected:
+            notes.append(f"hinge {c.hinge}: {b.counts:.0f} counts per pulse, more than the spec's no-load speed "
+                         f"allows ({b.expected:.0f}): counts per degree unlike the spec's (gear ratio, encoder CPR)")
+        out.append(dataclasses.replace(c, motor_reversed=motor_reversed, counts=b.counts, expected=b.expected,
+                                       bridge=b.hinge, note="; ".join(notes)))
+    return out
 
 
 def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCheck]:
@@ -187,26 +204,37 @@ def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCh
         raise BringupError(f"the device is {P.enum_name(P.State, state.state)}: bring-up starts from IDLE "
                            "(`vrscroll status --serial PORT --clear-fault`, or power it off and on)")
     n = spec.n_hinges
-    link.set_wiring(range(n), [0] * n)  # measure the wires as they are
+    link.set_wiring(range(n), [0] * n, range(n))  # measure the wires as they are
     checks = []
     for k in range(n):
         c = check_hinge(link, spec, k, hand)
-        say(f"hinge {k}: encoder input {c.encoder}, {c.counts:.0f} counts per pulse (at most {c.expected:.0f}) "
-            + ("ok" if not c.note else c.note.split(": ", 1)[1]))
+        plain = c.decided and c.turns == k and c.turns_up
+        say(f"hinge {k}: encoder input {c.encoder if c.turns is None else c.turns}, {c.counts:.0f} counts per pulse "
+            f"(at most {c.expected:.0f}) " + ("ok" if plain else c.note.split(": ", 1)[1] if c.note else "see below"))
         checks.append(c)
     dead = [c.note for c in checks if not c.decided]
-    inputs = [c.encoder for c in checks]
-    for i in sorted({i for i in inputs if inputs.count(i) > 1}):
-        both = [c.hinge for c in checks if c.encoder == i]
+    turned = [c.encoder if c.turns is None else c.turns for c in checks]
+    for i in sorted({i for i in turned if turned.count(i) > 1}):
+        both = [c.hinge for c in checks if i in (c.turns, c.encoder)]
         beside = ", ".join(str(h) for h in both if h != i)
         dead.append(f"hinges {', '.join(map(str, both))} each turn encoder input {i}: hinge {beside} moved it from "
                     f"beside, through the flaps (its own encoder dead, or its motor on another bridge); check that "
                     f"hinge's encoder power and A/B wires, and each motor's bridge wires")
+    if not dead:
+        checks = mapped(checks, spec)
+        dead = [c.note for c in checks if not c.decided]
+        inputs = [c.encoder for c in checks]
+        dead += [f"bending flaps {', '.join(str(c.hinge) for c in checks if c.encoder == i)} each turned input {i}: "
+                 "bend each flap alone, the others held still" for i in sorted({i for i in inputs if inputs.count(i) > 1})]
     if dead:
         raise BringupError("nothing stored: " + "; ".join(dead))
-    link.set_wiring(inputs, [c.flags for c in checks])
+    for c in checks:
+        if c.note:
+            say(c.note)
+    inputs, flags, bridges = [c.encoder for c in checks], [c.flags for c in checks], [c.bridge for c in checks]
+    link.set_wiring(inputs, flags, bridges)
     wiring = link.get_wiring()
-    if list(wiring.encoder) != inputs or list(wiring.flags) != [c.flags for c in checks]:
+    if (list(wiring.encoder), list(wiring.flags), list(wiring.bridge)) != (inputs, flags, bridges):
         raise BringupError(f"the device holds wiring {wiring}, not what was sent")
     return checks
 
