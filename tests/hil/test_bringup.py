@@ -244,13 +244,16 @@ def bring_up_named_or_corrected(spec, faults, seed, lying_flat):
 
 
 @pytest.mark.parametrize("faults, seed, lying_flat", [
-    (("bridges-crossed:1,2",), 61, True),
+    (("bridges-crossed:1,3",), 12, False),
+    pytest.param(("bridges-crossed:1,2",), 61, True, marks=pytest.mark.slow),
     pytest.param(("encoder-reversed:1", "input-open:4,2"), 7, True, marks=pytest.mark.slow),
 ])
 def test_bring_up_on_the_sketch_names_or_corrects_first_board_faults(spec, faults, seed, lying_flat):
-    """Two of the slow test's cases below, on drawn plants lying flat: motors on each other's bridges (corrected:
-    the core maps each hinge to its bridge, and every flap then moves up as the device says), and a reversed
-    encoder beside a bridge input left open."""
+    """Three of the slow test's kind of cases below, on drawn plants: motors on each other's bridges, hanging and
+    lying flat (corrected: the core maps each hinge to its bridge, and every flap then moves up as the device says;
+    hanging, bridge 1's pulses of hinge 3's flap used to ratchet it down under gravity to 326 counts, past where
+    hinge 3 could be pulsed: each pulse pair is now followed by short pulses that hold the flap where it was), and
+    a reversed encoder beside a bridge input left open."""
     bring_up_named_or_corrected(spec, faults, seed, lying_flat)
 
 
@@ -258,9 +261,45 @@ def test_bring_up_on_the_sketch_names_or_corrects_first_board_faults(spec, fault
 @pytest.mark.parametrize("lying_flat", [True, False], ids=["lying-flat", "hanging"])
 @pytest.mark.parametrize("faults", ALONE_AND_PAIRS, ids=lambda faults: "+".join(faults))
 def test_bring_up_names_or_corrects_every_wiring_fault_alone_and_two_at_a_time(spec, faults, lying_flat):
-    """Every wiring fault the emulator makes, alone and two at a time on different hinges, lying flat on a drawn
-    plant and hanging on the spec's: bring-up on the sketch in the loop corrects what the software can (and the
-    flaps then move the way the device says) and names the rest, storing nothing. (Hanging, a drawn plant's hinges
-    2-3 may sag past their range within the seconds bring-up takes, seed 7's to 378 counts, where no pulse may go:
-    bring-up then asks for the device to be laid flat.)"""
-    bring_up_named_or_corrected(spec, faults, 11 + len(faults) if lying_flat else None, lying_flat)
+    """Every wiring fault the emulator makes, alone and two at a time on different hinges, on drawn plants lying
+    flat and hanging: bring-up on the sketch in the loop corrects what the software can (and the flaps then move
+    the way the device says) and names the rest, storing nothing. (Hanging, hinges 2-3 sag 70-98 deg within
+    seconds: bring-up holds each flap where its pulses found it, and lifts one hanging within a pulse of its
+    range before pulsing it.)"""
+    bring_up_named_or_corrected(spec, faults, (11 if lying_flat else 17) + len(faults), lying_flat)
+
+
+def refused_and_never_opposite(spec, fault: str, seed: int, lying_flat: bool) -> None:
+    """Bring-up without a hand on the sketch in the loop on a drawn plant: the hinge whose encoder counts down for
+    positive drive is named with both causes and how to decide, nothing stored; and a +10 deg gated move made
+    anyway (the zero confirmed as the flaps are) never settles with that flap moving opposite to what the device
+    reports: the core faults RUNAWAY on that hinge, or the move parts from the twin."""
+    k = int(fault.split(":")[1])
+    emu = drawn_emulator(spec, seed, lying_flat, (fault,))
+    with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
+        with pytest.raises(BringupError) as err:
+            bring_up(link, spec, say=lambda line: None)
+        assert f"hinge {k}: positive drive turns encoder input {k} down" in str(err.value), str(err.value)
+        assert "--hand" in str(err.value) and "nothing stored" in str(err.value)
+        assert link.get_wiring().flags == (0,) * spec.n_hinges
+        link.confirm_zero()
+        flat = emu.plant.angles.copy()
+        targets = np.zeros(spec.n_hinges)
+        targets[k] = np.radians(10)
+        result = mirror(link, spec, targets, tolerance_deg=20, mount="flat" if lying_flat else "hanging")
+        moved = np.degrees(emu.plant.angles - flat)[k]
+        assert result.outcome != "settled" or moved > 5, (result.outcome, moved)
+        if fault.startswith("encoder-reversed"):  # the device reports up, the flap went down: stopped
+            assert result.outcome in ("device_fault", "diverged") and result.hinge == k, (result.outcome, moved)
+
+
+@pytest.mark.parametrize("fault, seed, lying_flat", [
+    ("encoder-reversed:4", 23, False),
+    pytest.param("encoder-reversed:1", 29, True, marks=pytest.mark.slow),
+    pytest.param("encoder-reversed:2", 31, False, marks=pytest.mark.slow),
+    pytest.param("encoder-reversed:3", 37, True, marks=pytest.mark.slow),
+    pytest.param("motor-reversed:5", 41, False, marks=pytest.mark.slow),
+], ids=lambda v: str(v))
+def test_without_a_hand_an_encoder_ab_swap_is_refused_on_drawn_plants_and_never_moves_a_flap_opposite(
+        spec, fault, seed, lying_flat):
+    refused_and_never_opposite(spec, fault, seed, lying_flat)

@@ -12,9 +12,12 @@ means the motor's leads or the encoder's A and B are swapped; which one, the pul
 the flap tents below the table almost as far as it lifts above it: the spec's plant moved hinge 0 186 counts
 down and 268 up from rest; hanging, the outer flaps barely feel gravity), and the wrong guess leaves the
 device reporting +10 deg for a flap standing at -10 deg. So a person tells them apart by bending the flap
-by hand (`hand`); without one bring-up names the hinge, says how to decide, and stores nothing. The
-correction goes to the device (SET_WIRING, kept across power cycles), which leaves its zero unconfirmed.
-Units: counts, s, duty.
+by hand (`hand`); without one bring-up names the hinge, says how to decide, and stores nothing. The hand's
+bend also names the flap's own encoder input: the bridge whose pulses turned that input drives the flap's motor
+(motors on each other's bridges, corrected by the bridge map). Hanging, gravity adds to the pulse that lowers a
+flap, so after each pulse pair short pulses hold the flap where the pair found it, and a flap hanging within a
+pulse's reach of its range is lifted before it is pulsed. The correction goes to the device (SET_WIRING, kept
+across power cycles), which leaves its zero unconfirmed. Units: counts, s, duty.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ SETTLE_S = 0.1  # s waited after a pulse before the counts are read
 MIN_SHARE = 0.15  # the answering encoder must move at least this share of what the spec's no-load speed gives
 MAX_SHARE = 1.6  # ... and at most this share (more: counts per degree unlike the spec's)
 HAND_COUNTS = 15  # counts a hand's bend must move an encoder by
+HOLD_SHARE = 0.2  # a flap is held where a pulse pair found it: brought back unless within this share of a pulse
 # the weaker way's share of the stronger below which a motor turns one way only (a bridge input open), judged at
 # the strongest pulse: the first pulse lifts or pushes, the second brings the flap back, so a healthy hinge moved
 # both ways alike (the emulator's plants, lying flat and hanging: 0.55-1.0 at the strongest; hanging, at the first
@@ -86,20 +90,55 @@ def _measure(link: Link, hinge: int, duty: float, seconds: float) -> np.ndarray:
     return np.asarray(link.get_state().counts) - before
 
 
+def _toward(link: Link, bridge: int, j: int, goal: float, way: float, duty: float, seconds: float,
+            per_pulse: float, tries: int = 4) -> int:
+    """Short pulses of bridge (each from a braked start) bring encoder input j toward goal counts: way is the sign
+    in which positive duty turns input j, per_pulse the counts a pulse of duty for seconds turned it. Hanging,
+    gravity adds to the pulse that lowers a flap and takes from the one that lifts it: a pair of pulses leaves it
+    lower, and a few pairs sag it to its range; these hold it where bring-up found it. Returns input j's counts."""
+    at = link.get_state().counts[j]
+    for _ in range(tries):
+        off = at - goal
+        if abs(off) <= HOLD_SHARE * per_pulse:
+            break
+        length = min(seconds, max(0.01, seconds * abs(off) / per_pulse))
+        link.pulse(bridge, -float(np.sign(off) * way) * duty, round(length, 3))
+        time.sleep(length + SETTLE_S)
+        at = link.get_state().counts[j]
+    return at
+
+
+def _lift(link: Link, hinge: int, expected: float, limit: float) -> int | None:
+    """Hinge's own input's counts, after short pulses of its bridge lifted it off its range where it hung within a
+    pulse's reach of it (a probe first, which the firmware's range ends if it goes the wrong way: its answer says
+    which way lifts); None where the bridge does not turn that input (another hinge's motor: its pulses leave it
+    where it hangs)."""
+    at = link.get_state().counts[hinge]
+    if abs(at) + expected <= limit or abs(at) >= limit:  # beyond its range the firmware refuses every pulse
+        return at
+    duty, seconds = PULSES[0]
+    moved = _measure(link, hinge, duty, seconds)[hinge]
+    if abs(moved) < MIN_SHARE * expected:
+        return None
+    goal = np.sign(at) * (limit - 2 * expected)
+    return _toward(link, hinge, hinge, goal, np.sign(moved), duty, seconds, abs(moved), tries=8)
+
+
 def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeCheck:
     """Pulse one hinge's motor each way and name what answers (the device IDLE, its wiring the identity)."""
     expected = pulse_counts(spec)
     limit = spec.hinge_limit / spec.rad_per_count  # counts
     # the gate of the first pulse: its farthest reach unloaded stays inside the range (the two pulses go opposite
     # ways); the stronger ones follow only where it moved the hinge's own input little (a load, or no encoder), and
-    # the firmware's range ends every pulse. Hanging, hinges 2-3 sag to -66 deg (220 counts) within 3 s and on to
-    # their range: lay the device flat
-    at = abs(link.get_state().counts[hinge])
-    if at + expected > limit:
+    # the firmware's range ends every pulse. Hanging, hinges 2-3 sag to 70-98 deg within seconds (the emulator's
+    # drawn plants): a flap that near its range is first lifted by short pulses of its bridge from the braked start
+    at = _lift(link, hinge, expected, limit)
+    if at is not None and abs(at) + expected > limit:
         return HingeCheck(hinge, hinge, False, False, 0.0, expected,
-                          f"hinge {hinge}: at {at} counts from flat, too near its range for a pulse (a flap hanging, "
-                          "or lifted by another hinge's pulses): lay the device flat and run again", decided=False)
+                          f"hinge {hinge}: at {abs(at)} counts from flat, too near its range for a pulse, and its "
+                          "bridge's pulses did not lift it: lay the device flat and run again", decided=False)
     for duty, seconds in PULSES:  # stronger while no encoder answers, or another input than the hinge's own
+        start = np.asarray(link.get_state().counts)
         up, down = _measure(link, hinge, duty, seconds), _measure(link, hinge, -duty, seconds)
         swing = (up - down) / 2  # sagging cancels
         j = int(np.argmax(np.abs(swing)))
@@ -107,6 +146,8 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
         weak, strong = sorted((abs(up[j]), abs(down[j])))
         if moved >= MIN_SHARE * expected and j == hinge and weak >= ONE_WAY_SHARE * strong:
             break
+        if moved >= MIN_SHARE * expected and (duty, seconds) != PULSES[-1]:  # hold the flap where it was (below)
+            _toward(link, hinge, j, start[j], np.sign(swing[j]), duty, seconds, moved)
     if moved < MIN_SHARE * expected:
         return HingeCheck(hinge, hinge, False, False, moved, expected,
                           f"hinge {hinge}: its motor was pulsed and no encoder answered ({moved:.0f} counts at "
@@ -120,6 +161,8 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
         # a third pulse, the first's way again, brings it back where that way is driven at all
         again = _measure(link, hinge, duty, seconds)
         weak, strong = sorted((max(abs(up[j]), abs(again[j])), abs(down[j])))
+    # hanging, gravity helped the pulse that lowered the flap: held where the pulses found it
+    _toward(link, hinge, j, start[j], np.sign(swing[j]), duty, seconds, moved)
     if (duty, seconds) == PULSES[-1] and weak < ONE_WAY_SHARE * strong:  # a healthy hinge moved both ways
         way, pin = ("positive", "IN2") if abs(up[j]) < abs(down[j]) else ("negative", "IN1")
         return HingeCheck(hinge, j, False, False, moved, expected,
@@ -224,8 +267,9 @@ def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCh
         checks = mapped(checks, spec)
         dead = [c.note for c in checks if not c.decided]
         inputs = [c.encoder for c in checks]
+        twice = sorted({i for i in inputs if inputs.count(i) > 1})
         dead += [f"bending flaps {', '.join(str(c.hinge) for c in checks if c.encoder == i)} each turned input {i}: "
-                 "bend each flap alone, the others held still" for i in sorted({i for i in inputs if inputs.count(i) > 1})]
+                 "bend each flap alone, the others held still" for i in twice]
     if dead:
         raise BringupError("nothing stored: " + "; ".join(dead))
     for c in checks:
