@@ -218,11 +218,14 @@ def expected_wiring(faults, n):
     return encoder, flags, list(m.bridge)
 
 
-def bring_up_named_or_corrected(spec, faults, seed, lying_flat):
-    """Bring-up with a hand on the sketch in the loop: every fault it cannot correct named and nothing stored;
-    else the correction stored, and a move of every hinge to +10 deg moves every flap up by about that."""
+def bring_up_named_or_corrected(spec, faults, seed, lying_flat, before=None):
+    """Bring-up with a hand on the sketch in the loop (before(emu): what happens to the device first): every fault
+    it cannot correct named and nothing stored; else the correction stored, and a move of every hinge to +10 deg
+    moves every flap up by about that."""
     emu = drawn_emulator(spec, seed, lying_flat, faults)
     with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
+        if before is not None:
+            before(emu)
         named = [NAMED[f] for f in faults if f in NAMED]
         if named:
             with pytest.raises(BringupError) as err:
@@ -303,3 +306,22 @@ def refused_and_never_opposite(spec, fault: str, seed: int, lying_flat: bool) ->
 def test_without_a_hand_an_encoder_ab_swap_is_refused_on_drawn_plants_and_never_moves_a_flap_opposite(
         spec, fault, seed, lying_flat):
     refused_and_never_opposite(spec, fault, seed, lying_flat)
+
+
+@pytest.mark.slow  # 12 s
+@pytest.mark.parametrize("faults", [(), ("motor-reversed:0",)], ids=["as-built", "motor-reversed"])
+def test_hanging_a_flap_left_near_its_range_is_lifted_before_its_pulses(spec, faults):
+    """Hanging on a drawn plant, flap 0 bent down to -100 deg and let go (the outer flaps barely feel gravity: it
+    stays near -98 deg, 329 counts, within a pulse's reach of its 375-count range, where bring-up used to name it
+    and stop): a probe pulse says which way lifts, short pulses lift it, and bring-up goes on to store the right
+    wiring, after which every flap moves up as the device says."""
+    def bent_down(emu):
+        time.sleep(1.0)
+        angles = emu.plant.angles.copy()
+        angles[0] = np.radians(-100)
+        emu.hand = (np.arange(len(angles)), angles)
+        time.sleep(0.5)
+        emu.hand = None
+        time.sleep(0.3)
+        assert np.degrees(emu.plant.angles[0]) < -95
+    bring_up_named_or_corrected(spec, faults, 8, False, before=bent_down)
