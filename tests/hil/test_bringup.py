@@ -256,8 +256,8 @@ def test_bring_up_on_the_sketch_names_or_corrects_first_board_faults(spec, fault
     """Three of the slow test's kind of cases below, on drawn plants: motors on each other's bridges, hanging and
     lying flat (corrected: the core maps each hinge to its bridge, and every flap then moves up as the device says;
     hanging, bridge 1's pulses of hinge 3's flap used to ratchet it down under gravity to 326 counts, past where
-    hinge 3 could be pulsed: each pulse pair is now followed by short pulses that hold the flap where it was), and
-    a reversed encoder beside a bridge input left open."""
+    hinge 3 could be pulsed: each hinge's pulses are now followed by short pulses that hold the flap where it was),
+    and a reversed encoder beside a bridge input left open."""
     bring_up_named_or_corrected(spec, faults, seed, lying_flat)
 
 

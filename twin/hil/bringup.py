@@ -15,8 +15,8 @@ device reporting +10 deg for a flap standing at -10 deg. So a person tells them 
 by hand (`hand`); without one bring-up names the hinge, says how to decide, and stores nothing. The hand's
 bend also names the flap's own encoder input: the bridge whose pulses turned that input drives the flap's motor
 (motors on each other's bridges, corrected by the bridge map). Hanging, gravity adds to the pulse that lowers a
-flap, so after each pulse pair short pulses hold the flap where the pair found it, and a flap hanging within a
-pulse's reach of its range is lifted before it is pulsed. The correction goes to the device (SET_WIRING, kept
+flap, so after a hinge's pulses short pulses hold the flap they turned where they found it, and a flap hanging
+within a pulse's reach of its range is lifted before it is pulsed. The correction goes to the device (SET_WIRING, kept
 across power cycles), which leaves its zero unconfirmed. Units: counts, s, duty.
 """
 
@@ -43,7 +43,7 @@ SETTLE_S = 0.1  # s waited after a pulse before the counts are read
 MIN_SHARE = 0.15  # the answering encoder must move at least this share of what the spec's no-load speed gives
 MAX_SHARE = 1.6  # ... and at most this share (more: counts per degree unlike the spec's)
 HAND_COUNTS = 15  # counts a hand's bend must move an encoder by
-HOLD_SHARE = 0.2  # a flap is held where a pulse pair found it: brought back unless within this share of a pulse
+HOLD_SHARE = 0.2  # a flap is held where the pulses found it: brought back unless within this share of a pulse
 # the weaker way's share of the stronger below which a motor turns one way only (a bridge input open), judged at
 # the strongest pulse: the first pulse lifts or pushes, the second brings the flap back, so a healthy hinge moved
 # both ways alike (the emulator's plants, lying flat and hanging: 0.55-1.0 at the strongest; hanging, at the first
@@ -137,8 +137,8 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
         return HingeCheck(hinge, hinge, False, False, 0.0, expected,
                           f"hinge {hinge}: at {abs(at)} counts from flat, too near its range for a pulse, and its "
                           "bridge's pulses did not lift it: lay the device flat and run again", decided=False)
+    start = np.asarray(link.get_state().counts)
     for duty, seconds in PULSES:  # stronger while no encoder answers, or another input than the hinge's own
-        start = np.asarray(link.get_state().counts)
         up, down = _measure(link, hinge, duty, seconds), _measure(link, hinge, -duty, seconds)
         swing = (up - down) / 2  # sagging cancels
         j = int(np.argmax(np.abs(swing)))
@@ -146,8 +146,6 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
         weak, strong = sorted((abs(up[j]), abs(down[j])))
         if moved >= MIN_SHARE * expected and j == hinge and weak >= ONE_WAY_SHARE * strong:
             break
-        if moved >= MIN_SHARE * expected and (duty, seconds) != PULSES[-1]:  # hold the flap where it was (below)
-            _toward(link, hinge, j, start[j], np.sign(swing[j]), duty, seconds, moved)
     if moved < MIN_SHARE * expected:
         return HingeCheck(hinge, hinge, False, False, moved, expected,
                           f"hinge {hinge}: its motor was pulsed and no encoder answered ({moved:.0f} counts at "
@@ -161,7 +159,8 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
         # a third pulse, the first's way again, brings it back where that way is driven at all
         again = _measure(link, hinge, duty, seconds)
         weak, strong = sorted((max(abs(up[j]), abs(again[j])), abs(down[j])))
-    # hanging, gravity helped the pulse that lowered the flap: held where the pulses found it
+    # hanging, gravity helped each pulse that lowered the flap: held where the pulses found it (once the input it
+    # turns is known: at a weaker pulse the input that moved most may be a neighbour's, turned from beside)
     _toward(link, hinge, j, start[j], np.sign(swing[j]), duty, seconds, moved)
     if (duty, seconds) == PULSES[-1] and weak < ONE_WAY_SHARE * strong:  # a healthy hinge moved both ways
         way, pin = ("positive", "IN2") if abs(up[j]) < abs(down[j]) else ("negative", "IN1")
