@@ -160,14 +160,16 @@ void vrs_mark_zero_confirmed(vrs_core *c) { c->zero_confirmed = 1; }
 
 int vrs_set_wiring(vrs_core *c, const vrs_wiring *w)
 {
-    uint8_t k, seen = 0;
+    uint8_t k, seen = 0, driven = 0;
     if (c->state != VRS_STATE_IDLE)
         return VRS_NACK_BAD_STATE;
     for (k = 0; k < c->cfg.n_hinges; k++) {
         if (w->encoder[k] >= c->cfg.n_hinges || (seen & (1u << w->encoder[k]))
+            || w->bridge[k] >= c->cfg.n_hinges || (driven & (1u << w->bridge[k]))
             || (w->flags[k] & ~(VRS_WIRING_ENCODER_REVERSED | VRS_WIRING_MOTOR_REVERSED)))
             return VRS_NACK_BAD_VALUE;
         seen = (uint8_t)(seen | (1u << w->encoder[k]));
+        driven = (uint8_t)(driven | (1u << w->bridge[k]));
     }
     if (memcmp(&c->wiring, w, sizeof *w) != 0) {
         c->wiring = *w;
@@ -193,7 +195,7 @@ static int wiring_is_identity(const vrs_core *c)
 {
     uint8_t k;
     for (k = 0; k < c->cfg.n_hinges; k++)
-        if (c->wiring.encoder[k] != k || c->wiring.flags[k])
+        if (c->wiring.encoder[k] != k || c->wiring.bridge[k] != k || c->wiring.flags[k])
             return 0;
     return 1;
 }
@@ -262,6 +264,7 @@ static int program_start(vrs_core *c, const vrs_program_spec *p, float max_duty,
     r->zero = c->zero[p->hinge];
     r->encoder = c->wiring.encoder[p->hinge];
     r->flags = c->wiring.flags[p->hinge];
+    r->bridge = c->wiring.bridge[p->hinge];
     r->status.hinge = p->hinge;
     r->status.end = VRS_PROGRAM_END_RUNNING;
     return 0;
@@ -287,7 +290,7 @@ static int program_state_changed(const vrs_core *c)
     const vrs_program_run *r = &c->program;
     uint8_t h = r->spec.hinge;
     return c->state != VRS_STATE_IDLE || c->zero[h] != r->zero || c->wiring.encoder[h] != r->encoder
-           || c->wiring.flags[h] != r->flags;
+           || c->wiring.flags[h] != r->flags || c->wiring.bridge[h] != r->bridge;
 }
 
 /* a state change ends the program at once (an ESTOP and a CLEAR_FAULT in one read must not resume it) */
@@ -480,7 +483,7 @@ int vrs_init(vrs_core *c, const vrs_config *cfg, const vrs_gains *gains, const i
             return -1;
         c->counts[k] = c->targets[k] = c->pid[k].prev = c->stall_ref[k] = counts_now[k];
         c->limit_out[k] = cfg->limit_counts + cfg->limit_margin_counts;
-        c->wiring.encoder[k] = k;
+        c->wiring.encoder[k] = c->wiring.bridge[k] = k;
     }
     c->program.status.hinge = 0xFF;
     c->state = VRS_STATE_IDLE;
@@ -644,6 +647,7 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         for (k = 0; k < nh; k++) {
             w.encoder[k] = (uint8_t)v[k];
             w.flags[k] = (uint8_t)v[nh + k];
+            w.bridge[k] = (uint8_t)v[2 * nh + k];
         }
         r = vrs_set_wiring(c, &w);
         break;
@@ -652,6 +656,7 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         for (k = 0; k < nh; k++) {
             out[k] = c->wiring.encoder[k];
             out[nh + k] = c->wiring.flags[k];
+            out[2 * nh + k] = c->wiring.bridge[k];
         }
         reply(c, id, seq, crc, VRS_MSG_WIRING, out, nh);
         return;
@@ -849,7 +854,7 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
     for (k = 0; k < n; k++) {
         int32_t raw = counts[c->wiring.encoder[k]];
         c->counts[k] = (c->wiring.flags[k] & VRS_WIRING_ENCODER_REVERSED ? -raw : raw) - c->zero[k];
-        c->current_ma[k] = current_ma ? current_ma[k] : 0;
+        c->current_ma[k] = current_ma ? current_ma[c->wiring.bridge[k]] : 0;
     }
     program_tick(c, now_us);
     if (c->state == VRS_STATE_ACTIVE || c->state == VRS_STATE_HOLDING)
@@ -876,7 +881,8 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
             else if (c->heat[k] < 0.5f * budget)
                 c->derated = (uint8_t)(c->derated & ~(1u << k));
         }
-        duty_out[k] = c->wiring.flags[k] & VRS_WIRING_MOTOR_REVERSED ? -c->duty[k] : c->duty[k];
+        duty_out[c->wiring.bridge[k]] = c->wiring.flags[k] & VRS_WIRING_MOTOR_REVERSED ? -c->duty[k]
+                                                                                   : c->duty[k];
         /* brake (slow decay) in every state, IDLE too: duty proportional to voltage while driving, and
          * at zero duty the flaps hold where they stopped (a coasting device held by its root flap folds
          * within 0.5 s: docs/firmware.md) */
@@ -907,7 +913,7 @@ void vrs_pwm(const vrs_core *c, float *pwm_out)
         float p = c->duty[k] * scale;
         if (c->wiring.flags[k] & VRS_WIRING_MOTOR_REVERSED)
             p = -p;
-        pwm_out[k] = p > 1.0f ? 1.0f : (p < -1.0f ? -1.0f : p);
+        pwm_out[c->wiring.bridge[k]] = p > 1.0f ? 1.0f : (p < -1.0f ? -1.0f : p);
     }
 }
 

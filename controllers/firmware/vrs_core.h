@@ -59,11 +59,12 @@ typedef struct {
     uint16_t host_away_hold_ms;     /* after the watchdog: hold the targets this long (HOLDING), then FAULT */
 } vrs_config;
 
-/* the wiring correction: hinge k reads encoder input encoder[k] and flags[k] (VRS_WIRING_*) turn its encoder's
- * count and its motor's drive around; the identity after vrs_init */
+/* the wiring correction: hinge k reads encoder input encoder[k], its motor is on H-bridge bridge[k], and
+ * flags[k] (VRS_WIRING_*) turn its encoder's count and its motor's drive around; the identity after vrs_init */
 typedef struct {
     uint8_t encoder[VRS_MAX_HINGES];
     uint8_t flags[VRS_MAX_HINGES];
+    uint8_t bridge[VRS_MAX_HINGES];
 } vrs_wiring;
 
 /* one hinge's PID memory */
@@ -115,7 +116,7 @@ typedef struct {
     int32_t stall_ref;
     uint32_t stall_since;       /* tick */
     int32_t zero;               /* the hinge's zero and wiring at the start: a change (CONFIRM_ZERO, SET_WIRING) */
-    uint8_t encoder, flags;     /* moves the window under the hinge, and ends the program */
+    uint8_t encoder, flags, bridge; /* moves the window under the hinge, and ends the program */
 } vrs_program_run;
 
 typedef struct vrs_core {
@@ -181,9 +182,9 @@ void vrs_rx(vrs_core *c, const uint8_t *bytes, uint32_t n, uint32_t now_us);
 uint32_t vrs_tx(vrs_core *c, uint8_t *out, uint32_t max);
 
 /* One control tick: supervisor, PID, I2t, telemetry. counts: raw encoder inputs (the wiring correction and
- * the zero are applied here); duty_out per H-bridge (the motor's flag applied).
- * current_ma: NULL when not sensed. Writes
- * duty_out[k] in [-1, 1] and decay_out[k] (VRS_DECAY_*) for each hinge. */
+ * the zero are applied here); current_ma per H-bridge, NULL when not sensed. Writes duty_out[b] in [-1, 1]
+ * and decay_out[b] (VRS_DECAY_*) for each H-bridge b (the hinge whose motor is on it, its motor flag
+ * applied). */
 void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t *current_ma,
               float *duty_out, uint8_t *decay_out);
 
@@ -193,7 +194,7 @@ void vrs_set_battery_mv(vrs_core *c, uint16_t mv);
  * cannot clear while it stays so. */
 void vrs_set_battery_plausible(vrs_core *c, int plausible);
 
-/* Battery compensation: the H-bridges' PWM per hinge for the last tick's duties, in [-1, 1]. Duty 1 means
+/* Battery compensation: the H-bridges' PWM (per bridge, as duty_out) for the last tick's duties, in [-1, 1]. Duty 1 means
  * drive_cap_mv at the motor, so pwm = duty * drive_cap_mv / battery_mv, clamped (a pack sagging below the
  * cap gives what it has); with no battery reading (0) pwm = duty. */
 void vrs_pwm(const vrs_core *c, float *pwm_out);
@@ -222,7 +223,7 @@ void vrs_get_heat(const vrs_core *c, float *share_out);
 uint8_t vrs_get_derated(const vrs_core *c);
 
 /* The wiring correction (SET_WIRING calls vrs_set_wiring): 0, or VRS_NACK_BAD_STATE outside IDLE,
- * VRS_NACK_BAD_VALUE for encoders that are not a permutation or unknown flags. A change leaves the zero
+ * VRS_NACK_BAD_VALUE for encoders or bridges that are not a permutation, or unknown flags. A change leaves the zero
  * unconfirmed. The board stores it where it survives a power cycle: vrs_take_wiring_change gives it (1) once
  * after each change; at boot the board gives it back with vrs_set_wiring. */
 int vrs_set_wiring(vrs_core *c, const vrs_wiring *w);

@@ -4,7 +4,7 @@
 #define VRS_PROTOCOL_H
 
 /* framing (docs/protocol.md) */
-#define VRS_PROTOCOL_VERSION 4
+#define VRS_PROTOCOL_VERSION 5
 #define VRS_MAX_PAYLOAD 512
 #define VRS_DUTY_SCALE 32767
 #define VRS_GAIN_SCALE 10000000
@@ -58,13 +58,13 @@
     X(CLEAR_FAULT, "", "") \
     X(CONFIRM_ZERO, "", "") \
     X(PULSE, "BhH", "") \
-    X(SET_WIRING, "", "BB") \
+    X(SET_WIRING, "", "BBB") \
     X(GET_WIRING, "", "") \
     X(PROGRAM, "BiiHBhhhhhhhhhhhhhhhhHHHHHHHHHHHHHHHH", "") \
     X(GET_PROGRAM, "", "") \
     X(PROGRAM_STATUS, "BBIIHi", "") \
     X(PROGRAM_SAMPLE, "ih", "") \
-    X(WIRING, "", "BB") \
+    X(WIRING, "", "BBB") \
     X(SET_TELEMETRY_RATE, "H", "") \
     X(GET_GAINS, "B", "") \
     X(ACK, "BI", "") \

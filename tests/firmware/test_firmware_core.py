@@ -96,7 +96,7 @@ def refusals(spec):
 _DEVICE_MESSAGES = [P.Ack(3, 5), P.NackMsg(3, 4, 1), P.HelloReply((0, 1, 0), 1, 6, 1000, 200, 500),
                     P.StateMsg((0, 1, 0), 0, 0, 255, 1, 0, (0,) * 6, (0,) * 6, (0,) * 6),
                     P.GainsReply(0, P.Gains(*[1] * 7)),
-                    P.WiringReply((0, 1, 2, 3, 4, 5), (0,) * 6),
+                    P.WiringReply((0, 1, 2, 3, 4, 5), (0,) * 6, (0, 1, 2, 3, 4, 5)),
                     P.Telemetry(1, 0, 0, 255, (0,) * 6, (0,) * 6, (0,) * 6, (0,) * 6),
                     P.ProgramStatus(0, 0, 0, 0, 0, 0), P.ProgramSample(0, 0)]
 
@@ -467,7 +467,7 @@ def test_the_wiring_correction_reads_the_named_input_turned_around_and_drives_th
     c = make(spec, watchdog_ms=0)
     raw = [10, 20, 30, 40, 50, 60]
     flags = (0, P.WIRING_ENCODER_REVERSED, 0, P.WIRING_MOTOR_REVERSED, 0, 0)
-    assert ask(c, P.SetWiring((0, 3, 2, 1, 4, 5), flags))[1].MSG == P.MsgId.ACK
+    assert ask(c, P.SetWiring((0, 3, 2, 1, 4, 5), flags, tuple(range(6))))[1].MSG == P.MsgId.ACK
     assert ask(c, P.Hello(), 2)[1].wiring_set == 1 and ask(c, P.GetWiring(), 3)[1].flags == flags
     c.tick(1000, raw)
     assert ask(c, P.GetState(), 4, 1000)[1].counts == (10, -40, 30, 20, 50, 60)  # zero unconfirmed again
@@ -476,9 +476,27 @@ def test_the_wiring_correction_reads_the_named_input_turned_around_and_drives_th
     ask(c, P.SetTargets((0, 0, 0, 50, 0, 0)), 7, 1000)
     duty, _ = c.tick(2000, raw)
     assert duty[3] < 0  # the PID asks hinge 3 for positive duty; its motor's bridge gets it reversed
+    identity = tuple(range(6))
     for bad in ((0, 0, 2, 3, 4, 5), (0, 1, 2, 3, 4, 6)):
-        assert ask(c, P.SetWiring(bad, (0,) * 6), 8)[1].reason == P.Nack.BAD_STATE  # ACTIVE now
+        assert ask(c, P.SetWiring(bad, (0,) * 6, identity), 8)[1].reason == P.Nack.BAD_STATE  # ACTIVE now
     idle = make(spec, watchdog_ms=0)
     for bad in ((0, 0, 2, 3, 4, 5), (0, 1, 2, 3, 4, 6)):
-        assert ask(idle, P.SetWiring(bad, (0,) * 6))[1].reason == P.Nack.BAD_VALUE
-    assert ask(idle, P.SetWiring(tuple(range(6)), (4,) * 6))[1].reason == P.Nack.BAD_VALUE
+        assert ask(idle, P.SetWiring(bad, (0,) * 6, identity))[1].reason == P.Nack.BAD_VALUE
+        assert ask(idle, P.SetWiring(identity, (0,) * 6, bad))[1].reason == P.Nack.BAD_VALUE  # bridges too
+    assert ask(idle, P.SetWiring(identity, (4,) * 6, identity))[1].reason == P.Nack.BAD_VALUE
+
+
+def test_the_bridge_map_drives_each_hinge_on_its_bridge_and_reads_its_current_there(spec):
+    """Motors on each other's bridges (hinge 1's on bridge 4, hinge 4's on bridge 1): the core sends hinge 1's
+    duty to bridge 4, reads its current from bridge 4, and HELLO says a correction is applied."""
+    c = make(spec, watchdog_ms=0)
+    bridge = (0, 4, 2, 3, 1, 5)
+    assert ask(c, P.SetWiring(tuple(range(6)), (0,) * 6, bridge))[1].MSG == P.MsgId.ACK
+    assert ask(c, P.Hello(), 2)[1].wiring_set == 1 and ask(c, P.GetWiring(), 3)[1].bridge == bridge
+    ask(c, P.ConfirmZero(), 4)
+    ask(c, P.SetTelemetryRate(500), 5)
+    ask(c, P.SetTargets((0, 80, 0, 0, 0, 0)), 6)
+    duty, _ = c.tick(1000, [0] * 6, [0, 11, 0, 0, 444, 0])
+    assert duty[4] > 0 and not np.any(np.delete(duty, 4)), duty  # hinge 1's PID drives bridge 4 alone
+    (_, telemetry), = replies(c)
+    assert telemetry.current_ma[1] == 444 and telemetry.current_ma[4] == 11 and telemetry.duty[1] > 0

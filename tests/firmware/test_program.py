@@ -180,7 +180,7 @@ def test_any_state_change_ends_the_program_for_good(spec, cleared):
 @pytest.mark.parametrize("change", ["zero", "wiring"])
 def test_a_new_zero_or_wiring_ends_the_program(spec, change):
     """CONFIRM_ZERO or SET_WIRING (IDLE commands) mid-program would move its window under the hinge: it ends."""
-    msg = P.ConfirmZero() if change == "zero" else P.SetWiring((0, 1, 3, 2, 4, 5), (0,) * 6)
+    msg = P.ConfirmZero() if change == "zero" else P.SetWiring((0, 1, 3, 2, 4, 5), (0,) * 6, tuple(range(6)))
     c = make(spec)
     _, duties, _, _, st = run(c, raw_program(2, timeout_ms=300, duty=(0.2,), ms=(300,)), 200,
                               events={50: P.encode(msg, 7)})

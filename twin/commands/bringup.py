@@ -2,7 +2,8 @@
 
 Firmware and configuration read back (a set-up fault named); for each hinge a short low-duty pulse of its
 motor each way (twin.hil.bringup), the encoder that answers, its direction and counts per pulse; wiring
-mistakes named (motor leads or encoder A/B swapped, encoder cables crossed, a dead encoder) and the correction
+mistakes named (motor leads or encoder A/B swapped, encoder cables crossed, motors on each other's bridges, a
+dead encoder) and the correction
 stored on the device (kept across power cycles, reported in HELLO) and in the device profile; the flat pose
 confirmed as zero; then a first gated move of every hinge and back."""
 
@@ -50,10 +51,10 @@ def run(args) -> int:
             found = [c.note for c in checks if c.note]
             print("wiring   " + ("as built: nothing to correct" if not found else
                                  f"corrected on the device: encoder inputs {list(wiring.encoder)}, "
-                                 f"flags {list(wiring.flags)}"))
+                                 f"flags {list(wiring.flags)}, bridges {list(wiring.bridge)}"))
             kept = "kept on the device (its flash, across power cycles, HELLO's wiring_set)"
             if profile.folder:
-                print(f"         {kept} and in {write_profile_wiring(profile.name, wiring.encoder, wiring.flags, found)}")
+                print(f"         {kept} and in {write_profile_wiring(profile.name, wiring, found)}")
             else:
                 print(f"         {kept} only: no device profile is selected, so no copy here (`--device NAME` "
                       "keeps one in the profile's wiring.json)")

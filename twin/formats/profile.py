@@ -258,13 +258,15 @@ def write_profile_gains(name: str, gains: list[PidGains], meta: dict | None = No
     return folder / GAINS
 
 
-def write_profile_wiring(name: str, encoder, flags, checks: list[str]) -> Path:
-    """Keep a copy of the wiring correction the device holds (`vrscroll bringup`) as the profile's wiring.json:
-    per hinge the encoder input it reads and its WIRING_* flags, with what bring-up found. Returns the file."""
+def write_profile_wiring(name: str, wiring, checks: list[str]) -> Path:
+    """Keep a copy of the wiring correction the device holds (`vrscroll bringup`; wiring: its encoder, flags and
+    bridge per hinge) as the profile's wiring.json: per hinge the encoder input it reads, its WIRING_* flags and the
+    H-bridge its motor is on, with what bring-up found. Returns the file."""
     folder = profile_dir(name)
     if not (folder / META).is_file():
         raise ValueError(f"device profile {name!r} is not in {profiles_dir()}: `vrscroll device create {name}`")
-    doc = {"encoder": [int(e) for e in encoder], "flags": [int(f) for f in flags], "found": list(checks)}
+    doc = {"encoder": [int(e) for e in wiring.encoder], "flags": [int(f) for f in wiring.flags],
+           "bridge": [int(b) for b in wiring.bridge], "found": list(checks)}
     with replacing(folder / WIRING) as tmp:
         tmp.write_text(json.dumps(doc, indent=2) + "\n")
     return folder / WIRING

@@ -12,9 +12,12 @@ means the motor's leads or the encoder's A and B are swapped; which one, the pul
 the flap tents below the table almost as far as it lifts above it: the spec's plant moved hinge 0 186 counts
 down and 268 up from rest; hanging, the outer flaps barely feel gravity), and the wrong guess leaves the
 device reporting +10 deg for a flap standing at -10 deg. So a person tells them apart by bending the flap
-by hand (`hand`); without one bring-up names the hinge, says how to decide, and stores nothing. The
-correction goes to the device (SET_WIRING, kept across power cycles), which leaves its zero unconfirmed.
-Units: counts, s, duty.
+by hand (`hand`); without one bring-up names the hinge, says how to decide, and stores nothing. The hand's
+bend also names the flap's own encoder input: the bridge whose pulses turned that input drives the flap's motor
+(motors on each other's bridges, corrected by the bridge map). Hanging, gravity adds to the pulse that lowers a
+flap, so after a hinge's pulses short pulses hold the flap they turned where they found it, and a flap hanging
+within a pulse's reach of its range is lifted before it is pulsed. The correction goes to the device (SET_WIRING, kept
+across power cycles), which leaves its zero unconfirmed. Units: counts, s, duty.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ SETTLE_S = 0.1  # s waited after a pulse before the counts are read
 MIN_SHARE = 0.15  # the answering encoder must move at least this share of what the spec's no-load speed gives
 MAX_SHARE = 1.6  # ... and at most this share (more: counts per degree unlike the spec's)
 HAND_COUNTS = 15  # counts a hand's bend must move an encoder by
+HOLD_SHARE = 0.2  # a flap is held where the pulses found it: brought back unless within this share of a pulse
 # the weaker way's share of the stronger below which a motor turns one way only (a bridge input open), judged at
 # the strongest pulse: the first pulse lifts or pushes, the second brings the flap back, so a healthy hinge moved
 # both ways alike (the emulator's plants, lying flat and hanging: 0.55-1.0 at the strongest; hanging, at the first
@@ -53,16 +57,19 @@ class BringupError(UserError):
 
 @dataclasses.dataclass(frozen=True)
 class HingeCheck:
-    """What the pulses found for one hinge (its bridge's motor)."""
+    """What the pulses (and the hand) found for one hinge: the input its encoder is on, the bridge its motor is on."""
 
     hinge: int
-    encoder: int  # the encoder input that answered
+    encoder: int  # the encoder input that is the hinge's
     encoder_reversed: bool
     motor_reversed: bool
     counts: float  # |counts| the encoder moved per pulse
     expected: float  # |counts| the spec's no-load speed would give, an upper bound
     note: str  # what was wrong, "" if nothing
     decided: bool = True  # False: not corrected here (named, nothing stored): a person decides or rewires
+    bridge: int | None = None  # the H-bridge that drives its motor (None: bridge `hinge`, until bring_up maps them)
+    turns: int | None = None  # the encoder input bridge `hinge`'s pulses turned (None: `encoder`)
+    turns_up: bool = True  # whether positive drive of bridge `hinge` turned that input up
 
     @property
     def flags(self) -> int:
@@ -83,19 +90,54 @@ def _measure(link: Link, hinge: int, duty: float, seconds: float) -> np.ndarray:
     return np.asarray(link.get_state().counts) - before
 
 
+def _toward(link: Link, bridge: int, j: int, goal: float, way: float, duty: float, seconds: float,
+            per_pulse: float, tries: int = 4) -> int:
+    """Short pulses of bridge (each from a braked start) bring encoder input j toward goal counts: way is the sign
+    in which positive duty turns input j, per_pulse the counts a pulse of duty for seconds turned it. Hanging,
+    gravity adds to the pulse that lowers a flap and takes from the one that lifts it: a pair of pulses leaves it
+    lower, and a few pairs sag it to its range; these hold it where bring-up found it. Returns input j's counts."""
+    at = link.get_state().counts[j]
+    for _ in range(tries):
+        off = at - goal
+        if abs(off) <= HOLD_SHARE * per_pulse:
+            break
+        length = min(seconds, max(0.01, seconds * abs(off) / per_pulse))
+        link.pulse(bridge, -float(np.sign(off) * way) * duty, round(length, 3))
+        time.sleep(length + SETTLE_S)
+        at = link.get_state().counts[j]
+    return at
+
+
+def _lift(link: Link, hinge: int, expected: float, limit: float) -> int | None:
+    """Hinge's own input's counts, after short pulses of its bridge lifted it off its range where it hung within a
+    pulse's reach of it (a probe first, which the firmware's range ends if it goes the wrong way: its answer says
+    which way lifts); None where the bridge does not turn that input (another hinge's motor: its pulses leave it
+    where it hangs)."""
+    at = link.get_state().counts[hinge]
+    if abs(at) + expected <= limit or abs(at) >= limit:  # beyond its range the firmware refuses every pulse
+        return at
+    duty, seconds = PULSES[0]
+    moved = _measure(link, hinge, duty, seconds)[hinge]
+    if abs(moved) < MIN_SHARE * expected:
+        return None
+    goal = np.sign(at) * (limit - 2 * expected)
+    return _toward(link, hinge, hinge, goal, np.sign(moved), duty, seconds, abs(moved), tries=8)
+
+
 def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeCheck:
     """Pulse one hinge's motor each way and name what answers (the device IDLE, its wiring the identity)."""
     expected = pulse_counts(spec)
     limit = spec.hinge_limit / spec.rad_per_count  # counts
     # the gate of the first pulse: its farthest reach unloaded stays inside the range (the two pulses go opposite
     # ways); the stronger ones follow only where it moved the hinge's own input little (a load, or no encoder), and
-    # the firmware's range ends every pulse. Hanging, hinges 2-3 sag to -66 deg (220 counts) within 3 s and on to
-    # their range: lay the device flat
-    at = abs(link.get_state().counts[hinge])
-    if at + expected > limit:
+    # the firmware's range ends every pulse. Hanging, hinges 2-3 sag to 70-98 deg within seconds (the emulator's
+    # drawn plants): a flap that near its range is first lifted by short pulses of its bridge from the braked start
+    at = _lift(link, hinge, expected, limit)
+    if at is not None and abs(at) + expected > limit:
         return HingeCheck(hinge, hinge, False, False, 0.0, expected,
-                          f"hinge {hinge}: at {at} counts from flat, too near its range for a pulse (a flap hanging, "
-                          "or lifted by another hinge's pulses): lay the device flat and run again", decided=False)
+                          f"hinge {hinge}: at {abs(at)} counts from flat, too near its range for a pulse, and its "
+                          "bridge's pulses did not lift it: lay the device flat and run again", decided=False)
+    start = np.asarray(link.get_state().counts)
     for duty, seconds in PULSES:  # stronger while no encoder answers, or another input than the hinge's own
         up, down = _measure(link, hinge, duty, seconds), _measure(link, hinge, -duty, seconds)
         swing = (up - down) / 2  # sagging cancels
@@ -117,6 +159,9 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
         # a third pulse, the first's way again, brings it back where that way is driven at all
         again = _measure(link, hinge, duty, seconds)
         weak, strong = sorted((max(abs(up[j]), abs(again[j])), abs(down[j])))
+    # hanging, gravity helped each pulse that lowered the flap: held where the pulses found it (once the input it
+    # turns is known: at a weaker pulse the input that moved most may be a neighbour's, turned from beside)
+    _toward(link, hinge, j, start[j], np.sign(swing[j]), duty, seconds, moved)
     if (duty, seconds) == PULSES[-1] and weak < ONE_WAY_SHARE * strong:  # a healthy hinge moved both ways
         way, pin = ("positive", "IN2") if abs(up[j]) < abs(down[j]) else ("negative", "IN1")
         return HingeCheck(hinge, j, False, False, moved, expected,
@@ -124,29 +169,19 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
                           f"{down[j]:+.0f} at negative): bridge {hinge}'s {pin}, which drives the {way} way, is "
                           "open (the board's pull-up holds it high: that way brakes); check its wire and solder",
                           decided=False)
-    notes = []
-    encoder_reversed = False
     if hand is not None:
         bent = np.asarray(hand(hinge))
         # of the input that answered the bridge and the hinge's own, the one the bend moved more (the others may be
-        # sagging meanwhile)
+        # sagging meanwhile): the flap's encoder; the bridge that turns it is its motor's (bring_up maps them)
         k = j if abs(bent[j]) >= abs(bent[hinge]) else hinge
         if abs(bent[k]) < HAND_COUNTS:
             return HingeCheck(hinge, j, False, False, moved, expected,
                               f"hinge {hinge}: the hand's bend moved input {j} by {bent[j]:.0f} counts and input "
                               f"{hinge} by {bent[hinge]:.0f}: bend flap {hinge}'s free end up by about 20 deg and run "
                               "again", decided=False)
-        if k != j:  # the flap's own encoder is on its own input: the bridge drives another flap
-            return HingeCheck(hinge, j, False, False, moved, expected,
-                              f"hinge {hinge}: bending flap {hinge} turns input {hinge}, but bridge {hinge} turns "
-                              f"input {j}: the motors of hinges {hinge} and {j} are on each other's bridges; swap "
-                              "their motor wires between the two bridges (the wiring correction maps encoders, not "
-                              "bridges)", decided=False)
-        encoder_reversed = bool(bent[j] < 0)
-        if encoder_reversed:
-            notes.append(f"hinge {hinge}: its encoder counts down when the flap bends up: A and B swapped "
-                         "(corrected: counted the other way)")
-    elif j != hinge or swing[j] < 0:
+        return HingeCheck(hinge, k, bool(bent[k] < 0), False, moved, expected, "", turns=j,
+                          turns_up=bool(swing[j] > 0))
+    if j != hinge or swing[j] < 0:
         what = [f"hinge {hinge}: its bridge turns encoder input {j}: the encoder cables of hinges {hinge} and {j} "
                 "are crossed, or their motors are on each other's bridges"] if j != hinge else []
         what += [f"hinge {hinge}: positive drive turns encoder input {j} down: its motor's leads or its encoder's "
@@ -157,17 +192,41 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
                           f"--watch`: the input that moves is its encoder's; counting down, swap that encoder's A and "
                           "B; counting up with positive drive still counting down, swap the motor's leads)",
                           decided=False)
-    if j != hinge:
-        notes.insert(0, f"hinge {hinge}: its motor turns encoder input {j}: the encoder cables of hinges {hinge} and "
-                        f"{j} are crossed (corrected: hinge {hinge} reads input {j})")
-    motor_reversed = bool((swing[j] < 0) != encoder_reversed)
-    if motor_reversed:
-        notes.append(f"hinge {hinge}: positive drive turns it the negative way: motor leads swapped "
-                     f"(corrected: driven the other way)")
-    if moved > MAX_SHARE * expected:
-        notes.append(f"hinge {hinge}: {moved:.0f} counts per pulse, more than the spec's no-load speed allows "
-                     f"({expected:.0f}): counts per degree unlike the spec's (gear ratio, encoder CPR)")
-    return HingeCheck(hinge, j, encoder_reversed, motor_reversed, moved, expected, "; ".join(notes))
+    return HingeCheck(hinge, j, False, False, moved, expected, "", turns=j, turns_up=True)
+
+
+def mapped(checks: list[HingeCheck], spec: DeviceSpec) -> list[HingeCheck]:
+    """Each hinge's bridge (the one whose pulses turned the hinge's encoder input) and flags, with what was wrong
+    said; a hinge whose input no bridge turned, named and not decided. Units: counts."""
+    by_input = {c.turns: c for c in checks}
+    out = []
+    for c in checks:
+        b = by_input.get(c.encoder)
+        if b is None:
+            out.append(dataclasses.replace(c, decided=False, note=(
+                f"hinge {c.hinge}: bending flap {c.hinge} turns input {c.encoder}, which no bridge's pulse turned: "
+                "its motor is not connected (check its leads and its bridge's wires)")))
+            continue
+        notes = []
+        if c.encoder != c.hinge:
+            notes.append(f"hinge {c.hinge}: its encoder is on input {c.encoder}: the encoder cables of hinges "
+                         f"{c.hinge} and {c.encoder} are crossed (corrected: hinge {c.hinge} reads input {c.encoder})")
+        if b.hinge != c.hinge:
+            notes.append(f"hinge {c.hinge}: its motor is on bridge {b.hinge}: the motors of hinges {c.hinge} and "
+                         f"{b.hinge} are on each other's bridges (corrected: hinge {c.hinge} drives bridge {b.hinge})")
+        if c.encoder_reversed:
+            notes.append(f"hinge {c.hinge}: its encoder counts down when the flap bends up: A and B swapped "
+                         "(corrected: counted the other way)")
+        motor_reversed = b.turns_up == c.encoder_reversed
+        if motor_reversed:
+            notes.append(f"hinge {c.hinge}: positive drive turns it the negative way: motor leads swapped "
+                         f"(corrected: driven the other way)")
+        if b.counts > MAX_SHARE * b.expected:
+            notes.append(f"hinge {c.hinge}: {b.counts:.0f} counts per pulse, more than the spec's no-load speed "
+                         f"allows ({b.expected:.0f}): counts per degree unlike the spec's (gear ratio, encoder CPR)")
+        out.append(dataclasses.replace(c, motor_reversed=motor_reversed, counts=b.counts, expected=b.expected,
+                                       bridge=b.hinge, note="; ".join(notes)))
+    return out
 
 
 def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCheck]:
@@ -187,26 +246,38 @@ def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCh
         raise BringupError(f"the device is {P.enum_name(P.State, state.state)}: bring-up starts from IDLE "
                            "(`vrscroll status --serial PORT --clear-fault`, or power it off and on)")
     n = spec.n_hinges
-    link.set_wiring(range(n), [0] * n)  # measure the wires as they are
+    link.set_wiring(range(n), [0] * n, range(n))  # measure the wires as they are
     checks = []
     for k in range(n):
         c = check_hinge(link, spec, k, hand)
-        say(f"hinge {k}: encoder input {c.encoder}, {c.counts:.0f} counts per pulse (at most {c.expected:.0f}) "
-            + ("ok" if not c.note else c.note.split(": ", 1)[1]))
+        plain = c.decided and c.turns == k and c.turns_up
+        say(f"hinge {k}: encoder input {c.encoder if c.turns is None else c.turns}, {c.counts:.0f} counts per pulse "
+            f"(at most {c.expected:.0f}) " + ("ok" if plain else c.note.split(": ", 1)[1] if c.note else "see below"))
         checks.append(c)
     dead = [c.note for c in checks if not c.decided]
-    inputs = [c.encoder for c in checks]
-    for i in sorted({i for i in inputs if inputs.count(i) > 1}):
-        both = [c.hinge for c in checks if c.encoder == i]
+    turned = [c.encoder if c.turns is None else c.turns for c in checks]
+    for i in sorted({i for i in turned if turned.count(i) > 1}):
+        both = [c.hinge for c in checks if i in (c.turns, c.encoder)]
         beside = ", ".join(str(h) for h in both if h != i)
         dead.append(f"hinges {', '.join(map(str, both))} each turn encoder input {i}: hinge {beside} moved it from "
                     f"beside, through the flaps (its own encoder dead, or its motor on another bridge); check that "
                     f"hinge's encoder power and A/B wires, and each motor's bridge wires")
+    if not dead:
+        checks = mapped(checks, spec)
+        dead = [c.note for c in checks if not c.decided]
+        inputs = [c.encoder for c in checks]
+        twice = sorted({i for i in inputs if inputs.count(i) > 1})
+        dead += [f"bending flaps {', '.join(str(c.hinge) for c in checks if c.encoder == i)} each turned input {i}: "
+                 "bend each flap alone, the others held still" for i in twice]
     if dead:
         raise BringupError("nothing stored: " + "; ".join(dead))
-    link.set_wiring(inputs, [c.flags for c in checks])
+    for c in checks:
+        if c.note:
+            say(c.note)
+    inputs, flags, bridges = [c.encoder for c in checks], [c.flags for c in checks], [c.bridge for c in checks]
+    link.set_wiring(inputs, flags, bridges)
     wiring = link.get_wiring()
-    if list(wiring.encoder) != inputs or list(wiring.flags) != [c.flags for c in checks]:
+    if (list(wiring.encoder), list(wiring.flags), list(wiring.bridge)) != (inputs, flags, bridges):
         raise BringupError(f"the device holds wiring {wiring}, not what was sent")
     return checks
 

@@ -140,7 +140,8 @@ class Emulator:
         if data:
             self._log_rx(data)
             self.firmware.rx(data, now_us)
-        sensed = np.clip(np.rint(self.plant.current * 1000), -32768, 32767)  # mA, the last tick's winding current
+        # mA, the last tick's winding current, as each bridge senses its motor's
+        sensed = np.clip(np.rint(self.wiring.bridge_current(self.plant.current) * 1000), -32768, 32767)
         # the battery the ADC reads is the last tick's bus voltage
         inputs = self.wiring.encoder_inputs(self.plant.sense(), self._first_counts)
         pwm, decay = self.firmware.run_tick(now_us, inputs, sensed, round(self.plant.bus * 1000))

@@ -119,6 +119,14 @@ class Miswiring:
         return p[bridge] * np.asarray(self.motor_sign, np.float32)
 
 
+    def bridge_current(self, motor_current) -> np.ndarray:
+        """What each board bridge senses from the plant's motors' currents: the current of the motor it drives."""
+        c = np.asarray(motor_current)
+        out = c.copy()
+        out[list(self.bridge or range(len(c)))] = c
+        return out
+
+
 def one_channel_count(count: int, first: int) -> int:
     """What an x4 decoder counts with channel B stuck where it was at `first` counts and A still following the
     shaft at `count` (A leads B counting up: AB = 00, 10, 11, 01): A's edges step +1 and -1 about `first`."""

@@ -23,9 +23,9 @@ import struct
 from controllers.pid import PidGains
 from controllers.program import ProgramEnd  # noqa: F401  (the end reasons' one home; the header writes them)
 
-PROTOCOL_VERSION = 4  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING;
+PROTOCOL_VERSION = 5  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING;
 # 3: STATE carries each hinge's PID integral; 4: PROGRAM, GET_PROGRAM, PROGRAM_STATUS, PROGRAM_SAMPLE (PULSE is a
-# program of one segment: the range and a stall end it)
+# program of one segment: the range and a stall end it); 5: SET_WIRING and WIRING carry each hinge's bridge
 MAX_FRAME = 512  # bytes of decoded payload (header + body + crc); longer is garbage
 DUTY_SCALE = 32767  # duty [-1, 1] on the wire as int16 duty * 32767
 GAIN_SCALE = 10_000_000  # kp, ki, kd on the wire as int32 gain * 1e7
@@ -364,11 +364,13 @@ class ProgramSample:
 @dataclasses.dataclass(frozen=True)
 class SetWiring:
     """Host -> device: the wiring correction per hinge: which encoder input is the hinge's (a permutation),
-    and WIRING_* flags. IDLE only; the device keeps it across power cycles; the zero must be confirmed again."""
+    WIRING_* flags, and which H-bridge drives its motor (a permutation: motors on each other's bridges). IDLE
+    only; the device keeps it across power cycles; the zero must be confirmed again."""
 
     MSG = MsgId.SET_WIRING
     encoder: tuple[int, ...]
     flags: tuple[int, ...]
+    bridge: tuple[int, ...]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -383,6 +385,7 @@ class WiringReply:
     MSG = MsgId.WIRING
     encoder: tuple[int, ...]
     flags: tuple[int, ...]
+    bridge: tuple[int, ...]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -559,7 +562,7 @@ LAYOUTS = {
     MsgId.CLEAR_FAULT: Layout(ClearFault),
     MsgId.CONFIRM_ZERO: Layout(ConfirmZero),
     MsgId.PULSE: Layout(Pulse, (("hinge", "B"), ("duty", "h"), ("duration_ms", "H"))),
-    MsgId.SET_WIRING: Layout(SetWiring, per_hinge=(("encoder", "B"), ("flags", "B"))),
+    MsgId.SET_WIRING: Layout(SetWiring, per_hinge=(("encoder", "B"), ("flags", "B"), ("bridge", "B"))),
     MsgId.GET_WIRING: Layout(GetWiring),
     MsgId.PROGRAM: Layout(Program, (("hinge", "B"), ("low", "i"), ("high", "i"), ("timeout_ms", "H"),
                                     ("n_segments", "B"), ("duty", f"{PROGRAM_MAX_SEGMENTS}h"),
@@ -568,7 +571,7 @@ LAYOUTS = {
     MsgId.PROGRAM_STATUS: Layout(ProgramStatus, (("hinge", "B"), ("end", "B"), ("ticks", "I"), ("dropped", "I"),
                                                  ("battery_mv", "H"), ("counts", "i"))),
     MsgId.PROGRAM_SAMPLE: Layout(ProgramSample, (("counts", "i"), ("duty", "h"))),
-    MsgId.WIRING: Layout(WiringReply, per_hinge=(("encoder", "B"), ("flags", "B"))),
+    MsgId.WIRING: Layout(WiringReply, per_hinge=(("encoder", "B"), ("flags", "B"), ("bridge", "B"))),
     MsgId.SET_TELEMETRY_RATE: Layout(SetTelemetryRate, (("rate_hz", "H"),)),
     MsgId.GET_GAINS: Layout(GetGains, (("hinge", "B"),)),
     MsgId.ACK: Layout(Ack, (("acked", "B"), ("time_us", "I"))),

@@ -486,9 +486,10 @@ class Link:
     def get_wiring(self) -> P.WiringReply:
         return self.request(P.GetWiring())
 
-    def set_wiring(self, encoder, flags) -> P.Ack:
+    def set_wiring(self, encoder, flags, bridge) -> P.Ack:
         """The wiring correction (see protocol.SetWiring): kept on the device; its zero must be confirmed again."""
-        ack = self.request(P.SetWiring(tuple(int(e) for e in encoder), tuple(int(f) for f in flags)))
+        ack = self.request(P.SetWiring(tuple(int(e) for e in encoder), tuple(int(f) for f in flags),
+                                       tuple(int(b) for b in bridge)))
         self.zero_confirmed = False
         return ack
 
