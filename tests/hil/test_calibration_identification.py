@@ -26,11 +26,12 @@ SPEED_ERROR = 0.10  # the no-load speed within this of the drawn value: the issu
 
 
 def test_each_experiment_is_a_program_the_device_accepts_from_rest_to_rest(spec):
-    """Every hinge's program at each speed, from the table and from a flap left raised: one the device
-    accepts (the host's checks are the core's), braked SETTLE_S before and after its drive, raising then
-    driving down, its window the table's side of the range up to TOP_DEG; faster programs raise harder."""
+    """The outermost hinge's and a heavy one's program at each speed, from the table and from a flap left raised:
+    one the device accepts (the host's checks are the core's), braked SETTLE_S before and after its drive,
+    raising then driving down, its window the table's side of the range up to TOP_DEG; faster programs raise
+    harder."""
     top = math.radians(TOP_DEG) / spec.rad_per_count
-    for k in range(spec.n_hinges):
+    for k in (0, 2):
         for start in (0, int(math.radians(30) / spec.rad_per_count)):
             made = [program(spec, k, w, start) for w in SPEEDS]
             assert all(p is not None for p in made)

@@ -31,6 +31,7 @@ NOT_YET = {
     "twin.formats.pen.read_pen_samples": "the pen CSV's extra columns, passed through to the writer unread",
     "twin.formats.records.read_jsonl": "append-only logs of any JSON objects (sweep, Table 1): no one record",
     "twin.formats.sweep.read_records": "the sweep's records by key: JSON objects the sweep itself writes",
+    "twin.formats.records.check_record": "one line of such a log, checked and given back as read",
 }
 
 
