@@ -75,7 +75,7 @@ def test_holding_on_an_emulated_device_whose_gearboxes_nobody_told_the_twin(emul
     assert len(doc["releases"]) == 2 and doc["sag_deg"]["device"][2] < -3.0  # hinge 2 sagged
     profile = select_profile("bench")
     assert profile.spec.backdrive_efficiency == pytest.approx(e["value"])
-    assert profile.holding["parameters"]["backdrive_efficiency"]["value"] == pytest.approx(e["value"])
+    assert profile.holding.parameters["backdrive_efficiency"].value == pytest.approx(e["value"])
     assert "vrscroll holding" in (profile.folder / "spec.toml").read_text()
     assert "after 1 s:" in text and "kept in device profile bench" in text
     # and with the pack pulled (windings open): hinges 2 and 3 fold further in 0.5 s than braked in 1 s

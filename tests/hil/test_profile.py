@@ -14,7 +14,9 @@ from twin.formats.gains import write_gains
 from twin.commands.options import select_profile
 from twin.device.variation import corners, scaled
 from twin.live.morph import TwinMorpher
-from twin.formats.profile import read_profile, write_profile_spec
+from twin.formats.profile import read_profile, spec_defaults, updated, write_profile
+from twin.records.calibration import Calibration, Estimate
+from twin.records.profile import Holding
 from twin.tuning.tuner import RobustEvaluator, TuneGoal
 
 ONE_STEP = """name = "one"
@@ -23,6 +25,14 @@ duration_s = 0.6
 t_s = 0.0
 angles_deg = [20, 10, 5, 5, 10, 20]
 """
+
+
+def write_profile_values(name, values, source, by="vrscroll calibrate", **parts):
+    """Make or update the profile called name as the commands do: its record (the spec's defaults for a new
+    one) with `values` (field -> SI) from `source` and `parts` replaced, written whole."""
+    folder = profiles_dir() / name
+    base = read_profile(folder) if folder.is_dir() else spec_defaults()
+    return write_profile(updated(base, values, source, name=name, **parts), by=by)
 
 
 def _run(capsys, *args):
@@ -41,7 +51,7 @@ def test_device_selects_a_profile_and_it_is_remembered(capsys, spec):
     assert rc == 0 and "bench" in out
     assert "selected: spec defaults" in _run(capsys, "device", "list")[1]
     # a profile whose device is slower: the twin of that profile settles later
-    write_profile_spec("bench", {"no_load_speed": spec.no_load_speed * 0.7}, "test: slower motor")
+    write_profile_values("bench", {"no_load_speed": spec.no_load_speed * 0.7}, "test: slower motor")
     rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-")
     default = json.loads(out)
     assert default["device_profile"] == "spec defaults"
@@ -76,12 +86,11 @@ def test_a_profiles_gains_are_the_twins(capsys, spec, device_profiles):
 
 
 def _hinge_estimates(spec, slow_hinge: int, speed_scale: float) -> list[dict]:
-    """A per-hinge calibration's "hinges" (profile.json): every hinge at the shared speed but slow_hinge, x scale."""
+    """A per-hinge calibration's hinges: every hinge at the shared speed but slow_hinge, x scale."""
     rows = []
     for k in range(spec.n_hinges):
         v = spec.no_load_speed * (speed_scale if k == slow_hinge else 1.0)
-        rows.append({"no_load_speed": {"value": v, "prior": spec.no_load_speed, "low": v * 0.95, "high": v * 1.05,
-                                       "identifiable": True, "note": "test"}})
+        rows.append({"no_load_speed": Estimate(v, spec.no_load_speed, v * 0.95, v * 1.05, True, "test")})
     return rows
 
 
@@ -98,7 +107,7 @@ def test_a_profile_written_before_the_spec_gained_an_entry_takes_the_specs(capsy
     assert rc == 0, err
     profile = read_profile(device_profiles / "old")
     assert profile.spec.cogging == spec.cogging and profile.spec.gear_friction == pytest.approx(0.005)
-    write_profile_spec("old", {"no_load_speed": spec.no_load_speed * 0.9}, "test")
+    write_profile_values("old", {"no_load_speed": spec.no_load_speed * 0.9}, "test")
     again = read_profile(device_profiles / "old")
     assert again.spec.gear_friction == pytest.approx(0.005) and again.spec.cogging_phase == spec.cogging_phase
 
@@ -106,8 +115,8 @@ def test_a_profile_written_before_the_spec_gained_an_entry_takes_the_specs(capsy
 def test_a_profile_calibrated_per_hinge_gives_each_hinge_its_own(capsys, spec, device_profiles):
     """The twin of a profile with per-hinge values (calibrate --per-hinge) moves each hinge with its own motor:
     the hinge whose motor is slower settles later, the others as on the spec's twin; `device show` lists them."""
-    calibration = {"runs": ["test"], "parameters": {}, "hinges": _hinge_estimates(spec, 4, 0.6)}
-    write_profile_spec("uneven", {}, "test", calibration=calibration)
+    calibration = Calibration(["test"], {}, _hinge_estimates(spec, 4, 0.6))
+    write_profile_values("uneven", {}, "test", calibration=calibration)
     hinges = read_profile(device_profiles / "uneven").hinges
     assert [h.no_load_speed / spec.no_load_speed for h in hinges] == pytest.approx([1, 1, 1, 1, 0.6, 1])
     targets = ["30"] * spec.n_hinges
@@ -125,8 +134,8 @@ def test_tuning_a_profile_calibrated_per_hinge_scores_each_hinge_on_its_own_plan
     """tune's plants give each hinge its own values at its own intervals' corners: hinge 4's motor at x0.6
     (x0.57 .. x0.63) settles later on every plant than on the shared twin's, hinge 1 as there; `vrscroll tune`
     on such a profile says it tunes each hinge about its own values."""
-    calibration = {"runs": ["test"], "parameters": {}, "hinges": _hinge_estimates(spec, 4, 0.6)}
-    write_profile_spec("uneven", {}, "test", calibration=calibration)
+    calibration = Calibration(["test"], {}, _hinge_estimates(spec, 4, 0.6))
+    write_profile_values("uneven", {}, "test", calibration=calibration)
     profile = read_profile(device_profiles / "uneven")
     ranges = {"no_load_speed": (spec.no_load_speed * 0.9, spec.no_load_speed * 1.1)}
     uneven = TuneGoal(ranges=ranges, hinges=tuple(profile.hinges), hinge_ranges=profile.hinge_ranges())
@@ -174,7 +183,8 @@ def test_a_damaged_per_hinge_calibration_is_named(capsys, spec, device_profiles,
     _run(capsys, "device", "create", "bad")
     meta = device_profiles / "bad" / "profile.json"
     doc = json.loads(meta.read_text())
-    doc["calibration"] = {"runs": [], "parameters": {}, "hinges": damage(_hinge_estimates(spec, 0, 0.9))}
+    rows = [{p: e.to_json() for p, e in row.items()} for row in _hinge_estimates(spec, 0, 0.9)]  # the file's form
+    doc["calibration"] = {"runs": [], "parameters": {}, "hinges": damage(rows)}
     meta.write_text(json.dumps(doc))
     rc, out, err = _run(capsys, "simulate", "0", "0", "0", "0", "0", "0", "--device", "bad")
     assert rc == 2 and len(err.splitlines()) == 1 and message in err, err
@@ -263,16 +273,14 @@ def test_none_cannot_name_a_profile(capsys):
 def test_what_holding_measured_survives_a_later_calibration(spec, device_profiles):
     """profile.json's parts are each replaced by the command that writes them, the others kept: a calibration
     after `vrscroll holding` keeps the holding, and a damaged holding is refused naming it."""
-    est = {"value": 0.3, "prior": 0.5, "low": 0.2, "high": 0.45, "identifiable": False, "note": "test"}
-    holding = {"port": "/dev/ttyACM0", "releases": 2, "parameters": {"backdrive_efficiency": est}}
-    write_profile_spec("kept", {"backdrive_efficiency": 0.3}, "test", by="vrscroll holding", holding=holding)
-    calibration = {"runs": ["run"], "parameters": {"gear_friction": {**est, "value": spec.gear_friction,
-                                                                     "prior": spec.gear_friction, "low": 0.001,
-                                                                     "high": 0.01}}}
-    write_profile_spec("kept", {"gear_friction": spec.gear_friction}, "test", calibration=calibration)
+    est = Estimate(0.3, 0.5, 0.2, 0.45, False, "test")
+    holding = Holding("/dev/ttyACM0", 2, {"backdrive_efficiency": est})
+    write_profile_values("kept", {"backdrive_efficiency": 0.3}, "test", by="vrscroll holding", holding=holding)
+    calibration = Calibration(["run"], {"gear_friction": Estimate(spec.gear_friction, spec.gear_friction, 0.001, 0.01,
+                                                                  False, "test")})
+    write_profile_values("kept", {"gear_friction": spec.gear_friction}, "test", calibration=calibration)
     profile = read_profile(device_profiles / "kept")
-    assert profile.holding == holding and profile.calibration.runs == calibration["runs"]
-    assert {p: e.to_json() for p, e in profile.calibration.parameters.items()} == calibration["parameters"]
+    assert profile.holding == holding and profile.calibration == calibration
     assert profile.spec.backdrive_efficiency == 0.3
     meta = device_profiles / "kept" / "profile.json"
     doc = json.loads(meta.read_text())

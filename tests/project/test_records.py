@@ -12,21 +12,22 @@ import pytest
 
 import twin.formats
 from test_layers import copy_tree, lint_imports
+from twin.device.spec import spec_sources
 from twin.formats.move_report import move_rows
+from twin.formats.profile import read_profile, spec_defaults, updated, write_profile
 from twin.formats.target import approximation_json, read_approximation, write_approximation
 from twin.formats.trace import TraceWriter, read_trace, write_trace
 from twin.records.approximation import Approximation
+from twin.records.calibration import Calibration, Estimate
 from twin.records.move_report import MoveReport
+from twin.records.profile import Holding, Profile
 from twin.records.trace import Trace, joined
 from twin.sim.response import move_report, move_settle_time
 from twin.sim.twin import Twin
 
-RECORDS = ("Approximation", "Trace", "MoveReport", "Calibration", "Estimate")
+RECORDS = ("Approximation", "Trace", "MoveReport", "Calibration", "Estimate", "Profile", "Holding")
 # functions of twin.formats that still return a dict, each with why: what issue 39 has not yet made a record
 NOT_YET = {
-    "twin.formats.profile.Profile.ranges": "the Calibration record's intervals as the tuner's goal takes them",
-    "twin.formats.profile.Profile.hinge_ranges": "the same per hinge",
-    "twin.formats.profile.spec_source_of": "the profile's spec source: a Profile record (issue 39) would hold it",
     "twin.formats.run.read_run_meta": "run.json before it is checked whole; read_run gives the Run record",
     "twin.formats.pen.read_pen_samples": "the pen CSV's extra columns, passed through to the writer unread",
     "twin.formats.records.read_jsonl": "append-only logs of any JSON objects (sweep, Table 1): no one record",
@@ -123,6 +124,38 @@ def test_an_approximation_file_reads_back_as_the_record(tmp_path, spec):
     assert isinstance(b, Approximation) and b.target == "cube" and b.variant == "full"
     assert b.root_pose == pytest.approx(pose, abs=1e-6) and b.angles == pytest.approx(angles, abs=1e-5)
     assert (b.msd, b.hd, b.inside, b.depth, b.time) == pytest.approx((0.001, 0.003, 0.25, 0.0005, 0.002))
+
+
+def test_a_profile_is_written_whole_and_reads_back_as_the_record(spec, device_profiles):
+    """The record a command makes (`updated`: a fitted value and its source, a calibration with each hinge's own
+    values, a holding, a mount) is what write_profile writes and read_profile gives back whole: the per-hinge
+    plants made from its calibration, each value's source in spec.toml, what it did not change as the spec had
+    it; a record written again unchanged leaves the files as they were."""
+    speed = spec.no_load_speed
+    hinges = [{"no_load_speed": Estimate(speed * x, speed, speed * x * 0.9, speed * x * 1.1, True, "test",
+                                         runs_low=speed * x * 0.95, runs_high=speed * x * 1.05)}
+              for x in (0.8, 0.9, 1.0, 1.1, 1.2, 1.3)]
+    friction = Estimate(spec.gear_friction * 1.3, spec.gear_friction, spec.gear_friction, spec.gear_friction * 2,
+                        False, "test")
+    calibration = Calibration(["run-a"], {"gear_friction": friction}, hinges)
+    holding = Holding("/dev/ttyX", 3, {"backdrive_efficiency": Estimate(0.4, 0.5, 0.3, 0.45, True, "test")})
+    made = updated(spec_defaults(), {"gear_friction": friction.value}, "fitted (test)", name="made",
+                   calibration=calibration, holding=holding, mount="flat")
+    assert [h.no_load_speed / speed for h in made.hinges] == pytest.approx([0.8, 0.9, 1.0, 1.1, 1.2, 1.3])
+    folder = write_profile(made)
+    back = read_profile(folder)
+    assert isinstance(back, Profile) and back.name == "made" and back.mount == "flat"
+    assert back.calibration == calibration and back.holding == holding
+    assert back.spec.gear_friction == pytest.approx(friction.value, rel=1e-6)
+    assert back.spec.gear_stiction == spec.gear_stiction  # a value given is written; none moved with it
+    assert back.sources["gear_friction"] == "fitted (test)"
+    assert {f: s for f, s in back.sources.items() if f != "gear_friction"} == \
+        {f: s for f, s in spec_sources().items() if f != "gear_friction"}
+    assert [h.no_load_speed for h in back.hinges] == pytest.approx([h.no_load_speed for h in made.hinges], rel=1e-6)
+    assert back.ranges() == made.ranges() and back.hinge_ranges() == made.hinge_ranges()
+    files = {p.name: p.read_bytes() for p in folder.iterdir()}
+    write_profile(back)
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == files
 
 
 def test_the_record_layer_reaches_neither_up_nor_sideways(tmp_path):

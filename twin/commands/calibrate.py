@@ -21,7 +21,6 @@ from twin.commands.options import (
     json_to_stdout,
     output_file,
     select_profile,
-    spec_defaults,
     within,
     write_json,
 )
@@ -29,12 +28,13 @@ from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
 from twin.device.spec_toml import shown, shown_range, spec_units, write_spec_toml
 from twin.errors import UserError
-from twin.formats.profile import write_profile_mount, write_profile_spec
+from twin.formats.profile import spec_defaults, updated, write_profile
 from twin.formats.run import read_run
 from twin.hil.calibration import MAX_HALFWIDTH, calibrate, calibrate_hinges, floor_deg, trace_rmse, unexplained
 from twin.hil.compare import not_followed
 from twin.hil.identification import PROFILED, estimates, experiments, fit_hinge, shared_estimates
 from twin.link.serial_link import LinkError, NackError
+from twin.records.calibration import Calibration
 
 
 def add_arguments(p) -> None:
@@ -117,11 +117,9 @@ def run(args) -> int:
     fitted = {p: e.value for p, e in res.estimates.items() if e.fitted}
     written = []
     if name:
-        calibration = {"runs": [str(Path(r).resolve()) for r in args.runs],
-                       "parameters": {p: e.to_json() for p, e in res.estimates.items()},
-                       **({"hinges": [{p: e.to_json() for p, e in est.items()} for est in hc.estimates]}
-                          if hinge_fit and hinge_fit["kept"] else {})}
-        written.append(str(write_profile_spec(name, fitted, source, calibration=calibration)))
+        calibration = Calibration([str(Path(r).resolve()) for r in args.runs], res.estimates,
+                                  hc.estimates if hinge_fit and hinge_fit["kept"] else None)
+        written.append(str(write_profile(updated(profile, fitted, source, name=name, calibration=calibration))))
         set_default(name)
     if args.out or not name:
         out = args.out or "spec.calibrated.toml"
@@ -275,12 +273,10 @@ def _identify(args, profile, name, new) -> int:
     written = []
     if name:
         source = f"identified on {port} (vrscroll calibrate --serial)"
-        calibration = {"runs": [f"{port}: identification experiments"],
-                       "parameters": {p: e.to_json() for p, e in shared.items()},
-                       "hinges": [{p: e[p].to_json() for p in PROFILED} for e in per_hinge]}
-        written.append(str(write_profile_spec(name, {p: e.value for p, e in shared.items()}, source,
-                                              calibration=calibration)))
-        write_profile_mount(name, "flat")
+        calibration = Calibration([f"{port}: identification experiments"], shared,
+                                  [{p: e[p] for p in PROFILED} for e in per_hinge])
+        written.append(str(write_profile(updated(profile, {p: e.value for p, e in shared.items()}, source, name=name,
+                                                 calibration=calibration, mount="flat"))))
         set_default(name)
     out = {"device_profile": name or profile.label, "prior": "spec defaults" if new else profile.label,
            "written": written, "port": port,

@@ -6,10 +6,11 @@ from __future__ import annotations
 import math
 
 from twin.commands.options import add_mount, select_profile
-from twin.device.profile import NO_PROFILE, default_name, profile_names, profiles_dir, set_default
+from twin.device.profile import default_name, profile_names, profiles_dir, set_default
 from twin.device.spec import SPEC_PATH, spec_sources
 from twin.device.spec_toml import shown, shown_range, spec_units
-from twin.formats.profile import create_profile, spec_source_of
+from twin.formats.profile import create_profile
+from twin.records.profile import NO_PROFILE
 
 
 def add_arguments(p) -> None:
@@ -52,7 +53,7 @@ def run(args) -> int:
     print(f"gains: {profile.gains_from}")
     for k, g in enumerate(profile.gains):
         print(f"  hinge {k}: kp {g.kp:g} ki {g.ki:g} kd {g.kd:g}")
-    sources = spec_source_of(profile)
+    sources = profile.sources
     units = spec_units(SPEC_PATH)  # each value in the unit the spec file gives it in
     if profile.calibration:
         print("calibration from " + ", ".join(profile.calibration.runs) + ":")
@@ -67,12 +68,11 @@ def run(args) -> int:
                 f"{', identifiable' if e.identifiable else ''})" for p, e in row.items()))
     else:
         print("not calibrated")
-    for p, e in (profile.holding or {}).get("parameters", {}).items():
+    for p, e in (profile.holding.parameters if profile.holding else {}).items():
         u = units.get(p, "")
-        print(f"holding (vrscroll holding, {profile.holding['releases']} release(s) on {profile.holding['port']}): "
-              f"{p} {shown(e['value'], u, '.3g')} (prior {shown(e['prior'], u, '.3g')}; interval "
-              f"{shown_range(e['low'], e['high'], u, '.3g')}; "
-              f"{'identifiable' if e['identifiable'] else 'NOT identifiable'})")
+        print(f"holding (vrscroll holding, {profile.holding.releases} release(s) on {profile.holding.port}): "
+              f"{p} {shown(e.value, u, '.3g')} (prior {shown(e.prior, u, '.3g')}; interval "
+              f"{shown_range(e.low, e.high, u, '.3g')}; {'identifiable' if e.identifiable else 'NOT identifiable'})")
     defaults = spec_sources()
     changed = [f for f, s in sources.items() if s != defaults.get(f)]
     print("spec values not the spec's defaults: " + (", ".join(

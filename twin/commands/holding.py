@@ -23,10 +23,11 @@ from twin.commands.options import (
 )
 from twin.device.variation import prior_ranges
 from twin.errors import UserError
-from twin.formats.profile import write_profile_spec
+from twin.formats.profile import updated, write_profile
 from twin.hil.holding import RELEASE_S, fit_backdrive, record_release, sag_after_cut, with_values
 from twin.hil.mirror import DeviceNotReady
 from twin.link.serial_link import LinkError
+from twin.records.profile import Holding
 from twin.sim.gate import GateRefused
 
 PREDICT_S = (1.0, 5.0)  # s after the drive is cut: what the twin reports, braked
@@ -74,10 +75,10 @@ def run(args) -> int:
     e = fit.estimate
     written = None
     if profile.name:
-        holding = {"port": port, "releases": len(releases), "parameters": {"backdrive_efficiency": e.to_json()}}
-        written = write_profile_spec(profile.name, {"backdrive_efficiency": e.value},
-                                     f"measured by `vrscroll holding` from {len(releases)} release(s) on {port}",
-                                     by="vrscroll holding", holding=holding)
+        written = write_profile(updated(profile, {"backdrive_efficiency": e.value},
+                                        f"measured by `vrscroll holding` from {len(releases)} release(s) on {port}",
+                                        holding=Holding(port, len(releases), {"backdrive_efficiency": e})),
+                                by="vrscroll holding")
     fitted, hinges = with_values(spec, profile.hinges, {"backdrive_efficiency": e.value})
     predicted = {f"{s:g}": sag_after_cut(fitted, s, hinges).round(2).tolist() for s in PREDICT_S}
     unpowered = {f"{s:g}": sag_after_cut(fitted, s, hinges, braked=False).round(2).tolist() for s in UNPOWERED_S}

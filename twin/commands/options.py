@@ -16,21 +16,19 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import json
 import math
 import re
 import sys
 from pathlib import Path
 
-from controllers.pid import PidGains
 from twin.device.profile import default_name, profile_dir, profiles_dir, set_default
-from twin.device.spec import load_spec
 from twin.device.mount import MOUNTS
-from twin.formats.profile import Profile, read_profile, write_profile_mount
+from twin.formats.profile import read_profile, spec_defaults, updated, write_profile
 from twin.hil.device_gains import device_spec
 from twin.link.serial_link import Link
 from twin.paths import replacing
+from twin.records.profile import Profile
 
 # old spelling -> new, refused wherever the new one is an option of the command
 RENAMED = {"--port": "--serial", "--tolerance": "--tolerance-pct", "--max-time": "--max-time-s",
@@ -223,12 +221,6 @@ def add_mount(p) -> None:
                         "twin the same way (default: the profile's, else hanging)")
 
 
-def spec_defaults() -> Profile:
-    """The spec's defaults: models/vrscroll/spec.toml and its gains on every hinge."""
-    spec = load_spec()
-    return Profile(None, None, spec, [PidGains.from_spec(spec)] * spec.n_hinges, "spec", None)
-
-
 def select_profile(name: str | None = None) -> Profile:
     """The profile called name, or the selected one (twin.device.profile.default_name), or the spec's defaults.
 
@@ -254,9 +246,9 @@ def profile_of(args) -> Profile:
         set_default(args.device)
     mount = getattr(args, "mount", None)
     if mount and mount != profile.mount:
+        profile = updated(profile, mount=mount)
         if profile.name:
-            write_profile_mount(profile.name, mount)
-        profile = dataclasses.replace(profile, mount=mount)
+            write_profile(profile)
     return profile
 
 

@@ -17,7 +17,6 @@ from twin.paths import replacing
 
 ENV = "VRSCROLL_DEVICES"
 DEFAULT_FILE = "default"
-NO_PROFILE = "spec defaults"  # how reports name the absence of a profile
 # `vrscroll device select none` means the spec's defaults, and `default` is the file that keeps the selection
 # (a profile folder of that name broke selecting one): no profile can be called either
 RESERVED = ("none", DEFAULT_FILE)

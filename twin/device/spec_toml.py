@@ -93,9 +93,10 @@ def spec_units(path) -> dict[str, str]:
             for key, entry in entries.items()}
 
 
-def write_spec_toml(path, template, values: dict, source: str, header: str = "") -> None:
-    """Write the template spec TOML with `values` (field -> SI) and their source replaced, in the file's
-    units; comments and every other entry stay as they are. `header`: comment lines put on top."""
+def write_spec_toml(path, template, values: dict, source: str | dict, header: str = "") -> None:
+    """Write the template spec TOML with `values` (field -> SI) and their source (one for all, or field ->
+    source) replaced, in the file's units; comments and every other entry stay as they are. `header`: comment
+    lines put on top."""
     doc = tomlkit.parse(Path(template).read_text())
     entries = {FIELD.get((s, k), k): doc[s][k] for s in doc for k in doc[s]}
     for field, value in values.items():
@@ -104,7 +105,7 @@ def write_spec_toml(path, template, values: dict, source: str, header: str = "")
         entry = entries[field]
         v = value_in_unit(value, entry["unit"])
         entry["value"] = int(round(v)) if isinstance(entry["value"].unwrap(), int) else float(f"{v:.6g}")
-        entry["source"] = source
+        entry["source"] = source[field] if isinstance(source, dict) else source
     text = tomlkit.dumps(doc)
     with replacing(path) as tmp:
         Path(tmp).write_text("".join(f"# {line}\n" for line in header.splitlines()) + text)

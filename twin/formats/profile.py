@@ -21,6 +21,10 @@ held, one of twin.device.mount.MOUNTS ("hanging", "flat", "stand"); a profile wi
 "holding" (written by `vrscroll holding --device`): {"port", "releases": count, "parameters":
 {"backdrive_efficiency": {...}}}, the value also in spec.toml (twin.hil.holding).
 Where the folders live is twin.device.profile's; which one a command uses, twin.commands.options'.
+
+Read and written whole as the record twin.records.profile.Profile (its Calibration and Holding records):
+`read_profile` gives it, a command makes the changed record with `updated` and `write_profile` writes it, so no
+command builds a part of profile.json by hand and what is written is what the next command reads.
 """
 
 from __future__ import annotations
@@ -32,14 +36,15 @@ from pathlib import Path
 
 from controllers.pid import PidGains
 from twin.checks import json_object, known_keys, number, required_keys
-from twin.device.mount import DEFAULT_MOUNT, MOUNTS, check_mount
-from twin.device.profile import NO_PROFILE, profile_dir, profiles_dir
+from twin.device.mount import DEFAULT_MOUNT, check_mount
+from twin.device.profile import profile_dir, profiles_dir
 from twin.device.spec import SPEC_PATH, DeviceSpec, load_spec, spec_sources
 from twin.device.spec_toml import write_spec_toml
 from twin.device.variation import PLANT_FIELDS, scaled
 from twin.formats.gains import read_gains, write_gains
 from twin.paths import replacing
 from twin.records.calibration import Calibration, Estimate
+from twin.records.profile import Holding, Profile
 
 PROFILE_FORMAT = "vrscroll-profile/1"
 META, SPEC, GAINS, WIRING = "profile.json", "spec.toml", "gains.json", "wiring.json"
@@ -48,46 +53,29 @@ RUNS_KEYS = ("runs_low", "runs_high")  # optional (a calibration before they wer
 META_PARTS = ("mount", "calibration", "holding")  # what profile.json holds beside its format and name
 
 
-@dataclasses.dataclass
-class Profile:
-    """The device the commands simulate, gate and talk to: a profile, or the spec's defaults (name None)."""
+def hinge_plants(spec: DeviceSpec, calibration: Calibration | None) -> list[DeviceSpec] | None:
+    """Each hinge's own spec where calibration fitted per-hinge values (None where it did not): the spec with
+    that hinge's values, the fields that move with one moved alike (twin.device.variation.scaled)."""
+    rows = calibration.hinges if calibration else None
+    if not rows:
+        return None
+    return [scaled(spec, {p: e.value / getattr(spec, p) for p, e in row.items()}) for row in rows]
 
-    name: str | None
-    folder: Path | None
-    spec: DeviceSpec
-    gains: list[PidGains]  # per hinge
-    gains_from: str  # where the gains came from: the profile's gains.json or the spec
-    calibration: Calibration | None  # profile.json's "calibration", if the profile was calibrated
-    holding: dict | None = None  # profile.json's "holding", if a release was measured (`vrscroll holding`)
-    mount: str = DEFAULT_MOUNT  # how the device is held (twin.device.mount.MOUNTS): the twin is held so too
 
-    @property
-    def label(self) -> str:
-        """How every report names it: the profile's name, or "spec defaults"."""
-        return self.name or NO_PROFILE
+def spec_defaults() -> Profile:
+    """The spec's defaults as a profile (name None): models/vrscroll/spec.toml and its gains on every hinge."""
+    spec = load_spec()
+    return Profile(None, None, spec, spec_sources(), [PidGains.from_spec(spec)] * spec.n_hinges, "spec",
+                   DEFAULT_MOUNT)
 
-    def ranges(self) -> dict:
-        """parameter -> (low, high) SI, what tuning covers: the twin's values that reproduce the calibration's
-        runs (runs_low .. runs_high; low .. high where the calibration kept no such interval) ({} when not
-        calibrated)."""
-        if not self.calibration:
-            return {}
-        return {p: e.runs_range for p, e in self.calibration.parameters.items()}
 
-    def hinge_ranges(self) -> list[dict] | None:
-        """Per hinge, parameter -> (low, high) SI, as `ranges` for its own values (None where calibration
-        fitted none)."""
-        rows = self.calibration.hinges if self.calibration else None
-        return [{p: e.runs_range for p, e in row.items()} for row in rows] if rows else None
-
-    @property
-    def hinges(self) -> list[DeviceSpec] | None:
-        """Each hinge's own spec where calibration fitted per-hinge values (None where it did not): the
-        profile's spec with that hinge's values, the fields that move with one moved alike."""
-        rows = self.calibration.hinges if self.calibration else None
-        if not rows:
-            return None
-        return [scaled(self.spec, {p: e.value / getattr(self.spec, p) for p, e in row.items()}) for row in rows]
+def updated(profile: Profile, values: dict | None = None, source: str = "", **parts) -> Profile:
+    """The profile with plant `values` (spec field -> SI) in its spec, each from `source`, and `parts` (name,
+    calibration, holding, mount) replaced; its per-hinge plants made again from its spec and calibration."""
+    values = values or {}
+    spec = profile.spec.replace(**values)
+    out = dataclasses.replace(profile, spec=spec, sources=profile.sources | {f: source for f in values}, **parts)
+    return dataclasses.replace(out, hinges=hinge_plants(spec, out.calibration))
 
 
 def plant_is_physical(spec: DeviceSpec, where, hinge_rows=None) -> None:
@@ -135,13 +123,14 @@ def _calibration(doc, where: str, n_hinges: int) -> Calibration:
                        [estimates(row) for row in doc["hinges"]] if "hinges" in doc else None)
 
 
-def _holding(doc, where: str) -> dict:
+def _holding(doc, where: str) -> Holding:
+    """profile.json's "holding", checked, as the record; ValueError naming the key."""
     if not isinstance(doc, dict):
         raise ValueError(f"{where}: expected an object with port, releases, parameters")
     known_keys(doc, ("port", "releases", "parameters"), where)
     required_keys(doc, ("port", "releases", "parameters"), where)
     _parameters(doc["parameters"], f"{where}: parameters")
-    return doc
+    return Holding(doc["port"], doc["releases"], {p: Estimate(**e) for p, e in doc["parameters"].items()})
 
 
 def _parameters(doc, where: str) -> None:
@@ -210,20 +199,22 @@ def read_profile(folder) -> Profile:
         gains, source = read_gains(folder / GAINS, spec.n_hinges), str(folder / GAINS)
     else:
         gains, source = [PidGains.from_spec(spec)] * spec.n_hinges, "spec"
-    return Profile(folder.name, folder, spec, gains, source, calibration, holding, mount)
+    return Profile(folder.name, folder, spec, spec_sources(folder / SPEC, defaults=load_spec()), gains, source, mount,
+                   calibration, hinge_plants(spec, calibration), holding)
 
 
-def _write_meta(folder: Path, **parts) -> None:
-    """profile.json with `parts` (calibration, holding: a dict, or None to drop it) in place of those it held,
-    the others kept."""
-    doc = {"format": PROFILE_FORMAT, "name": folder.name}
-    if (folder / META).is_file():
-        doc |= {k: v for k, v in json_object(folder / META).items() if k in META_PARTS}
-    doc |= parts
-    doc = {k: v for k, v in doc.items() if v is not None}
-    if doc.get("calibration"):
+def _calibration_json(c: Calibration) -> dict:
+    return {"runs": list(c.runs), "parameters": {p: e.to_json() for p, e in c.parameters.items()},
+            **({"hinges": [{p: e.to_json() for p, e in row.items()} for row in c.hinges]} if c.hinges else {})}
+
+
+def _write_meta(folder: Path, doc: dict) -> None:
+    """profile.json: its format and name, and `doc`'s parts (mount, calibration, holding), each checked as
+    read_profile checks it."""
+    doc = {"format": PROFILE_FORMAT, "name": folder.name, **doc}
+    if "calibration" in doc:
         _calibration(doc["calibration"], str(folder / META), load_spec().n_hinges)
-    if doc.get("holding"):
+    if "holding" in doc:
         _holding(doc["holding"], str(folder / META))
     if "mount" in doc:
         check_mount(doc["mount"], f"{folder / META}: mount")
@@ -231,20 +222,29 @@ def _write_meta(folder: Path, **parts) -> None:
         tmp.write_text(json.dumps(doc, indent=2) + "\n")
 
 
-def write_profile_spec(name: str, values: dict, source: str, by: str = "vrscroll calibrate", **parts) -> Path:
-    """Create or update the profile called name: its spec.toml gets `values` (field -> SI) with `source`
-    (every other value as it was: the profile's own spec, or the spec's defaults for a new profile), and
-    profile.json `parts` (calibration, holding: each replaced, the others kept). by: the command writing it.
-    Returns the folder."""
-    folder = profile_dir(name)
+def write_profile(profile: Profile, by: str = "vrscroll calibrate") -> Path:
+    """Write the profile record whole into the folder of profile.name (made where it is not there): its
+    spec.toml gets each plant value whose value or source (profile.sources) is not the file's (the spec's for a
+    new profile), every other entry kept as written; profile.json its mount, calibration and holding. The gains
+    are tune's, with what they were tuned for (write_profile_gains). by: the command writing it, said in the
+    spec.toml's header. Returns the folder."""
+    folder = profile_dir(profile.name)
     folder.mkdir(parents=True, exist_ok=True)
     template = folder / SPEC if (folder / SPEC).is_file() else SPEC_PATH
-    with replacing(folder / SPEC) as spec_tmp:
-        write_spec_toml(spec_tmp, template, values, source,
-                        header=f"Device profile {name}: the spec of this device, written by `{by}` "
-                               "(docs/tuning-hil-calibration.md).")
-        load_spec(spec_tmp, defaults=load_spec())  # what was written reads back, or nothing is replaced
-    _write_meta(folder, **parts)
+    was, was_from = load_spec(template, defaults=load_spec()), spec_sources(template, defaults=load_spec())
+    values = {f: getattr(profile.spec, f) for f in PLANT_FIELDS
+              if getattr(profile.spec, f) != getattr(was, f) or profile.sources.get(f) != was_from.get(f)}
+    if values or template == SPEC_PATH:
+        with replacing(folder / SPEC) as spec_tmp:
+            write_spec_toml(spec_tmp, template, values, {f: profile.sources[f] for f in values},
+                            header=f"Device profile {profile.name}: the spec of this device, written by `{by}` "
+                                   "(docs/tuning-hil-calibration.md).")
+            load_spec(spec_tmp, defaults=load_spec())  # what was written reads back, or nothing is replaced
+    holding = profile.holding
+    _write_meta(folder, {"mount": profile.mount,
+                         **({"calibration": _calibration_json(profile.calibration)} if profile.calibration else {}),
+                         **({"holding": {"port": holding.port, "releases": holding.releases, "parameters": {
+                             p: e.to_json() for p, e in holding.parameters.items()}}} if holding else {})})
     return folder
 
 
@@ -282,20 +282,5 @@ def create_profile(name: str, mount: str | None = None) -> Path:
         check_mount(mount)
     folder.mkdir(parents=True)
     (folder / SPEC).write_text(Path(SPEC_PATH).read_text())
-    _write_meta(folder, mount=mount)
+    _write_meta(folder, {"mount": mount} if mount else {})
     return folder
-
-
-def write_profile_mount(name: str, mount: str) -> Path:
-    """Record how the device of the profile called name is held (one of MOUNTS; the profile must exist).
-    Returns its profile.json."""
-    folder = profile_dir(name)
-    if not (folder / META).is_file():
-        raise ValueError(f"device profile {name!r} is not in {profiles_dir()}: `vrscroll device create {name}`")
-    _write_meta(folder, mount=check_mount(mount))
-    return folder / META
-
-
-def spec_source_of(profile: Profile) -> dict:
-    """field -> where its value came from, for the profile's spec."""
-    return spec_sources(profile.folder / SPEC, defaults=load_spec()) if profile.folder else spec_sources()

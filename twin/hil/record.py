@@ -25,7 +25,6 @@ import numpy as np
 
 from controllers.encoder import angle_from_counts, target_counts
 from twin.device.mount import DEFAULT_MOUNT
-from twin.device.profile import NO_PROFILE
 from twin.device.spec import DeviceSpec
 from twin.formats.gains import write_gains
 from twin.formats.run import run_start, write_run_meta
@@ -35,6 +34,7 @@ from twin.hil.device_gains import device_gains, push_gains, restore_gains
 from twin.hil.mirror import (HOST_SLACK_S, TIME_SLACK, FrameTimes, deviation, faults_text, mirror, parted_text,
                               start_meta, wait_for_rest)
 from twin.link import protocol as P
+from twin.records.profile import NO_PROFILE
 from twin.sim.gate import GateRefused, check_scenario, enforce
 from twin.sim.replay import replay_targets, twin_at_start
 

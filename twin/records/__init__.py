@@ -5,6 +5,7 @@ their own arithmetic. One record per concept, shared by every layer that holds o
     trace.Trace                   a recording at the firmware rate, twin's and device's alike
     move_report.MoveReport        a move's step response per hinge
     calibration.Calibration       a profile's calibration: the runs and an Estimate per parameter (and per hinge)
+    profile.Profile               a device profile: spec, sources, gains, mount, calibration, per-hinge plants, holding
 
 The bottom of the code's layers, beside `twin.device` (README "Layout"): imports neither the device nor
 anything above it, so `twin.formats` reads and writes these and every layer above takes them whole

@@ -72,7 +72,7 @@ STD_FLOOR = 0.05  # log gain: the search's least spread (5 %: finer than the enc
 class TuneGoal:
     """What the tuner minimises: worst-plant settle time with overshoot under max_overshoot (rad), over the
     plants `ranges` spans: {spec field: (low, high) SI}, e.g. the intervals calibration left open
-    (twin.formats.profile.Profile.ranges); empty: +-tolerance on motor constant and gear friction. With
+    (twin.records.profile.Profile.ranges); empty: +-tolerance on motor constant and gear friction. With
     `hinges`, every plant gives each hinge its own values, at its own intervals' corners (variation.corners).
     mount: how the device is held (twin.device.mount): every plant's twin is held so."""
 
