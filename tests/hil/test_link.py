@@ -21,6 +21,8 @@ from twin.cli import main as vrscroll
 from twin.sim.gate import GateRefused
 from twin.link.serial_link import Link, LinkError, LinkTimeout, NackError
 from twin.hil.mirror import mirror
+from twin.sim.response import move_settle_time
+from twin.sim.settle import SettleTracker
 
 SAFE_DEG = [25.0, 10.0, 0.0, 0.0, -10.0, -25.0]
 
@@ -52,6 +54,16 @@ def test_round_trip_mirror_settles_and_matches_the_twin(emulator, spec, tmp_path
     sent = [e for e in events if e["event"] == "tx" and e["msg"] == "SET_TARGETS"]
     assert sent and sent[-1]["counts"] == target_counts(spec, targets).tolist()
     assert [e["counts"] for e in emu.events("rx") if e["msg"] == "SET_TARGETS"] == [sent[-1]["counts"]]
+    # the frames as one Trace (telemetry_trace, the one conversion): the watch's final angle is the last frame's
+    # encoder angle, and its settle time the settle rule's on the frames, fed as they came (twin.sim.settle, the
+    # watch's own) and looking back over them (twin.sim.response, the reports')
+    rec, tgt = result.telemetry, target_counts(spec, targets)
+    assert len(rec.time) == result.frames and np.array_equal(rec.angle, rec.counts * spec.rad_per_count)
+    assert np.degrees(rec.angle[-1]) == pytest.approx(result.final_deg, abs=1e-12)
+    tracker = SettleTracker(tgt, spec.settle_band, spec.settle_hold, 1 / 500)
+    fed = [s for t, c in zip(rec.time, rec.counts) if (s := tracker.feed(t, c)) is not None]
+    assert fed == [result.settle_time]  # first settled on the last frame, where the watch stopped
+    assert move_settle_time(spec, rec.time, rec.counts, tgt, start=0.0) == pytest.approx(result.settle_time, abs=1e-9)
 
 
 @pytest.mark.parametrize("deg, check", [([60.0] * 6, "collision"), ([130.0, 0, 0, 0, 0, 0], "range")])

@@ -57,6 +57,12 @@ class TraceWriter:
         self.f.write(",".join(row) + "\n")  # one write per row: a killed run loses at most the line being written
         self.rows += 1
 
+    def write_rows(self, trace: Trace, rows=slice(None)) -> None:
+        """The rows `rows` (an index, a slice; default all) of a trace, this writer's columns (deg in the file)."""
+        columns = {c: getattr(trace, _FIELDS[c][0])[rows] for c in self.cols}
+        for i, t in enumerate(trace.time[rows]):
+            self.write(t, **{c: np.degrees(v[i]) if c.endswith("_deg") else v[i] for c, v in columns.items()})
+
     def close(self) -> None:
         self.f.close()
 
@@ -141,7 +147,5 @@ def write_trace(path, trace: Trace) -> None:
     """A whole trace as a trace CSV, written to a temporary file and moved into place: every column it holds
     (a twin's: true_angle_deg, target_counts, torque_Nm beside the device's)."""
     extra = tuple(c for c in TWIN_COLUMNS if getattr(trace, _FIELDS[c][0]) is not None)
-    columns = {c: getattr(trace, field) for c, (field, _) in _FIELDS.items() if c in TRACE_COLUMNS + extra}
     with replacing(path) as tmp, TraceWriter(tmp, trace.n_hinges, extra=extra) as w:
-        for i in range(len(trace.time)):
-            w.write(trace.time[i], **{c: np.degrees(v[i]) if c.endswith("_deg") else v[i] for c, v in columns.items()})
+        w.write_rows(trace)

@@ -24,11 +24,12 @@ from controllers.encoder import angle_from_counts, target_counts
 from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec
 from twin.formats.run import run_start
-from twin.records.trace import Trace
+from twin.records.trace import Trace, joined
 from twin.hil.device_gains import device_gains
 from twin.link import protocol as P
 from twin.link.serial_link import Link
 from twin.sim.gate import GateRefused, GateReport, check_move, enforce
+from twin.sim.settle import SettleTracker
 from twin.sim.twin import Twin
 
 
@@ -167,10 +168,8 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
     watch_until = time.monotonic() + settle_limit + 1.0 + HOST_SLACK_S  # the host's own deadline
     tgt = target_counts(spec, targets)
     max_dev = np.zeros(spec.n_hinges)
-    hold_needed = spec.settle_hold
-    frame_period = 1.0 / telemetry_hz
+    settle = SettleTracker(tgt, spec.settle_band, spec.settle_hold, 1.0 / telemetry_hz)
     slack = int(round(TIME_SLACK / dt))
-    in_band_since = None
     frames = 0
     elapsed = 0.0
     device = start
@@ -178,13 +177,13 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
 
     twin_settle = report.settle_time
 
-    rows = []  # (time s, counts, target counts, duty, current mA) per frame
+    rows = []  # each frame as a one-row Trace (telemetry_trace)
 
-    def result(outcome, hinge, message, settle=math.nan):
-        r = MirrorResult(report, outcome, hinge, np.degrees(max_dev), elapsed, settle, twin_settle, frames,
-                         np.degrees(device), message, _recording(spec, rows))
+    def result(outcome, hinge, message, settled=math.nan):
+        r = MirrorResult(report, outcome, hinge, np.degrees(max_dev), elapsed, settled, twin_settle, frames,
+                         np.degrees(device), message, joined(rows) if rows else None)
         link.log("mirror_result", outcome=outcome, hinge=hinge, message=message, elapsed_s=elapsed,
-                 settle_time_s=settle, twin_settle_time_s=twin_settle,
+                 settle_time_s=settled, twin_settle_time_s=twin_settle,
                  max_deviation_deg=np.degrees(max_dev).round(3).tolist(), frames=frames)
         return r
 
@@ -203,8 +202,8 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
             continue
         elapsed = since
         frames += 1
-        rows.append((since, fr.counts, fr.targets, fr.duty, fr.current_ma))
-        device = angle_from_counts(spec, fr.counts)
+        rows.append(telemetry_trace(spec, [(since, fr)]))
+        device = rows[-1].angle[0]
         expected, dev = deviation(device, predicted, int(round(elapsed / dt)), slack)
         max_dev = np.maximum(max_dev, dev)
         if on_frame:
@@ -217,14 +216,10 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
         if parted:
             _estop(link)
             return result("diverged", int(np.argmax(dev)), parted)
-        if np.all(np.abs(np.asarray(fr.counts) - tgt) <= spec.settle_band):
-            in_band_since = elapsed if in_band_since is None else in_band_since
-            if elapsed - in_band_since + frame_period >= hold_needed:
-                # the settle time's definition (twin.sim.response.settle_time), applied as the frames come
-                return result("settled", None, f"settled: settle time {in_band_since:.3f} s (twin: {twin_settle:.3f} s), "
-                              f"largest deviation {np.degrees(max_dev).max():.2f} deg", settle=in_band_since)
-        else:
-            in_band_since = None
+        settled = settle.feed(elapsed, fr.counts)  # the settle rule (twin.sim.settle), as the frames come
+        if settled is not None:
+            return result("settled", None, f"settled: settle time {settled:.3f} s (twin: {twin_settle:.3f} s), "
+                          f"largest deviation {np.degrees(max_dev).max():.2f} deg", settled=settled)
     worst = int(np.argmax(np.abs(np.asarray(device) - targets)))
     return result("timeout", worst, f"not settled after {deadline:.1f} s (hinge {worst} at "
                   f"{math.degrees(device[worst]):.1f} deg, target {math.degrees(targets[worst]):.1f} deg)")
@@ -259,13 +254,16 @@ def deviation(device, predicted, row: int, slack: int):
     return predicted[min(row, last)], dev
 
 
-def _recording(spec: DeviceSpec, rows) -> Trace | None:
-    """Telemetry frames as a Trace in SI (None without frames)."""
-    if not rows:
-        return None
-    t, counts, targets, duty, current = (np.array(c) for c in zip(*rows))
-    return Trace(time=t.astype(float), target=targets * spec.rad_per_count, angle=counts * spec.rad_per_count,
-                     counts=counts.astype(np.int64), duty=duty / P.DUTY_SCALE, current=current / 1000.0)
+def telemetry_trace(spec: DeviceSpec, frames) -> Trace:
+    """Telemetry frames, [(s since t = 0 (FrameTimes.since), P.Telemetry)], as a Trace in SI: the encoder's
+    angle and the target from their counts (x rad per count), the duty from the wire's scale, the current from
+    mA. The one conversion of a device's frames (mirror's watch and recording, run_hil's device.csv)."""
+    n = spec.n_hinges
+    column = (lambda field, dtype: np.array([getattr(fr, field) for _, fr in frames], dtype).reshape(-1, n))
+    counts = column("counts", np.int64)
+    return Trace(time=np.array([t for t, _ in frames], float), target=column("targets", np.int64) * spec.rad_per_count,
+                 angle=counts * spec.rad_per_count, counts=counts, duty=column("duty", float) / P.DUTY_SCALE,
+                 current=column("current_ma", float) / 1000.0)
 
 
 def device_step(link: Link, spec: DeviceSpec, targets, settle_limit: float = 2.0, mount: str = DEFAULT_MOUNT):

@@ -16,6 +16,7 @@ disk as far as it went, its status "stopped: <why>" (`Diverged`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import shutil
 import time
@@ -23,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from controllers.encoder import angle_from_counts, target_counts
+from controllers.encoder import target_counts
 from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec
 from twin.formats.gains import write_gains
@@ -32,7 +33,7 @@ from twin.formats.scenario import Scenario
 from twin.formats.trace import TraceWriter
 from twin.hil.device_gains import device_gains, push_gains, restore_gains
 from twin.hil.mirror import (HOST_SLACK_S, TIME_SLACK, FrameTimes, deviation, faults_text, mirror, parted_text,
-                              start_meta, wait_for_rest)
+                             start_meta, telemetry_trace, wait_for_rest)
 from twin.link import protocol as P
 from twin.records.profile import NO_PROFILE
 from twin.sim.gate import GateRefused, check_scenario, enforce
@@ -111,12 +112,8 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
         nonlocal twin_ticks
         for first, tr in replay_targets(twin, changes, twin_ticks, int(math.floor(to_time / dt + 1e-9))):
             predicted[first:first + len(tr.angle)] = tr.angle
-            for i in range(len(tr.time)):
-                tick = first + i
-                if tick % stride == 0:
-                    twin_w.write(tick * dt, target_deg=np.degrees(tr.target[i]), angle_deg=np.degrees(tr.angle[i]),
-                                 counts=tr.counts[i], duty=tr.duty[i], current_A=tr.current[i],
-                                 true_angle_deg=np.degrees(tr.true_angle[i]))
+            ticks = first + np.arange(len(tr.time))
+            twin_w.write_rows(dataclasses.replace(tr, time=ticks * dt), ticks % stride == 0)
             twin_ticks = first + len(tr.time)
 
     def compare_frames(final: bool):
@@ -168,12 +165,10 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
                     hinge = "" if fr.fault_hinge == 0xFF else f" on hinge {fr.fault_hinge}"
                     raise RuntimeError(f"device stopped itself at t={since:.3f} s: {faults_text(fr.faults)}{hinge}"
                                        " (vrscroll view RUN shows the run up to there)")
-                device = angle_from_counts(spec, fr.counts)
-                dev_w.write(since, target_deg=np.degrees(angle_from_counts(spec, fr.targets)),
-                            angle_deg=np.degrees(device), counts=fr.counts,
-                            duty=np.asarray(fr.duty) / P.DUTY_SCALE, current_A=np.asarray(fr.current_ma) / 1000.0)
+                row = telemetry_trace(spec, [(since, fr)])
+                dev_w.write_rows(row)
                 if since <= scenario.duration:
-                    pending.append((since, device))
+                    pending.append((since, row.angle[0]))
                 latest = max(latest, since)
             advance(min(latest, scenario.duration))
             compare_frames(final=False)

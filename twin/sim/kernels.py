@@ -15,6 +15,7 @@ from controllers import core
 from controllers.encoder import counts_from_motor_angle
 from twin.device.flap_collision import apart
 from twin.sim.drive import DECAY_COAST, drive
+from twin.sim.settle import in_band
 
 # MuJoCo's C API and the firmware core's control tick, for the compiled loops
 LIBMUJOCO = ctypes.CDLL(os.path.join(os.path.dirname(mujoco.__file__), f"libmujoco.so.{mujoco.__version__}"))
@@ -64,7 +65,7 @@ def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata
     n = target.shape[0]
     current = np.zeros(n)
     angles = np.zeros(n)
-    in_band = 0
+    ticks_in_band = 0
     for i in range(max_ticks):
         mi = step_model(m, m_free, spreads, qpos, qadr, angles)
         mj_step1(mi, d)  # positions, velocities and sensors at the start of the tick
@@ -74,10 +75,8 @@ def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata
                 pwm[h] = 0.0
                 decay[h] = DECAY_COAST
         bus[0] = drive(params, pwm, decay, qvel, gear_dof, ctrl, qfrc_applied, current)
-        settled = True
+        settled = in_band(target, counts, settle_band)  # the settle rule (twin.sim.settle), a tick at a time
         for h in range(n):
-            if abs(target[h] - counts[h]) > settle_band:
-                settled = False
             rec_angle[i, h] = qpos[qadr[h]]
             rec_counts[i, h] = counts[h]
             rec_duty[i, h] = duty[h]
@@ -87,8 +86,8 @@ def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata
             rec_torque[i, h] = qfrc[gear_dof[h]] + qfrc_applied[gear_dof[h]]
         for _ in range(substeps - 1):  # finer physics than the firmware, drive held
             mj_step(step_model(m, m_free, spreads, qpos, qadr, angles), d)
-        in_band = in_band + 1 if settled else 0
-        if stop_when_settled and in_band >= hold_ticks:
+        ticks_in_band = ticks_in_band + 1 if settled else 0
+        if stop_when_settled and ticks_in_band >= hold_ticks:
             return i + 1
     return max_ticks
 
