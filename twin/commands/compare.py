@@ -3,7 +3,7 @@ per hinge and run the device-twin RMSE, largest error, settle times and overshoo
 
 from __future__ import annotations
 
-from twin.commands.options import add_device_option, add_json, output_file, profile_line, profile_of, write_json
+from twin.commands.options import add_device_option, add_json, opened, output_file, write_json
 from twin.errors import UserError
 from twin.formats.run import read_run
 from twin.hil.compare import METRICS, compare, metrics_text
@@ -21,9 +21,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     if len(args.runs) < 2:
         raise UserError("compare needs two or more run folders")
-    profile = profile_of(args)
-    spec = profile.spec
-    print(profile_line(profile))
+    profile, spec = opened(args)
     runs = [read_run(r, spec, incomplete=True) for r in args.runs]
     for path, r in zip(args.runs, runs):
         if r.twin is None or not len(r.device.time) or not len(r.twin.time):

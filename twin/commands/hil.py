@@ -14,8 +14,7 @@ from twin.commands.options import (
     add_serial,
     add_tolerance_deg,
     device_session,
-    profile_line,
-    profile_of,
+    opened,
     within,
 )
 from twin.errors import UserError
@@ -47,9 +46,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    profile = profile_of(args)
-    spec = profile.spec
-    print(profile_line(profile))
+    profile, spec = opened(args)
     scenario = read_scenario(args.scenario, spec)
     gains = read_gains(args.gains, spec.n_hinges) if args.gains else \
         profile.gains if profile.gains_from != "spec" else None

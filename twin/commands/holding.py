@@ -16,8 +16,8 @@ from twin.commands.options import (
     add_tolerance_deg,
     device_session,
     json_to_stdout,
-    profile_line,
-    profile_of,
+    link_errors,
+    opened,
     within,
     write_json,
 )
@@ -26,7 +26,6 @@ from twin.errors import UserError
 from twin.formats.profile import updated, write_profile
 from twin.hil.holding import RELEASE_S, fit_backdrive, record_release, sag_after_cut, with_values
 from twin.hil.mirror import DeviceNotReady
-from twin.link.serial_link import LinkError
 from twin.records.profile import Holding
 from twin.sim.gate import GateRefused
 
@@ -49,17 +48,14 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    profile = profile_of(args)
+    profile, spec = opened(args)
     if profile.mount != "hanging":  # lying flat the table holds the flaps up; on a stand gravity loads no hinge
         raise UserError(f"holding releases the flaps under gravity, which the {profile.mount} mount takes away: hang "
                         "the device from its root flap and give --mount hanging (docs/device.md, \"Mounts\")")
-    spec = profile.spec
     quiet = json_to_stdout(args)
-    if not quiet:
-        print(profile_line(profile))
     releases = []
     try:
-        with device_session(args, spec) as (link, spec):
+        with link_errors(), device_session(args, spec) as (link, spec):
             for k in range(args.releases):
                 releases.append(record_release(link, spec, args.release_s, args.tolerance_deg, profile.hinges))
                 if not quiet:
@@ -69,8 +65,6 @@ def run(args) -> int:
             port = link.url
     except (GateRefused, DeviceNotReady) as exc:
         raise UserError(str(exc)) from None
-    except LinkError as exc:
-        raise UserError(f"link: {exc}") from None
     fit = fit_backdrive(releases, spec, profile.hinges, profile.ranges() or prior_ranges(spec))
     e = fit.estimate
     written = None

@@ -14,14 +14,13 @@ from twin.commands.options import (
     add_serial,
     add_tolerance_deg,
     device_session,
-    profile_line,
-    profile_of,
+    link_errors,
+    opened,
     within,
 )
 from twin.errors import UserError
 from twin.formats.target import read_target
 from twin.hil.mirror import DeviceNotReady, mirror
-from twin.link.serial_link import LinkError
 from twin.sim.gate import GateRefused
 
 
@@ -63,9 +62,7 @@ def read_targets(args, spec) -> np.ndarray:
 
 
 def run(args) -> int:
-    profile = profile_of(args)
-    spec = profile.spec
-    print(profile_line(profile))
+    profile, spec = opened(args)
     targets = read_targets(args, spec)
     last = [0.0]
 
@@ -77,7 +74,7 @@ def run(args) -> int:
                   + f"  deg   largest deviation {dev.max():4.1f} deg (hinge {int(dev.argmax())})", flush=True)
 
     try:
-        with device_session(args, spec) as (link, spec):
+        with link_errors(f" (session log: {args.log})"), device_session(args, spec) as (link, spec):
             if args.override:
                 print("gate override requested: a failed check will be logged and the move sent anyway")
             result = mirror(link, spec, targets, tolerance_deg=args.tolerance_deg, settle_limit=args.settle_limit_s,
@@ -88,8 +85,6 @@ def run(args) -> int:
         raise UserError(f"{exc} (nothing was sent; --override to send anyway)") from None
     except DeviceNotReady as exc:
         raise UserError(str(exc)) from None
-    except LinkError as exc:
-        raise UserError(f"link: {exc} (session log: {args.log})") from None
     print(result.report.text())
     print(("mirror: " if result.ok else "mirror: STOPPED: ") + result.message)
     print("final   " + " ".join(f"{a:7.1f}" for a in result.final_deg) + "  deg")

@@ -26,7 +26,8 @@ from twin.device.profile import default_name, profile_dir, profiles_dir, set_def
 from twin.device.mount import MOUNTS
 from twin.formats.profile import read_profile, spec_defaults, updated, write_profile
 from twin.hil.device_gains import device_spec
-from twin.link.serial_link import Link
+from twin.errors import UserError
+from twin.link.serial_link import Link, LinkError
 from twin.paths import replacing
 from twin.records.profile import Profile
 
@@ -277,6 +278,26 @@ def device_session(args, spec, log=None):
     (default --log)."""
     with Link(args.serial, log_path=log or args.log, hinges=spec.n_hinges) as link:
         yield link, said_by_device(spec, link)
+
+
+def opened(args, say: bool = True):
+    """Every command's opening: (the profile args choose (profile_of), its spec), the profile's line printed
+    first, unless the JSON takes standard output (--json -) or say is False (a command that prints it later).
+    ValueError (one line) for a profile that is not there or is damaged."""
+    profile = profile_of(args)
+    if say and not json_to_stdout(args):
+        print(profile_line(profile), flush=True)
+    return profile, profile.spec
+
+
+@contextlib.contextmanager
+def link_errors(note: str = ""):
+    """A LinkError in the block (the device's port, its replies, a refusal) as one line, UserError
+    "link: ..." + note (e.g. where the session log is)."""
+    try:
+        yield
+    except LinkError as exc:
+        raise UserError(f"link: {exc}{note}") from None
 
 
 def profile_line(profile: Profile) -> str:

@@ -5,14 +5,14 @@ spread about the spec), to record with `vrscroll hil` and fit with `vrscroll cal
 
 from __future__ import annotations
 
-from twin.commands.options import add_device_option, add_mount, add_serial, profile_line, profile_of, within
+from twin.commands.options import add_device_option, add_mount, add_serial, link_errors, opened, within
 from twin.errors import UserError
 from twin.formats.gains import read_gains
 from twin.formats.scenario import write_scenario
 from twin.device.variation import corners, prior_ranges
 from twin.hil.calibration_scenario import calibration_scenario
 from twin.hil.device_gains import device_gains
-from twin.link.serial_link import Link, LinkError
+from twin.link.serial_link import Link
 
 
 def add_arguments(p) -> None:
@@ -27,19 +27,14 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    profile = profile_of(args)
-    print(profile_line(profile))
-    spec = profile.spec
+    profile, spec = opened(args)
     if args.gains and args.serial:
         raise UserError("give --gains FILE or --serial PORT, not both")
     if args.gains:
         gains = read_gains(args.gains, spec.n_hinges)
     elif args.serial:
-        try:
-            with Link(args.serial, hinges=spec.n_hinges) as link:
-                gains = device_gains(link, spec.n_hinges)
-        except LinkError as exc:
-            raise UserError(f"link: {exc}") from None
+        with link_errors(), Link(args.serial, hinges=spec.n_hinges) as link:
+            gains = device_gains(link, spec.n_hinges)
     else:
         gains = profile.gains
     ranges = profile.ranges() or prior_ranges(spec)

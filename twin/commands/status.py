@@ -10,15 +10,15 @@ from controllers.encoder import angle_from_counts
 from twin.commands.options import (
     add_device_option,
     add_serial,
-    profile_line,
-    profile_of,
     device_session,
+    link_errors,
+    opened,
+    profile_line,
     within,
 )
-from twin.errors import UserError
 from twin.hil.mirror import faults_text
 from twin.link import protocol as P
-from twin.link.serial_link import LinkError, zero_hint
+from twin.link.serial_link import zero_hint
 
 
 def add_arguments(p) -> None:
@@ -33,22 +33,18 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    profile = profile_of(args)
-    spec = profile.spec
-    try:
-        with device_session(args, spec) as (link, spec):
-            if args.estop:
-                link.estop()
-            if args.clear_fault:
-                link.clear_fault()
-            s = link.get_state()
-            info = link.info
-            held = [link.get_gains(k) for k in range(spec.n_hinges)]  # as the wire carries them
-            _report(spec, profile, s, info, held, args.serial)
-            if args.watch is not None:
-                watch(link, spec, args.watch)
-    except LinkError as exc:
-        raise UserError(str(exc)) from None
+    profile, spec = opened(args, say=False)  # said with what the device says
+    with link_errors(), device_session(args, spec) as (link, spec):
+        if args.estop:
+            link.estop()
+        if args.clear_fault:
+            link.clear_fault()
+        s = link.get_state()
+        info = link.info
+        held = [link.get_gains(k) for k in range(spec.n_hinges)]  # as the wire carries them
+        _report(spec, profile, s, info, held, args.serial)
+        if args.watch is not None:
+            watch(link, spec, args.watch)
     return 0
 
 

@@ -10,7 +10,6 @@ import math
 
 import numpy as np
 
-from controllers.encoder import target_counts
 from twin.commands.options import (
     add_device_option,
     add_json,
@@ -19,9 +18,9 @@ from twin.commands.options import (
     add_threads,
     device_session,
     json_to_stdout,
+    link_errors,
+    opened,
     output_file,
-    profile_line,
-    profile_of,
     within,
     write_json,
 )
@@ -34,12 +33,9 @@ from twin.evaluation.backends import BACKENDS, WORKERS_PER_CORE, make_backend
 from twin.formats.gains import write_gains
 from twin.formats.move_report import move_rows
 from twin.formats.profile import write_profile_gains
-from twin.hil.device_gains import push_gains
-from twin.hil.mirror import DeviceNotReady, device_step
-from twin.link.serial_link import LinkError
+from twin.hil.confirm import confirm_step
+from twin.hil.mirror import DeviceNotReady
 from twin.sim.gate import GateRefused
-from twin.sim.response import move_report, step_metrics
-from twin.sim.replay import twin_at_start
 from twin.tuning.tuner import TuneGoal, step_report, tune
 
 
@@ -80,8 +76,7 @@ def _line(label, rows):
 
 
 def run(args) -> int:
-    profile = profile_of(args)
-    spec = profile.spec
+    profile, spec = opened(args)
     step = math.radians(args.step_deg)
     if not abs(step) <= spec.hinge_limit:
         raise UserError(f"--step-deg {args.step_deg}: outside the hinge range")
@@ -98,7 +93,6 @@ def run(args) -> int:
     quiet = json_to_stdout(args)
     if not quiet:
         units = spec_units(SPEC_PATH)
-        print(profile_line(profile))
         print(("calibrated: the twin's values that reproduce its runs" if profile.ranges()
                else f"uncalibrated, +-{args.tolerance_pct:g} %")
               + ": tuned over " + ", ".join(f"{p} {shown_range(lo, hi, units.get(p, ''))}"
@@ -165,33 +159,16 @@ def run(args) -> int:
 
 
 def confirm_on_device(args, spec, gains, step, pushed, quiet=False, hinges=None, mount=DEFAULT_MOUNT) -> list[dict]:
-    """Push the gains (all or nothing: twin.hil.device_gains), call pushed() once the device holds them, run the
-    step on the device, print its metrics next to the twin's prediction (hinges: each hinge's own plant; mount:
-    how the device is held)."""
-    n = spec.n_hinges
-    targets = np.full(n, step)
+    """The tuned gains pushed and a step run on the device beside the twin's prediction (twin.hil.confirm),
+    printed; pushed() is called once the device holds them."""
     try:
-        with device_session(args, spec) as (link, spec):
-            push_gains(link, gains, n)
-            pushed()
-            t, deg, start, res = device_step(link, spec, targets, mount=mount)
+        with link_errors(f" (session log: {args.log})"), device_session(args, spec) as (link, spec):
+            rows, message = confirm_step(link, spec, gains, np.full(spec.n_hinges, step), args.duration_s, pushed,
+                                         hinges, mount)
     except (GateRefused, DeviceNotReady) as exc:
         raise UserError(f"{exc} (the tuned gains are on the device and in its profile)") from None
-    except LinkError as exc:
-        raise UserError(f"link: {exc} (session log: {args.log})") from None
-    twin = twin_at_start(spec, gains, start, hinges=hinges, mount=mount)  # where the device is, with the integral it holds
-    trace = twin.move_to(targets, max_time=args.duration_s, stop_when_settled=False)
-    pred = move_rows(move_report(spec, trace))
-    band = math.degrees(spec.settle_band * spec.rad_per_count)
-    tgt = np.degrees(target_counts(spec, targets) * spec.rad_per_count)
-    rows = []
-    for k in range(n):
-        m = step_metrics(t, deg[:, k], float(tgt[k]), band, hold=spec.settle_hold) if len(t) > 1 else None
-        rows.append({"hinge": k, "device_settle_s": round(m.settle_time, 4) if m else float("nan"),
-                     "device_overshoot_deg": round(m.overshoot, 3) if m else float("nan"),
-                     "twin_settle_s": pred[k]["settle_time_s"], "twin_overshoot_deg": pred[k]["overshoot_deg"]})
     if not quiet:
-        print(f"device at {args.serial}: {res.message}")
+        print(f"device at {args.serial}: {message}")
         print(f"{'hinge':>5} {'device settle s':>15} {'twin settle s':>13} {'device over deg':>15} "
               f"{'twin over deg':>13}")
         for r in rows:

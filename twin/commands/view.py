@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from twin.commands.options import add_device_option, add_rerun, output_file, profile_line, profile_of
+from twin.commands.options import add_device_option, add_rerun, opened, output_file, profile_line
 from twin.formats.run import read_run
 from viz.viewer import show_run
 
@@ -20,14 +20,14 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    profile = profile_of(args)
-    recorded = read_run(args.run, profile.spec, incomplete=True)
+    profile, spec = opened(args, say=False)  # said once the run reads
+    recorded = read_run(args.run, spec, incomplete=True)
     print(profile_line(profile))
     if args.rerun:
         from viz.rerun_log import log_run
 
-        print(log_run(args.rerun, profile.spec, recorded))
+        print(log_run(args.rerun, spec, recorded))
     if args.rerun and not args.out:
         return 0
-    print(show_run(recorded, profile.spec, args.out or Path(args.run) / "view", files=bool(args.out)))
+    print(show_run(recorded, spec, args.out or Path(args.run) / "view", files=bool(args.out)))
     return 0

@@ -10,10 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.encoder import angle_from_counts
-from twin.commands.options import add_device_option, add_serial, device_session, profile_line, profile_of
+from twin.commands.options import add_device_option, add_serial, device_session, link_errors, opened, profile_line
 from twin.errors import UserError
 from twin.link import protocol as P
-from twin.link.serial_link import LinkError
 
 
 def add_arguments(p) -> None:
@@ -23,30 +22,26 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    profile = profile_of(args)
-    spec = profile.spec
-    try:
-        with device_session(args, spec) as (link, spec):
+    profile, spec = opened(args, say=False)  # said after the device answers, above what it said
+    with link_errors(), device_session(args, spec) as (link, spec):
+        before = link.get_state()
+        if before.state == P.State.FAULT and before.faults == P.Fault.WATCHDOG:
+            link.clear_fault()  # the last session's hold ran out: nothing went wrong
             before = link.get_state()
-            if before.state == P.State.FAULT and before.faults == P.Fault.WATCHDOG:
-                link.clear_fault()  # the last session's hold ran out: nothing went wrong
-                before = link.get_state()
-            if before.state in (P.State.ACTIVE, P.State.HOLDING):
-                raise UserError(
-                    f"the device is {P.enum_name(P.State, before.state)}: it holds the last session's targets (a "
-                    f"`mirror`, bring-up's first move) for {spec.host_away_hold:g} s after that session's last "
-                    f"frame; the zero is confirmed in IDLE only. Run `vrscroll zero --serial {args.serial}` again "
-                    f"after that (it clears the hold's end itself), or let go now with `vrscroll status --serial "
-                    f"{args.serial} --estop --clear-fault` (the flaps then rest where they are)")
-            if before.state != P.State.IDLE:
-                raise UserError(f"the device is {P.enum_name(P.State, before.state)} ("
-                                f"{P.enum_name(P.Fault, before.faults) if before.faults else 'no fault'}): the zero "
-                                f"is confirmed in IDLE only (`vrscroll status --serial {args.serial} --clear-fault` "
-                                "once the cause is gone)")
-            link.confirm_zero()
-            after = link.get_state()
-    except LinkError as exc:
-        raise UserError(str(exc)) from None
+        if before.state in (P.State.ACTIVE, P.State.HOLDING):
+            raise UserError(
+                f"the device is {P.enum_name(P.State, before.state)}: it holds the last session's targets (a "
+                f"`mirror`, bring-up's first move) for {spec.host_away_hold:g} s after that session's last "
+                f"frame; the zero is confirmed in IDLE only. Run `vrscroll zero --serial {args.serial}` again "
+                f"after that (it clears the hold's end itself), or let go now with `vrscroll status --serial "
+                f"{args.serial} --estop --clear-fault` (the flaps then rest where they are)")
+        if before.state != P.State.IDLE:
+            raise UserError(f"the device is {P.enum_name(P.State, before.state)} ("
+                            f"{P.enum_name(P.Fault, before.faults) if before.faults else 'no fault'}): the zero "
+                            f"is confirmed in IDLE only (`vrscroll status --serial {args.serial} --clear-fault` "
+                            "once the cause is gone)")
+        link.confirm_zero()
+        after = link.get_state()
     print(profile_line(profile))
     was = np.degrees(angle_from_counts(spec, before.counts))
     print(f"started  {P.enum_name(P.ResetReason, link.info.reset_reason)}")

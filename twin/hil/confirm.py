@@ -1,0 +1,41 @@
+"""Tuned gains confirmed on the device (`vrscroll tune --serial`): pushed all or nothing, one step from flat on
+the device and the same step on the twin from where the device started, each hinge's settle time and overshoot
+side by side."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from controllers.encoder import target_counts
+from twin.device.mount import DEFAULT_MOUNT
+from twin.device.spec import DeviceSpec
+from twin.formats.move_report import move_rows
+from twin.hil.device_gains import push_gains
+from twin.hil.mirror import device_step
+from twin.sim.replay import twin_at_start
+from twin.sim.response import move_report, step_metrics
+
+
+def confirm_step(link, spec: DeviceSpec, gains, targets, duration: float, pushed, hinges=None,
+                 mount: str = DEFAULT_MOUNT) -> tuple[list[dict], str]:
+    """Push the gains (twin.hil.device_gains.push_gains), call pushed() once the device holds them, step every
+    hinge from flat to targets (rad) on the device (twin.hil.mirror.device_step) and on the twin from where the
+    device started, with the integral it held (duration s; hinges: each hinge's own plant; mount: how the device
+    is held). Returns (per hinge {"hinge", "device_settle_s", "device_overshoot_deg", "twin_settle_s",
+    "twin_overshoot_deg"}, the device step's message). GateRefused, DeviceNotReady, LinkError as mirror's."""
+    push_gains(link, gains, spec.n_hinges)
+    pushed()
+    t, deg, start, res = device_step(link, spec, targets, mount=mount)
+    twin = twin_at_start(spec, gains, start, hinges=hinges, mount=mount)  # where the device is, with its integral
+    pred = move_rows(move_report(spec, twin.move_to(targets, max_time=duration, stop_when_settled=False)))
+    band = math.degrees(spec.settle_band * spec.rad_per_count)
+    tgt = np.degrees(target_counts(spec, targets) * spec.rad_per_count)
+    rows = []
+    for k in range(spec.n_hinges):
+        m = step_metrics(t, deg[:, k], float(tgt[k]), band, hold=spec.settle_hold) if len(t) > 1 else None
+        rows.append({"hinge": k, "device_settle_s": round(m.settle_time, 4) if m else float("nan"),
+                     "device_overshoot_deg": round(m.overshoot, 3) if m else float("nan"),
+                     "twin_settle_s": pred[k]["settle_time_s"], "twin_overshoot_deg": pred[k]["overshoot_deg"]})
+    return rows, res.message
