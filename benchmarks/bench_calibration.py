@@ -15,7 +15,7 @@ With --scaling: on the first seed's recordings, the wall time of the shared fit 
 per-hinge fit with 1, 2 and 4 parameters per hinge (6, 12, 24 values), and of `vrscroll tune` on the
 profile calibrated from them (its plants the corners of the calibrated intervals).
 
-With --repeat N: the shared plant of tests/hil/test_tuning_hil.py's calibration test (twin/hil/shared_plant.py) (every hinge alike, no
+With --repeat N: the shared plant of tests/tuning/test_tuning_hil.py's calibration test (twin/hil/shared_plant.py) (every hinge alike, no
 cogging, ripple or warming: a plant the shared fit can represent), recorded N times with that test's recipe
 and calibrated: each recording's held-out RMSE before and after beside the floor the plant's own values
 leave, whether it meets the held-out criterion (twin/hil/calibration_verdict.py), and the verdicts.

@@ -1,5 +1,5 @@
 """A plant the shared calibration can represent, and its recording: what the calibration tests
-(tests/hil/test_tuning_hil.py) and benchmarks/bench_calibration.py (`--repeat`) record and calibrate.
+(tests/tuning/test_tuning_hil.py) and benchmarks/bench_calibration.py (`--repeat`) record and calibrate.
 
 SHARED_PLANT and ALIKE are the emulator's options for it (every hinge alike, no cogging, no friction ripple,
 windings that do not warm), `shared_truth` the same plant as a spec (the twin given the emulator's own values);
