@@ -27,7 +27,6 @@ from twin.commands.options import (
 from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import SPEC_PATH
 from twin.device.spec_toml import shown_range, spec_units
-from twin.device.variation import tolerance_ranges
 from twin.errors import UserError
 from twin.evaluation.backends import BACKENDS, WORKERS_PER_CORE, make_backend
 from twin.formats.gains import write_gains
@@ -36,7 +35,7 @@ from twin.formats.profile import write_profile_gains
 from twin.hil.confirm import confirm_step
 from twin.hil.mirror import DeviceNotReady
 from twin.sim.gate import GateRefused
-from twin.tuning.tuner import TuneGoal, step_report, tune
+from twin.tuning.tuner import profile_goal, step_report, tune, tuned_summary
 
 
 def add_arguments(p) -> None:
@@ -84,11 +83,8 @@ def run(args) -> int:
     if not abs(step) >= smallest:
         raise UserError(f"--step-deg {args.step_deg}: a step must leave the settle band to test anything: at least "
                         f"{math.degrees(smallest):.2f} deg (twice the band of {spec.settle_band} counts)")
-    ranges = profile.ranges() or tolerance_ranges(spec, args.tolerance_pct / 100)
-    goal = TuneGoal(max_overshoot=math.radians(args.max_overshoot_deg), tolerance=args.tolerance_pct / 100,
-                    step=step, duration=args.duration_s, ranges=ranges,
-                    hinges=None if profile.hinges is None else tuple(profile.hinges),
-                    hinge_ranges=profile.hinge_ranges(), mount=profile.mount)
+    goal = profile_goal(profile, math.radians(args.max_overshoot_deg), args.tolerance_pct / 100, step, args.duration_s)
+    ranges = goal.ranges
     before = profile.gains
     quiet = json_to_stdout(args)
     if not quiet:
@@ -108,19 +104,8 @@ def run(args) -> int:
                           + " ".join(f"{x * 1000:5.0f}" for x in c) + f" ms  ({t:.1f} s)", flush=True))
     rows_before = move_rows(step_report(spec, before, goal, hinges=profile.hinges)[0])
     rows_after = move_rows(step_report(spec, result.gains, goal, hinges=profile.hinges)[0])
-    meta = {"device_profile": profile.label,
-            "goal": {"max_overshoot_deg": args.max_overshoot_deg, "step_deg": args.step_deg,
-                     "duration_s": args.duration_s,
-                     "ranges": {p: [float(lo), float(hi)] for p, (lo, hi) in ranges.items()},
-                     **({"hinge_ranges": [{p: [float(lo), float(hi)] for p, (lo, hi) in row.items()}
-                                          for row in goal.hinge_ranges]} if goal.hinge_ranges else {})},
-            "worst_plant_settle_s": [round(float(x), 4) for x in result.settle],
-            "worst_plant_overshoot_deg": [round(math.degrees(x), 4) for x in result.overshoot],
-            "worst_plant_peak_current_A": [round(float(x), 3) for x in result.peak_current],
-            "worst_plant": result.worst_plant,
-            "limits_broken": result.broken,
-            "worst_case_range": result.sensitivity,
-            "simulations": result.simulations, "wall_time_s": round(result.wall_time, 2)}
+    meta = {"device_profile": profile.label, **tuned_summary(goal, result, {
+        "max_overshoot_deg": args.max_overshoot_deg, "step_deg": args.step_deg, "duration_s": args.duration_s})}
     written = []
     if args.out or not profile.name:
         written.append(args.out or "gains.json")

@@ -86,6 +86,16 @@ class TuneGoal:
     mount: str = DEFAULT_MOUNT
 
 
+def profile_goal(profile, max_overshoot: float, tolerance: float, step: float, duration: float) -> TuneGoal:
+    """The goal over a device profile's plants (twin.records.profile.Profile): the twin's values that reproduce
+    its calibration's runs (Profile.ranges; uncalibrated, motor constant and gear friction +-tolerance about its
+    spec), each hinge its own plant and intervals where it was calibrated per hinge (Profile.hinges), held as the
+    profile says. max_overshoot, step rad; duration s."""
+    return TuneGoal(max_overshoot, tolerance, step, duration,
+                    profile.ranges() or tolerance_ranges(profile.spec, tolerance),
+                    None if profile.hinges is None else tuple(profile.hinges), profile.hinge_ranges(), profile.mount)
+
+
 def step_scores(spec: DeviceSpec, out: dict, target: np.ndarray) -> dict:
     """Per simulation and hinge, from TwinBatch.run's output of a step to target (rad, (n,)):
 
@@ -304,6 +314,19 @@ def tune(spec: DeviceSpec, goal: TuneGoal | None = None, population: int = 32, g
     return TuneResult(gains, cost, worst["settle"], worst["overshoot"], worst["peak_current"], generations,
                       ev.simulations + final.simulations + simulations, time.perf_counter() - t0, history,
                       [names[p] for p in worst["plant"]], broken, sensitivity)
+
+
+def tuned_summary(goal: TuneGoal, result: TuneResult, stated: dict) -> dict:
+    """What a tuning found, as JSON (a gains file's meta, `vrscroll tune --json`): the goal (`stated`: as the
+    command line gave it, deg and s; its ranges SI) and, per hinge, the worst plant's numbers."""
+    pairs = (lambda ranges: {p: [float(lo), float(hi)] for p, (lo, hi) in ranges.items()})
+    return {"goal": {**stated, "ranges": pairs(goal.ranges),
+                     **({"hinge_ranges": [pairs(row) for row in goal.hinge_ranges]} if goal.hinge_ranges else {})},
+            "worst_plant_settle_s": [round(float(x), 4) for x in result.settle],
+            "worst_plant_overshoot_deg": [round(math.degrees(x), 4) for x in result.overshoot],
+            "worst_plant_peak_current_A": [round(float(x), 3) for x in result.peak_current],
+            "worst_plant": result.worst_plant, "limits_broken": result.broken, "worst_case_range": result.sensitivity,
+            "simulations": result.simulations, "wall_time_s": round(result.wall_time, 2)}
 
 
 def plant_name(spec: DeviceSpec, plant: Plant) -> str:
