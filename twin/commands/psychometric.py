@@ -13,13 +13,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
 from twin.commands.options import add_json, json_to_stdout, write_json
 from twin.errors import UserError
 from twin.formats.trials import read_trials, write_trials
-from twin.perception.psychometric import FIT_METHOD, analyse, simulate_trials, threshold
-from twin.perception.thresholds import detection_rule, paper_fits
+from twin.perception.fit_report import example_trials, fit_result, paper_fit, report_text
+from twin.perception.thresholds import paper_fits
 from viz.charts import psychometric_curves
 
 EXAMPLE = "trials.csv"  # what `--example` writes when no file is named
@@ -43,58 +41,13 @@ def add_arguments(p) -> None:
                         f"(default {surfaces[0]!r})")
 
 
-def _paper(surface: str) -> dict:
-    """The paper's printed fit for a surface; printed thresholds null where it says 'not reached'."""
-    f = next(f for f in paper_fits() if f.surface == surface)
-    return {"surface": f.surface, "unit": f.unit, f"a_per_{f.unit}": f.a, "b": f.b,
-            f"cdt_printed_{f.unit}": f.cdt, f"dt_printed_{f.unit}": f.dt}
-
-
 def write_example(path: Path, surface: str, seed: int) -> None:
     if path.exists():
         raise UserError(f"{path} exists; --example writes a new file and does not overwrite")
-    f = next(f for f in paper_fits() if f.surface == surface)
-    rows = simulate_trials(f.a, f.b, f.conditions, f.participants, f.repeats, np.random.default_rng(seed),
-                           detection_rule()["min_confidence"])
+    rows, f = example_trials(surface, seed)
     write_trials(path, rows, f.unit)
     print(f"wrote {path}: {len(rows)} trials drawn from the paper's {surface} curve "
           f"(a = {f.a} /{f.unit}, b = {f.b}; {f.participants} participants x {f.repeats} repeats, seed {seed})")
-
-
-def _text(result: dict) -> str:
-    u, rule = result["unit"], result["rule"]
-    lines = [f"{result['file']}: detected = unnatural with confidence >= {rule['min_confidence']}; "
-             f"f(x) = 1/(1+exp(a x + b)), x in {u}, {FIT_METHOD}"]
-    for r in result["surfaces"]:
-        who = f", {r['participants']} participants" if r["participants"] else ""
-        lines += ["", f"{r['surface'] or 'all trials'}: {r['trials']} trials{who}",
-                  f"  {'condition_' + u:>14} {'n':>5} {'detected':>8} {'ratio':>6}  {'CI':>14}"]
-        for c in r["conditions"]:
-            lo, hi = c["ratio_ci"]
-            lines.append(f"  {c['condition_' + u]:>14g} {c['n']:>5} {c['detected']:>8} {c['ratio']:>6.3f}"
-                         f"  [{lo:.3f}, {hi:.3f}]")
-        fit = r["fit"]
-        if fit["degenerate"]:
-            lines.append(f"  no fit: {fit['degenerate']}")
-        else:
-            lines.append(f"  a = {fit['a_per_' + u]:.4f} ± {fit['a_se_per_' + u]:.4f} /{u}, "
-                         f"b = {fit['b']:.3f} ± {fit['b_se']:.3f} (± 1 SE)")
-        for name, t in r["thresholds"].items():
-            line = f"  {name.upper():<3} (f = {t['level']:.2f}): {t['statement']}"
-            if "ci_level" in t:
-                lo, hi = (f"{v:.1f}" if v is not None else "unbounded" for v in t[f"ci_{u}"])
-                line += (f"; {t['ci_level']:.0%} CI [{lo}, {hi}] {u}, inside the tested range in "
-                         f"{t['inside_fraction']:.1%} of {r['bootstrap']['resamples']} resamples "
-                         f"(by {r['bootstrap']['by']})")
-            lines.append(line)
-    if "paper" in result:
-        p = result["paper"]
-        a, b = p[f"a_per_{u}"], p["b"]
-        printed = ", ".join(f"{k.upper()} {v if v is not None else 'not reached'}"
-                            for k, v in (("cdt", p[f"cdt_printed_{u}"]), ("dt", p[f"dt_printed_{u}"])))
-        lines += ["", f"paper, {p['surface']}: a = {a} /{u}, b = {b}; printed {printed} ({u}); from the rounded "
-                  f"a, b: CDT {threshold(a, b, rule['cdt_level']):.2f}, DT {threshold(a, b, rule['dt_level']):.2f}"]
-    return "\n".join(lines)
 
 
 def run(args) -> int:
@@ -109,18 +62,14 @@ def run(args) -> int:
     if not 0 < args.level_ci < 1:
         raise UserError("--level-ci must be between 0 and 1, e.g. 0.95")
     trials = read_trials(path)
-    paper = _paper(args.compare_paper) if args.compare_paper else None
+    paper = paper_fit(args.compare_paper) if args.compare_paper else None
     if paper and paper["unit"] != trials.unit:
         raise UserError(f"--compare-paper {args.compare_paper!r} is in {paper['unit']}, {path} in {trials.unit}")
-    rule = detection_rule()
-    result = {"file": str(path), "unit": trials.unit, "rule": rule,
-              "model": f"f(x) = 1/(1+exp(a x + b)), x in {trials.unit}",
-              "surfaces": analyse(trials, rule, args.bootstrap, args.seed, args.level_ci),
-              **({"paper": paper} if paper else {})}
+    result = fit_result(trials, str(path), args.bootstrap, args.seed, args.level_ci, paper)
     text = json.dumps(result, indent=2)
     write_json(args.json, result)
     if not json_to_stdout(args):
-        print(_text(result))
+        print(report_text(result))
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
