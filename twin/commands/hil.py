@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import datetime
-import json
 import sys
 from pathlib import Path
 
@@ -19,7 +18,7 @@ from twin.commands.options import (
 )
 from twin.errors import UserError
 from twin.formats.gains import read_gains
-from twin.formats.run import read_run
+from twin.formats.run import read_run, recorded_status
 from twin.formats.scenario import read_scenario
 from twin.hil.compare import compare, metrics_text, not_followed
 from twin.hil.mirror import DeviceNotReady
@@ -51,7 +50,10 @@ def run(args) -> int:
     gains = read_gains(args.gains, spec.n_hinges) if args.gains else \
         profile.gains if profile.gains_from != "spec" else None
     out = Path(args.out or f"hil-{scenario.name}-{datetime.datetime.now():%Y%m%d-%H%M%S}")
-    refuse_a_recorded_run(out, args.overwrite)
+    status = recorded_status(out)
+    if status and not args.overwrite:  # a run is a measurement that cannot be taken again
+        raise UserError(f"{out} holds a run already (run.json, status {status!r}): give another --out, or "
+                        "--overwrite to record over it")
     created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     try:
@@ -59,20 +61,6 @@ def run(args) -> int:
     finally:
         if created and not any(out.iterdir()):  # nothing recorded (a port that would not open): no empty folder
             out.rmdir()
-
-
-def refuse_a_recorded_run(out: Path, overwrite: bool) -> None:
-    """UserError, before anything is sent or written, when `out` holds a run (its run.json) and the user did
-    not ask to record over it: a run is a measurement that cannot be taken again."""
-    meta = out / "run.json"
-    if overwrite or not (meta.exists() or meta.is_symlink()):
-        return
-    try:
-        status = json.loads(meta.read_text()).get("status", "unknown")
-    except (OSError, ValueError, AttributeError):
-        status = "unreadable"
-    raise UserError(f"{out} holds a run already (run.json, status {status!r}): give another --out, or "
-                    "--overwrite to record over it")
 
 
 def _record(args, profile, spec, scenario, gains, out: Path) -> int:

@@ -92,6 +92,18 @@ def write_run_meta(run_dir, meta: dict) -> None:
         tmp.write_text(json.dumps(meta, indent=2) + "\n")
 
 
+def recorded_status(run_dir) -> str | None:
+    """The status in run_dir's run.json where a run is recorded there ("unreadable" where the file cannot be
+    read as one), None where none is."""
+    meta = Path(run_dir) / "run.json"
+    if not (meta.exists() or meta.is_symlink()):
+        return None
+    try:
+        return str(json.loads(meta.read_text()).get("status", "unknown"))
+    except (OSError, ValueError, AttributeError):
+        return "unreadable"
+
+
 def _counts(value, n: int, where: str) -> list[int]:
     if not isinstance(value, list) or len(value) != n or not all(isinstance(c, int) and not isinstance(c, bool)
                                                                  for c in value):
