@@ -25,8 +25,8 @@ another checkout (a folder holding its `twin` package, e.g. `git worktree add /t
 round by round (order swapped every round), each on a fresh emulator, with the same client: the
 before and after under the same load. Pooled p50 and p99 per side, and per round.
 
---csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs)
-plays a session on the same service and streams pens at ~360 Hz with poses for --seconds,
+--csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs;
+with --against, each side's own, as each speaks its own protocol version) plays a session on the same service and streams pens at ~360 Hz with poses for --seconds,
 measuring the round trips on its own clock (clients/unity/tests/ScriptedSession.cs).
 """
 
@@ -37,6 +37,7 @@ import asyncio
 import math
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -50,6 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from twin.device.spec import load_spec  # noqa: E402
 from twin.link.emulator_process import EmulatorProcess  # noqa: E402
 from twin.live.client import LiveClient, latency  # noqa: E402
+from twin.live.messages import PROTOCOL_VERSION  # noqa: E402
 from twin.live.player import POSE_HZ, PEN_HZ, TREMOR, stroke  # noqa: E402
 from twin.live.process import ServiceProcess  # noqa: E402
 from twin.formats.target import message_approximation  # noqa: E402
@@ -92,18 +94,20 @@ def breakdown(name: str, stages: dict | None) -> str:
     return f"{name} (p50/p99 ms): " + ", ".join(f"{k} {v['p50']:.3f}/{v['p99']:.3f}" for k, v in stages.items() if v)
 
 
-async def measure(url: str, shape: str, seconds: float) -> dict:
-    """One session: {"pose", "worker", "pen", "pose_with_pens", "client_send", "client_receive": [s],
-    "sent": {phase: samples sent}, "status": the service's status at the end (None if the lock failed)}."""
+async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL_VERSION) -> dict:
+    """One session (saying `protocol` in hello: an older service's): {"pose", "estimates", "worker", "pen",
+    "pose_with_pens", "client_send", "client_receive": [s], "sent": {phase: samples sent}, "status": the
+    service's status at the end (None if the lock failed)}."""
     start = pose_from_mm_deg(shape_table()[shape]["start"])
     out = {"sent": {}, "status": None}
-    async with LiveClient(url) as client:
+    async with LiveClient(url, protocol=protocol) as client:
         await client.set_target(shape=shape)
         for k in range(45):  # settle: half a second of poses, not measured
             client.send_pose(*hover(start, k / POSE_HZ))
             await asyncio.sleep(1 / POSE_HZ)
         await asyncio.sleep(0.1)
         client.drain("approximation")
+        client.drain("estimates")
 
         sent, t0 = 0, time.perf_counter()
         while (t := time.perf_counter() - t0) < seconds:
@@ -114,6 +118,7 @@ async def measure(url: str, shape: str, seconds: float) -> dict:
         replies = client.drain("approximation")
         out["pose"] = [latency(a) for a in replies]
         out["worker"] = [a["time_ms"] / 1e3 for a in replies]
+        out["estimates"] = [latency(e) for e in client.drain("estimates")]  # none from a protocol-1 service
         out["sent"]["pose"] = sent
 
         locked = await client.lock()
@@ -146,6 +151,8 @@ async def measure(url: str, shape: str, seconds: float) -> dict:
 def report(m: dict) -> None:
     print(stats("pose -> approximation at 90 Hz", m["pose"], m["sent"]["pose"], POSE_GOAL_MS))
     print(stats("  of which the approximation itself (worker)", m["worker"], len(m["worker"])))
+    print(stats("pose -> its frame estimates (the datagram after the approximation's)", m["estimates"],
+                m["sent"]["pose"]))
     print(f"lock: {m['lock']}")
     if m["status"] is None:
         return
@@ -160,6 +167,8 @@ def report(m: dict) -> None:
     print(f"service side (arrival -> reply sent): approximation {status['approximation_latency_ms']}, "
           f"pen {status['pen_latency_ms']} ms")
     print(breakdown("where a pose's time went in the service", status.get("pose_path_ms")))
+    print(f"then, off the pose's path: its frame estimates {status.get('estimates_ms')} ms after the "
+          f"approximation's datagram, the worker's report to the service {status.get('pose_report_ms')} ms after")
     print(breakdown("where a pen sample's time went in the service", status.get("pen_path_ms")))
     print(stats("client: encoding and sending a sample", m["client_send"], len(m["client_send"])))
     print(stats("client: parsing and queueing a reply", m["client_receive"], len(m["client_receive"])))
@@ -167,16 +176,23 @@ def report(m: dict) -> None:
         print(csharp_line(m))
 
 
+def protocol_of(code: Path | None) -> int:
+    """The live protocol version the service in checkout `code` (None: this one) speaks."""
+    if code is None:
+        return PROTOCOL_VERSION
+    return int(re.search(r"^PROTOCOL_VERSION = (\d+)", (code / "twin/live/messages.py").read_text(), re.M).group(1))
+
+
 def session(args, code=None) -> dict:
     """One emulator, one service (this code's, or the checkout `code`'s), one measured session; with
-    args.csharp (the compiled C# session), then the C# client's too: m["csharp"] {"pose_ms", "pen_ms":
+    args.csharp ({checkout or None: its compiled C# session}), then the C# client's too: m["csharp"] {"pose_ms", "pen_ms":
     [p50, p99, replies]}."""
     with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed") as emu, \
             ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err", code=code) as service:
-        m = asyncio.run(measure(service.url, args.shape, args.seconds))
+        m = asyncio.run(measure(service.url, args.shape, args.seconds, protocol_of(code)))
         if args.csharp:
-            run = subprocess.run(["mono", str(args.csharp), service.url, args.shape, str(args.seconds)],
+            run = subprocess.run(["mono", str(args.csharp[code]), service.url, args.shape, str(args.seconds)],
                                  capture_output=True, text=True, timeout=120 + 2 * args.seconds)
             seen = json.loads(run.stdout.strip().splitlines()[-1]) if run.returncode == 0 else {}
             m["csharp"] = {"pose_ms": seen.get("measure_pose_ms"), "pen_ms": seen.get("measure_pen_ms"),
@@ -195,9 +211,11 @@ def csharp_line(m: dict) -> str:
             f"pen -> redirected p50 {pen50:.3f} / p99 {pen99:.3f} ms ({n_pen} replies)")
 
 
-def build_csharp(folder: Path) -> Path:
-    """The C# scripted session compiled with Mono's mcs into folder; SystemExit naming what is missing."""
-    root = Path(__file__).resolve().parents[1] / "clients" / "unity"
+def build_csharp(folder: Path, code: Path | None = None) -> Path:
+    """The C# scripted session of checkout `code` (None: this one) compiled with Mono's mcs into folder; SystemExit
+    naming what is missing."""
+    root = (code or Path(__file__).resolve().parents[1]) / "clients" / "unity"
+    folder.mkdir()
     exe = folder / "ScriptedSession.exe"
     sources = [root / "VRScrollLive" / "Json.cs", root / "VRScrollLive" / "LiveClient.cs",
                root / "tests" / "ScriptedSession.cs"]
@@ -261,7 +279,10 @@ def main() -> None:
     if args.rounds < 1:
         p.error("--rounds must be at least 1")
     with tempfile.TemporaryDirectory() as build:
-        args.csharp = build_csharp(Path(build)) if args.csharp else None
+        if args.csharp:
+            args.csharp = {None: build_csharp(Path(build) / "after")}
+            if args.against is not None:
+                args.csharp[args.against] = build_csharp(Path(build) / "before", args.against)
         print(load())
         if args.against is not None:
             compare(args)

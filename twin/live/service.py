@@ -7,7 +7,9 @@
   before the previous one was approximated replaces it. Memory per stream is one sample.
 - The worker process approximates the newest pose at most APPROXIMATION_RATE_HZ times a second
   and sends the reply datagram itself, from the service's socket; the pose goes to it from the
-  callback that made that possible (no task, no await per pose). A pose never moves the device.
+  callback that made that possible (no task, no await per pose), and then the frame estimates in a
+  datagram of their own. A pose never moves the device.
+- Garbage is collected after a datagram's reply has gone, not inside it (twin/live/collection.py).
 - Each pose's and pen sample's path is stamped stage by stage (twin/live/stages.py); `status`
   reports where the time went.
 - Lock: the newest approximation's hinge angles go through the morpher (gate, then the device or
@@ -37,6 +39,7 @@ from websockets.protocol import State
 
 from twin.device.spec import DeviceSpec
 from twin.formats.target import approximation_json
+from twin.live.collection import collect_if_due, hold_collection, release_collection
 from twin.live.messages import (
     APPROXIMATION_RATE_HZ,
     DEFAULT_LISTEN_PORT,
@@ -76,6 +79,7 @@ HELLO_TIMEOUT = 5.0  # s a connection may stay without hello before it is closed
 MAX_SOCKETS = 2 * MAX_CONNECTIONS
 ACCEPT_BACKLOG = 16  # connections the kernel queues for accept, and asyncio accepts in one go (its default 100)
 WRONG_TOKEN_DELAY = 1.0  # s before a wrong token's connection is closed: at most one guess a second per connection
+COLLECT_INTERVAL = 0.1  # s: garbage is collected after each datagram, and at least this often between them
 
 
 def check_exposure(host: str, allow_remote: bool, token: str | None) -> None:
@@ -176,6 +180,7 @@ class _Datagrams(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr) -> None:
         self.service.on_datagram(data, addr)
+        collect_if_due()  # its reply has gone (twin/live/collection.py)
 
 
 class LiveService:
@@ -198,13 +203,15 @@ class LiveService:
         self.latest = None  # (target_gen, pose seq, PoseReply): the newest approximation the worker sent
         self.counts: collections.Counter = collections.Counter()
         self.pose_times = StageTimes(POSE_STAGES, LATENCY_WINDOW)  # s per stage, pose arrival -> approximation sent
-        self.pose_report = collections.deque(maxlen=LATENCY_WINDOW)  # s, the worker's report after the datagram
+        self.pose_estimates = collections.deque(maxlen=LATENCY_WINDOW)  # s, estimates' datagram after the reply's
+        self.pose_report = collections.deque(maxlen=LATENCY_WINDOW)  # s, the worker's report after the datagrams
         self.pen_times = StageTimes(PEN_STAGES, LATENCY_WINDOW)  # s per stage, pen arrival -> redirected sent
         self._pose = None  # (Sample, client, arrival, queued s): the newest pose not yet approximated
         self._in_flight = None  # (target_gen, Sample, client, arrival, queued, sent s): the pose the worker has
         self._tokens = RATE_BURST  # the rate limit's token bucket (approximations), and when it was last filled
         self._filled = 0.0
         self._timer = None  # the rate limit's wake-up, while poses wait for a token
+        self._collector = None  # the garbage collection's next turn between datagrams
         self._restarting = False
         self._reported = asyncio.Event()  # cleared while a pose is with the worker
         self._reported.set()
@@ -233,10 +240,15 @@ class LiveService:
                                                                    local_addr=(self.config.host, self.port))
                 self.worker.share_socket(self._udp.get_extra_info("socket"))
                 self._filled = time.perf_counter()
+                hold_collection()
+                self._collect()
                 if ready:
                     ready(self.port)
                 await self._stop.wait()
         finally:
+            release_collection()
+            if self._collector is not None:
+                self._collector.cancel()
             for task in self._tasks:
                 task.cancel()
             if self._timer is not None:
@@ -250,6 +262,12 @@ class LiveService:
         """Stop serving (from the loop's thread)."""
         if self._stop is not None:
             self._stop.set()
+
+    def _collect(self) -> None:
+        """Garbage collection between datagrams (twin/live/collection.py): the control channel's and the morph
+        thread's garbage too, when no datagram comes."""
+        collect_if_due()
+        self._collector = asyncio.get_running_loop().call_later(COLLECT_INTERVAL, self._collect)
 
     def _spawn(self, coroutine) -> asyncio.Task:
         task = asyncio.create_task(coroutine)
@@ -368,7 +386,7 @@ class LiveService:
                 "approximation_latency_ms": percentiles_ms(self.pose_times.total()),
                 "pen_latency_ms": percentiles_ms(self.pen_times.total()),
                 "pose_path_ms": self.pose_times.summary(), "pen_path_ms": self.pen_times.summary(),
-                "pose_report_ms": percentiles_ms(self.pose_report)}
+                "estimates_ms": percentiles_ms(self.pose_estimates), "pose_report_ms": percentiles_ms(self.pose_report)}
 
     async def _lock(self, seq: int, reply: PoseReply) -> None:
         loop = asyncio.get_running_loop()
@@ -505,8 +523,10 @@ class LiveService:
             client.report("approximation_failed", str(reply))
         else:
             self.counts["approximations"] += 1
-            self.pose_times.record((arrived, queued, sent, *reply.stamps))
-            self.pose_report.append(received - reply.stamps[-1])
+            received_by_worker, approximated, answered, estimated = reply.stamps
+            self.pose_times.record((arrived, queued, sent, received_by_worker, approximated, answered))
+            self.pose_estimates.append(estimated - answered)
+            self.pose_report.append(received - estimated)
             if gen == self.target_gen and client is self.controller:
                 self.latest = (gen, sample.seq, reply)
         self._next_pose()
