@@ -18,16 +18,20 @@ samples that got no reply (dropped by the network or superseded by a newer pose:
 wins), and the service's own counts of stale, superseded and missing samples. Where the time
 went: the service's per-stage breakdown (its `status`: pose_path_ms, pen_path_ms) and the
 client's own send and receive. The machine's load (uptime) is printed before and after: the
-figures depend on it.
+figures depend on it. This client collects its garbage before each send (twin/live/collection.py),
+so its own collector's pauses (a millisecond or two each, in this process of many objects) do not
+land inside the round trips it times.
 
 --against OLD_TREE: the same measurement, alternating this code's service with the service of
 another checkout (a folder holding its `twin` package, e.g. `git worktree add /tmp/old HEAD~3`)
-round by round (order swapped every round), each on a fresh emulator, with the same client: the
-before and after under the same load. Pooled p50 and p99 per side, and per round.
+round by round (order swapped every round), each on a fresh emulator, with the same client (saying
+each side's protocol version): the before and after under the same load. Pooled p50 and p99 per
+side, and per round.
 
 --csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs;
-with --against, each side's own, as each speaks its own protocol version) plays a session on the same service and streams pens at ~360 Hz with poses for --seconds,
-measuring the round trips on its own clock (clients/unity/tests/ScriptedSession.cs).
+with --against, each side's own, as each speaks its own protocol version) plays a session on the
+same service and streams pens at ~360 Hz with poses for --seconds, measuring the round trips on its
+own clock (clients/unity/tests/ScriptedSession.cs).
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from twin.device.spec import load_spec  # noqa: E402
 from twin.link.emulator_process import EmulatorProcess  # noqa: E402
 from twin.live.client import LiveClient, latency  # noqa: E402
+from twin.live.collection import collect_if_due, hold_collection, release_collection  # noqa: E402
 from twin.live.messages import PROTOCOL_VERSION  # noqa: E402
 from twin.live.player import POSE_HZ, PEN_HZ, TREMOR, stroke  # noqa: E402
 from twin.live.process import ServiceProcess  # noqa: E402
@@ -109,8 +114,10 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         client.drain("approximation")
         client.drain("estimates")
 
+        hold_collection()  # this client's garbage collected before each send, not amid a round trip it times
         sent, t0 = 0, time.perf_counter()
         while (t := time.perf_counter() - t0) < seconds:
+            collect_if_due()
             client.send_pose(*hover(start, t))
             sent += 1
             await asyncio.sleep(max(0.0, t0 + sent / POSE_HZ - time.perf_counter()))
@@ -121,11 +128,13 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         out["estimates"] = [latency(e) for e in client.drain("estimates")]  # none from a protocol-1 service
         out["sent"]["pose"] = sent
 
+        release_collection()
         locked = await client.lock()
         done = await client.expect("done", "refused", "stopped", timeout=15)
         out["lock"] = f"{done['type']} ({done['message']})"
         if done["type"] != "done":
             return out
+        hold_collection()
         approx = message_approximation(locked, load_spec(), "locked")
         points, quats = stroke(load_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths)
         order = np.r_[np.arange(len(points)), np.arange(len(points))[::-1]]
@@ -133,6 +142,7 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         t0 = time.perf_counter()
         while (t := time.perf_counter() - t0) < seconds:
             k = order[pens % len(order)]
+            collect_if_due()
             client.send_pen(points[k] * 1e3, quats[k])
             pens += 1
             if pens % round(PEN_HZ / POSE_HZ) == 0:
@@ -140,6 +150,7 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
                 poses += 1
             await asyncio.sleep(max(0.0, t0 + pens / PEN_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
+        release_collection()
         out["pen"] = [latency(r) for r in client.drain("pen_redirected")]
         out["pose_with_pens"] = [latency(a) for a in client.drain("approximation")]
         out["sent"].update(pen=pens, pose_with_pens=poses)
@@ -185,8 +196,8 @@ def protocol_of(code: Path | None) -> int:
 
 def session(args, code=None) -> dict:
     """One emulator, one service (this code's, or the checkout `code`'s), one measured session; with
-    args.csharp ({checkout or None: its compiled C# session}), then the C# client's too: m["csharp"] {"pose_ms", "pen_ms":
-    [p50, p99, replies]}."""
+    args.csharp ({checkout or None: its compiled C# session}), then the C# client's too: m["csharp"]
+    {"pose_ms", "pen_ms": [p50, p99, replies]}."""
     with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed") as emu, \
             ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err", code=code) as service:
