@@ -74,6 +74,38 @@ def load() -> str:
     return "load average " + ", ".join(f"{v:.2f}" for v in os.getloadavg()) + f" ({os.cpu_count()} cores)"
 
 
+def schedstat(pid: int) -> np.ndarray:
+    """(on a core, waiting for one, s; times put on a core) summed over the process's threads: Linux's
+    /proc/PID/task/TID/schedstat (zeros for a process that has gone)."""
+    total = np.zeros(3)
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            total += np.array((task / "schedstat").read_text().split(), float)
+        except (OSError, ValueError):
+            pass
+    return total * [1e-9, 1e-9, 1]
+
+
+def processes(service: ServiceProcess, emulator_pid: int) -> dict:
+    """{name: pid} of the processes on a sample's way: this client, the service, its worker, the emulator."""
+    workers = [int(p) for p in Path(f"/proc/{service.pid}/task/{service.pid}/children").read_text().split()
+               if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()
+               and b"resource_tracker" not in Path(f"/proc/{p}/cmdline").read_bytes()]
+    return {"client": os.getpid(), "service": service.pid, **{"worker": w for w in workers[:1]},
+            "emulator": emulator_pid}
+
+
+def waits(before: dict, after: dict, seconds: float) -> str:
+    """Per process, between two {name: schedstat} snapshots: its share of a core, and the time it spent runnable
+    but waiting for a core (ms per second of wall clock, and per time it was put on one, us)."""
+    parts = []
+    for name in after:
+        run, wait, slices = after[name] - before[name]
+        parts.append(f"{name} ran {run / seconds:.0%} of a core, waited {wait / seconds * 1e3:.1f} ms/s "
+                     f"({wait / max(slices, 1) * 1e6:.0f} us per wake-up)")
+    return "; ".join(parts)
+
+
 def hover(start: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
     """Position mm and quaternion of the hovering device at time t s."""
     rot = start[:3, :3]
@@ -99,12 +131,13 @@ def breakdown(name: str, stages: dict | None) -> str:
     return f"{name} (p50/p99 ms): " + ", ".join(f"{k} {v['p50']:.3f}/{v['p99']:.3f}" for k, v in stages.items() if v)
 
 
-async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL_VERSION) -> dict:
+async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL_VERSION,
+                  pids=lambda: {}) -> dict:
     """One session (saying `protocol` in hello: an older service's): {"pose", "estimates", "worker", "pen",
     "pose_with_pens", "client_send", "client_receive": [s], "sent": {phase: samples sent}, "status": the
-    service's status at the end (None if the lock failed)}."""
+    service's status at the end (None if the lock failed), "waits": {phase: `waits` of the processes pids()}}."""
     start = pose_from_mm_deg(shape_table()[shape]["start"])
-    out = {"sent": {}, "status": None}
+    out = {"sent": {}, "status": None, "waits": {}}
     async with LiveClient(url, protocol=protocol) as client:
         await client.set_target(shape=shape)
         for k in range(45):  # settle: half a second of poses, not measured
@@ -115,6 +148,8 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         client.drain("estimates")
 
         hold_collection()  # this client's garbage collected before each send, not amid a round trip it times
+        processes = pids()
+        ran = {name: schedstat(pid) for name, pid in processes.items()}
         sent, t0 = 0, time.perf_counter()
         while (t := time.perf_counter() - t0) < seconds:
             collect_if_due()
@@ -127,6 +162,8 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         out["worker"] = [a["time_ms"] / 1e3 for a in replies]
         out["estimates"] = [latency(e) for e in client.drain("estimates")]  # none from a protocol-1 service
         out["sent"]["pose"] = sent
+        out["waits"]["poses"] = waits(ran, {name: schedstat(pid) for name, pid in processes.items()},
+                                      time.perf_counter() - t0)
 
         release_collection()
         locked = await client.lock()
@@ -135,6 +172,7 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         if done["type"] != "done":
             return out
         hold_collection()
+        ran = {name: schedstat(pid) for name, pid in processes.items()}
         approx = message_approximation(locked, load_spec(), "locked")
         points, quats = stroke(load_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths)
         order = np.r_[np.arange(len(points)), np.arange(len(points))[::-1]]
@@ -151,6 +189,8 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
             await asyncio.sleep(max(0.0, t0 + pens / PEN_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
         release_collection()
+        out["waits"]["pens and poses"] = waits(ran, {name: schedstat(pid) for name, pid in processes.items()},
+                                               time.perf_counter() - t0)
         out["pen"] = [latency(r) for r in client.drain("pen_redirected")]
         out["pose_with_pens"] = [latency(a) for a in client.drain("approximation")]
         out["sent"].update(pen=pens, pose_with_pens=poses)
@@ -183,6 +223,8 @@ def report(m: dict) -> None:
     print(breakdown("where a pen sample's time went in the service", status.get("pen_path_ms")))
     print(stats("client: encoding and sending a sample", m["client_send"], len(m["client_send"])))
     print(stats("client: parsing and queueing a reply", m["client_receive"], len(m["client_receive"])))
+    for phase, line in m["waits"].items():
+        print(f"waiting for a core, {phase}: {line}")
     if "csharp" in m:
         print(csharp_line(m))
 
@@ -201,7 +243,8 @@ def session(args, code=None) -> dict:
     with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed") as emu, \
             ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err", code=code) as service:
-        m = asyncio.run(measure(service.url, args.shape, args.seconds, protocol_of(code)))
+        m = asyncio.run(measure(service.url, args.shape, args.seconds, protocol_of(code),
+                                lambda: processes(service, emu.proc.pid)))
         if args.csharp:
             run = subprocess.run(["mono", str(args.csharp[code]), service.url, args.shape, str(args.seconds)],
                                  capture_output=True, text=True, timeout=120 + 2 * args.seconds)
@@ -262,6 +305,8 @@ def compare(args) -> None:
                   f"pen {p50_p99(m.get('pen', []))} ms, lock {m['lock']}", flush=True)
             if "csharp" in m:
                 print("  " + csharp_line(m), flush=True)
+            for phase, line in m["waits"].items():
+                print(f"  waiting for a core, {phase}: {line}", flush=True)
             if side == "after" and m["status"]:
                 print("  " + breakdown("pose path", m["status"]["pose_path_ms"]))
                 print("  " + breakdown("pen path", m["status"]["pen_path_ms"]))

@@ -79,7 +79,8 @@ HELLO_TIMEOUT = 5.0  # s a connection may stay without hello before it is closed
 MAX_SOCKETS = 2 * MAX_CONNECTIONS
 ACCEPT_BACKLOG = 16  # connections the kernel queues for accept, and asyncio accepts in one go (its default 100)
 WRONG_TOKEN_DELAY = 1.0  # s before a wrong token's connection is closed: at most one guess a second per connection
-COLLECT_INTERVAL = 0.1  # s: garbage is collected after each datagram, and at least this often between them
+COLLECT_INTERVAL = 0.02  # s: garbage is collected after each datagram, and at least this often between them (a morph
+# thread's garbage too: collected in small turns, not one long one after it)
 
 
 def check_exposure(host: str, allow_remote: bool, token: str | None) -> None:
