@@ -307,9 +307,10 @@ def compare(args) -> None:
                 print("  " + csharp_line(m), flush=True)
             for phase, line in m["waits"].items():
                 print(f"  waiting for a core, {phase}: {line}", flush=True)
-            if side == "after" and m["status"]:
+            if m["status"]:
                 print("  " + breakdown("pose path", m["status"]["pose_path_ms"]))
                 print("  " + breakdown("pen path", m["status"]["pen_path_ms"]))
+            if side == "after" and m["status"]:
                 print("  " + stats("client send", m["client_send"], len(m["client_send"])))
                 print("  " + stats("client receive", m["client_receive"], len(m["client_receive"])))
     print("\n| side | pose -> approximation p50 / p99 ms | with pens running | of which the worker | "
