@@ -19,7 +19,7 @@ def test_a_flood_of_nacked_frames_is_counted_not_read_frame_by_frame(spec, tmp_p
     emu = Emulator(spec, EmulatorOptions(zeroed=True), log_path=str(log))
     answers = P.Decoder()
     nacks = 0
-    ticks = int(1.5 / emu.dt)  # past the once-a-second count
+    ticks = int(1.2 / emu.dt)  # past the once-a-second count
     for _ in range(ticks):
         emu.receive(_other_version_frames(30))  # 1 kB a tick: 1 MB/s at 1 kHz
         emu.step()
