@@ -1,12 +1,12 @@
-"""Python's garbage collection on the live paths: at a moment nobody waits on, not inside a reply.
+"""Python's garbage collection in the approximation worker: between requests, not inside one.
 
 CPython runs its cycle collector whenever 700 more container objects were made than freed,
-wherever that happens: inside a datagram's parse or an approximation. Measured with gc.callbacks
-in the service and its worker during bench_live (load ~4 on 2 cores): the youngest generation
-0.1-0.2 ms each (up to 10 ms), the middle one ~1.6 ms, a full one 60-250 ms over the objects the
-imports left. While samples stream they are rare (the service made 5 in the last 6 s of a run,
-360 pens and 90 poses a second), so what this saves is the tail: the sample that met one. The
-live paths instead
+wherever that happens: inside an approximation, too. Measured with gc.callbacks in the service and
+its worker during bench_live (load ~4 on 2 cores): the youngest generation 0.1-0.2 ms each (up to
+10 ms), the middle one ~1.6 ms, a full one 60-250 ms over the objects the imports left. While
+samples stream they are rare (the service made 5 in the last 6 s of a run, 360 pens and 90 poses a
+second), so what this saves is the tail: the sample that met one. The worker (and the benchmark's
+measuring client) instead
 
 - freeze what start-up made (`gc.freeze`: the imports' objects are never scanned again; those
   still alive at exit are not collected, which they never would have been), then
@@ -15,7 +15,10 @@ live paths instead
   same generations, only at a moment of the caller's choosing.
 
 A process that calls `hold_collection` must call `collect_if_due` often (after each request it
-answers, and on a timer when idle): nothing else collects its cycles.
+answers): nothing else collects its cycles. The service's event loop keeps CPython's own collector:
+its garbage comes from the control channel and the morph thread too, so holding it would need a
+timer to collect when no datagram comes (a wake-up 50 times a second), and with one no gain was
+measurable (docs/live.md, "Measured").
 """
 
 from __future__ import annotations

@@ -9,7 +9,6 @@
   and sends the reply datagram itself, from the service's socket; the pose goes to it from the
   callback that made that possible (no task, no await per pose), and then the frame estimates in a
   datagram of their own. A pose never moves the device.
-- Garbage is collected after a datagram's reply has gone, not inside it (twin/live/collection.py).
 - Each pose's and pen sample's path is stamped stage by stage (twin/live/stages.py); `status`
   reports where the time went.
 - Lock: the newest approximation's hinge angles go through the morpher (gate, then the device or
@@ -39,7 +38,6 @@ from websockets.protocol import State
 
 from twin.device.spec import DeviceSpec
 from twin.formats.target import approximation_json
-from twin.live.collection import collect_if_due, hold_collection, release_collection
 from twin.live.messages import (
     APPROXIMATION_RATE_HZ,
     DEFAULT_LISTEN_PORT,
@@ -79,8 +77,6 @@ HELLO_TIMEOUT = 5.0  # s a connection may stay without hello before it is closed
 MAX_SOCKETS = 2 * MAX_CONNECTIONS
 ACCEPT_BACKLOG = 16  # connections the kernel queues for accept, and asyncio accepts in one go (its default 100)
 WRONG_TOKEN_DELAY = 1.0  # s before a wrong token's connection is closed: at most one guess a second per connection
-COLLECT_INTERVAL = 0.02  # s: garbage is collected after each datagram, and at least this often between them (a morph
-# thread's garbage too: collected in small turns, not one long one after it)
 
 
 def check_exposure(host: str, allow_remote: bool, token: str | None) -> None:
@@ -181,7 +177,6 @@ class _Datagrams(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr) -> None:
         self.service.on_datagram(data, addr)
-        collect_if_due()  # its reply has gone (twin/live/collection.py)
 
 
 class LiveService:
@@ -212,7 +207,6 @@ class LiveService:
         self._tokens = RATE_BURST  # the rate limit's token bucket (approximations), and when it was last filled
         self._filled = 0.0
         self._timer = None  # the rate limit's wake-up, while poses wait for a token
-        self._collector = None  # the garbage collection's next turn between datagrams
         self._restarting = False
         self._reported = asyncio.Event()  # cleared while a pose is with the worker
         self._reported.set()
@@ -241,15 +235,10 @@ class LiveService:
                                                                    local_addr=(self.config.host, self.port))
                 self.worker.share_socket(self._udp.get_extra_info("socket"))
                 self._filled = time.perf_counter()
-                hold_collection()
-                self._collect()
                 if ready:
                     ready(self.port)
                 await self._stop.wait()
         finally:
-            release_collection()
-            if self._collector is not None:
-                self._collector.cancel()
             for task in self._tasks:
                 task.cancel()
             if self._timer is not None:
@@ -263,12 +252,6 @@ class LiveService:
         """Stop serving (from the loop's thread)."""
         if self._stop is not None:
             self._stop.set()
-
-    def _collect(self) -> None:
-        """Garbage collection between datagrams (twin/live/collection.py): the control channel's and the morph
-        thread's garbage too, when no datagram comes."""
-        collect_if_due()
-        self._collector = asyncio.get_running_loop().call_later(COLLECT_INTERVAL, self._collect)
 
     def _spawn(self, coroutine) -> asyncio.Task:
         task = asyncio.create_task(coroutine)
