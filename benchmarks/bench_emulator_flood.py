@@ -1,6 +1,6 @@
 """The emulator under a flood of bytes (issue 40, item 5): does it keep answering, and at what cost?
 
-For each kind of flood, --rate bytes/s (default 1 MB/s) written onto the emulator's pty for --seconds while
+For each kind of flood (and none, the baseline), --rate bytes/s (default 1 MB/s) written onto the emulator's pty for --seconds while
 the same host asks GET_STATE every 20 ms: the answer times (median, p99, max, ms; timeouts), the emulator
 process's CPU (share of one core, from /proc), its real-time overruns and the bad frames its core counted.
 (That no flood feeds the watchdog is a test: tests/firmware/test_estop_always_runs.py.)
@@ -37,6 +37,7 @@ def _other_version(n: int) -> bytes:
 
 
 FLOODS = {
+    "none": None,  # the baseline: the same questions, no flood
     "random": lambda rng, n: rng.integers(0, 256, n, dtype=np.uint8).tobytes(),  # a 0x00 every 256 bytes
     "no-delimiter": lambda rng, n: rng.integers(1, 256, n, dtype=np.uint8).tobytes(),  # one endless frame
     "other-version": lambda rng, n: _other_version(n),
@@ -54,7 +55,7 @@ def flood(kind: str, rate: float, seconds: float, folder: Path) -> dict:
         with Link(emu.port, heartbeat=None, timeout=0.1, retries=0) as link:
             rng = np.random.default_rng(0)
             chunk = max(1, int(rate / 1000))
-            data = FLOODS[kind](rng, chunk * 1000)
+            data = FLOODS[kind](rng, chunk * 1000) if FLOODS[kind] else b""
             stop = threading.Event()
             sent = [0]
 
@@ -69,7 +70,8 @@ def flood(kind: str, rate: float, seconds: float, folder: Path) -> dict:
 
             cpu0, t0 = cpu_seconds(emu.proc.pid), time.monotonic()
             flooder = threading.Thread(target=write, daemon=True)
-            flooder.start()
+            if data:
+                flooder.start()
             lat, timeouts = [], 0
             while time.monotonic() - t0 < seconds:
                 t = time.perf_counter()
@@ -80,7 +82,8 @@ def flood(kind: str, rate: float, seconds: float, folder: Path) -> dict:
                     timeouts += 1
                 time.sleep(0.02)
             stop.set()
-            flooder.join()
+            if data:
+                flooder.join()
             wall = time.monotonic() - t0
             cpu = (cpu_seconds(emu.proc.pid) - cpu0) / wall
             time.sleep(0.5)  # the backlog drained

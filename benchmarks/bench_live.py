@@ -18,16 +18,20 @@ samples that got no reply (dropped by the network or superseded by a newer pose:
 wins), and the service's own counts of stale, superseded and missing samples. Where the time
 went: the service's per-stage breakdown (its `status`: pose_path_ms, pen_path_ms) and the
 client's own send and receive. The machine's load (uptime) is printed before and after: the
-figures depend on it.
+figures depend on it. This client collects its garbage before each send (twin/live/collection.py),
+so its own collector's pauses (a millisecond or two each, in this process of many objects) do not
+land inside the round trips it times.
 
 --against OLD_TREE: the same measurement, alternating this code's service with the service of
 another checkout (a folder holding its `twin` package, e.g. `git worktree add /tmp/old HEAD~3`)
-round by round (order swapped every round), each on a fresh emulator, with the same client: the
-before and after under the same load. Pooled p50 and p99 per side, and per round.
+round by round (order swapped every round), each on a fresh emulator, with the same client (saying
+each side's protocol version): the before and after under the same load. Pooled p50 and p99 per
+side, and per round.
 
---csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs)
-plays a session on the same service and streams pens at ~360 Hz with poses for --seconds,
-measuring the round trips on its own clock (clients/unity/tests/ScriptedSession.cs).
+--csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs;
+with --against, each side's own, as each speaks its own protocol version) plays a session on the
+same service and streams pens at ~360 Hz with poses for --seconds, measuring the round trips on its
+own clock (clients/unity/tests/ScriptedSession.cs).
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ import asyncio
 import math
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -50,6 +55,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from twin.device.spec import load_spec  # noqa: E402
 from twin.link.emulator_process import EmulatorProcess  # noqa: E402
 from twin.live.client import LiveClient, latency  # noqa: E402
+from twin.live.collection import collect_if_due, hold_collection, release_collection  # noqa: E402
+from twin.live.messages import PROTOCOL_VERSION  # noqa: E402
 from twin.live.player import POSE_HZ, PEN_HZ, TREMOR, stroke  # noqa: E402
 from twin.live.process import ServiceProcess  # noqa: E402
 from twin.formats.target import message_approximation  # noqa: E402
@@ -65,6 +72,38 @@ PEN_GOAL_MS = 0.5  # pen -> redirected pen p99
 
 def load() -> str:
     return "load average " + ", ".join(f"{v:.2f}" for v in os.getloadavg()) + f" ({os.cpu_count()} cores)"
+
+
+def schedstat(pid: int) -> np.ndarray:
+    """(on a core, waiting for one, s; times put on a core) summed over the process's threads: Linux's
+    /proc/PID/task/TID/schedstat (zeros for a process that has gone)."""
+    total = np.zeros(3)
+    for task in Path(f"/proc/{pid}/task").glob("*"):
+        try:
+            total += np.array((task / "schedstat").read_text().split(), float)
+        except (OSError, ValueError):
+            pass
+    return total * [1e-9, 1e-9, 1]
+
+
+def processes(service: ServiceProcess, emulator_pid: int) -> dict:
+    """{name: pid} of the processes on a sample's way: this client, the service, its worker, the emulator."""
+    workers = [int(p) for p in Path(f"/proc/{service.pid}/task/{service.pid}/children").read_text().split()
+               if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()
+               and b"resource_tracker" not in Path(f"/proc/{p}/cmdline").read_bytes()]
+    return {"client": os.getpid(), "service": service.pid, **{"worker": w for w in workers[:1]},
+            "emulator": emulator_pid}
+
+
+def waits(before: dict, after: dict, seconds: float) -> str:
+    """Per process, between two {name: schedstat} snapshots: its share of a core, and the time it spent runnable
+    but waiting for a core (ms per second of wall clock, and per time it was put on one, us)."""
+    parts = []
+    for name in after:
+        run, wait, slices = after[name] - before[name]
+        parts.append(f"{name} ran {run / seconds:.0%} of a core, waited {wait / seconds * 1e3:.1f} ms/s "
+                     f"({wait / max(slices, 1) * 1e6:.0f} us per wake-up)")
+    return "; ".join(parts)
 
 
 def hover(start: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -92,21 +131,28 @@ def breakdown(name: str, stages: dict | None) -> str:
     return f"{name} (p50/p99 ms): " + ", ".join(f"{k} {v['p50']:.3f}/{v['p99']:.3f}" for k, v in stages.items() if v)
 
 
-async def measure(url: str, shape: str, seconds: float) -> dict:
-    """One session: {"pose", "worker", "pen", "pose_with_pens", "client_send", "client_receive": [s],
-    "sent": {phase: samples sent}, "status": the service's status at the end (None if the lock failed)}."""
+async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL_VERSION,
+                  pids=lambda: {}) -> dict:
+    """One session (saying `protocol` in hello: an older service's): {"pose", "estimates", "worker", "pen",
+    "pose_with_pens", "client_send", "client_receive": [s], "sent": {phase: samples sent}, "status": the
+    service's status at the end (None if the lock failed), "waits": {phase: `waits` of the processes pids()}}."""
     start = pose_from_mm_deg(shape_table()[shape]["start"])
-    out = {"sent": {}, "status": None}
-    async with LiveClient(url) as client:
+    out = {"sent": {}, "status": None, "waits": {}}
+    async with LiveClient(url, protocol=protocol) as client:
         await client.set_target(shape=shape)
         for k in range(45):  # settle: half a second of poses, not measured
             client.send_pose(*hover(start, k / POSE_HZ))
             await asyncio.sleep(1 / POSE_HZ)
         await asyncio.sleep(0.1)
         client.drain("approximation")
+        client.drain("estimates")
 
+        hold_collection()  # this client's garbage collected before each send, not amid a round trip it times
+        processes = pids()
+        ran = {name: schedstat(pid) for name, pid in processes.items()}
         sent, t0 = 0, time.perf_counter()
         while (t := time.perf_counter() - t0) < seconds:
+            collect_if_due()
             client.send_pose(*hover(start, t))
             sent += 1
             await asyncio.sleep(max(0.0, t0 + sent / POSE_HZ - time.perf_counter()))
@@ -114,13 +160,19 @@ async def measure(url: str, shape: str, seconds: float) -> dict:
         replies = client.drain("approximation")
         out["pose"] = [latency(a) for a in replies]
         out["worker"] = [a["time_ms"] / 1e3 for a in replies]
+        out["estimates"] = [latency(e) for e in client.drain("estimates")]  # none from a protocol-1 service
         out["sent"]["pose"] = sent
+        out["waits"]["poses"] = waits(ran, {name: schedstat(pid) for name, pid in processes.items()},
+                                      time.perf_counter() - t0)
 
+        release_collection()
         locked = await client.lock()
         done = await client.expect("done", "refused", "stopped", timeout=15)
         out["lock"] = f"{done['type']} ({done['message']})"
         if done["type"] != "done":
             return out
+        hold_collection()
+        ran = {name: schedstat(pid) for name, pid in processes.items()}
         approx = message_approximation(locked, load_spec(), "locked")
         points, quats = stroke(load_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths)
         order = np.r_[np.arange(len(points)), np.arange(len(points))[::-1]]
@@ -128,6 +180,7 @@ async def measure(url: str, shape: str, seconds: float) -> dict:
         t0 = time.perf_counter()
         while (t := time.perf_counter() - t0) < seconds:
             k = order[pens % len(order)]
+            collect_if_due()
             client.send_pen(points[k] * 1e3, quats[k])
             pens += 1
             if pens % round(PEN_HZ / POSE_HZ) == 0:
@@ -135,6 +188,9 @@ async def measure(url: str, shape: str, seconds: float) -> dict:
                 poses += 1
             await asyncio.sleep(max(0.0, t0 + pens / PEN_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
+        release_collection()
+        out["waits"]["pens and poses"] = waits(ran, {name: schedstat(pid) for name, pid in processes.items()},
+                                               time.perf_counter() - t0)
         out["pen"] = [latency(r) for r in client.drain("pen_redirected")]
         out["pose_with_pens"] = [latency(a) for a in client.drain("approximation")]
         out["sent"].update(pen=pens, pose_with_pens=poses)
@@ -146,6 +202,8 @@ async def measure(url: str, shape: str, seconds: float) -> dict:
 def report(m: dict) -> None:
     print(stats("pose -> approximation at 90 Hz", m["pose"], m["sent"]["pose"], POSE_GOAL_MS))
     print(stats("  of which the approximation itself (worker)", m["worker"], len(m["worker"])))
+    print(stats("pose -> its frame estimates (the datagram after the approximation's)", m["estimates"],
+                m["sent"]["pose"]))
     print(f"lock: {m['lock']}")
     if m["status"] is None:
         return
@@ -160,23 +218,35 @@ def report(m: dict) -> None:
     print(f"service side (arrival -> reply sent): approximation {status['approximation_latency_ms']}, "
           f"pen {status['pen_latency_ms']} ms")
     print(breakdown("where a pose's time went in the service", status.get("pose_path_ms")))
+    print(f"then, off the pose's path: its frame estimates {status.get('estimates_ms')} ms after the "
+          f"approximation's datagram, the worker's report to the service {status.get('pose_report_ms')} ms after")
     print(breakdown("where a pen sample's time went in the service", status.get("pen_path_ms")))
     print(stats("client: encoding and sending a sample", m["client_send"], len(m["client_send"])))
     print(stats("client: parsing and queueing a reply", m["client_receive"], len(m["client_receive"])))
+    for phase, line in m["waits"].items():
+        print(f"waiting for a core, {phase}: {line}")
     if "csharp" in m:
         print(csharp_line(m))
 
 
+def protocol_of(code: Path | None) -> int:
+    """The live protocol version the service in checkout `code` (None: this one) speaks."""
+    if code is None:
+        return PROTOCOL_VERSION
+    return int(re.search(r"^PROTOCOL_VERSION = (\d+)", (code / "twin/live/messages.py").read_text(), re.M).group(1))
+
+
 def session(args, code=None) -> dict:
     """One emulator, one service (this code's, or the checkout `code`'s), one measured session; with
-    args.csharp (the compiled C# session), then the C# client's too: m["csharp"] {"pose_ms", "pen_ms":
-    [p50, p99, replies]}."""
+    args.csharp ({checkout or None: its compiled C# session}), then the C# client's too: m["csharp"]
+    {"pose_ms", "pen_ms": [p50, p99, replies]}."""
     with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed") as emu, \
             ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err", code=code) as service:
-        m = asyncio.run(measure(service.url, args.shape, args.seconds))
+        m = asyncio.run(measure(service.url, args.shape, args.seconds, protocol_of(code),
+                                lambda: processes(service, emu.proc.pid)))
         if args.csharp:
-            run = subprocess.run(["mono", str(args.csharp), service.url, args.shape, str(args.seconds)],
+            run = subprocess.run(["mono", str(args.csharp[code]), service.url, args.shape, str(args.seconds)],
                                  capture_output=True, text=True, timeout=120 + 2 * args.seconds)
             seen = json.loads(run.stdout.strip().splitlines()[-1]) if run.returncode == 0 else {}
             m["csharp"] = {"pose_ms": seen.get("measure_pose_ms"), "pen_ms": seen.get("measure_pen_ms"),
@@ -195,9 +265,11 @@ def csharp_line(m: dict) -> str:
             f"pen -> redirected p50 {pen50:.3f} / p99 {pen99:.3f} ms ({n_pen} replies)")
 
 
-def build_csharp(folder: Path) -> Path:
-    """The C# scripted session compiled with Mono's mcs into folder; SystemExit naming what is missing."""
-    root = Path(__file__).resolve().parents[1] / "clients" / "unity"
+def build_csharp(folder: Path, code: Path | None = None) -> Path:
+    """The C# scripted session of checkout `code` (None: this one) compiled with Mono's mcs into folder; SystemExit
+    naming what is missing."""
+    root = (code or Path(__file__).resolve().parents[1]) / "clients" / "unity"
+    folder.mkdir()
     exe = folder / "ScriptedSession.exe"
     sources = [root / "VRScrollLive" / "Json.cs", root / "VRScrollLive" / "LiveClient.cs",
                root / "tests" / "ScriptedSession.cs"]
@@ -233,9 +305,12 @@ def compare(args) -> None:
                   f"pen {p50_p99(m.get('pen', []))} ms, lock {m['lock']}", flush=True)
             if "csharp" in m:
                 print("  " + csharp_line(m), flush=True)
-            if side == "after" and m["status"]:
+            for phase, line in m["waits"].items():
+                print(f"  waiting for a core, {phase}: {line}", flush=True)
+            if m["status"]:
                 print("  " + breakdown("pose path", m["status"]["pose_path_ms"]))
                 print("  " + breakdown("pen path", m["status"]["pen_path_ms"]))
+            if side == "after" and m["status"]:
                 print("  " + stats("client send", m["client_send"], len(m["client_send"])))
                 print("  " + stats("client receive", m["client_receive"], len(m["client_receive"])))
     print("\n| side | pose -> approximation p50 / p99 ms | with pens running | of which the worker | "
@@ -261,7 +336,10 @@ def main() -> None:
     if args.rounds < 1:
         p.error("--rounds must be at least 1")
     with tempfile.TemporaryDirectory() as build:
-        args.csharp = build_csharp(Path(build)) if args.csharp else None
+        if args.csharp:
+            args.csharp = {None: build_csharp(Path(build) / "after")}
+            if args.against is not None:
+                args.csharp[args.against] = build_csharp(Path(build) / "before", args.against)
         print(load())
         if args.against is not None:
             compare(args)

@@ -70,8 +70,8 @@ async def expect_error(client, code, source="control"):
 
 @pytest.mark.parametrize("message, code", [
     (b"\x00\x01", "malformed"), ("{", "malformed"), ("[1, 2]", "malformed"), ('{"type": "fly"}', "unknown_type"),
-    ('{"type": "hello", "protocol": 2, "role": "control"}', "malformed"),
-    ('{"type": "hello", "protocol": 1, "role": "king"}', "malformed"),
+    ('{"type": "hello", "protocol": 1, "role": "control"}', "malformed"),  # version 1's approximation had estimates
+    ('{"type": "hello", "protocol": 2, "role": "king"}', "malformed"),
     ('{"type": "target"}', "malformed"), ('{"type": "target", "shape": "cube", "mesh": {}}', "malformed"),
     ("x" * (MAX_CONTROL_BYTES + 1), "oversized")])
 def test_bad_control_messages_are_named(message, code):
@@ -165,7 +165,7 @@ def test_bad_messages_get_errors_and_the_connection_stays_open(twin_service):
                           ('{"type": "target", "shape": "teapot"}', "bad_target"),
                           ('{"type": "target", "mesh": {"vertices_mm": [[0, 0, 0]], "faces": [[0, 1, 2]]}}',
                            "malformed"),
-                          ('{"type": "hello", "protocol": 1, "role": "control"}', "out_of_order")]:
+                          ('{"type": "hello", "protocol": 2, "role": "control"}', "out_of_order")]:
             await client.send(bad)
             await expect_error(client, code)
         await client.send({"type": "lock"})  # nothing approximated yet on this session
@@ -207,7 +207,7 @@ def test_a_second_controller_is_refused_and_observers_watch(twin_service):
             second = LiveClient(twin_service.url)
             with pytest.raises(LiveError, match="controller_taken"):
                 await second.connect()
-            await second.send({"type": "hello", "protocol": 1, "role": "observer"})  # same connection, now watching
+            await second.send({"type": "hello", "protocol": 2, "role": "observer"})  # same connection, now watching
             assert (await second.expect("welcome"))["role"] == "observer"
             await second.send({"type": "target", "shape": "cube"})
             await expect_error(second, "forbidden")
@@ -236,15 +236,45 @@ def test_a_mesh_sent_as_the_target_is_approximated_and_an_open_one_refused(twin_
             ready = await client.set_target(mesh=mesh(box))
             client.send_pose([0, 0, 140], [1, 0, 0, 0])
             approx = await client.datagram("approximation", timeout=5)
+            estimates = await client.datagram("estimates", timeout=5)
             await client.set_target(shape="cylinder")
-            return refused, ready, approx
+            return refused, ready, approx, estimates
 
-    refused, ready, approx = run(session())
+    refused, ready, approx, estimates = run(session())
     assert "mesh" in refused["message"]
     assert ready["target"]["name"] == "mesh" and np.allclose(ready["target"]["bounds_mm"], [[-150, -150, 0], [150, 150, 100]])
     # flat on the box's top: the anchor at 100 mm, hinges flat, the surface on the face
     assert abs(approx["root_position_mm"][2] - 100) < 1 and max(map(abs, approx["angles_deg"])) < 1
-    assert approx["msd_estimate_mm"] < 0.5 and approx["share_within_estimate"] == 1.0
+    assert estimates["seq"] == approx["seq"]
+    assert estimates["msd_estimate_mm"] < 0.5 and estimates["share_within_estimate"] == 1.0
+
+
+def test_each_approximation_comes_first_and_its_frame_estimates_follow(twin_service, spec):
+    """Poses at 90 Hz sliding over the cylinder: every approximation comes back in order, and the frame estimates
+    of each follow it in a datagram of their own (off the pose's path), with the values the estimates give for
+    that approximation as it was sent."""
+    async def session():
+        async with LiveClient(twin_service.url) as client:
+            await client.set_target(shape="cylinder")
+            for k in range(60):
+                client.send_pose([10 + 20 * np.sin(k / 9), 0, 190], [1, 0, 0, 0])
+                await asyncio.sleep(1 / 90)
+            await asyncio.sleep(0.5)
+            return client.drain("approximation"), client.drain("estimates")
+
+    approximations, estimates = run(session())
+    seqs = [a["seq"] for a in approximations]
+    assert len(seqs) >= 30 and seqs == sorted(set(seqs))
+    assert [e["seq"] for e in estimates] == seqs
+    fields, thresholds = build_fields(load_shape("cylinder")), load_thresholds()
+    slid = [a["root_position_mm"][0] for a in approximations]
+    assert max(slid) - min(slid) > 10  # they answer different poses
+    for a, e in zip(approximations, estimates):
+        assert e["received_s"] >= a["received_s"] and e["t_s"] == a["t_s"]
+        approx = message_approximation(a, spec, "approximation")
+        msd, share = frame_estimates(spec, fields, thresholds, approx.root_pose, approx.angles, approx.widths)
+        assert e["msd_estimate_mm"] == pytest.approx(msd * 1e3, abs=0.01)
+        assert e["share_within_estimate"] == pytest.approx(share, abs=0.01)
 
 
 def test_off_loopback_needs_the_flag_and_every_client_the_token(tmp_path):
@@ -486,7 +516,9 @@ def test_a_worker_that_dies_is_restarted_and_the_client_served(tmp_path):
                 assert len(workers) == 1
                 os.kill(workers[0], signal.SIGKILL)
                 await asyncio.sleep(0.5)
-                again = await first_approximation(client, timeout=60)
+                client.drain("estimates")
+                await first_approximation(client, timeout=60)
+                again = await client.datagram("estimates")
                 assert again["msd_estimate_mm"] < 5.0  # on the cylinder again: the restarted worker has its target
 
         run(session())

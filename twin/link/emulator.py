@@ -37,6 +37,11 @@ from twin.link.faults import FaultOptions, Faults, Miswiring
 from twin.sim.plant import Plant, PlantOptions, PlantRanges, draw_plant
 
 BACKLOG = 4096  # bytes out of the firmware but not yet taken by the host: it is not asked for more beyond this
+# Frames of the firmware's answer the log reads per tick for its "nack" lines; beyond, they are counted
+# ("tx_unlogged", once a second). The log's reader is Python: a 1 MB/s flood of frames of another protocol
+# version, each answered with a NACK, gave it 30 a tick to decode, 1.3 ms of work per 1 ms tick (the emulator
+# overran its real time 99 times in 6 s, and answered GET_STATE 44 ms late; benchmarks/bench_emulator_flood.py)
+LOG_FRAMES_PER_TICK = 8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,6 +105,8 @@ class Emulator:
         self.out = bytearray()  # bytes for the host, not yet taken
         self._heard = P.Decoder()  # reads what the firmware is given and what it answers, for the log
         self._said = P.Decoder()
+        self._unlogged = 0  # frames the firmware answered that the log has not read since its last count
+        self._unlogged_tick = 0
         self._last_rx_tick = 0
         self._faults = 0
         self._state = P.State.IDLE
@@ -161,6 +168,7 @@ class Emulator:
 
     def close(self, **stats) -> None:
         """Log the run's end (with the caller's stats) and close the log."""
+        self._log_unlogged()
         self._log("stop", ticks=self.tick, rx_bad_frames=self.firmware.rx_bad_frames,
                   telemetry_dropped=self.firmware.telemetry_dropped, **stats)
         if self.log:
@@ -183,10 +191,24 @@ class Emulator:
     def _log_nacks(self, data: bytes) -> None:
         if not self.log or not data:
             return
+        if self.tick - self._unlogged_tick >= round(1 / self.dt):
+            self._log_unlogged()
+        frames = data.count(0)
+        if frames > LOG_FRAMES_PER_TICK:  # a flood's answers: counted, not read; the reader resyncs after them
+            self._unlogged += frames
+            self._said = P.Decoder()
+            self._said.feed(data[data.rindex(0) + 1:])
+            return
         for seq, msg in self._said.feed(data):
             if isinstance(msg, P.NackMsg):
                 self._log("nack", msg=_name(P.MsgId, msg.acked), seq=seq, reason=_name(P.Nack, msg.reason),
                           detail=msg.detail)
+
+    def _log_unlogged(self) -> None:
+        """The count of the firmware's frames the log did not read since the last count, if any."""
+        if self._unlogged:
+            self._log("tx_unlogged", frames=self._unlogged)
+        self._unlogged, self._unlogged_tick = 0, self.tick
 
     def _log_faults(self) -> None:
         state = self.firmware.state

@@ -4,6 +4,7 @@
         await client.set_target(shape="cylinder")
         client.send_pose([10, 0, 190], [1, 0, 0, 0])          # mm, quaternion w first
         approximation = await client.datagram("approximation")
+        estimates = await client.datagram("estimates")            # its MSD and share estimates, just after
         await client.lock()
         outcome = await client.expect("done", "refused", "stopped", timeout=10)
         client.send_pen([0, 0, 150], [1, 0, 0, 0])
@@ -58,8 +59,9 @@ class _Replies(asyncio.DatagramProtocol):
 class LiveClient:
     """One connection: `role` "control" (streams and locks) or "observer" (events only)."""
 
-    def __init__(self, url: str, role: str = "control", token: str | None = None):
-        self.url, self.role, self.token = url, role, token
+    def __init__(self, url: str, role: str = "control", token: str | None = None, protocol: int = PROTOCOL_VERSION):
+        """protocol: the version said in hello (another only to measure an older service: benchmarks/bench_live.py)."""
+        self.url, self.role, self.token, self.protocol = url, role, token, protocol
         self.ws = None
         self.welcome = None
         self.history: list[dict] = []
@@ -83,7 +85,7 @@ class LiveClient:
         """Open the control channel, say hello, open the datagram socket; the welcome event (LiveError if refused)."""
         self.ws = await connect(self.url, max_size=MAX_FRAME_BYTES, ping_interval=None)
         self._reader = asyncio.create_task(self._read())
-        hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "role": self.role}
+        hello = {"type": "hello", "protocol": self.protocol, "role": self.role}
         if self.token is not None:
             hello["token"] = self.token
         await self.send(hello)
@@ -169,7 +171,7 @@ class LiveClient:
         self._udp.sendto(data)
 
     async def datagram(self, kind: str, timeout: float = 2.0) -> dict:
-        """The next "approximation" or "pen_redirected" datagram; LiveError after `timeout` s."""
+        """The next "approximation", "estimates" or "pen_redirected" datagram; LiveError after `timeout` s."""
         try:
             return await asyncio.wait_for(self._datagram_queues[kind].get(), timeout)
         except TimeoutError:

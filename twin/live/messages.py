@@ -19,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from twin.checks import REACH_M, parse_json
 from twin.device.kinematics import pose_matrix
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # 2: the frame estimates in their own datagram, after the approximation's
 DEFAULT_LISTEN_PORT = 8765  # TCP for the control channel, UDP for the datagrams (same number)
 MAX_CONTROL_BYTES = 1 << 20  # a control message above this gets "oversized" (the connection stays)
 MAX_FRAME_BYTES = 4 << 20  # the WebSocket layer closes (1009) above this, before the message is read
@@ -175,11 +175,16 @@ def sample_datagram(kind: str, session: str, seq: int, position_mm, quat_wxyz, t
     return json.dumps(obj, separators=(",", ":")).encode()
 
 
-def approximation_datagram(seq: int, t_s: float | None, approximation: dict, msd_estimate: float,
-                           share_estimate: float) -> bytes:
-    """The reply to a pose: `twin.formats.target.approximation_json` plus the frame estimates (m, 0..1)."""
-    obj = {"type": "approximation", "seq": seq, "t_s": t_s, **approximation,
-           "msd_estimate_mm": round(msd_estimate * 1e3, 3), "share_within_estimate": round(share_estimate, 4)}
+def approximation_datagram(seq: int, t_s: float | None, approximation: dict) -> bytes:
+    """The reply to a pose: `twin.formats.target.approximation_json`."""
+    obj = {"type": "approximation", "seq": seq, "t_s": t_s, **approximation}
+    return json.dumps(obj, separators=(",", ":")).encode()
+
+
+def estimates_datagram(seq: int, t_s: float | None, msd_estimate: float, share_estimate: float) -> bytes:
+    """The frame estimates of the approximation of pose `seq` (m, 0..1), sent after it."""
+    obj = {"type": "estimates", "seq": seq, "t_s": t_s, "msd_estimate_mm": round(msd_estimate * 1e3, 3),
+           "share_within_estimate": round(share_estimate, 4)}
     return json.dumps(obj, separators=(",", ":")).encode()
 
 

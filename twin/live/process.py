@@ -20,9 +20,10 @@ class ServiceProcess:
         self.stderr_path = Path(stderr_path) if stderr_path else None
         self._stderr = open(self.stderr_path, "w") if self.stderr_path else subprocess.DEVNULL
         env = cli_env()
-        if code is not None:
-            env["PYTHONPATH"] = os.pathsep.join((str(Path(code).resolve()), env["PYTHONPATH"]))
-        self.proc = subprocess.Popen(cli_command("serve", "--listen", "0", *args),
+        if code is not None:  # first on the path, and the working folder: `python -m` puts that before the path
+            code = str(Path(code).resolve())
+            env["PYTHONPATH"] = os.pathsep.join((code, env["PYTHONPATH"]))
+        self.proc = subprocess.Popen(cli_command("serve", "--listen", "0", *args), cwd=code,
                                      stdout=subprocess.PIPE, stderr=self._stderr, text=True, env=env)
         self.banner = ""
         for line in self.proc.stdout:  # a token line may come first; the banner names the URL

@@ -7,7 +7,8 @@
   before the previous one was approximated replaces it. Memory per stream is one sample.
 - The worker process approximates the newest pose at most APPROXIMATION_RATE_HZ times a second
   and sends the reply datagram itself, from the service's socket; the pose goes to it from the
-  callback that made that possible (no task, no await per pose). A pose never moves the device.
+  callback that made that possible (no task, no await per pose), and then the frame estimates in a
+  datagram of their own. A pose never moves the device.
 - Each pose's and pen sample's path is stamped stage by stage (twin/live/stages.py); `status`
   reports where the time went.
 - Lock: the newest approximation's hinge angles go through the morpher (gate, then the device or
@@ -198,7 +199,8 @@ class LiveService:
         self.latest = None  # (target_gen, pose seq, PoseReply): the newest approximation the worker sent
         self.counts: collections.Counter = collections.Counter()
         self.pose_times = StageTimes(POSE_STAGES, LATENCY_WINDOW)  # s per stage, pose arrival -> approximation sent
-        self.pose_report = collections.deque(maxlen=LATENCY_WINDOW)  # s, the worker's report after the datagram
+        self.pose_estimates = collections.deque(maxlen=LATENCY_WINDOW)  # s, estimates' datagram after the reply's
+        self.pose_report = collections.deque(maxlen=LATENCY_WINDOW)  # s, the worker's report after the datagrams
         self.pen_times = StageTimes(PEN_STAGES, LATENCY_WINDOW)  # s per stage, pen arrival -> redirected sent
         self._pose = None  # (Sample, client, arrival, queued s): the newest pose not yet approximated
         self._in_flight = None  # (target_gen, Sample, client, arrival, queued, sent s): the pose the worker has
@@ -368,7 +370,7 @@ class LiveService:
                 "approximation_latency_ms": percentiles_ms(self.pose_times.total()),
                 "pen_latency_ms": percentiles_ms(self.pen_times.total()),
                 "pose_path_ms": self.pose_times.summary(), "pen_path_ms": self.pen_times.summary(),
-                "pose_report_ms": percentiles_ms(self.pose_report)}
+                "estimates_ms": percentiles_ms(self.pose_estimates), "pose_report_ms": percentiles_ms(self.pose_report)}
 
     async def _lock(self, seq: int, reply: PoseReply) -> None:
         loop = asyncio.get_running_loop()
@@ -505,8 +507,10 @@ class LiveService:
             client.report("approximation_failed", str(reply))
         else:
             self.counts["approximations"] += 1
-            self.pose_times.record((arrived, queued, sent, *reply.stamps))
-            self.pose_report.append(received - reply.stamps[-1])
+            received_by_worker, approximated, answered, estimated = reply.stamps
+            self.pose_times.record((arrived, queued, sent, received_by_worker, approximated, answered))
+            self.pose_estimates.append(estimated - answered)
+            self.pose_report.append(received - estimated)
             if gen == self.target_gen and client is self.controller:
                 self.latest = (gen, sample.seq, reply)
         self._next_pose()

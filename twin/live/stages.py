@@ -10,10 +10,10 @@ import collections
 
 import numpy as np
 
-POSE_STAGES = ("parse", "wait", "to_worker", "approximate", "estimates", "send", "total")
+POSE_STAGES = ("parse", "wait", "to_worker", "approximate", "send", "total")
 """A pose's path: parsed and queued (arrival -> queued), waiting for the worker and the rate limit (-> sent to
-the worker), the pipe there (-> the worker's receive), the approximation, the frame estimates, the reply
-datagram built and sent by the worker."""
+the worker), the pipe there (-> the worker's receive), the approximation, the reply datagram built and sent by
+the worker. (Its frame estimates follow, off this path: the service's `estimates_ms`.)"""
 PEN_STAGES = ("parse", "redirect", "encode", "send", "total")
 """A pen sample's path: parsed and checked, redirected (with the thresholds' verdict), encoded, sent."""
 

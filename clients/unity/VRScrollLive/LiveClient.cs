@@ -6,7 +6,8 @@
 //
 // Threading: receiving runs on background tasks; events and datagram replies are queued and read with
 // TryGetEvent / TryGetPen, and the newest approximation is kept in LatestApproximation (the newest wins),
-// so a MonoBehaviour reads them from Update() without blocking.
+// its frame estimates (MSD, share within the thresholds; they follow it in their own datagram) in
+// LatestEstimates, so a MonoBehaviour reads them from Update() without blocking.
 using System;
 using System.Collections.Concurrent;
 using System.Collections.Generic;
@@ -26,7 +27,7 @@ namespace VRScroll.Live
 
     public class LiveClient : IDisposable
     {
-        public const int ProtocolVersion = 1;
+        public const int ProtocolVersion = 2;
         const int MaxQueued = 4096;
 
         readonly Uri url;
@@ -42,11 +43,14 @@ namespace VRScroll.Live
         Task controlReceiver, datagramReceiver;
         long poseSeq, penSeq;
         volatile Dictionary<string, object> latestApproximation;
+        volatile Dictionary<string, object> latestEstimates;
 
         public Dictionary<string, object> Welcome { get; private set; }
         public string Session { get { return Welcome == null ? null : Welcome["session"] as string; } }
         public Dictionary<string, object> LatestApproximation { get { return latestApproximation; } }
+        public Dictionary<string, object> LatestEstimates { get { return latestEstimates; } }
         public int ApproximationsReceived;
+        public int EstimatesReceived;
         public int PensReceived;
 
         public LiveClient(Uri url, string role = "control", string token = null)
@@ -207,10 +211,16 @@ namespace VRScroll.Live
                     double received = Now;  // stamped before parsing: the round trip is the transport's and the service's
                     var reply = Json.ParseObject(Encoding.UTF8.GetString(result.Buffer));
                     reply["received_s"] = received;
-                    if ((reply["type"] as string) == "approximation")
+                    var type = reply["type"] as string;
+                    if (type == "approximation")
                     {
                         latestApproximation = reply;
                         Interlocked.Increment(ref ApproximationsReceived);
+                    }
+                    else if (type == "estimates")
+                    {
+                        latestEstimates = reply;
+                        Interlocked.Increment(ref EstimatesReceived);
                     }
                     else
                     {

@@ -99,6 +99,10 @@ static class ScriptedSession
             await Task.Delay(100);
             var approximation = client.LatestApproximation;
             seen["approximations"] = client.ApproximationsReceived;
+            seen["estimates"] = client.EstimatesReceived;
+            var estimates = client.LatestEstimates;
+            seen["estimates_answer_an_approximation"] = estimates != null && Convert.ToInt64(estimates["seq"]) <= lastPose;
+            seen["msd_estimate_mm"] = estimates == null ? null : estimates["msd_estimate_mm"];
             seen["poses_sent"] = lastPose + 1;
 
             await client.LockAsync();
