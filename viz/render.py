@@ -166,7 +166,8 @@ def resample(t, rows, times) -> np.ndarray:
     return np.stack([np.interp(times, t, rows[:, k]) for k in range(rows.shape[1])], axis=1)
 
 
-def render_panels(spec: DeviceSpec, panels: list[np.ndarray], size=SIZE, target: TargetView | None = None) -> np.ndarray:
+def render_panels(spec: DeviceSpec, panels: list[np.ndarray], size=SIZE,
+                  target: TargetView | None = None) -> np.ndarray:
     """Frames (frames, height, width * len(panels), 3) uint8: each panel's hinge angles (frames, n) rad,
     the first in the device's grey, the others in the twin's blue, side by side; each with the target where
     given."""
