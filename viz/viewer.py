@@ -20,7 +20,7 @@ from twin.device.mjcf import mjcf
 from twin.device.spec import DeviceSpec
 from twin.errors import UserError
 from twin.formats.run import Run
-from viz.render import device_mjspec, hinge_qadr, offscreen_missing, resample, write_views
+from viz.render import TargetView, add_target, device_mjspec, hinge_qadr, offscreen_missing, resample, write_views
 
 TWIN_ALPHA = 0.3  # opacity of the twin's flaps beside the device's
 TWIN_PREFIX = "twin/"
@@ -60,15 +60,18 @@ def run_frames(run: Run, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
     return t, np.concatenate([device, twin], axis=1)
 
 
-def play(model: mujoco.MjModel, qadr: np.ndarray, t: np.ndarray, rows: np.ndarray, title: str) -> str:
+def play(model: mujoco.MjModel, qadr: np.ndarray, t: np.ndarray, rows: np.ndarray, title: str,
+         failed: str | None = None) -> str:
     """Show rows (frames, m) of hinge angles at their times t (s) in real time, each row at the qpos
-    addresses qadr (r, m), then hold the last until the window is closed. A one-line message for where no
-    window can open."""
+    addresses qadr (r, m), then hold the last until the window is closed; where `failed` says what refused
+    the move, "FAILED: ..." over the view. A one-line message for where no window can open."""
     missing = display_missing()
     if missing:
         return missing
     data = mujoco.MjData(model)
     with mujoco.viewer.launch_passive(model, data) as viewer:
+        if failed:
+            viewer.set_texts((mujoco.mjtFontScale.mjFONTSCALE_200, mujoco.mjtGridPos.mjGRID_TOPLEFT, "FAILED", failed))
         start = time.monotonic()
         while viewer.is_running():
             i = min(int(np.searchsorted(t, time.monotonic() - start)), len(t) - 1)
@@ -88,26 +91,46 @@ def view_run(run: Run, spec: DeviceSpec) -> str:
     return play(model, qadr, t, rows, f"{run.dir}: device solid, twin translucent")
 
 
-def play_trace(spec: DeviceSpec, trace) -> str:
-    """A twin's move (twin.records.trace.Trace, its true angles) in real time."""
-    model = mujoco.MjModel.from_xml_string(mjcf(spec))
-    return play(model, hinge_qadr(model, spec.n_hinges), trace.time - trace.time[0], trace.true_angle, "the twin's move")
+def move_model(spec: DeviceSpec, target: TargetView | None = None) -> mujoco.MjModel:
+    """The device's model for showing a move, with its target beside it where given (viz.render.add_target)."""
+    if target is None:
+        return mujoco.MjModel.from_xml_string(mjcf(spec))
+    s = device_mjspec(spec)
+    add_target(s, target)
+    return s.compile()
 
 
-def _files(spec: DeviceSpec, t, panels, out_stem, title: str) -> str:
+def play_angles(spec: DeviceSpec, t, angles, target: TargetView | None = None, failed: str | None = None) -> str:
+    """Hinge angles (samples, n) rad at times t (s) in real time, beside a target where given."""
+    model = move_model(spec, target)
+    return play(model, hinge_qadr(model, spec.n_hinges), np.asarray(t) - t[0], angles, "the twin's move", failed)
+
+
+def _files(spec: DeviceSpec, t, panels, out_stem, title: str, target=None, failed=None) -> str:
     missing = offscreen_missing()
     if missing:
         raise UserError(missing)
-    video, sheet = write_views(spec, t, panels, out_stem, title)
-    return f"video {video}, contact sheet {sheet} ({title})"
+    video, sheet = write_views(spec, t, panels, out_stem, title, target, failed)
+    return f"video {video}, contact sheet {sheet} ({title}" + (f"; FAILED: {failed})" if failed else ")")
 
 
-def show_move(spec: DeviceSpec, trace, out_stem, files: bool = False) -> str:
-    """A twin's move: MuJoCo's viewer where there is a display and files is False, else out_stem.mp4 and
-    out_stem.png rendered off-screen. A line saying what was shown or written."""
+def show_move(spec: DeviceSpec, trace, out_stem, files: bool = False, target: TargetView | None = None,
+              failed: str | None = None) -> str:
+    """A twin's move (twin.records.trace.Trace, its true angles): `show_angles`."""
+    return show_angles(spec, trace.time, trace.true_angle, out_stem, files, target, failed)
+
+
+def show_angles(spec: DeviceSpec, t, angles, out_stem, files: bool = False, target: TargetView | None = None,
+                failed: str | None = None) -> str:
+    """Hinge angles (samples, n) rad at times t (s): MuJoCo's viewer where there is a display and files is False,
+    else out_stem.mp4 and out_stem.png rendered off-screen; beside the target where given (the part the touch
+    surface lies inside red), and FAILED with `failed` (what refused the move) where given. A line saying what
+    was shown or written."""
+    title = "the twin's move (true hinge angles)" + ("" if target is None else "; the target grey, red where the "
+                                                      "touch surface lies inside it")
     if files or display_missing():
-        return _files(spec, trace.time, [trace.true_angle], out_stem, "the twin's move (true hinge angles)")
-    return play_trace(spec, trace)
+        return _files(spec, t, [angles], out_stem, title, target, failed)
+    return play_angles(spec, t, angles, target, failed)
 
 
 def show_run(run: Run, spec: DeviceSpec, out_stem, files: bool = False) -> str:

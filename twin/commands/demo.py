@@ -33,9 +33,10 @@ from twin.morphpatch.fields import build_fields
 from twin.morphpatch.shapes import shape_names
 from twin.morphpatch.surface_metrics import inside_text, match_json
 from twin.sim.gate import redirection_check
+from viz.render import target_view
 from viz.scene import render_approximation
 from viz.traces import hinge_figure
-from viz.viewer import show_move
+from viz.viewer import show_angles
 
 
 def add_arguments(p) -> None:
@@ -51,7 +52,8 @@ def add_arguments(p) -> None:
     p.add_argument("--strict", action="store_true",
                    help="refuse (exit 1) when the pen redirection goes beyond the perception thresholds")
     p.add_argument("--view", action="store_true",
-                   help="play the morph in MuJoCo's viewer; without a display, write --view-out.mp4 and .png")
+                   help="play the morph in MuJoCo's viewer beside the target (red where the touch surface ends inside "
+                        "it; FAILED where the gate refused); without a display, write --view-out.mp4 and .png")
     p.add_argument("--view-out", metavar="STEM", type=output_file, default="demo_view",
                    help="video and contact sheet of --view without a display (default demo_view)")
     add_rerun(p)
@@ -98,12 +100,11 @@ def run(args) -> int:
     notes = [f"start (outlined): {', '.join(f'{v:g}' for v in start)} (x y z mm, roll pitch yaw deg)",
              "approximation: " + " ".join(f"{a:.1f}" for a in np.degrees(approx.angles)) + " deg",
              "twin ended at:  " + " ".join(f"{a:.1f}" for a in np.degrees(end_angles)) + " deg"]
+    failed = "; ".join(([] if gate.passed else ["the gate refused: " + ", ".join(c.name for c in gate.failed)])
+                       + ([] if approx.rests is not False else ["no pose resting from outside"])) or None
     render_approximation(spec, mesh, frames, approx.widths, args.png, notes=notes, start_frames=start_frames,
                          title=f"{name}, {args.variant}: twin after the morph, MSD {end.msd * 1e3:.2f} mm, "
-                               f"HD {end.hd * 1e3:.2f} mm",
-                         failed="; ".join(([] if gate.passed else ["the gate refused: " + ", ".join(c.name for c in gate.failed)])
-                                          + ([] if approx.rests is not False else ["no pose resting from outside"]))
-                         or None)
+                               f"HD {end.hd * 1e3:.2f} mm", failed=failed)
     print(f"[5/5] picture: {args.png}")
     if trace is not None:
         hinge_figure(args.plot, f"demo: {name} morph on the twin", [("twin", trace)], range(spec.n_hinges),
@@ -115,8 +116,12 @@ def run(args) -> int:
 
             print("      " + log_move(args.rerun, spec, trace, mesh, approx.root_pose, approx.widths))
     if args.view:
-        print("      " + (show_move(spec, trace, args.view_out) if trace is not None else
-                          "no morph to show: the twin could not simulate the move"))
+        target = target_view(spec, mesh, approx.root_pose, end_angles, approx.widths)
+        if trace is None:  # the gate refused the move before simulating it: the device stays flat (shown for 1 s)
+            t, angles = np.array([0.0, 1.0]), np.tile(end_angles, (2, 1))
+        else:
+            t, angles = trace.time, trace.true_angle
+        print("      " + show_angles(spec, t, angles, args.view_out, target=target, failed=failed))
     report = {
         "device_profile": profile.label,
         "target": name,

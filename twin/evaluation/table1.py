@@ -37,6 +37,7 @@ from twin.evaluation.starts import approach_starts
 from twin.formats.records import RecordLog, read_jsonl
 from twin.morphpatch.approximation import approximate, measured
 from twin.morphpatch.fields import build_fields, exact_signed_distance
+from twin.morphpatch.resting import resting
 from twin.morphpatch.shapes import load_shape
 from twin.paths import MODELS_DIR
 from twin.sim.twin import Twin
@@ -63,9 +64,11 @@ def _shape_seed(seed: int, shape: str) -> int:
 
 
 def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
-    """All methods from one start: a record each with msd_mm, hd_mm, inside_percent and inside_depth_mm (the
-    touch surface inside the target: twin.morphpatch.surface_metrics), angles_deg, time_ms, the anchor's
-    depth in the target, and what the twin made of it (see the module docstring)."""
+    """All methods from one start: a record each with msd_mm, hd_mm, inside_percent, inside_depth_mm and
+    inside_over_2mm_percent (the touch surface inside the target: twin.morphpatch.surface_metrics, and the
+    share deeper than twin.morphpatch.resting.DEEP), angles_deg, time_ms, the anchor's depth in the target,
+    for ours whether its search found a pose resting from outside (`rests`: `approximate` refuses one that
+    did not), and what the twin made of it (see the module docstring)."""
 
     shape, index, n_starts, seed = task
     spec, mesh, fields, cbs, twin, starts = _context(shape, n_starts, seed)
@@ -77,8 +80,10 @@ def evaluate_start(task: tuple[str, int, int, int]) -> list[dict]:
     for method, r in results.items():
         r = measured(spec, mesh, r)
         depth = -float(exact_signed_distance(mesh, r.root_pose[None, :3, 3])[0][0])
+        deep = resting(spec, mesh, None, r, through=False).deep_share
         records.append({"shape": shape, "start": index, "method": method, "msd_mm": r.msd * 1e3,
                         "hd_mm": r.hd * 1e3, "inside_percent": r.inside * 100, "inside_depth_mm": r.depth * 1e3,
+                        "inside_over_2mm_percent": deep * 100, **({} if r.rests is None else {"rests": r.rests}),
                         "angles_deg": np.degrees(r.angles).round(3).tolist(),
                         "time_ms": r.time * 1e3, "anchor_depth_mm": round(depth * 1e3, 4),
                         **twin_outcome(spec, mesh, fields, twin, r)})

@@ -54,9 +54,10 @@ MAX_LINE_BYTES = 64 << 10
 # a TypeError traceback or a NaN mean with exit 0
 NUMBER_FIELDS = {"msd_mm": (0, math.inf), "hd_mm": (0, math.inf), "time_ms": (0, math.inf),
                  "twin_msd_mm": (0, math.inf), "share_within": (0, 1), "inside_percent": (0, 100),
+                 "inside_over_2mm_percent": (0, 100),
                  "inside_depth_mm": (0, math.inf), "anchor_depth_mm": (-math.inf, math.inf), "mass_g": (0, math.inf),
                  "morph_time_s": (0, math.inf)}  # each within (low, high), inclusive
-FLAG_FIELDS = ("gate_range_ok", "gate_collision_ok")
+FLAG_FIELDS = ("gate_range_ok", "gate_collision_ok", "rests")
 TEXT_FIELDS = ("key", "shape", "method", "design")  # the labels a record is grouped by
 WHOLE_FIELDS = ("start", "design_index", "plant")
 

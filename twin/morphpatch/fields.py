@@ -419,11 +419,22 @@ def exact_surface_query(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.n
     """Exact signed distance (N,) m, closest surface points (N, 3) m and the surface's outward
     pseudonormal there (N, 3): the face normal inside a face, the mean of the faces' normals on an
     edge, their angle-weighted mean at a vertex."""
-    s, _, closest, normals = igl.signed_distance(np.ascontiguousarray(points, dtype=np.float64),
-                                                 np.ascontiguousarray(mesh.vertices, dtype=np.float64),
-                                                 np.ascontiguousarray(mesh.faces, dtype=np.int64),
-                                                 sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
+    s, _, closest, normals = _signed_distance(mesh, points)
     return s, closest, normals
+
+
+def exact_closest_faces(mesh: trimesh.Trimesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Exact signed distance (N,) m and the index (N,) of the mesh's face nearest each point."""
+    s, faces, _, _ = _signed_distance(mesh, points)
+    return s, faces
+
+
+def _signed_distance(mesh: trimesh.Trimesh, points: np.ndarray):
+    """libigl's signed distance (pseudonormal sign): distances, nearest faces, closest points, pseudonormals."""
+    return igl.signed_distance(np.ascontiguousarray(points, dtype=np.float64),
+                               np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+                               np.ascontiguousarray(mesh.faces, dtype=np.int64),
+                               sign_type=igl.SIGNED_DISTANCE_TYPE_PSEUDONORMAL)
 
 
 class _Progress:

@@ -23,7 +23,7 @@ import trimesh
 
 from twin.device.kinematics import flap_frames
 from twin.device.spec import DeviceSpec
-from twin.morphpatch.fields import exact_signed_distance
+from twin.morphpatch.fields import exact_closest_faces, exact_signed_distance
 from twin.morphpatch.sampling import METRIC_SPACING, touch_surface_points
 
 
@@ -62,6 +62,22 @@ def match(spec: DeviceSpec, mesh: trimesh.Trimesh, root_pose, angles, widths=Non
     d = proxy_distances(spec, mesh, root_pose, angles, widths, spacing)
     return Match(float(np.abs(d).mean()), float(np.abs(d).max()), float(np.mean(d < -INSIDE_TOLERANCE)),
                  max(0.0, float(-d.min())))
+
+
+def inside_faces(spec: DeviceSpec, mesh: trimesh.Trimesh, root_pose, angles, widths=None,
+                 shown: trimesh.Trimesh | None = None, spacing: float = METRIC_SPACING) -> np.ndarray:
+    """Which faces (n_faces,) bool of `shown` (the mesh itself by default, or a finer copy of it for a picture)
+    the proxy lies inside the target under: the face nearest each touch-surface sample deeper in the mesh than
+    INSIDE_TOLERANCE (the depth on the mesh itself, exact): the part of the target the touch surface is in."""
+    frames = flap_frames(spec, angles, root_pose, widths)
+    points = touch_surface_points(spec, frames, widths, spacing)
+    shown = mesh if shown is None else shown
+    d, nearest = exact_closest_faces(shown, points)
+    if shown is not mesh:
+        d = point_distances(mesh, points)
+    out = np.zeros(len(shown.faces), bool)
+    out[nearest[d < -INSIDE_TOLERANCE]] = True
+    return out
 
 
 def msd_hd(spec: DeviceSpec, mesh: trimesh.Trimesh, root_pose, angles, widths=None,
