@@ -212,7 +212,10 @@ def test_cogging_ripple_and_a_warming_winding_are_in_the_plant(spec):
         mujoco.mj_forward(m, d)
         torques.append(d.actuator_force[k])
     assert np.ptp(torques) == pytest.approx(2 * 0.04 * stall, rel=0.05)  # (the actuator's force: at the motor)
-    assert d.act[m.actuator_actadr[k]] == 30.0
+    assert d.act[m.actuator_actadr[k]] == 5.0  # K above the ambient (25 deg C): the winding at 30 deg C
+    d.qpos[q], d.qvel[:], d.ctrl[k] = 0.0, 0.0, s.supply_voltage  # the stalled winding's torque: R x (1 + 0.393 % x 5)
+    mujoco.mj_forward(m, d)
+    assert d.actuator_force[k] == pytest.approx(stall / (1 + 0.00393 * 5.0) + torques[0], rel=0.01)  # (+ the cogging)
     d.qvel[g] = 1.0  # rad/s at the gearbox output, well past the Stribeck speed
     plant.actuate(np.zeros(spec.n_hinges, np.float32), np.zeros(spec.n_hinges, np.uint8))
     expected = -0.15 * s.gear_friction * math.sin(2 * math.pi * d.qpos[q] / RIPPLE_PERIOD + 0.3)
@@ -225,7 +228,7 @@ def test_cogging_ripple_and_a_warming_winding_are_in_the_plant(spec):
         plant.sense()
         plant.hold_hinge(k, 0.0)
         plant.actuate(pwm, brake)
-    assert d.act[m.actuator_actadr[k]] > 30.5
+    assert d.act[m.actuator_actadr[k]] > 5.5
 
 
 def test_missed_encoder_edges_accumulate(spec):

@@ -23,8 +23,10 @@ values) and the cogging (its period spans 2 encoder counts: the encoder sees it 
 
 The fit (`fit_hinge`): the twin's MuJoCo replay of each move (the recorded duties applied from rest at the
 move's first angle; twin.sim.plant's model, the twin's values but hinge k's) against the device's encoder,
-compared as speeds over SPEED_TICKS windows. mujoco.minimize.least_squares on log scales of FITTED within
-their bounds, from the best of a grid of no-load speeds and frictions, sensitivities by replays STEP apart;
+compared as speeds over SPEED_TICKS windows (`compared`: not a drive's first FROM_REST_S, not on the table), each
+replay braked REST_S before its drive as the device was. mujoco.minimize.least_squares on log scales of FITTED
+within their bounds, from the STARTS best of a grid of no-load speeds, frictions and inertias, sensitivities by
+replays STEP apart;
 intervals from the Jacobian (Gauss-Newton covariance scaled by the residual and its autocorrelation) or a
 delete-one-move jackknife, the wider.
 """
@@ -62,8 +64,14 @@ MOVE_S = 2.0  # s: a raise's or a descent's longest
 SETTLE_S = 0.6  # s braked before each program's drive: the flap comes to rest (a raised flap whose weight
 # back-drives the braked motor comes down onto the table); the fit starts from rest, so a program whose hinge
 # was still moving at its end is left out
+REST_S = 0.3  # s: each replay's braked rest before its drive, as the device's program rests SETTLE_S: the flap
+# settles under its weight and the gearbox's friction takes the load (a replay that starts driving at once starts
+# with the friction unloaded and the flap sagging: on a plant with none of the left-out effects, 6 counts behind
+# the device 150 ms into a raise, and 0.23-0.37 rad/s rms where a rest of 0.3 s gives 0.21, the encoder's floor)
 REST_TICKS = 100  # ticks before the drive the counts must not have moved in: at rest
 REST_TRIES = 4  # braked programs of SETTLE_S at most after one that left its hinge moving
+FROM_REST_S = 0.03  # s: the start of each drive the fit leaves out (`compared`)
+TABLE_DEG = 5.0  # deg: the fit compares no window below it (`compared`)
 SPEED_TICKS = 10  # ticks per window the fit compares speeds over (10 ms: 1 count in it is 0.5 rad/s)
 FITTED = ("no_load_speed", "gear_friction", "rotor_inertia", "resistance", "backdrive_efficiency")  # per hinge
 # (the winding's resistance: a warm winding's is up to x1.25 the datasheet's, and the device's torque with it;
@@ -72,20 +80,23 @@ HELD = {"gear_damping": SPREAD["gear_damping"], "cogging": BOUNDED["cogging"]}  
 STEP = 0.05  # log: the replays the sensitivities come from are this far apart
 SPEED_GRID = (0.65, 0.8, 1.0, 1.2, 1.45)  # x the prior's no-load speed: the search starts at the best of these
 # (the speed moves every replay most; from the prior alone it can end in a valley the resistance makes up for)
-FRICTION_GRID = (0.7, 1.0, 1.5)  # x the prior's Coulomb friction, beside each speed: the slow moves' cost is
+INERTIA_GRID = (0.75, 1.0, 1.3)  # x the prior's rotor inertia, beside each friction: a lower friction and a higher
+# inertia replay a move much alike, and a search from one valley does not leave it
+FRICTION_GRID = (0.5, 0.7, 1.0, 1.5, 2.0)  # x the prior's Coulomb friction, beside each speed: the slow moves' cost is
 # rough in it (a flap that stalls or slips), and the local search from the prior's ends in another valley
+STARTS = 3  # local searches, from the grid's best points
 MAX_ITER = 12  # mujoco.minimize.least_squares' iterations at most, each its sensitivities and a replay or more
 MU_FACTOR, MU_MAX = 10.0, 100.0  # its regulariser's growth per refused step and its top: at most 8 replays a step
 # (its defaults, x1.26 up to 1e8, spent up to 140 replays in an iteration that ended with no gain)
 LOG_BOUND = math.log(3.0)  # the values searched, x1/3 .. x3 the prior's
 BOUNDS = {"resistance": BOUNDED["resistance"], "backdrive_efficiency": BOUNDED["backdrive_efficiency"]}  # x the
 # prior: what physics bounds (a winding from cold to 60 K warmer; a back-driven efficiency within its spread)
-DISCREPANCY = {"no_load_speed": 0.078, "gear_friction": 0.448, "rotor_inertia": 0.200}  # log sd: how far the
+DISCREPANCY = {"no_load_speed": 0.112, "gear_friction": 0.565, "rotor_inertia": 0.225}  # log sd: how far the
 # effects the twin leaves out (the cogging's amplitude and phase, the friction ripple, the warming winding, the
-# backlash, missed edges) move a hinge's fitted value, which no interval from the fit's own residual sees: the
-# rms of log(fitted / drawn) over 18 hinges of 3 drawn plants (benchmarks/bench_calibration.py --identify
-# --seeds 1 2 3, this design, without it: the intervals held the drawn value 13, 5 and 12 times of 18; the
-# means -0.054, -0.248, +0.100 in log, the spreads 0.056, 0.373, 0.173); added in quadrature to the fit's own
+# backlash, missed edges) and the search's valleys move a hinge's fitted value, which no interval from the fit's
+# own residual sees: the rms of log(fitted / drawn) over 18 hinges of 3 drawn plants (benchmarks/
+# bench_calibration.py --identify --seeds 1 2 3, this design, without it: the intervals held the drawn value 11,
+# 4 and 10 times of 18; the means -0.026, -0.333, +0.027 in log); added in quadrature to the fit's own
 Z95 = 1.959964
 
 
@@ -156,7 +167,7 @@ def program(spec: DeviceSpec, k: int, speed: float, start: int = 0, scale: float
 def _prior_angles(spec: DeviceSpec, k: int, duty: np.ndarray, start: int, scale: float) -> np.ndarray:
     """Hinge k's angle (rad) per tick as the prior twin has it (its no-load speed x scale), its duties applied
     from rest at `start` (counts)."""
-    counts = replay(spec, k, {"no_load_speed": scale}, [Move(k, duty, np.full(len(duty), float(start)))])[0]
+    counts = replay(spec, k, {"no_load_speed": scale}, [Move(k, duty, np.full(len(duty), float(start)))], rest_s=0.0)[0]
     return (counts - 0.5) * spec.rad_per_count
 
 
@@ -211,11 +222,12 @@ def twin_options(spec: DeviceSpec, k: int, scales: dict) -> PlantOptions:
                         hinges=tuple(mine if h == k else nominal for h in range(spec.n_hinges)))
 
 
-def replay(spec: DeviceSpec, k: int, scales: dict, moves: list[Move]) -> list[np.ndarray]:
+def replay(spec: DeviceSpec, k: int, scales: dict, moves: list[Move], rest_s: float = REST_S) -> list[np.ndarray]:
     """The twin's encoder counts through each move on hinge k, unrounded (the device's floor to a count; the
     twin's, unrounded, move smoothly with its values, so that their sensitivities do): its duties applied
     from rest at its first count's angle (the other hinges flat and braked, as the core drives them in IDLE),
-    as long as it lasted.
+    as long as it lasted, after rest_s braked (REST_S: as the device rested before its drive; the plan's own
+    replays of a flap placed where it is to start take none).
     scales: as `twin_options`', and resistance (x the winding's: a warm winding, its motor constant kept)."""
     hot = spec.resistance * scales.get("resistance", 1.0)
     # the spec derives K from the datasheet's no-load point and the resistance: the no-load speed moves to keep K
@@ -235,6 +247,9 @@ def replay(spec: DeviceSpec, k: int, scales: dict, moves: list[Move]) -> list[np
         counts = np.zeros(len(m.duty))
         pwm = np.zeros(n)
         per_rad = spec.counts_per_motor_rev / (2 * math.pi)
+        for _ in range(int(round(rest_s / spec.firmware_dt))):  # braked, as the device was before its drive
+            plant.sense()
+            plant.actuate(pwm, brake)
         for i, d in enumerate(m.duty):
             plant.sense()
             counts[i] = plant.data.sensordata[plant.hinges.enc[k]] * per_rad  # unrounded: smooth in the values
@@ -256,10 +271,20 @@ def residual(spec: DeviceSpec, k: int, scales: dict, moves: list[Move]) -> tuple
     it), and each window's move (index into moves); windows with a lost sample left out."""
     res, which = [], []
     for i, (twin, m) in enumerate(zip(replay(spec, k, scales, moves), moves)):
-        r = speeds(twin, spec) - speeds(m.counts, spec)
-        res.append(r[np.isfinite(r)])
-        which.append(np.full(len(res[-1]), i))
+        r = (speeds(twin, spec) - speeds(m.counts, spec))[compared(m, spec)]
+        res.append(r)
+        which.append(np.full(len(r), i))
     return np.concatenate(res), np.concatenate(which)
+
+
+def compared(move: Move, spec: DeviceSpec) -> np.ndarray:
+    """Which of a move's SPEED_TICKS windows the fit compares: both ends sampled, past the first FROM_REST_S of
+    the drive (the breakaway from rest: the bristles' and the backlash's state the device was braked in, which no
+    replay knows), both ends above TABLE_DEG (a flap that lands on the table: a contact)."""
+    ends = np.asarray(move.counts, float)[::SPEED_TICKS]
+    t = np.arange(len(ends) - 1) * SPEED_TICKS * spec.firmware_dt
+    above = ends * spec.rad_per_count > math.radians(TABLE_DEG)
+    return np.isfinite(np.diff(ends)) & (t >= FROM_REST_S) & above[:-1] & above[1:]
 
 
 @dataclasses.dataclass
@@ -280,10 +305,12 @@ class HingeFit:
 def fit_hinge(moves: list[Move], spec: DeviceSpec, progress=None) -> HingeFit:
     """One hinge's FITTED values from its moves: mujoco.minimize.least_squares on the twin's replays
     (`residual`), log scales of the profile's values within BOUNDS (else LOG_BOUND), from the best of the
-    SPEED_GRID's no-load speeds, then FRICTION_GRID's frictions with the best; the sensitivities by replays STEP apart. Each value's 95 % interval: the
-    Jacobian's covariance scaled by the residual and its autocorrelation, or a delete-one-move jackknife of
-    the last step, whichever is wider, with DISCREPANCY in quadrature, 1.96 sigma in log, widened by what each HELD value at either end of its
-    range would move it (the values that fit as well were it there). progress(message) is told each replay.
+    SPEED_GRID's no-load speeds, then from each of the STARTS best of FRICTION_GRID x INERTIA_GRID with it, the
+    lowest end kept; the sensitivities by replays STEP apart. Each value's 95 % interval: the Jacobian's
+    covariance scaled by the residual and its autocorrelation, or a delete-one-move jackknife of the last step,
+    whichever is wider, with DISCREPANCY in quadrature, 1.96 sigma in log, widened by what each HELD value at
+    either end of its range would move it (the values that fit as well were it there). progress(message) is
+    told each replay.
     ValueError where the moves show nothing."""
     if not moves:
         raise ValueError("no move to fit")
@@ -304,11 +331,14 @@ def fit_hinge(moves: list[Move], spec: DeviceSpec, progress=None) -> HingeFit:
                     for e, sign in ((0, -1), (1, 1)))
     middle = np.where([p in BOUNDS for p in FITTED], (lower + upper) / 2, 0.0)
     x = middle
-    for j, grid in enumerate((SPEED_GRID, FRICTION_GRID)):  # the best speed, then the best friction with it
-        x = min((x + math.log(g) * np.eye(m)[j] for g in grid), key=lambda x0: float(np.sum(run(x0) ** 2)))
-    x, _ = minimize.least_squares(x, lambda xs: np.stack([run(c) for c in xs.T], axis=1), bounds=(lower, upper),
-                                  jacobian=lambda xs, rs: fitted_jacobian(xs[:, 0], rs[:, 0]), max_iter=MAX_ITER,
-                                  mu_factor=MU_FACTOR, mu_max=MU_MAX, verbose=0)
+    x = min((x + math.log(g) * np.eye(m)[0] for g in SPEED_GRID), key=lambda x0: float(np.sum(run(x0) ** 2)))
+    starts = sorted((x + math.log(f) * np.eye(m)[1] + math.log(j) * np.eye(m)[2] for f in FRICTION_GRID
+                     for j in INERTIA_GRID), key=lambda x0: float(np.sum(run(x0) ** 2)))[:STARTS]
+    # the best speed, then a local search from each of the best STARTS frictions and inertias with it
+    found = [minimize.least_squares(x0, lambda xs: np.stack([run(c) for c in xs.T], axis=1), bounds=(lower, upper),
+                                    jacobian=lambda xs, rs: fitted_jacobian(xs[:, 0], rs[:, 0]), max_iter=MAX_ITER,
+                                    mu_factor=MU_FACTOR, mu_max=MU_MAX, verbose=0)[0] for x0 in starts]
+    x = min(found, key=lambda x1: float(np.sum(run(x1) ** 2)))
     r = run(x)
     A = fitted_jacobian(x, r)
     which = residual_moves(moves, spec)
@@ -332,7 +362,7 @@ def fit_hinge(moves: list[Move], spec: DeviceSpec, progress=None) -> HingeFit:
 
 def residual_moves(moves: list[Move], spec: DeviceSpec) -> np.ndarray:
     """Each residual window's move (index), as `residual` lays them out."""
-    return np.concatenate([np.full(int(np.isfinite(speeds(mv.counts, spec)).sum()), i) for i, mv in enumerate(moves)])
+    return np.concatenate([np.full(int(compared(mv, spec).sum()), i) for i, mv in enumerate(moves)])
 
 
 def autocorrelation(res: np.ndarray, which: np.ndarray) -> float:
