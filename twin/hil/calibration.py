@@ -331,7 +331,8 @@ def verdicts(grads, Hs, xb, s2: float, params, prior: dict, max_halfwidth: float
     for i, p in enumerate(params):
         lo_p, hi_p = ranges[p]
         if i in F:
-            below, above = math.exp(lo[i] - x[i]), math.exp(hi[i] - x[i])
+            with np.errstate(over="ignore"):  # a fit the runs do not constrain: an interval of x0 .. x inf
+                below, above = float(np.exp(lo[i] - x[i])), float(np.exp(hi[i] - x[i]))
             pinned = bool(max(x[i] - lo[i], hi[i] - x[i]) <= math.log1p(max_halfwidth))
             # no wider than the search's bounds: the runs were never compared with a plant beyond them
             low, high = prior[p] * math.exp(max(lo[i], -LOG_BOUND)), prior[p] * math.exp(min(hi[i], LOG_BOUND))
