@@ -1,6 +1,7 @@
 """`vrscroll bringup` on emulators with each wiring mistake injected: the fault named, the correction stored on
 the device (kept across a reset of the whole sketch), the next move right; a dead encoder named and nothing
-stored; a reversed encoder told from a reversed motor by a hand's bend."""
+stored and the device e-stopped; a reversed encoder told from a reversed motor by a hand's bend, or lying flat
+by the way that lifts the flap off the table."""
 
 import argparse
 import contextlib
