@@ -49,22 +49,30 @@ def emulator_with(spec, *wiring, sketch=False):
                                           sketch=sketch))
 
 
+def device_sleep(emu, seconds):
+    """Wait until the emulator has run `seconds` of its own time (under load it runs slower than the wall clock)."""
+    until = emu.tick + round(seconds / emu.dt)
+    while emu.tick < until:
+        time.sleep(0.005)
+
+
 def hand_on(emu, link):
     """hand(k) for an in-process emulator: a person bends flap k up by 20 deg holding the others still, reads the
-    counts, lays it back and lets go. (The emulator's hand sets the angles it holds: bending one hinge alone, lying
-    flat, pushed the flaps beyond it through the table, and they sprang up by up to 100 deg.)"""
+    counts, lays it back and lets go, each for a time of the device's. (The emulator's hand sets the angles it
+    holds: bending one hinge alone, lying flat, pushed the flaps beyond it through the table, and they sprang up by
+    up to 100 deg.)"""
     def hand(k):
         before, angles = np.asarray(link.get_state().counts), emu.plant.angles.copy()
         bent = angles.copy()
         bent[k] += np.radians(20)
         every = np.arange(len(angles))
         emu.hand = (every, bent)
-        time.sleep(0.4)
+        device_sleep(emu, 0.4)
         moved = np.asarray(link.get_state().counts) - before
         emu.hand = (every, angles)
-        time.sleep(0.15)
+        device_sleep(emu, 0.15)
         emu.hand = None
-        time.sleep(0.2)
+        device_sleep(emu, 0.2)
         return moved
     return hand
 
@@ -225,6 +233,9 @@ def expected_wiring(faults, n):
 # without a hand, pulses cannot tell crossed encoder cables from motors on each other's bridges: named
 UNTOLD = {"crossed:0,5": "hinge 0: its bridge turns encoder input 5",
           "bridges-crossed:1,3": "hinge 1: its bridge turns encoder input 3"}
+# ... and hanging, nothing tells a reversed encoder from a reversed motor: named
+UNTOLD_HANGING = {f: f"hinge {f[-1]}: positive drive turns encoder input {f[-1]} down"
+                  for f in CORRECTED if "reversed" in f}
 
 
 def bring_up_named_or_corrected(spec, faults, seed, lying_flat, before=None, hand=True):
@@ -236,7 +247,7 @@ def bring_up_named_or_corrected(spec, faults, seed, lying_flat, before=None, han
     with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
         if before is not None:
             before(emu)
-        cannot = NAMED if hand else {**NAMED, **UNTOLD}
+        cannot = NAMED if hand else {**NAMED, **UNTOLD, **({} if lying_flat else UNTOLD_HANGING)}
         named = [cannot[f] for f in faults if f in cannot]
         if named:
             with pytest.raises(BringupError) as err:
@@ -285,12 +296,15 @@ def test_bring_up_names_or_corrects_every_wiring_fault_alone_and_two_at_a_time(s
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("lying_flat", [True, False], ids=["lying-flat", "hanging"])
 @pytest.mark.parametrize("faults", ALONE_AND_PAIRS, ids=lambda faults: "+".join(faults))
-def test_without_a_hand_lying_flat_bring_up_tells_reversals_and_names_the_rest_alone_and_two_at_a_time(spec, faults):
-    """The sweep above without a hand, lying flat on drawn plants: a reversed encoder or motor, alone or beside
+def test_without_a_hand_bring_up_tells_reversals_lying_flat_and_names_the_rest_alone_and_two_at_a_time(
+        spec, faults, lying_flat):
+    """The sweep above without a hand on drawn plants: lying flat, a reversed encoder or motor, alone or beside
     another fault, is told by the way that lifts the flap and corrected (every flap then moving up as the device
-    says), crossed cables and motors on each other's bridges are named with the dead wires, nothing stored."""
-    bring_up_named_or_corrected(spec, faults, 71 + len(faults), True, hand=False)
+    says), crossed cables and motors on each other's bridges are named with the dead wires, nothing stored;
+    hanging, the reversal is named too (gravity does not tell it), never guessed."""
+    bring_up_named_or_corrected(spec, faults, (71 if lying_flat else 81) + len(faults), lying_flat, hand=False)
 
 
 def told_or_refused_never_opposite(spec, faults, seed: int, lying_flat: bool) -> None:
@@ -402,3 +416,26 @@ def test_with_the_bridge_map_a_hinge_on_another_bridge_moves_its_own_flap_and_re
     early = telemetry[:10]  # the move's first 0.1 s: hinge 1's motor draws the most current
     peak = np.abs([m.current_ma for m in early]).max(axis=0)
     assert peak[1] > 2 * peak[3], peak  # hinge 3 holds against the lift's reaction: a third of hinge 1's, measured
+
+
+@pytest.mark.slow  # 25 s
+def test_on_a_device_slower_than_the_wall_clock_bring_up_reads_each_pulse_in_the_devices_time(spec):
+    """An emulator starved by its host's load runs slower than the wall clock: here every tick costs 2 ms more, the
+    device at about 0.4 of real time. Bring-up waits in the device's own time (STATE's time_us), so each pulse is
+    read once it has ended: without a hand, lying flat on drawn seed 43, a reversed motor beside the root and an A/B
+    swap further out are told by the table and the right correction stored (read in the host's time, the pulses
+    were read mid-way, the rest counted in the next, and the table test saw no table and refused)."""
+    faults = ("motor-reversed:2", "encoder-reversed:0")
+    emu = drawn_emulator(spec, 43, True, faults)
+    step = emu.step
+
+    def slow_step():
+        step()
+        time.sleep(0.002)
+    emu.step = slow_step
+    wall = time.monotonic()
+    with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
+        bring_up(link, spec, say=lambda line: None)
+        wiring = link.get_wiring()
+    assert emu.time < 0.7 * (time.monotonic() - wall)  # the device did run slower than the wall clock
+    assert (list(wiring.encoder), list(wiring.flags), list(wiring.bridge)) == expected_wiring(faults, spec.n_hinges)

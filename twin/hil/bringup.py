@@ -66,13 +66,13 @@ STILL_SHARE = 0.12  # ... and lifting by at most this share
 STILL_COUNTS, STILL_S, STILL_WAIT_S = 1, 0.2, 2.0  # still: no input moves more than this many counts in STILL_S
 
 
-BRIDGES_PER_BOARD = 2  # each DRV8833 carries bridges A and B: bridge k is board k // 2 + 1's (docs/firmware.md, "Wiring")
+BRIDGES_PER_BOARD = 2  # each DRV8833 carries bridges A and B: bridge k is board k // 2 + 1's (docs/firmware.md)
 # what bring-up leaves a board it cannot correct with: nothing stored, every bridge braked and latched there
 LEFT = ("the device keeps its wiring as built and is left e-stopped, every bridge braked: it takes no target until "
         "the fault is cleared (`vrscroll status --serial PORT --clear-fault`) or it is powered off and on (then "
         "not before `vrscroll zero`)")
-MEND = ("a dead wire, which no correction can drive safely (docs/firmware.md, \"What software cannot mend\"): mend it "
-        "and run bring-up again")
+MEND = ("no correction drives a hinge with a dead wire safely (docs/firmware.md, \"What software cannot mend\"): "
+        "mend it and run bring-up again")
 
 
 def encoder_pins(hinge: int) -> str:
@@ -80,7 +80,7 @@ def encoder_pins(hinge: int) -> str:
     w = board_wiring()
     return (f"encoder {hinge}'s connector: 3.3 V between Vcc and GND, and A (GPIO{w.enc_a[hinge]}) and B "
             f"(GPIO{w.enc_b[hinge]}) each switching between 0 and 3.3 V as flap {hinge} is turned slowly by hand "
-            "(the one that stays put is the dead wire)")
+            "(a channel that stays put is dead)")
 
 
 def bridge_pins(bridge: int, pin: str | None = None) -> str:
@@ -126,12 +126,24 @@ def pulse_counts(spec: DeviceSpec, duty: float = PULSE_DUTY, seconds: float = PU
     return spec.no_load_speed * duty * seconds / spec.rad_per_count
 
 
+def _device_wait(link: Link, since_us: int, seconds: float) -> P.StateMsg:
+    """The device's state once its own clock (STATE's time_us, wrapping us) is `seconds` past since_us. Waits are
+    the device's time, not the host's: a device that runs slower than the wall clock (an emulator starved by its
+    host's load) used to be read mid-pulse, the rest of the pulse then counted in the next, and on drawn seed 61
+    lying flat motors on each other's bridges were named as a dead encoder 2 runs in 25 under load."""
+    while True:
+        state = link.get_state()
+        left = seconds - ((state.time_us - since_us) & 0xFFFFFFFF) / 1e6
+        if left <= 0:
+            return state
+        time.sleep(left)
+
+
 def _measure(link: Link, hinge: int, duty: float, seconds: float) -> np.ndarray:
-    """Each encoder input's change over one pulse of hinge's motor at duty for seconds."""
+    """Each encoder input's change over one pulse of hinge's motor at duty for seconds (and SETTLE_S after it)."""
     before = np.asarray(link.get_state().counts)
-    link.pulse(hinge, duty, seconds)
-    time.sleep(seconds + SETTLE_S)
-    return np.asarray(link.get_state().counts) - before
+    started = link.pulse(hinge, duty, seconds).time_us
+    return np.asarray(_device_wait(link, started, seconds + SETTLE_S).counts) - before
 
 
 def _toward(link: Link, bridge: int, j: int, goal: float, way: float, duty: float, seconds: float,
@@ -145,10 +157,9 @@ def _toward(link: Link, bridge: int, j: int, goal: float, way: float, duty: floa
         off = at - goal
         if abs(off) <= HOLD_SHARE * per_pulse:
             break
-        length = min(seconds, max(0.01, seconds * abs(off) / per_pulse))
-        link.pulse(bridge, -float(np.sign(off) * way) * duty, round(length, 3))
-        time.sleep(length + SETTLE_S)
-        at = link.get_state().counts[j]
+        length = round(min(seconds, max(0.01, seconds * abs(off) / per_pulse)), 3)
+        started = link.pulse(bridge, -float(np.sign(off) * way) * duty, length).time_us
+        at = _device_wait(link, started, length + SETTLE_S).counts[j]
     return at
 
 
@@ -169,15 +180,14 @@ def _lift(link: Link, hinge: int, expected: float, limit: float) -> int | None:
 
 
 def _still(link: Link) -> bool:
-    """Whether the flaps come to rest (no input moving by more than STILL_COUNTS in STILL_S) within STILL_WAIT_S."""
-    deadline = time.monotonic() + STILL_WAIT_S
-    last = np.asarray(link.get_state().counts)
+    """Whether the flaps come to rest (no input moving by more than STILL_COUNTS in STILL_S) within STILL_WAIT_S,
+    both the device's time."""
+    first = last = link.get_state()
     while True:
-        time.sleep(STILL_S)
-        now = np.asarray(link.get_state().counts)
-        if np.abs(now - last).max() <= STILL_COUNTS:
+        now = _device_wait(link, last.time_us, STILL_S)
+        if np.abs(np.asarray(now.counts) - np.asarray(last.counts)).max() <= STILL_COUNTS:
             return True
-        if time.monotonic() > deadline:
+        if ((now.time_us - first.time_us) & 0xFFFFFFFF) / 1e6 > STILL_WAIT_S:
             return False
         last = now
 
@@ -215,9 +225,10 @@ def lifting_way(link: Link, spec: DeviceSpec, hinge: int, goal: float, way: floa
         def share(m):
             return float(np.abs(m[beside]).sum()) / max(abs(float(m[hinge])), 1.0)
         shown = share(moved[push]) >= TENT_SHARE and share(moved[lift]) <= STILL_SHARE
-        figures = (f"at duty {duty:g} for {seconds:g} s from rest, {own[lift]:.0f} counts one way moving "
-                   f"{'hinges' if len(beside) > 1 else 'hinge'} {', '.join(map(str, beside))} by {share(moved[lift]):.2f} of that, {own[push]:.0f} the other "
-                   f"moving them by {share(moved[push]):.2f} (lying flat, pushing into the table tents the flap and "
+        named = ("hinges " if len(beside) > 1 else "hinge ") + ", ".join(map(str, beside))
+        figures = (f"at duty {duty:g} for {seconds:g} s from rest, {own[lift]:.0f} counts one way moving {named} by "
+                   f"{share(moved[lift]):.2f} of that, {own[push]:.0f} the other moving them by "
+                   f"{share(moved[push]):.2f} (lying flat, pushing into the table tents the flap and "
                    f"lifts them by at least {TENT_SHARE:g}, lifting moves them at most {STILL_SHARE:g})")
     return (lift if shown and agrees else None), figures
 
@@ -369,11 +380,11 @@ def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCh
     turned = [c.encoder if c.turns is None else c.turns for c in checks]
     for i in sorted({i for i in turned if turned.count(i) > 1}):
         both = [c.hinge for c in checks if i in (c.turns, c.encoder)]
-        beside = ", ".join(str(h) for h in both if h != i)
-        dead.append(f"hinges {', '.join(map(str, both))} each turn encoder input {i}: hinge {beside} moved it from "
-                    f"beside, through the flaps (its own encoder dead, or its motor on another bridge); measure "
-                    + "; ".join(encoder_pins(int(h)) for h in beside.split(", ")) + "; then each motor's bridge "
-                    f"wires; {MEND}")
+        others = [h for h in both if h != i]
+        dead.append(f"hinges {', '.join(map(str, both))} each turn encoder input {i}: hinge "
+                    f"{', '.join(map(str, others))} moved it from beside, through the flaps (its own encoder dead, or "
+                    f"its motor on another bridge); measure " + "; ".join(map(encoder_pins, others))
+                    + f"; then each motor's bridge wires; if an encoder is dead, {MEND}")
     if not dead:
         checks = mapped(checks, spec)
         dead = [c.note for c in checks if not c.decided]
