@@ -53,13 +53,14 @@ HOLD_SHARE = 0.2  # a flap is held where the pulses found it: brought back unles
 ONE_WAY_SHARE = 0.25
 # Lying flat, which way lifts a flap tells a reversed encoder from a reversed motor: at the strongest pulse, each way
 # from the flap's rest, the way that lifts it off the table moves it freely and the other pushes it into the table.
-# Beside the root that way is blocked (the emulator's plants, the spec's and drawn seeds 7-61: at most 2 counts
-# against 41-124 lifting, a share of 0.05); further out the flap tents, its outer end on the table, lifting the flaps
-# between it and the root (the inputs between: 0.37-0.60 of its own counts pushing, at most 0.02 lifting). Hanging,
-# the same pulses from the hinges' rest moved beside the root 0.53-1.0 as far one way as the other, either way the
-# larger, further out the inputs between at most 0.11 of its own either way; from a flap still sagging, gravity
-# took the lifting way down to 0.18 of the other: so the flaps must be still first (lying flat, nothing sags), and
-# where the pulses do not show a flap on a table, nothing is decided.
+# Beside the root that way is blocked (benchmarks/bench_bringup_table.py: the spec's plant and drawn seeds 7-61, at
+# most 0.02 of the lifting way's counts, 41-124); further out the flap tents, its outer end on the table, lifting
+# the flaps between it and the root (the inputs between: 0.35-0.59 of its own counts pushing, at most 0.01
+# lifting). Hanging, the same pulses from the flaps' rest moved beside the root 0.53-0.98 as far one way as the
+# other, either way the larger, further out the inputs between at most 0.12 of its own either way; from flaps still
+# sagging (100 ms after power-on) 0.18-0.37 beside the root and up to 0.63 pushing further out, which could pass for
+# a table: so the flaps must be still first (lying flat, nothing sags), and where the pulses do not show a flap on
+# a table, nothing is decided.
 BLOCKED_SHARE = 0.1  # beside the root: the pushing way moves the hinge's input at most this share of the lifting way
 TENT_SHARE = 0.25  # further out: pushing moves the inputs between it and the root by at least this share of its own
 STILL_SHARE = 0.12  # ... and lifting by at most this share
