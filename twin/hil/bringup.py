@@ -254,7 +254,10 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
         j = int(np.argmax(np.abs(swing)))
         moved = float(abs(swing[j]))
         weak, strong = sorted((abs(up[j]), abs(down[j])))
-        if moved >= MIN_SHARE * expected and j == hinge and weak >= ONE_WAY_SHARE * strong:
+        # each pulse against its own reach: at the second, a neighbour's motor turned this input from beside by 12
+        # counts (12 of its 187 unloaded), above the first pulse's bar, and with the motors of hinges 1 and 2 on each
+        # other's bridges (drawn seed 61 lying flat) that input was taken for the hinge's own 1 run in 10
+        if moved >= MIN_SHARE * pulse_counts(spec, duty, seconds) and j == hinge and weak >= ONE_WAY_SHARE * strong:
             break
     if moved < MIN_SHARE * expected:
         return HingeCheck(hinge, hinge, False, False, moved, expected,
