@@ -177,6 +177,12 @@ class Sketch:
         kept = flash.raw[:used]  # the flash survives the reset
         self._boot(self._positions, reason, int(self.lib.host_now_us()), kept)
 
+    def bridge_shares(self, k: int) -> np.ndarray:
+        """Motor k's bridge since the last call: the shares of time forward, reverse, braking, coasting."""
+        shares = np.zeros(4)
+        self.lib.host_bridge(k, ctypes.byref(self._pwm), ctypes.byref(self._decay), shares.ctypes.data)
+        return shares
+
     def hang(self, seconds: float) -> None:
         """loop() stops returning for `seconds` of the board's time from now (the timer's interrupts go on)."""
         self.lib.host_hang_loop(int(seconds * 1e6))

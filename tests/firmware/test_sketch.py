@@ -3,7 +3,6 @@ peripherals, run on the emulator's plant. It agrees with the bare core and the t
 once had, put back, makes one of these fail."""
 
 import configparser
-import ctypes
 import dataclasses
 import glob
 import json
@@ -78,13 +77,6 @@ def test_the_pcnt_stand_in_keeps_counting_past_its_16_bit_limit():
     assert frames(board, P.GetState())[0].counts[0] == 40000
 
 
-def bridge_shares(board, k) -> np.ndarray:
-    """Motor k's bridge since the last call: the shares of time forward, reverse, braking, coasting."""
-    shares = np.zeros(4)
-    board.lib.host_bridge(k, ctypes.byref(board._pwm), ctypes.byref(board._decay), shares.ctypes.data)
-    return shares
-
-
 def test_the_board_brakes_from_its_first_instruction_and_says_why_it_started(spec):
     """A reset mid-morph: from the reset through the ROM's boot and set-up (each call taking its time), the
     bridges brake, never coast (which lets the flaps fold) nor drive, and HELLO_REPLY names the reset. The
@@ -95,7 +87,7 @@ def test_the_board_brakes_from_its_first_instruction_and_says_why_it_started(spe
     board.reset(P.ResetReason.BROWNOUT)
     board.lib.host_advance(100)  # 0.1 ms more: setup() has run, the first tick has not
     for k in range(6):
-        shares = bridge_shares(board, k)
+        shares = board.bridge_shares(k)
         assert shares[2] == 1.0, f"hinge {k}: forward, reverse, brake, coast shares {shares}"
     hello = frames(board, P.Hello())[0]
     assert hello.reset_reason == P.ResetReason.BROWNOUT and hello.setup_error == P.SetupStep.NONE
@@ -115,7 +107,7 @@ def test_a_pwm_the_timer_cannot_make_is_a_named_hardware_fault():
     board = sketch.Sketch(np.zeros(6), defines=("PWM_PERIOD_TICKS=70000",))
     board.lib.host_advance(5000)
     for k in range(6):  # the group's pins stay the GPIO outputs set up first, high: braked, not coasting
-        assert bridge_shares(board, k)[2] == 1.0
+        assert board.bridge_shares(k)[2] == 1.0
     hello, state = frames(board, P.Hello(), P.GetState())
     assert hello.setup_error == P.SetupStep.PWM_TIMER
     assert state.state == P.State.FAULT and state.faults & P.Fault.HARDWARE
@@ -204,7 +196,7 @@ def test_without_the_boards_pull_ups_the_bridges_coast_until_setup():
     """What holds the inputs before setup() is the board's: without its pull-ups the DRV8833's own pull-downs
     hold both inputs low (coast) from the reset until setup() brakes them, the ROM's boot."""
     bare = sketch.Sketch(np.zeros(6), wires=dataclasses.replace(sketch.wiring(), in_pull_ups=False))
-    shares = bridge_shares(bare, 0)
+    shares = bare.bridge_shares(0)
     assert shares[3] > 0.99, shares
 
 

@@ -33,7 +33,8 @@ def add_arguments(p) -> None:
     add_serial(p, required=True)
     p.add_argument("--hand", action="store_true",
                    help="ask you to bend each flap by hand, so that a reversed encoder is told from a reversed "
-                        "motor (without it, a hinge counting the wrong way is named and nothing stored)")
+                        "motor and crossed encoder cables from motors on each other's bridges (without it, lying "
+                        "flat, the way that lifts the flap tells the first; the second is named, nothing stored)")
     p.add_argument("--no-move", action="store_true", help="stop after the zero: no first gated move")
     add_tolerance_deg(p)
     p.add_argument("--log", help="session log, JSON lines")

@@ -8,11 +8,12 @@ them). The encoder that moves most between the two pulses is the hinge's (anothe
 pulse: the cables are crossed); its sign says whether the motor turns the encoder up for positive drive; its size, against
 the spec's no-load speed, whether the counts per degree are plausible. A motor that turns no encoder is a
 dead encoder or an unconnected motor: named, nothing stored. An encoder counting down for positive drive
-means the motor's leads or the encoder's A and B are swapped; which one, the pulses cannot tell (lying flat,
-the flap tents below the table almost as far as it lifts above it: the spec's plant moved hinge 0 186 counts
-down and 268 up from rest; hanging, the outer flaps barely feel gravity), and the wrong guess leaves the
-device reporting +10 deg for a flap standing at -10 deg. So a person tells them apart by bending the flap
-by hand (`hand`); without one bring-up names the hinge, says how to decide, and stores nothing. The hand's
+means the motor's leads or the encoder's A and B are swapped, and the wrong guess leaves the device reporting
++10 deg for a flap standing at -10 deg. A person tells them apart by bending the flap up by hand (`hand`);
+without one, lying flat, the table does (`lifting_way`: the way that lifts the flap moves it freely, the other
+pushes it into the table, blocked beside the root and tenting the flaps further out); where the pulses show no
+table (hanging: at the flaps' rest gravity's pull along the hinge vanishes) bring-up names the hinge, says how to
+decide, and stores nothing. The hand's
 bend also names the flap's own encoder input: the bridge whose pulses turned that input drives the flap's motor
 (motors on each other's bridges, corrected by the bridge map). Hanging, gravity adds to the pulse that lowers a
 flap, so after a hinge's pulses short pulses hold the flap they turned where they found it, and a flap hanging
@@ -27,6 +28,7 @@ import time
 
 import numpy as np
 
+from controllers.sketch import wiring as board_wiring
 from twin.device.spec import DeviceSpec
 from twin.errors import UserError
 from twin.link import protocol as P
@@ -49,6 +51,48 @@ HOLD_SHARE = 0.2  # a flap is held where the pulses found it: brought back unles
 # both ways alike (the emulator's plants, lying flat and hanging: 0.55-1.0 at the strongest; hanging, at the first
 # pulse hinge 3 moved 6 counts up against gravity and 30 down with it, so a weaker pulse cannot judge)
 ONE_WAY_SHARE = 0.25
+# Lying flat, which way lifts a flap tells a reversed encoder from a reversed motor: at the strongest pulse, each way
+# from the flap's rest, the way that lifts it off the table moves it freely and the other pushes it into the table.
+# Beside the root that way is blocked (benchmarks/bench_bringup_table.py: the spec's plant and drawn seeds 7-61, at
+# most 0.02 of the lifting way's counts, 41-124); further out the flap tents, its outer end on the table, lifting
+# the flaps between it and the root (the inputs between: 0.35-0.59 of its own counts pushing, at most 0.01
+# lifting). Hanging, the same pulses from the flaps' rest moved beside the root 0.53-0.98 as far one way as the
+# other, either way the larger, further out the inputs between at most 0.12 of its own either way; from flaps still
+# sagging (100 ms after power-on) 0.18-0.37 beside the root and up to 0.63 pushing further out, which could pass for
+# a table: so the flaps must be still first (lying flat, nothing sags), and where the pulses do not show a flap on
+# a table, nothing is decided.
+BLOCKED_SHARE = 0.1  # beside the root: the pushing way moves the hinge's input at most this share of the lifting way
+TENT_SHARE = 0.25  # further out: pushing moves the inputs between it and the root by at least this share of its own
+STILL_SHARE = 0.12  # ... and lifting by at most this share
+STILL_COUNTS, STILL_S, STILL_WAIT_S = 1, 0.2, 2.0  # still: no input moves more than this many counts in STILL_S
+
+
+BRIDGES_PER_BOARD = 2  # each DRV8833 carries bridges A and B: bridge k is board k // 2 + 1's (docs/firmware.md)
+# what bring-up leaves a board it cannot correct with: nothing stored, every bridge braked and latched there
+LEFT = ("the device keeps its wiring as built and is left e-stopped, every bridge braked: it takes no target until "
+        "the fault is cleared (`vrscroll status --serial PORT --clear-fault`) or it is powered off and on (then "
+        "not before `vrscroll zero`)")
+MEND = ("no correction drives a hinge with a dead wire safely (docs/firmware.md, \"What software cannot mend\"): "
+        "mend it and run bring-up again")
+
+
+def encoder_pins(hinge: int) -> str:
+    """Where to measure hinge's encoder (pins.h): its connector's supply and its two channels' GPIOs."""
+    w = board_wiring()
+    return (f"encoder {hinge}'s connector: 3.3 V between Vcc and GND, and A (GPIO{w.enc_a[hinge]}) and B "
+            f"(GPIO{w.enc_b[hinge]}) each switching between 0 and 3.3 V as flap {hinge} is turned slowly by hand "
+            "(a channel that stays put is dead)")
+
+
+def bridge_pins(bridge: int, pin: str | None = None) -> str:
+    """Where to measure bridge's inputs (pins.h) and outputs: its DRV8833 board and channel; pin: 'IN1' or 'IN2'
+    alone."""
+    w = board_wiring()
+    board, ch = bridge // BRIDGES_PER_BOARD + 1, "AB"[bridge % BRIDGES_PER_BOARD]
+    gpio = {"IN1": w.in1[bridge], "IN2": w.in2[bridge]}
+    ins = [pin] if pin else ["IN1", "IN2"]
+    return (f"DRV8833 board {board}, channel {ch}: " + " and ".join(f"{ch}{i} (from GPIO{gpio[i]})" for i in ins)
+            + f", {ch}OUT1 and {ch}OUT2 to the motor")
 
 
 class BringupError(UserError):
@@ -70,6 +114,7 @@ class HingeCheck:
     bridge: int | None = None  # the H-bridge that drives its motor (None: bridge `hinge`, until bring_up maps them)
     turns: int | None = None  # the encoder input bridge `hinge`'s pulses turned (None: `encoder`)
     turns_up: bool = True  # whether positive drive of bridge `hinge` turned that input up
+    told: str = ""  # how the encoder's direction was told without a hand (lying flat: the way that lifts), for the note
 
     @property
     def flags(self) -> int:
@@ -82,12 +127,24 @@ def pulse_counts(spec: DeviceSpec, duty: float = PULSE_DUTY, seconds: float = PU
     return spec.no_load_speed * duty * seconds / spec.rad_per_count
 
 
+def _device_wait(link: Link, since_us: int, seconds: float) -> P.StateMsg:
+    """The device's state once its own clock (STATE's time_us, wrapping us) is `seconds` past since_us. Waits are
+    the device's time, not the host's: a device that runs slower than the wall clock (an emulator starved by its
+    host's load) used to be read mid-pulse, the rest of the pulse then counted in the next, and on drawn seed 61
+    lying flat motors on each other's bridges were named as a dead encoder 2 runs in 25 under load."""
+    while True:
+        state = link.get_state()
+        left = seconds - ((state.time_us - since_us) & 0xFFFFFFFF) / 1e6
+        if left <= 0:
+            return state
+        time.sleep(left)
+
+
 def _measure(link: Link, hinge: int, duty: float, seconds: float) -> np.ndarray:
-    """Each encoder input's change over one pulse of hinge's motor at duty for seconds."""
+    """Each encoder input's change over one pulse of hinge's motor at duty for seconds (and SETTLE_S after it)."""
     before = np.asarray(link.get_state().counts)
-    link.pulse(hinge, duty, seconds)
-    time.sleep(seconds + SETTLE_S)
-    return np.asarray(link.get_state().counts) - before
+    started = link.pulse(hinge, duty, seconds).time_us
+    return np.asarray(_device_wait(link, started, seconds + SETTLE_S).counts) - before
 
 
 def _toward(link: Link, bridge: int, j: int, goal: float, way: float, duty: float, seconds: float,
@@ -101,10 +158,9 @@ def _toward(link: Link, bridge: int, j: int, goal: float, way: float, duty: floa
         off = at - goal
         if abs(off) <= HOLD_SHARE * per_pulse:
             break
-        length = min(seconds, max(0.01, seconds * abs(off) / per_pulse))
-        link.pulse(bridge, -float(np.sign(off) * way) * duty, round(length, 3))
-        time.sleep(length + SETTLE_S)
-        at = link.get_state().counts[j]
+        length = round(min(seconds, max(0.01, seconds * abs(off) / per_pulse)), 3)
+        started = link.pulse(bridge, -float(np.sign(off) * way) * duty, length).time_us
+        at = _device_wait(link, started, length + SETTLE_S).counts[j]
     return at
 
 
@@ -122,6 +178,60 @@ def _lift(link: Link, hinge: int, expected: float, limit: float) -> int | None:
         return None
     goal = np.sign(at) * (limit - 2 * expected)
     return _toward(link, hinge, hinge, goal, np.sign(moved), duty, seconds, abs(moved), tries=8)
+
+
+def _still(link: Link) -> bool:
+    """Whether the flaps come to rest (no input moving by more than STILL_COUNTS in STILL_S) within STILL_WAIT_S,
+    both the device's time."""
+    first = last = link.get_state()
+    while True:
+        now = _device_wait(link, last.time_us, STILL_S)
+        if np.abs(np.asarray(now.counts) - np.asarray(last.counts)).max() <= STILL_COUNTS:
+            return True
+        if ((now.time_us - first.time_us) & 0xFFFFFFFF) / 1e6 > STILL_WAIT_S:
+            return False
+        last = now
+
+
+def between_root(spec: DeviceSpec, hinge: int) -> list[int]:
+    """The hinges between `hinge` and the root flap (flap k lies between hinges k - 1 and k)."""
+    r = spec.root_flap
+    return list(range(hinge + 1, r)) if hinge < r else list(range(r, hinge))
+
+
+def lifting_way(link: Link, spec: DeviceSpec, hinge: int, goal: float, way: float) -> tuple[int | None, str]:
+    """Lying flat: the sign of the duty that lifts flap `hinge` off the table (+1, -1; None where the pulses do not
+    show a device lying flat), and the figures that say so. The strongest pulse each way from the flap's rest (held
+    back at `goal` counts between them; way: the sign in which positive duty turns the hinge's input): the lifting
+    way moves it freely; the other is blocked (beside the root) or tents the flap, its outer end on the table, and
+    lifts the flaps between it and the root (further out)."""
+    duty, seconds = PULSES[-1]
+    moved = {}
+    for sign in (1, -1):
+        if not _still(link):
+            return None, f"the flaps did not come to rest within {STILL_WAIT_S:g} s (lying flat, nothing sags)"
+        moved[sign] = _measure(link, hinge, sign * duty, seconds)
+        _toward(link, hinge, hinge, goal, way, duty, seconds, max(abs(moved[sign][hinge]), 1.0))
+    own = {sign: abs(float(m[hinge])) for sign, m in moved.items()}
+    lift = 1 if own[1] >= own[-1] else -1
+    push = -lift
+    agrees = np.sign(moved[lift][hinge]) == lift * way  # the pulses from rest turn the input as the pairs did
+    beside = between_root(spec, hinge)
+    if not beside:
+        shown = own[push] <= BLOCKED_SHARE * own[lift]
+        figures = (f"at duty {duty:g} for {seconds:g} s from rest, {own[lift]:.0f} counts one way and {own[push]:.0f} "
+                   f"the other (lying flat beside the root, the way into the table moves at most "
+                   f"{BLOCKED_SHARE:g} of the other)")
+    else:
+        def share(m):
+            return float(np.abs(m[beside]).sum()) / max(abs(float(m[hinge])), 1.0)
+        shown = share(moved[push]) >= TENT_SHARE and share(moved[lift]) <= STILL_SHARE
+        named = ("hinges " if len(beside) > 1 else "hinge ") + ", ".join(map(str, beside))
+        figures = (f"at duty {duty:g} for {seconds:g} s from rest, {own[lift]:.0f} counts one way moving {named} by "
+                   f"{share(moved[lift]):.2f} of that, {own[push]:.0f} the other moving them by "
+                   f"{share(moved[push]):.2f} (lying flat, pushing into the table tents the flap and "
+                   f"lifts them by at least {TENT_SHARE:g}, lifting moves them at most {STILL_SHARE:g})")
+    return (lift if shown and agrees else None), figures
 
 
 def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeCheck:
@@ -144,7 +254,10 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
         j = int(np.argmax(np.abs(swing)))
         moved = float(abs(swing[j]))
         weak, strong = sorted((abs(up[j]), abs(down[j])))
-        if moved >= MIN_SHARE * expected and j == hinge and weak >= ONE_WAY_SHARE * strong:
+        # each pulse against its own reach: at the second, a neighbour's motor turned this input from beside by 12
+        # counts (12 of its 187 unloaded), above the first pulse's bar, and with the motors of hinges 1 and 2 on each
+        # other's bridges (drawn seed 61 lying flat) that input was taken for the hinge's own 1 run in 10
+        if moved >= MIN_SHARE * pulse_counts(spec, duty, seconds) and j == hinge and weak >= ONE_WAY_SHARE * strong:
             break
     if moved < MIN_SHARE * expected:
         return HingeCheck(hinge, hinge, False, False, moved, expected,
@@ -152,7 +265,8 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
                           f"duty {duty:g} for {seconds:g} s; at duty {PULSE_DUTY:g} for {PULSE_S:g} s it turns "
                           f"up to {expected:.0f} unloaded): a dead encoder (power, or an A or B wire: one channel "
                           f"alone counts back and forth by one) or a motor not connected to bridge {hinge} (its "
-                          f"leads, or a bridge input open)", decided=False)
+                          f"leads, or a bridge input open). Measure {encoder_pins(hinge)}; if both switch, the "
+                          f"motor's wires: {bridge_pins(hinge)}; {MEND}", decided=False)
     expected = pulse_counts(spec, duty, seconds)  # the pulse that answered: its reach unloaded
     if (duty, seconds) == PULSES[-1] and weak < ONE_WAY_SHARE * strong:
         # lying flat, a hinge beside the root driven the wrong way first pushes into the table (blocked), then lifts:
@@ -167,7 +281,9 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
         return HingeCheck(hinge, j, False, False, moved, expected,
                           f"hinge {hinge}: its motor turns one way only ({up[j]:+.0f} counts at positive duty, "
                           f"{down[j]:+.0f} at negative): bridge {hinge}'s {pin}, which drives the {way} way, is "
-                          "open (the board's pull-up holds it high: that way brakes); check its wire and solder",
+                          "open (the board's pull-up holds it high: that way brakes). Measure "
+                          f"{bridge_pins(hinge, pin)}: the board off, {pin} and its GPIO connected (under an ohm); "
+                          f"powered, {pin} falling to 0 V while that way is pulsed, not staying at 3.3 V; {MEND}",
                           decided=False)
     if hand is not None:
         bent = np.asarray(hand(hinge))
@@ -181,13 +297,22 @@ def check_hinge(link: Link, spec: DeviceSpec, hinge: int, hand=None) -> HingeChe
                               "again", decided=False)
         return HingeCheck(hinge, k, bool(bent[k] < 0), False, moved, expected, "", turns=j,
                           turns_up=bool(swing[j] > 0))
+    which = "pulses cannot tell which"
+    if j == hinge and swing[j] < 0:
+        # lying flat, the way that lifts the flap says which is reversed: the encoder counts that way's sign
+        lift, figures = lifting_way(link, spec, hinge, start[j], np.sign(swing[j]))
+        if lift is not None:
+            return HingeCheck(hinge, j, lift > 0, False, moved, expected, "", turns=j, turns_up=False,
+                              told=f"told lying flat: duty {'+' if lift > 0 else '-'} lifts the flap, {figures}")
+        which = (f"lying flat, the way that lifts the flap would tell which, but the pulses did not show a flap on "
+                 f"a table ({figures})")
     if j != hinge or swing[j] < 0:
         what = [f"hinge {hinge}: its bridge turns encoder input {j}: the encoder cables of hinges {hinge} and {j} "
                 "are crossed, or their motors are on each other's bridges"] if j != hinge else []
         what += [f"hinge {hinge}: positive drive turns encoder input {j} down: its motor's leads or its encoder's "
                  "A and B are swapped"] if swing[j] < 0 else []
         return HingeCheck(hinge, j, False, False, moved, expected,
-                          "; ".join(what) + f"; pulses cannot tell which. Run `vrscroll bringup --hand` and bend the "
+                          "; ".join(what) + f"; {which}. Run `vrscroll bringup --hand` and bend the "
                           f"flap up when asked (or bend flap {hinge}'s free end up by hand watching `vrscroll status "
                           f"--watch`: the input that moves is its encoder's; counting down, swap that encoder's A and "
                           "B; counting up with positive drive still counting down, swap the motor's leads)",
@@ -214,13 +339,14 @@ def mapped(checks: list[HingeCheck], spec: DeviceSpec) -> list[HingeCheck]:
         if b.hinge != c.hinge:
             notes.append(f"hinge {c.hinge}: its motor is on bridge {b.hinge}: the motors of hinges {c.hinge} and "
                          f"{b.hinge} are on each other's bridges (corrected: hinge {c.hinge} drives bridge {b.hinge})")
+        told = f", {c.told}" if c.told else ""
         if c.encoder_reversed:
             notes.append(f"hinge {c.hinge}: its encoder counts down when the flap bends up: A and B swapped "
-                         "(corrected: counted the other way)")
+                         f"(corrected: counted the other way{told})")
         motor_reversed = b.turns_up == c.encoder_reversed
         if motor_reversed:
             notes.append(f"hinge {c.hinge}: positive drive turns it the negative way: motor leads swapped "
-                         f"(corrected: driven the other way)")
+                         f"(corrected: driven the other way{told})")
         if b.counts > MAX_SHARE * b.expected:
             notes.append(f"hinge {c.hinge}: {b.counts:.0f} counts per pulse, more than the spec's no-load speed "
                          f"allows ({b.expected:.0f}): counts per degree unlike the spec's (gear ratio, encoder CPR)")
@@ -258,10 +384,11 @@ def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCh
     turned = [c.encoder if c.turns is None else c.turns for c in checks]
     for i in sorted({i for i in turned if turned.count(i) > 1}):
         both = [c.hinge for c in checks if i in (c.turns, c.encoder)]
-        beside = ", ".join(str(h) for h in both if h != i)
-        dead.append(f"hinges {', '.join(map(str, both))} each turn encoder input {i}: hinge {beside} moved it from "
-                    f"beside, through the flaps (its own encoder dead, or its motor on another bridge); check that "
-                    f"hinge's encoder power and A/B wires, and each motor's bridge wires")
+        others = [h for h in both if h != i]
+        dead.append(f"hinges {', '.join(map(str, both))} each turn encoder input {i}: hinge "
+                    f"{', '.join(map(str, others))} moved it from beside, through the flaps (its own encoder dead, or "
+                    f"its motor on another bridge); measure " + "; ".join(map(encoder_pins, others))
+                    + f"; then each motor's bridge wires; if an encoder is dead, {MEND}")
     if not dead:
         checks = mapped(checks, spec)
         dead = [c.note for c in checks if not c.decided]
@@ -270,7 +397,8 @@ def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCh
         dead += [f"bending flaps {', '.join(str(c.hinge) for c in checks if c.encoder == i)} each turned input {i}: "
                  "bend each flap alone, the others held still" for i in twice]
     if dead:
-        raise BringupError("nothing stored: " + "; ".join(dead))
+        link.estop()  # latched: nothing moves until a person clears it
+        raise BringupError("nothing stored: " + "; ".join(dead) + f". {LEFT[0].upper()}{LEFT[1:]}")
     for c in checks:
         if c.note:
             say(c.note)

@@ -228,7 +228,9 @@ static const vrs_hw hw = {NULL, micros_now, read_counts, write_drive, serial_rea
  * generator event priority). mcpwm_comparator_set_compare_value is the MCPWM call ESP-IDF allows in an
  * ISR (docs: "MCPWM", ISR and thread safety). loop(), once back, writes its own compare values again.
  * The task watchdog (enableLoopWDT, 5 s) then resets a board whose loop() does not come back. */
+#ifndef LOOP_LATE_TICKS /* overridable for the host build's benchmark (the brake taken out) */
 #define LOOP_LATE_TICKS 3
+#endif
 static void IRAM_ATTR on_timer()
 {
     ticks_due++;
