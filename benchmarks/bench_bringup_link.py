@@ -16,10 +16,8 @@ One run; the round trip depends on the machine's load (print `uptime` beside it)
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -32,7 +30,7 @@ from twin.device.spec import load_spec  # noqa: E402
 from twin.link import protocol as P  # noqa: E402
 from twin.link.drawn_plant import emulator_args  # noqa: E402
 from twin.link.emulator import Emulator  # noqa: E402
-from twin.link.pty_device import open_pty, serve  # noqa: E402
+from twin.link.pty_device import served  # noqa: E402
 from twin.link.serial_link import Link, LinkTimeout  # noqa: E402
 
 
@@ -64,21 +62,6 @@ def tick_costs(spec, seed: int) -> tuple[np.ndarray, np.ndarray]:
             seq += 2
             pulsed.append(run(250))
     return idle, np.concatenate(pulsed)
-
-
-@contextlib.contextmanager
-def served(emu):
-    master, slave, path = open_pty()
-    stop = threading.Event()
-    thread = threading.Thread(target=serve, args=(emu, master, stop.is_set), daemon=True)
-    thread.start()
-    try:
-        yield path
-    finally:
-        stop.set()
-        thread.join(5)
-        os.close(master)
-        os.close(slave)
 
 
 def round_trips(spec, seed: int, seconds: float, pulses: bool) -> tuple[np.ndarray, bool, float]:

@@ -50,16 +50,7 @@ def driven_after_hang(spec, defines: tuple[str, ...] = ()) -> int:
             emu.receive(P.encode(P.Heartbeat(), 2 + i))
         emu.step()
         emu.take_output()
-    board = emu.firmware
-    board.hang(10.0)
-    driven_ms = 0
-    for tick in range(10000):
-        pwm, _ = board.run_tick(0, emu.counts, None, 8000)
-        if np.any(pwm != 0):
-            driven_ms = tick + 1
-        if board.resets:
-            break
-    return driven_ms
+    return emu.firmware.driven_after_hang(emu.counts, 10.0, 10000)
 
 
 def unbraked_after_reset(pull_ups: bool) -> np.ndarray:

@@ -187,6 +187,19 @@ class Sketch:
         """loop() stops returning for `seconds` of the board's time from now (the timer's interrupts go on)."""
         self.lib.host_hang_loop(int(seconds * 1e6))
 
+    def driven_after_hang(self, counts, seconds: float, ticks: int) -> int:
+        """Ticks (ms at the loop's rate) a motor stays driven after loop() hangs for `seconds`, the encoders held at
+        counts, up to `ticks` or the watchdog's reset."""
+        self.hang(seconds)
+        driven = 0
+        for tick in range(ticks):
+            pwm, _ = self.run_tick(0, counts, None, 8000)
+            if np.any(pwm != 0):
+                driven = tick + 1
+            if self.resets:
+                break
+        return driven
+
     def confirm_zero(self) -> int:
         """What CONFIRM_ZERO does, done on the board (a bench user at power-on); 0 or the NACK reason."""
         return self.lib.vrs_confirm_zero(self._core)

@@ -207,14 +207,7 @@ def test_a_hung_loop_stops_the_motors_within_a_few_ticks(spec):
     _, emu = emulated(spec, True, ticks=60)
     board = emu.firmware
     assert np.any(board.run_tick(0, emu.counts, None, 8000)[0] != 0)  # driving when it hangs
-    board.hang(10.0)
-    driven_ms = 0
-    for tick in range(6000):
-        pwm, _ = board.run_tick(0, emu.counts, None, 8000)
-        if np.any(pwm != 0):
-            driven_ms = tick + 1
-        if board.resets:
-            break
+    driven_ms = board.driven_after_hang(emu.counts, 10.0, 6000)
     assert driven_ms <= 5, f"a motor stayed driven {driven_ms} ms after loop() hung"
     assert board.resets == 1 and frames(board, P.Hello())[0].reset_reason == P.ResetReason.TASK_WDT
 

@@ -4,12 +4,9 @@ stored and the device e-stopped; a reversed encoder told from a reversed motor b
 by the way that lifts the flap off the table."""
 
 import argparse
-import contextlib
 import dataclasses
 import itertools
-import os
 import re
-import threading
 import time
 
 import numpy as np
@@ -23,25 +20,9 @@ from twin.link import protocol as P
 from twin.link.drawn_plant import emulator_args
 from twin.link.emulator import Emulator, EmulatorOptions
 from twin.link.faults import FaultOptions, Miswiring
-from twin.link.pty_device import open_pty, serve
+from twin.link.pty_device import served
 from twin.link.serial_link import Link
 from twin.sim.plant import as_twin
-
-
-@contextlib.contextmanager
-def served(emu):
-    """An in-process emulator on a real pty, paced in real time by a thread; yields the port."""
-    master, slave, path = open_pty()
-    stop = threading.Event()
-    thread = threading.Thread(target=serve, args=(emu, master, stop.is_set), daemon=True)
-    thread.start()
-    try:
-        yield path
-    finally:
-        stop.set()
-        thread.join(5)
-        os.close(master)
-        os.close(slave)
 
 
 def emulator_with(spec, *wiring, sketch=False):

@@ -8,9 +8,11 @@ path as to /dev/ttyACM0.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import select
+import threading
 import time
 import tty
 
@@ -82,3 +84,19 @@ def _write(fd: int, out: bytearray) -> None:
                 return
             raise
         del out[:sent]
+
+
+@contextlib.contextmanager
+def served(emu: Emulator):
+    """An in-process emulator on a real pty, paced in real time by a thread; yields the port's path."""
+    master, slave, path = open_pty()
+    stop = threading.Event()
+    thread = threading.Thread(target=serve, args=(emu, master, stop.is_set), daemon=True)
+    thread.start()
+    try:
+        yield path
+    finally:
+        stop.set()
+        thread.join(5)
+        os.close(master)
+        os.close(slave)
