@@ -28,6 +28,12 @@ round by round (order swapped every round), each on a fresh emulator, with the s
 each side's protocol version): the before and after under the same load. Pooled p50 and p99 per
 side, and per round.
 
+--fifo PRIORITY: the processes on the samples' way (this client, the service and its worker; the C# client
+with `chrt`) run under SCHED_FIFO at that priority while they are measured (Linux; needs CAP_SYS_NICE): a
+wake-up then takes a core from any ordinary process at once, which on a shared machine is what a core of
+their own would give. Each of them sleeps between samples (no busy wait), so together they take what they
+took before, ~10-30 % of a core.
+
 --csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs;
 with --against, each side's own, as each speaks its own protocol version) plays a session on the
 same service and streams pens at ~360 Hz with poses for --seconds, measuring the round trips on its
@@ -95,6 +101,17 @@ def processes(service: ServiceProcess, emulator_pid: int) -> dict:
             "emulator": emulator_pid}
 
 
+def prioritise(pids, priority: int) -> None:
+    """Every thread of each process under SCHED_FIFO at `priority` (0: the ordinary scheduler again)."""
+    policy = os.SCHED_FIFO if priority else os.SCHED_OTHER
+    for pid in pids:
+        for task in Path(f"/proc/{pid}/task").glob("*"):
+            try:
+                os.sched_setscheduler(int(task.name), policy, os.sched_param(priority))
+            except ProcessLookupError:  # a thread that has ended
+                pass
+
+
 def waits(before: dict, after: dict, seconds: float) -> str:
     """Per process, between two {name: schedstat} snapshots: its share of a core, and the time it spent runnable
     but waiting for a core (ms per second of wall clock, and per time it was put on one, us)."""
@@ -132,10 +149,11 @@ def breakdown(name: str, stages: dict | None) -> str:
 
 
 async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL_VERSION,
-                  pids=lambda: {}) -> dict:
+                  pids=lambda: {}, fifo: int = 0) -> dict:
     """One session (saying `protocol` in hello: an older service's): {"pose", "estimates", "worker", "pen",
     "pose_with_pens", "client_send", "client_receive": [s], "sent": {phase: samples sent}, "status": the
-    service's status at the end (None if the lock failed), "waits": {phase: `waits` of the processes pids()}}."""
+    service's status at the end (None if the lock failed), "waits": {phase: `waits` of the processes pids()}}.
+    fifo: the SCHED_FIFO priority of those processes while measured (0: none)."""
     start = pose_from_mm_deg(shape_table()[shape]["start"])
     out = {"sent": {}, "status": None, "waits": {}}
     async with LiveClient(url, protocol=protocol) as client:
@@ -149,6 +167,7 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
 
         hold_collection()  # this client's garbage collected before each send, not amid a round trip it times
         processes = pids()
+        prioritise([pid for name, pid in processes.items() if name != "emulator"], fifo)  # not on the way
         ran = {name: schedstat(pid) for name, pid in processes.items()}
         sent, t0 = 0, time.perf_counter()
         while (t := time.perf_counter() - t0) < seconds:
@@ -219,7 +238,7 @@ def report(m: dict) -> None:
           f"pen {status['pen_latency_ms']} ms")
     print(breakdown("where a pose's time went in the service", status.get("pose_path_ms")))
     print(f"then, off the pose's path: its frame estimates {status.get('estimates_ms')} ms after the "
-          f"approximation's datagram, the worker's report to the service {status.get('pose_report_ms')} ms after")
+          "approximation's datagram")
     print(breakdown("where a pen sample's time went in the service", status.get("pen_path_ms")))
     print(stats("client: encoding and sending a sample", m["client_send"], len(m["client_send"])))
     print(stats("client: parsing and queueing a reply", m["client_receive"], len(m["client_receive"])))
@@ -244,9 +263,11 @@ def session(args, code=None) -> dict:
             ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err", code=code) as service:
         m = asyncio.run(measure(service.url, args.shape, args.seconds, protocol_of(code),
-                                lambda: processes(service, emu.proc.pid)))
+                                lambda: processes(service, emu.proc.pid), args.fifo))
+        prioritise([os.getpid()], 0)  # this client back to the ordinary scheduler before it starts anything
         if args.csharp:
-            run = subprocess.run(["mono", str(args.csharp[code]), service.url, args.shape, str(args.seconds)],
+            fifo = ["chrt", "-f", str(args.fifo)] if args.fifo else []
+            run = subprocess.run([*fifo, "mono", str(args.csharp[code]), service.url, args.shape, str(args.seconds)],
                                  capture_output=True, text=True, timeout=120 + 2 * args.seconds)
             seen = json.loads(run.stdout.strip().splitlines()[-1]) if run.returncode == 0 else {}
             m["csharp"] = {"pose_ms": seen.get("measure_pose_ms"), "pen_ms": seen.get("measure_pen_ms"),
@@ -330,11 +351,15 @@ def main() -> None:
                                                 "package): alternate its service with this one's")
     p.add_argument("--rounds", type=int, default=3, help="with --against: rounds of before and after (default 3)")
     p.add_argument("--csharp", action="store_true", help="measure with the C# client too (needs Mono's mcs, mono)")
+    p.add_argument("--fifo", type=int, default=0, metavar="PRIORITY",
+                   help="run the measured processes under SCHED_FIFO at this priority, 1-99 (default 0: not)")
     args = p.parse_args()
     if args.against is not None and not (args.against / "twin" / "live" / "service.py").is_file():
         p.error(f"--against {args.against}: no twin/live/service.py there")
     if args.rounds < 1:
         p.error("--rounds must be at least 1")
+    if not 0 <= args.fifo <= 99:
+        p.error("--fifo must be a priority from 1 to 99, or 0")
     with tempfile.TemporaryDirectory() as build:
         if args.csharp:
             args.csharp = {None: build_csharp(Path(build) / "after")}

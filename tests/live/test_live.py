@@ -18,8 +18,8 @@ from websockets.asyncio.client import connect
 from twin.cli import main as vrscroll
 from twin.live.client import LiveClient, LiveError
 from twin.live.morph import TwinMorpher
-from twin.live.messages import (MAX_CONTROL_BYTES, MAX_DATAGRAM_BYTES, ProtocolError, parse_control,
-                                parse_datagram, sample_datagram)
+from twin.live.messages import (ERROR_INTERVAL, MAX_CONTROL_BYTES, MAX_DATAGRAM_BYTES, ProtocolError,
+                                parse_control, parse_datagram, sample_datagram)
 from twin.live.player import stroke
 from twin.live.process import ServiceProcess
 from twin.live.stages import PEN_STAGES, POSE_STAGES
@@ -71,7 +71,8 @@ async def expect_error(client, code, source="control"):
 @pytest.mark.parametrize("message, code", [
     (b"\x00\x01", "malformed"), ("{", "malformed"), ("[1, 2]", "malformed"), ('{"type": "fly"}', "unknown_type"),
     ('{"type": "hello", "protocol": 1, "role": "control"}', "malformed"),  # version 1's approximation had estimates
-    ('{"type": "hello", "protocol": 2, "role": "king"}', "malformed"),
+    ('{"type": "hello", "protocol": 2, "role": "control"}', "malformed"),  # version 2 sent its poses to udp_port
+    ('{"type": "hello", "protocol": 3, "role": "king"}', "malformed"),
     ('{"type": "target"}', "malformed"), ('{"type": "target", "shape": "cube", "mesh": {}}', "malformed"),
     ("x" * (MAX_CONTROL_BYTES + 1), "oversized")])
 def test_bad_control_messages_are_named(message, code):
@@ -165,7 +166,7 @@ def test_bad_messages_get_errors_and_the_connection_stays_open(twin_service):
                           ('{"type": "target", "shape": "teapot"}', "bad_target"),
                           ('{"type": "target", "mesh": {"vertices_mm": [[0, 0, 0]], "faces": [[0, 1, 2]]}}',
                            "malformed"),
-                          ('{"type": "hello", "protocol": 2, "role": "control"}', "out_of_order")]:
+                          ('{"type": "hello", "protocol": 3, "role": "control"}', "out_of_order")]:
             await client.send(bad)
             await expect_error(client, code)
         await client.send({"type": "lock"})  # nothing approximated yet on this session
@@ -178,11 +179,20 @@ def test_bad_messages_get_errors_and_the_connection_stays_open(twin_service):
         await expect_error(client, "malformed", "datagram")
         client.send_raw_datagram(b" " * (MAX_DATAGRAM_BYTES + 100))
         await expect_error(client, "oversized", "datagram")
-        client.send_raw_datagram(sample_datagram("pose", client.session, first["seq"], *CYLINDER_START))
+        client.send_raw_datagram(sample_datagram("pose", client.session, first["seq"], *CYLINDER_START), to="pose")
         await expect_error(client, "stale", "datagram")
+        # the worker's pose port takes poses only, the service's port pens only; a pose there is malformed too
+        client.send_raw_datagram(sample_datagram("pen", client.session, 10**6, *CYLINDER_START), to="pose")
+        assert "pose_port" in (await expect_error(client, "unknown_type", "datagram"))["message"]
+        client.send_raw_datagram(sample_datagram("pose", client.session, 10**6, *CYLINDER_START))
+        await asyncio.sleep(ERROR_INTERVAL)  # the same code's reports are a tenth of a second apart
+        client.send_raw_datagram(sample_datagram("pose", client.session, 10**6 + 1, *CYLINDER_START))
+        assert "pose_port" in (await expect_error(client, "unknown_type", "datagram"))["message"]
+        client.send_raw_datagram(b"{nope", to="pose")
+        await expect_error(client, "malformed", "datagram")
         # still served: a status, and a new pose still gets its approximation
         status = await client.status()
-        assert status["counts"]["stale"] >= 1 and status["counts"]["malformed"] >= 3
+        assert status["counts"]["stale"] >= 1 and status["counts"]["malformed"] >= 4
         assert (await first_approximation(client))["seq"] > first["seq"]
         await client.close()
 
@@ -207,7 +217,7 @@ def test_a_second_controller_is_refused_and_observers_watch(twin_service):
             second = LiveClient(twin_service.url)
             with pytest.raises(LiveError, match="controller_taken"):
                 await second.connect()
-            await second.send({"type": "hello", "protocol": 2, "role": "observer"})  # same connection, now watching
+            await second.send({"type": "hello", "protocol": 3, "role": "observer"})  # same connection, now watching
             assert (await second.expect("welcome"))["role"] == "observer"
             await second.send({"type": "target", "shape": "cube"})
             await expect_error(second, "forbidden")
@@ -308,9 +318,9 @@ def test_memory_stays_bounded_under_a_flood_of_datagrams(twin_service):
                     if kind == 0:
                         client.send_pose(*CYLINDER_START)
                     elif kind == 1:
-                        client.send_raw_datagram(sample_datagram("pose", client.session, 0, *CYLINDER_START))
+                        client.send_raw_datagram(sample_datagram("pose", client.session, 0, *CYLINDER_START), "pose")
                     elif kind == 2:
-                        client.send_raw_datagram(b'{"type": "pose", "seq": "x"}')
+                        client.send_raw_datagram(b'{"type": "pose", "seq": "x"}', "pose")
                     else:
                         client.send_pen([0, 0, 150], [1, 0, 0, 0])
                     if k % 200 == 0:
@@ -343,8 +353,13 @@ def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twi
         async with LiveClient(twin_service.url) as client, LiveClient(twin_service.url, "observer") as observer:
             first = await first_approximation(client)
             locked = await client.lock()
-            # locked the moment the worker's datagram arrived: the service has its report by then
+            # locked the moment the worker's datagram arrived: the newest it had sent, that one or a later one, as
+            # the client received it
             assert locked["seq"] >= first["seq"]
+            await asyncio.sleep(0.1)
+            received = {a["seq"]: a for a in [first, *client.drain("approximation")]}
+            assert locked["seq"] in received
+            assert received[locked["seq"]]["angles_deg"] == locked["angles_deg"]
             gate = await client.expect("gate")
             progress = await client.expect("progress")
             done = await client.expect("done", timeout=10)
@@ -520,6 +535,8 @@ def test_a_worker_that_dies_is_restarted_and_the_client_served(tmp_path):
                 await first_approximation(client, timeout=60)
                 again = await client.datagram("estimates")
                 assert again["msd_estimate_mm"] < 5.0  # on the cylinder again: the restarted worker has its target
+                failed = [e for e in client.history if e["type"] == "error" and e["code"] == "approximation_failed"]
+                assert failed and failed[0]["source"] == "datagram" and "died" in failed[0]["message"]
 
         run(session())
         assert "approximation worker died" in (tmp_path / "serve.err").read_text()
@@ -553,7 +570,8 @@ def test_connections_are_bounded_and_a_silent_one_is_closed(twin_service):
                 await asyncio.wait_for(ws.recv(), HELLO_TIMEOUT + 5)
         async with LiveClient(twin_service.url) as client:  # the slots are free again
             await first_approximation(client)
-            client.send_raw_datagram(b"[" * (MAX_DATAGRAM_BYTES - 1))  # nested too deeply: an error, no traceback
+            # nested too deeply: an error, no traceback (to the pose port, where this client's poses came from)
+            client.send_raw_datagram(b"[" * (MAX_DATAGRAM_BYTES - 1), to="pose")
             await expect_error(client, "malformed", "datagram")
 
     run(session())

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import json
+import socket
 import time
 from urllib.parse import urlparse
 
@@ -44,11 +45,14 @@ def _put(queue: asyncio.Queue, item) -> None:
 
 
 class _Replies(asyncio.DatagramProtocol):
-    def __init__(self, client: "LiveClient"):
+    def __init__(self, client: "LiveClient", service):
         self.client = client
+        self.service = service  # (host, port) every reply comes from
 
     def datagram_received(self, data, addr) -> None:
         received = time.perf_counter()
+        if addr[:2] != self.service:
+            return
         obj = json.loads(data)
         obj["received_s"] = received
         self.client.received[obj["type"]] += 1
@@ -69,6 +73,7 @@ class LiveClient:
         self._events: asyncio.Queue = asyncio.Queue()
         self._datagram_queues = collections.defaultdict(lambda: asyncio.Queue(QUEUE))
         self._udp = None
+        self._ports = {}  # "pen", "pose": the service's address each is sent to
         self._reader = None
         self._seq = {"pose": 0, "pen": 0}
         self.send_s: collections.deque = collections.deque(maxlen=QUEUE)  # s per sample, t_s -> handed to the socket
@@ -90,10 +95,13 @@ class LiveClient:
             hello["token"] = self.token
         await self.send(hello)
         self.welcome = await self.expect("welcome", timeout=timeout)
-        if self.role == "control":
+        if self.role == "control":  # one socket: pens to udp_port, poses to pose_port, every reply from udp_port
+            loop = asyncio.get_running_loop()
             host = urlparse(self.url).hostname
-            self._udp, _ = await asyncio.get_running_loop().create_datagram_endpoint(
-                lambda: _Replies(self), remote_addr=(host, self.welcome["udp_port"]))
+            family, *_, service = (await loop.getaddrinfo(host, self.welcome["udp_port"], type=socket.SOCK_DGRAM))[0]
+            # a service older than protocol 3 takes its poses on udp_port too (benchmarks/bench_live.py --against)
+            self._ports = {"pen": service, "pose": (service[0], self.welcome.get("pose_port", service[1]))}
+            self._udp, _ = await loop.create_datagram_endpoint(lambda: _Replies(self, service[:2]), family=family)
         return self.welcome
 
     async def close(self) -> None:
@@ -154,7 +162,8 @@ class LiveClient:
         seq = self._seq[kind]
         self._seq[kind] += 1
         t_s = time.perf_counter()
-        self._udp.sendto(sample_datagram(kind, self.welcome["session"], seq, position_mm, quat_wxyz, t_s=t_s, **extra))
+        self._udp.sendto(sample_datagram(kind, self.welcome["session"], seq, position_mm, quat_wxyz, t_s=t_s, **extra),
+                         self._ports[kind])
         self.send_s.append(time.perf_counter() - t_s)
         return seq
 
@@ -167,8 +176,9 @@ class LiveClient:
         return self._send_sample("pen", position_mm, quat_wxyz, device_position_mm=device_position_mm,
                                  device_quat_wxyz=device_quat_wxyz)
 
-    def send_raw_datagram(self, data: bytes) -> None:
-        self._udp.sendto(data)
+    def send_raw_datagram(self, data: bytes, to: str = "pen") -> None:
+        """Any bytes, to the port pens ("pen") or poses ("pose") go to."""
+        self._udp.sendto(data, self._ports[to])
 
     async def datagram(self, kind: str, timeout: float = 2.0) -> dict:
         """The next "approximation", "estimates" or "pen_redirected" datagram; LiveError after `timeout` s."""

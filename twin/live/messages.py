@@ -19,8 +19,9 @@ from scipy.spatial.transform import Rotation
 from twin.checks import REACH_M, parse_json
 from twin.device.kinematics import pose_matrix
 
-PROTOCOL_VERSION = 2  # 2: the frame estimates in their own datagram, after the approximation's
-DEFAULT_LISTEN_PORT = 8765  # TCP for the control channel, UDP for the datagrams (same number)
+PROTOCOL_VERSION = 3  # 2: the frame estimates in their own datagram; 3: poses to the worker's own port
+DEFAULT_LISTEN_PORT = 8765  # TCP for the control channel, UDP for the pens (same number); poses: the welcome's
+# pose_port
 MAX_CONTROL_BYTES = 1 << 20  # a control message above this gets "oversized" (the connection stays)
 MAX_FRAME_BYTES = 4 << 20  # the WebSocket layer closes (1009) above this, before the message is read
 MAX_DATAGRAM_BYTES = 1200  # fits one Ethernet frame with room to spare

@@ -2,13 +2,15 @@
 
 - Control channel (WebSocket): hello (role, token), target, lock, status; events back to the
   controller and every observer. One controlling client at a time.
-- Datagrams (UDP, same port number): the controller's pose and pen samples. Each stream keeps
-  only its newest sample: an older sequence number is dropped as stale, a pose that arrives
-  before the previous one was approximated replaces it. Memory per stream is one sample.
-- The worker process approximates the newest pose at most APPROXIMATION_RATE_HZ times a second
-  and sends the reply datagram itself, from the service's socket; the pose goes to it from the
-  callback that made that possible (no task, no await per pose), and then the frame estimates in a
-  datagram of their own. A pose never moves the device.
+- Datagrams (UDP): the controller's pen samples on the service's port (the same number), its
+  poses on the worker's (`pose_port`). Each stream keeps only its newest sample: an older
+  sequence number is dropped as stale, a pose that arrives before the previous one was
+  approximated replaces it. Memory per stream is one sample.
+- The worker process takes the poses off its own socket (the service binds it and hands it over;
+  no pose wakes the service), approximates the newest at most APPROXIMATION_RATE_HZ times a
+  second and sends the reply datagram itself, from the service's socket, then the frame estimates
+  in a datagram of their own (twin/live/worker.py, twin/live/poses.py). A pose never moves the
+  device.
 - Each pose's and pen sample's path is stamped stage by stage (twin/live/stages.py); `status`
   reports where the time went.
 - Lock: the newest approximation's hinge angles go through the morpher (gate, then the device or
@@ -54,8 +56,9 @@ from twin.live.messages import (
     pen_datagram,
 )
 from twin.live.morph import MorphOutcome
-from twin.live.stages import PEN_STAGES, POSE_STAGES, StageTimes, percentiles_ms
-from twin.live.worker import PoseReply, Worker, WorkerError
+from twin.live.poses import pose_socket
+from twin.live.stages import LATENCY_WINDOW, PEN_STAGES, StageTimes, percentiles_ms
+from twin.live.worker import Worker, WorkerError
 from twin.morphpatch.redirection import redirect, within_samples
 from twin.morphpatch.shapes import shape_names
 from twin.perception.thresholds import load_thresholds
@@ -63,8 +66,6 @@ from twin.perception.thresholds import load_thresholds
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 EVENT_QUEUE = 256  # events waiting for one slow client; beyond this they are dropped and counted
 PING_INTERVAL = 20.0  # s: a client that answers no ping for this long after one is dropped (its role freed)
-RATE_BURST = 2.0  # approximations the rate limit lets through back to back
-LATENCY_WINDOW = 2000  # service-side latencies kept for `status` (most recent)
 MAX_CONNECTIONS = 32  # control-channel connections at once: one controller and observers
 MAX_UNGREETED = 8  # of them, connections that have not said hello yet
 HELLO_TIMEOUT = 5.0  # s a connection may stay without hello before it is closed
@@ -126,9 +127,9 @@ class _Client:
         except asyncio.QueueFull:
             self.dropped_events += 1
 
-    def report(self, code: str, message: str) -> None:
-        """A datagram error, rate-limited per code; the count says how many since the last report."""
-        self._unreported[code] += 1
+    def report(self, code: str, message: str, count: int = 1) -> None:
+        """A datagram error (count of them), rate-limited per code; the count says how many since the last report."""
+        self._unreported[code] += count
         now = time.monotonic()
         if now - self._reported.get(code, -math.inf) >= ERROR_INTERVAL:
             self._reported[code] = now
@@ -187,30 +188,18 @@ class LiveService:
         self.config = config
         self.spec = config.spec
         self.morpher = config.morpher
-        self.worker = Worker(config.spec, config.variant)
+        self.worker = Worker(config.spec, config.variant, self._worker_report, self._worker_died)
         self.thresholds = load_thresholds()
         self.port = None
         self.controller: _Client | None = None
         self.observers: set[_Client] = set()
         self.target = None  # info of the target the worker holds
-        self.target_gen = 0  # +1 per target change: approximations of an older target are not sent
         self.state = "idle"  # "idle", "morphing" or "locked" (pen samples redirected)
         self.field = None
-        self.latest = None  # (target_gen, pose seq, PoseReply): the newest approximation the worker sent
-        self.counts: collections.Counter = collections.Counter()
-        self.pose_times = StageTimes(POSE_STAGES, LATENCY_WINDOW)  # s per stage, pose arrival -> approximation sent
-        self.pose_estimates = collections.deque(maxlen=LATENCY_WINDOW)  # s, estimates' datagram after the reply's
-        self.pose_report = collections.deque(maxlen=LATENCY_WINDOW)  # s, the worker's report after the datagrams
+        self.counts: collections.Counter = collections.Counter()  # the pose stream's are the worker's (status)
         self.pen_times = StageTimes(PEN_STAGES, LATENCY_WINDOW)  # s per stage, pen arrival -> redirected sent
-        self._pose = None  # (Sample, client, arrival, queued s): the newest pose not yet approximated
-        self._in_flight = None  # (target_gen, Sample, client, arrival, queued, sent s): the pose the worker has
-        self._tokens = RATE_BURST  # the rate limit's token bucket (approximations), and when it was last filled
-        self._filled = 0.0
-        self._timer = None  # the rate limit's wake-up, while poses wait for a token
-        self._restarting = False
-        self._reported = asyncio.Event()  # cleared while a pose is with the worker
-        self._reported.set()
         self._udp = None
+        self._poses = None  # the worker's pose socket: bound here, so that it outlives a worker that dies
         self._stop = None
         self._tasks: set[asyncio.Task] = set()
         self.clients: set[_Client] = set()  # every open control connection
@@ -233,19 +222,19 @@ class LiveService:
                 self.port = server.sockets[0].getsockname()[1]
                 self._udp, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self),
                                                                    local_addr=(self.config.host, self.port))
-                self.worker.share_socket(self._udp.get_extra_info("socket"))
-                self._filled = time.perf_counter()
+                self._poses = pose_socket(self.config.host)
+                self.worker.share_sockets(self._udp.get_extra_info("socket"), self._poses)
                 if ready:
                     ready(self.port)
                 await self._stop.wait()
         finally:
             for task in self._tasks:
                 task.cancel()
-            if self._timer is not None:
-                self._timer.cancel()
             if self._udp is not None:
                 self._udp.close()
             self.worker.stop()
+            if self._poses is not None:
+                self._poses.close()
             await asyncio.to_thread(self.morpher.close)
 
     def stop(self) -> None:
@@ -304,7 +293,7 @@ class LiveService:
         self.observers.discard(client)
         if client is self.controller:
             self.controller = None
-            self._pose = None
+            self.worker.tell("session", None)
             self._broadcast({"type": "controller_left", "state": self.state})
 
     async def _dispatch(self, client: _Client, msg: dict) -> None:
@@ -328,12 +317,18 @@ class LiveService:
             except WorkerError as exc:
                 raise ProtocolError("bad_target", str(exc)) from None
             return
-        # lock: the client may hold an approximation the worker sent whose report has not reached us yet
-        await self._reported.wait()
-        if self.latest is None or self.latest[0] != self.target_gen:
+        # lock: the newest approximation the worker sent this controller for this target (asked after any it
+        # was sending when the lock came: the worker answers its requests between poses)
+        if self.target is None:
+            raise ProtocolError("out_of_order", "lock before any target: send target, then stream poses")
+        try:
+            latest = await self.worker.call("latest")
+        except WorkerError as exc:
+            raise ProtocolError("approximation_failed", str(exc)) from None
+        if latest is None:
             raise ProtocolError("out_of_order", "lock before any approximation of this target: stream poses first")
         self.state = "morphing"
-        self._spawn(self._lock(*self.latest[1:]))
+        self._spawn(self._lock(*latest))
 
     def _hello(self, client: _Client, msg: dict) -> None:
         if client.role is not None:
@@ -346,35 +341,52 @@ class LiveService:
                 raise ProtocolError("controller_taken", "another client controls the service; connect as 'observer'")
             self.controller = client
             client.session = secrets.token_hex(16)
-            self.latest = None
+            self.worker.tell("session", client.session)  # before the welcome: the worker admits its first pose
         else:
             self.observers.add(client)
         client.role = msg["role"]
         client.send({"type": "welcome", "protocol": PROTOCOL_VERSION, "role": client.role, "session": client.session,
-                     "udp_port": self.port, "variant": self.config.variant, "device": self.morpher.name,
+                     "udp_port": self.port, "pose_port": self._poses.getsockname()[1], "variant": self.config.variant, "device": self.morpher.name,
                      "device_profile": self.config.profile,
                      "target": self.target, "state": self.state, "approximation_rate_hz": APPROXIMATION_RATE_HZ,
                      "max_control_bytes": MAX_CONTROL_BYTES, "max_datagram_bytes": MAX_DATAGRAM_BYTES})
 
     async def _load_target(self, shape, vertices, faces) -> None:
-        self.target_gen += 1
-        self.target, self.state, self.field, self.latest = None, "idle", None, None
+        self.target, self.state, self.field = None, "idle", None
         self.target = await self.worker.call("target", shape, vertices, faces)
         self._broadcast({"type": "target_ready", "target": self.target})
 
     async def _status(self) -> dict:
         device = await asyncio.to_thread(self.morpher.status)
+        try:
+            poses = await self.worker.call("stats")
+        except WorkerError:  # restarting: its counts start again
+            poses = {"counts": {}, "pose_path_ms": None, "estimates_ms": None}
+        counts = self.counts + collections.Counter(poses["counts"])
+        pose_path = poses["pose_path_ms"]
         return {"type": "status", "state": self.state, "target": self.target, "variant": self.config.variant,
                 "controller": self.controller is not None, "observers": len(self.observers), **device,
-                "counts": dict(self.counts),
-                "approximation_latency_ms": percentiles_ms(self.pose_times.total()),
+                "counts": dict(counts),
+                "approximation_latency_ms": pose_path and pose_path["total"],
                 "pen_latency_ms": percentiles_ms(self.pen_times.total()),
-                "pose_path_ms": self.pose_times.summary(), "pen_path_ms": self.pen_times.summary(),
-                "estimates_ms": percentiles_ms(self.pose_estimates), "pose_report_ms": percentiles_ms(self.pose_report)}
+                "pose_path_ms": pose_path, "pen_path_ms": self.pen_times.summary(),
+                "estimates_ms": poses["estimates_ms"]}
 
-    async def _lock(self, seq: int, reply: PoseReply) -> None:
+    def _worker_report(self, session: str | None, code: str, message: str, count: int) -> None:
+        """The worker's report of errors in the pose stream of the controller holding `session`."""
+        if self.controller is not None and self.controller.session == session:
+            self.controller.report(code, message, count)
+
+    def _worker_died(self) -> None:
+        """The worker died (on a pose, or a request): the controller's pose in flight gets no answer."""
+        self.counts["worker_restarts"] += 1
+        if self.controller is not None:
+            self.controller.report("approximation_failed", "the approximation worker died on a pose; it is "
+                                                           "restarted with the target for the next")
+
+    async def _lock(self, seq: int, values: tuple) -> None:
         loop = asyncio.get_running_loop()
-        approx = self.worker.approximation(reply)
+        approx = self.worker.approximation(values)
         self._broadcast({"type": "locked", "seq": seq, **approximation_json(approx)})
 
         def emit(event):
@@ -410,6 +422,9 @@ class LiveService:
         known = client is not None and client.udp_addr == addr
         try:
             sample = parse_datagram(data)
+            if sample.kind != "pen":
+                raise ProtocolError("unknown_type", f"{sample.kind} datagrams go to the welcome's pose_port, pens "
+                                                    "to its udp_port")
         except ProtocolError as exc:
             self.counts[exc.code] += 1
             if known:
@@ -428,12 +443,7 @@ class LiveService:
             self.counts["missing"] += sample.seq - last - 1
         client.last_seq[sample.kind] = sample.seq
         self.counts[sample.kind] += 1
-        if sample.kind == "pose":
-            if self._pose is not None:
-                self.counts["superseded"] += 1
-            self._pose = (sample, client, arrived, time.perf_counter())
-            self._next_pose()
-        elif self.state != "locked":
+        if self.state != "locked":
             self.counts["pen_not_locked"] += 1
             client.report("out_of_order", "pen sample before a lock's morph is done: not redirected")
         else:
@@ -448,69 +458,3 @@ class LiveService:
             self._udp.sendto(reply, addr)
             self.counts["pen_redirected"] += 1
             self.pen_times.record((arrived, parsed, redirected, encoded, time.perf_counter()))
-
-    def _next_pose(self) -> None:
-        """Hand the newest pose to the worker if it is free and the rate limit lets it through: called on each
-        pose's arrival, on each approximation's return and when the rate limit's wait ends, so a pose goes to
-        the worker from the callback that made that possible (no task woken per pose).
-
-        The rate limit is a token bucket: on average at most APPROXIMATION_RATE_HZ, with a burst of RATE_BURST
-        so that poses sent at that rate are not held back by their arrival jitter."""
-        if self._pose is None or self._in_flight is not None or self._timer is not None or self._stop.is_set():
-            return
-        sample, client, arrived, queued = self._pose
-        if self.target is None:
-            self._pose = None
-            client.report("out_of_order", "pose before a target: send target first")
-            return
-        if not self.worker.alive:
-            if not self._restarting:
-                self._restarting = True
-                self._spawn(self._restart_worker())
-            return
-        now = time.perf_counter()
-        self._tokens, self._filled = min(RATE_BURST, self._tokens + (now - self._filled) * APPROXIMATION_RATE_HZ), now
-        if self._tokens < 1.0:
-            self._timer = asyncio.get_running_loop().call_later((1.0 - self._tokens) / APPROXIMATION_RATE_HZ,
-                                                                self._rate_wait_over)
-            return
-        self._tokens -= 1.0
-        self._pose = None
-        self._in_flight = (self.target_gen, sample, client, arrived, queued, time.perf_counter())
-        self._reported.clear()
-        self.worker.approximate(sample.seq, sample.t_s, sample.position, sample.quat, client.udp_addr,
-                                self._approximated)
-
-    def _rate_wait_over(self) -> None:
-        self._timer = None
-        self._next_pose()
-
-    async def _restart_worker(self) -> None:
-        """A worker that died is started again with the target; then the newest pose goes to it."""
-        try:
-            await self.worker.ensure_running()
-        except WorkerError as exc:
-            if self._pose is not None:
-                self._pose[1].report("approximation_failed", str(exc))
-                self._pose = None
-        finally:
-            self._restarting = False
-        self._next_pose()
-
-    def _approximated(self, reply: PoseReply | WorkerError, received: float) -> None:
-        """The worker's report on the pose in flight (its datagram already sent to the client): kept for a lock,
-        timed; then the next pose."""
-        gen, sample, client, arrived, queued, sent = self._in_flight
-        self._in_flight = None
-        self._reported.set()
-        if isinstance(reply, WorkerError):
-            client.report("approximation_failed", str(reply))
-        else:
-            self.counts["approximations"] += 1
-            received_by_worker, approximated, answered, estimated = reply.stamps
-            self.pose_times.record((arrived, queued, sent, received_by_worker, approximated, answered))
-            self.pose_estimates.append(estimated - answered)
-            self.pose_report.append(received - estimated)
-            if gen == self.target_gen and client is self.controller:
-                self.latest = (gen, sample.seq, reply)
-        self._next_pose()

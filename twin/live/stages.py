@@ -10,10 +10,12 @@ import collections
 
 import numpy as np
 
-POSE_STAGES = ("parse", "wait", "to_worker", "approximate", "send", "total")
-"""A pose's path: parsed and queued (arrival -> queued), waiting for the worker and the rate limit (-> sent to
-the worker), the pipe there (-> the worker's receive), the approximation, the reply datagram built and sent by
-the worker. (Its frame estimates follow, off this path: the service's `estimates_ms`.)"""
+LATENCY_WINDOW = 2000  # samples kept per stage for `status` (the most recent)
+POSE_STAGES = ("socket", "parse", "wait", "approximate", "send", "total")
+"""A pose's path, all in the worker (twin/live/poses.py): in the worker's socket (the kernel's arrival stamp ->
+taken off it: the worker busy, or waiting for a core), parsed and checked, waiting for the rate limit or the pose
+before it, the approximation, the reply datagram built and sent. (Its frame estimates follow, off this path: the
+service's `estimates_ms`.)"""
 PEN_STAGES = ("parse", "redirect", "encode", "send", "total")
 """A pen sample's path: parsed and checked, redirected (with the thresholds' verdict), encoded, sent."""
 

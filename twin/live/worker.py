@@ -1,41 +1,46 @@
-"""The approximation worker: a child process that holds the target and approximates.
+"""The approximation worker: a child process that holds the target, takes the poses and approximates.
 
 An approximation takes 0.5-4 ms and a redirection field ~100 ms of compiled code that holds
 Python's interpreter lock, so they run in their own process, and the service's event loop
-stays free for the pen stream (~40 us per redirected sample). The two talk over a pipe, in
-frames of bytes whose first byte says what follows; requests are answered in order, one at
-a time:
+stays free for the pen stream (~40 us per redirected sample).
 
-    b"s" + the service's datagram socket (its descriptor, passed alongside)  -> no reply
-    b"a" + POSE_REQUEST (seq, t_s or NaN, position m, unit quaternion w first, port) + the client's host
-        -> the "approximation" datagram (docs/live.md), built here and sent to the client from the
-           service's socket (so from the service's port), then its frame estimates and their
-           "estimates" datagram, then
-           b"a" + stamps (4 doubles: received, approximated, approximation sent, estimates sent;
-                  perf_counter s)
-                + the approximation (root pose 16, angles, widths, time s: doubles)
+Poses come to the worker straight from the client, on a datagram socket of its own (the welcome's
+`pose_port`; the service binds it and hands it over with SCM_RIGHTS, so it outlives a worker that
+dies): a pose wakes this one process on its way in and nothing is handed over per pose
+(twin/live/poses.py decides which pose goes next). The answer goes straight back to the client from
+the service's own datagram socket (handed over the same way), so the client sees every reply come
+from the port it sends its pens to: the `approximation` datagram first, then its frame estimates'
+`estimates` datagram (~0.3 ms later, off the pose's path). The service is woken by no pose: it asks
+for the newest approximation when it locks, and for the counts and stage times when it reports
+`status`.
+
+The service talks to the worker over a pipe, in frames of bytes whose first byte says what follows;
+requests are answered in order, one at a time:
+
+    b"s" + the service's datagram socket, the replies' (its descriptor, passed alongside)  -> no reply
+    b"q" + the pose socket (its descriptor, passed alongside)  -> no reply
     b"p" + pickle(("target", shape name or None, vertices (V, 3) m, faces (F, 3)))  -> b"p" + pickle(target info)
+    b"p" + pickle(("session", the controller's secret or None))  -> b"p" + pickle(None)
+    b"p" + pickle(("latest",))  -> b"p" + pickle((seq, approximation doubles) or None): the newest approximation
+        sent to the present controller for the present target
+    b"p" + pickle(("stats",))  -> b"p" + pickle({"counts", "pose_path_ms", "estimates_ms"})
     b"p" + pickle(("field", root pose 4x4, angles rad, widths m))  -> b"p" + pickle((RedirectionField, summary))
 
-Errors come back as b"e" + one line, and the worker carries on. A pose, at 90 Hz, goes as
-fixed-size packed doubles and its answer goes straight to the client, so nothing is pickled per
-pose and the service's process is not on the way back (one process wake-up fewer per pose);
-the rare requests keep pickling. Nothing but the approximation stands between a pose and its
-answer: the frame estimates (~0.3 ms) follow in their own datagram, the report to the service
-after them, and Python's garbage collection runs once the request is answered
-(twin/live/collection.py).
+Errors come back as b"e" + one line, and the worker carries on. Unasked, between replies, the
+worker reports the pose stream's errors for the controlling client: b"r" + pickle((session, code,
+message, count)), at most one per code every ERROR_INTERVAL. Python's garbage collection runs once
+a request or a pose is answered and nothing else waits (twin/live/collection.py).
 """
 
 from __future__ import annotations
 
 import asyncio
 import collections
-import math
 import multiprocessing
 from multiprocessing import reduction
 import pickle
+import selectors
 import socket
-import struct
 import sys
 import time
 
@@ -48,6 +53,8 @@ from twin.device.spec import DeviceSpec
 from twin.formats.target import approximation_json
 from twin.live.collection import collect_if_due, hold_collection
 from twin.live.messages import approximation_datagram, estimates_datagram
+from twin.live.poses import PoseIntake
+from twin.live.stages import LATENCY_WINDOW, POSE_STAGES, StageTimes, percentiles_ms
 from twin.morphpatch.approximation import approximate
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.frame_metrics import frame_estimates
@@ -57,124 +64,154 @@ from twin.morphpatch.shapes import check_mesh, load_shape
 from twin.perception.thresholds import load_thresholds
 from twin.records.approximation import Approximation
 
-POSE_REQUEST = struct.Struct("<qd3d4dH")  # seq, t_s (NaN: none), position m, unit quaternion w first, UDP port
-STAMPS = struct.Struct("<4d")  # the worker's perf_counter s: received, approximated, approximation sent, estimates sent
-
 
 class WorkerError(RuntimeError):
     """The worker refused a request (bad mesh, no target) or has gone."""
 
 
-def _result_struct(spec: DeviceSpec) -> struct.Struct:
+def approximation_values(a: Approximation) -> tuple:
     """An approximation as doubles: root pose (16), angles rad (n_hinges), widths m (n_flaps), time s."""
-    return struct.Struct(f"<{16 + spec.n_hinges + spec.n_flaps + 1}d")
-
-
-def pose_request(seq: int, t_s: float | None, position: np.ndarray, quat: np.ndarray, addr) -> bytes:
-    """The frame that asks the worker to approximate a pose (position m, unit quaternion w first) for the pose
-    datagram `seq` (its t_s echoed) and send the answer to addr (host, port, ...)."""
-    return (b"a" + POSE_REQUEST.pack(seq, math.nan if t_s is None else t_s, *position.tolist(), *quat.tolist(),
-                                     addr[1]) + addr[0].encode())
+    return (*a.root_pose.ravel().tolist(), *a.angles.tolist(), *a.widths.tolist(), a.time)
 
 
 def decode_approximation(spec: DeviceSpec, variant: str, values: tuple) -> Approximation:
-    """The Approximation from the doubles of a pose reply (`PoseReply.values`)."""
+    """The Approximation from its doubles (`approximation_values`)."""
     v = np.asarray(values)
     n_h = spec.n_hinges
     return Approximation(v[:16].reshape(4, 4), v[16:16 + n_h], v[16 + n_h:-1], float(v[-1]), variant)
 
 
-class PoseReply:
-    """A pose reply as it came off the pipe: `stamps` (the worker's, s), `values` (doubles)."""
+class _Poses:
+    """The worker's side of the pose stream: which pose is next (PoseIntake), where the time went, the newest
+    approximation sent."""
 
-    __slots__ = ("stamps", "values")
+    def __init__(self, spec: DeviceSpec, variant: str):
+        self.spec, self.variant = spec, variant
+        self.intake = PoseIntake()
+        self.times = StageTimes(POSE_STAGES, LATENCY_WINDOW)  # s per stage, kernel arrival -> approximation sent
+        self.estimates = collections.deque(maxlen=LATENCY_WINDOW)  # s, estimates' datagram after the reply's
+        self.thresholds = load_thresholds()
+        self.layout = grid_layout(spec, SAMPLE_SPACING)
+        self.latest = None  # (seq, approximation doubles): the newest sent to this controller for this target
 
-    def __init__(self, frame: bytes, result: struct.Struct):
-        self.stamps = STAMPS.unpack_from(frame, 1)
-        self.values = result.unpack_from(frame, 1 + STAMPS.size)
+    def answer(self, pose: tuple, fields, udp: socket.socket) -> None:
+        """Approximate a pose (Sample, addr, arrived, taken, parsed) and send its datagram to its sender, then its
+        frame estimates' datagram."""
+        sample, addr, arrived, taken, parsed = pose
+        started = time.perf_counter()
+        pose_4x4 = pose_matrix(sample.position, Rotation.from_quat(sample.quat, scalar_first=True).as_matrix())
+        try:
+            approx = approximate(fields, pose_4x4, self.spec, self.variant)
+        except Exception as exc:  # the compiled code refused this pose: the client is told, the worker goes on
+            self.intake.report("approximation_failed", f"{type(exc).__name__}: {exc}")
+            return
+        approximated = time.perf_counter()
+        udp.sendto(approximation_datagram(sample.seq, sample.t_s, approximation_json(approx)), addr)
+        sent = time.perf_counter()
+        msd, share = frame_estimates(self.spec, fields, self.thresholds, approx.root_pose, approx.angles,
+                                     approx.widths, self.layout)
+        udp.sendto(estimates_datagram(sample.seq, sample.t_s, msd, share), addr)
+        self.times.record((arrived, taken, parsed, started, approximated, sent))
+        self.estimates.append(time.perf_counter() - sent)
+        self.intake.counts["approximations"] += 1
+        self.latest = (sample.seq, approximation_values(approx))
+
+    def stats(self) -> dict:
+        return {"counts": dict(self.intake.counts), "pose_path_ms": self.times.summary(),
+                "estimates_ms": percentiles_ms(self.estimates)}
 
 
-def _approximate(request: bytes, received: float, spec, variant, fields, thresholds, layout, result, udp) -> bytes:
-    """Approximate the requested pose and send its datagram to the client, then its frame estimates' datagram;
-    the report frame for the service."""
-    seq, t_s, *values, port = POSE_REQUEST.unpack_from(request, 1)
-    client = (request[1 + POSE_REQUEST.size:].decode(), port)
-    t_s = None if math.isnan(t_s) else t_s
-    pose = pose_matrix(np.array(values[:3]), Rotation.from_quat(values[3:7], scalar_first=True).as_matrix())
-    approx = approximate(fields, pose, spec, variant)
-    approximated = time.perf_counter()
-    udp.sendto(approximation_datagram(seq, t_s, approximation_json(approx)), client)
-    sent = time.perf_counter()
-    msd, share = frame_estimates(spec, fields, thresholds, approx.root_pose, approx.angles, approx.widths, layout)
-    udp.sendto(estimates_datagram(seq, t_s, msd, share), client)
-    estimated = time.perf_counter()
-    values = result.pack(*approx.root_pose.ravel().tolist(), *approx.angles.tolist(), *approx.widths.tolist(),
-                         approx.time)
-    return b"a" + STAMPS.pack(received, approximated, sent, estimated) + values
+def _request(request: bytes, conn, state: dict, poses: _Poses, selector) -> bytes | None:
+    """One request from the service; the reply frame, or None for none."""
+    if request[:1] == b"s":
+        state["udp"] = socket.socket(fileno=reduction.recv_handle(conn))
+        return None
+    if request[:1] == b"q":
+        state["poses"] = socket.socket(fileno=reduction.recv_handle(conn))
+        state["poses"].setblocking(False)
+        selector.register(state["poses"], selectors.EVENT_READ)
+        return None
+    kind, *args = pickle.loads(request[1:])
+    if kind == "session":
+        poses.intake.set_session(*args)
+        poses.latest = None
+        reply = None
+    elif kind == "latest":
+        reply = poses.latest
+    elif kind == "stats":
+        reply = poses.stats()
+    elif kind == "target":
+        t0 = time.perf_counter()
+        name, vertices, faces = args
+        mesh = load_shape(name) if name else check_mesh(trimesh.Trimesh(vertices, faces), "mesh")
+        fields = build_fields(mesh)
+        approximate(fields, np.eye(4), poses.spec, poses.variant)  # loads the compiled code now, not on a pose
+        state["mesh"], state["fields"], poses.latest = mesh, fields, None
+        reply = {"name": name or "mesh", "bounds_mm": (mesh.bounds * 1e3).round(3).tolist(),
+                 "faces": len(mesh.faces), "build_s": round(time.perf_counter() - t0, 3)}
+    elif state["fields"] is None:
+        raise WorkerError("no target yet")
+    else:  # "field"
+        field = build_field(poses.spec, *args, state["mesh"], state["fields"])
+        reply = (field, threshold_summary(field, poses.thresholds))
+    return b"p" + pickle.dumps(reply)
 
 
 def _serve(conn, spec: DeviceSpec, variant: str) -> None:
-    """The child's loop: one request in, one reply out, until the pipe closes."""
-    thresholds = load_thresholds()
-    layout = grid_layout(spec, SAMPLE_SPACING)
-    result = _result_struct(spec)
-    mesh = fields = udp = None
+    """The child's loop: requests from the pipe, poses from their socket, until the pipe closes."""
+    poses = _Poses(spec, variant)
+    state = {"udp": None, "poses": None, "mesh": None, "fields": None}
+    selector = selectors.DefaultSelector()
+    selector.register(conn, selectors.EVENT_READ)
     hold_collection()
     while True:
-        if not conn.poll():  # the last request answered, the next not here yet
+        wait = poses.intake.wait_s(time.perf_counter())
+        ready = selector.select(0)
+        if not ready and wait != 0.0:  # nothing to do now: collect the garbage, then sleep until something comes
             collect_if_due()
-        try:
-            request = conn.recv_bytes()
-        except (EOFError, OSError):
-            return
-        received = time.perf_counter()
-        try:
-            if request[:1] == b"s":
-                udp = socket.socket(fileno=reduction.recv_handle(conn))
-                continue
-            if request[:1] == b"a":
-                if fields is None or udp is None:
-                    raise WorkerError("no target yet" if fields is None else "no datagram socket yet")
-                conn.send_bytes(_approximate(request, received, spec, variant, fields, thresholds, layout, result,
-                                             udp))
-                continue
-            kind, *args = pickle.loads(request[1:])
-            if kind == "target":
-                t0 = time.perf_counter()
-                name, vertices, faces = args
-                mesh = load_shape(name) if name else check_mesh(trimesh.Trimesh(vertices, faces), "mesh")
-                fields = build_fields(mesh)
-                approximate(fields, np.eye(4), spec, variant)  # loads the compiled code now, not on the first pose
-                reply = {"name": name or "mesh", "bounds_mm": (mesh.bounds * 1e3).round(3).tolist(),
-                         "faces": len(mesh.faces), "build_s": round(time.perf_counter() - t0, 3)}
-            elif fields is None:
-                raise WorkerError("no target yet")
-            else:  # "field"
-                field = build_field(spec, *args, mesh, fields)
-                reply = (field, threshold_summary(field, thresholds))
-            conn.send_bytes(b"p" + pickle.dumps(reply))
-        except Exception as exc:  # a process boundary: report it to the service, stay alive for the next request
-            conn.send_bytes(b"e" + f"{type(exc).__name__}: {exc}".encode())
+            ready = selector.select(wait)
+        # the pipe's requests first, all of them: a session named there comes before the poses it admits
+        while any(key.fileobj is conn for key, _ in ready) and conn.poll():
+            try:
+                request = conn.recv_bytes()
+            except (EOFError, OSError):
+                return
+            try:
+                reply = _request(request, conn, state, poses, selector)
+            except Exception as exc:  # a process boundary: report it to the service, stay alive for the next
+                reply = b"e" + f"{type(exc).__name__}: {exc}".encode()
+            if reply is not None:
+                conn.send_bytes(reply)
+        if state["poses"] is not None and any(key.fileobj is state["poses"] for key, _ in ready):
+            poses.intake.drain(state["poses"])
+        if state["fields"] is None:
+            poses.intake.drop_pending("out_of_order", "pose before a target: send target first")
+        elif state["udp"] is not None:
+            pose = poses.intake.next(time.perf_counter())
+            if pose is not None:
+                poses.answer(pose, state["fields"], state["udp"])
+        for report in poses.intake.reports:
+            conn.send_bytes(b"r" + pickle.dumps(report))
+        poses.intake.reports.clear()
 
 
 class Worker:
-    """The service's end of the worker process: `call` (awaited) for targets and fields, `approximate`
-    (a callback, no await: called from the pipe's reader on the event loop) for poses."""
+    """The service's end of the worker process: `call` (awaited) and `tell` (no reply awaited) send requests;
+    the worker's reports on the pose stream go to on_report(session, code, message, count). A worker that dies (a
+    crash of compiled code on some input) is started again at once, with the sockets, the target and the session
+    it had, after on_death()."""
 
-    def __init__(self, spec: DeviceSpec, variant: str):
+    def __init__(self, spec: DeviceSpec, variant: str, on_report=lambda *report: None, on_death=lambda: None):
         self.spec = spec
         self.variant = variant
-        self._result = _result_struct(spec)
+        self.on_report, self.on_death = on_report, on_death
         self._conn = self._proc = None
-        self._waiting: collections.deque = collections.deque()  # per request sent: a Future, or a pose's callback
-        self._target = None  # the last target request it took, sent again to a restarted worker
-        self._udp = None  # the service's datagram socket, handed to every worker started
+        self._waiting: collections.deque = collections.deque()  # per request sent: a Future, or a callable
+        self._sockets: dict[bytes, socket.socket] = {}  # b"s" (replies), b"q" (poses): handed to every worker
+        self._replay: dict[str, tuple] = {}  # "target", "session": the last it took, sent again after a restart
+        self._restarting: asyncio.Task | None = None
         self.restarts = 0
         self._exitcode = None
-
-    @property
-    def alive(self) -> bool:
-        return self._proc is not None and self._proc.is_alive()
 
     def start(self) -> None:
         context = multiprocessing.get_context("spawn")  # no copy of the service's threads and sockets
@@ -184,93 +221,110 @@ class Worker:
         self._proc.start()
         child.close()
         asyncio.get_running_loop().add_reader(self._conn.fileno(), self._readable)
-        if self._udp is not None:
-            self._hand_socket()
+        for kind in self._sockets:
+            self._hand_socket(kind)
 
-    def share_socket(self, udp: socket.socket) -> None:
-        """The socket the worker sends pose answers from (the service's datagram socket: the client sees them
-        come from the port it sends to), handed to this worker and every restarted one."""
-        self._udp = udp
+    def share_sockets(self, replies: socket.socket, poses: socket.socket) -> None:
+        """The socket the worker sends its answers from (the service's datagram socket: the client sees them come
+        from the port it sends its pens to) and the one it takes poses from, handed to this worker and every
+        restarted one."""
+        self._sockets = {b"s": replies, b"q": poses}
         if self._proc is not None:
-            self._hand_socket()
+            for kind in self._sockets:
+                self._hand_socket(kind)
 
-    def _hand_socket(self) -> None:
-        self._conn.send_bytes(b"s")
-        reduction.send_handle(self._conn, self._udp.fileno(), self._proc.pid)
+    def _hand_socket(self, kind: bytes) -> None:
+        self._conn.send_bytes(kind)
+        reduction.send_handle(self._conn, self._sockets[kind].fileno(), self._proc.pid)
 
     def _readable(self) -> None:
-        received = time.perf_counter()
         try:
             frame = self._conn.recv_bytes()
         except (EOFError, OSError):
             asyncio.get_running_loop().remove_reader(self._conn.fileno())
-            died = WorkerError("the approximation worker died on this request; it is restarted for the next")
-            while self._waiting:
-                self._answer(self._waiting.popleft(), died, received)
+            self._fail_waiting(WorkerError("the approximation worker died on this request; it is restarted"))
+            self.on_death()
+            self._restarting = asyncio.get_running_loop().create_task(self._restart())
             return
         kind = frame[:1]
-        if kind == b"a":
-            value = PoseReply(frame, self._result)
-        elif kind == b"p":
-            value = pickle.loads(frame[1:])
-        else:
-            value = WorkerError(frame[1:].decode(errors="replace"))
-        self._answer(self._waiting.popleft(), value, received)
-
-    @staticmethod
-    def _answer(waiter, value, received: float) -> None:
-        if isinstance(waiter, asyncio.Future):
-            if waiter.cancelled():
-                return
+        if kind == b"r":
+            return self.on_report(*pickle.loads(frame[1:]))
+        value = pickle.loads(frame[1:]) if kind == b"p" else WorkerError(frame[1:].decode(errors="replace"))
+        waiter = self._waiting.popleft()
+        if not isinstance(waiter, asyncio.Future):
+            waiter(value)
+        elif not waiter.cancelled():
             if isinstance(value, WorkerError):
                 waiter.set_exception(value)
             else:
                 waiter.set_result(value)
-        else:
-            waiter(value, received)
 
-    def approximate(self, seq: int, t_s: float | None, position: np.ndarray, quat: np.ndarray, addr, done) -> None:
-        """Ask for a pose's approximation (position m, unit quaternion w first), its datagram sent by the worker
-        to addr; done(PoseReply or WorkerError, perf_counter s at its arrival) is called from the event loop
-        when the worker reports back. The worker must be alive (see `ensure_running`)."""
-        self._waiting.append(done)
-        self._conn.send_bytes(pose_request(seq, t_s, position, quat, addr))
+    def _fail_waiting(self, error: WorkerError) -> None:
+        """Requests it will never answer: nobody waits on them for ever."""
+        while self._waiting:
+            waiter = self._waiting.popleft()
+            if isinstance(waiter, asyncio.Future) and not waiter.done():
+                waiter.set_exception(error)
 
-    def approximation(self, reply: PoseReply) -> Approximation:
-        return decode_approximation(self.spec, self.variant, reply.values)
+    def _post(self, request: tuple, waiter) -> None:
+        try:
+            self._conn.send_bytes(b"p" + pickle.dumps(request))
+        except OSError:  # it died; the pipe's end is read next, and it is restarted then
+            raise WorkerError("the approximation worker has gone; it is being restarted") from None
+        self._waiting.append(waiter)
 
-    async def ensure_running(self) -> None:
-        """A worker that died (a crash of compiled code on some input) is started again, with the last target
-        it took. WorkerError if the worker was never started or has been stopped."""
-        if self._proc is None:
-            raise WorkerError("the approximation worker is not running")
-        if not self._proc.is_alive():
-            await self._restart()
+    def tell(self, *request) -> None:
+        """Send a request whose reply nobody awaits ("session": sent before this returns, so before anything the
+        caller sends next); a restarted worker gets it too."""
+        self._replay[request[0]] = request
+        if self._proc is not None and self._restarting is None:
+            try:
+                self._post(request, lambda value: None)
+            except WorkerError:
+                pass  # the restart replays it
 
     async def call(self, *request):
-        """Send one pickled request ("target" or "field") and await its reply; WorkerError if refused."""
-        await self.ensure_running()
+        """Send one request ("target", "latest", "stats", "field") and await its reply; WorkerError if refused, or
+        if the worker was never started, has been stopped, or died on it."""
+        if self._proc is None:
+            raise WorkerError("the approximation worker is not running")
+        if self._restarting is not None:
+            await asyncio.shield(self._restarting)
         value = await self._send(request)
         if request[0] == "target":
-            self._target = request
+            self._replay["target"] = request
         return value
 
-    async def _send(self, request):
+    async def _send(self, request: tuple):
         future = asyncio.get_running_loop().create_future()
-        self._waiting.append(future)
-        self._conn.send_bytes(b"p" + pickle.dumps(request))
+        self._post(request, future)
         return await future
 
     async def _restart(self) -> None:
-        self.stop()
-        self.restarts += 1
-        print(f"vrscroll serve: the approximation worker died (exit {self._exitcode}); restart {self.restarts}",
-              file=sys.stderr, flush=True)
-        self.start()
-        if self._target is not None:
-            await self._send(self._target)
+        try:
+            self._close()
+            self.restarts += 1
+            print(f"vrscroll serve: the approximation worker died (exit {self._exitcode}); restart {self.restarts}",
+                  file=sys.stderr, flush=True)
+            self.start()
+            for request in list(self._replay.values()):
+                await self._send(request)
+        except WorkerError as exc:
+            print(f"vrscroll serve: the restarted approximation worker refused its state: {exc}", file=sys.stderr,
+                  flush=True)
+        finally:
+            self._restarting = None
+
+    def approximation(self, values: tuple) -> Approximation:
+        return decode_approximation(self.spec, self.variant, values)
 
     def stop(self) -> None:
+        if self._restarting is not None:
+            self._restarting.cancel()
+            self._restarting = None
+        self._close()
+
+    def _close(self) -> None:
         if self._proc is None:
             return
         try:
@@ -284,6 +338,4 @@ class Worker:
             self._proc.join(timeout=5)
         self._exitcode = self._proc.exitcode
         self._proc = None
-        stopped = WorkerError("the approximation worker was stopped")
-        while self._waiting:  # requests it never answered: nobody waits on them for ever
-            self._answer(self._waiting.popleft(), stopped, time.perf_counter())
+        self._fail_waiting(WorkerError("the approximation worker was stopped"))

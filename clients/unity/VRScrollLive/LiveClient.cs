@@ -12,6 +12,7 @@ using System;
 using System.Collections.Concurrent;
 using System.Collections.Generic;
 using System.Diagnostics;
+using System.Net;
 using System.Net.Sockets;
 using System.Net.WebSockets;
 using System.Text;
@@ -27,7 +28,7 @@ namespace VRScroll.Live
 
     public class LiveClient : IDisposable
     {
-        public const int ProtocolVersion = 2;
+        public const int ProtocolVersion = 3;
         const int MaxQueued = 4096;
 
         readonly Uri url;
@@ -40,6 +41,7 @@ namespace VRScroll.Live
         readonly SemaphoreSlim eventSignal = new SemaphoreSlim(0);
         readonly Stopwatch clock = Stopwatch.StartNew();
         UdpClient udp;
+        IPEndPoint poseEndPoint;  // the worker's port (protocol 3): poses go there, pens to udp_port
         Task controlReceiver, datagramReceiver;
         long poseSeq, penSeq;
         volatile Dictionary<string, object> latestApproximation;
@@ -75,6 +77,9 @@ namespace VRScroll.Live
             if (role == "control")
             {
                 udp = new UdpClient(url.Host == "localhost" ? "127.0.0.1" : url.Host, Convert.ToInt32(Welcome["udp_port"]));
+                // every reply comes from udp_port (the connected address); poses are sent past it, to pose_port
+                var service = (IPEndPoint)udp.Client.RemoteEndPoint;
+                poseEndPoint = new IPEndPoint(service.Address, Convert.ToInt32(Welcome["pose_port"]));
                 datagramReceiver = ReceiveDatagrams();
             }
             return Welcome;
@@ -176,9 +181,11 @@ namespace VRScroll.Live
             return SendSample("pen", ref penSeq, positionMm, quatWxyz, devicePositionMm, deviceQuatWxyz);
         }
 
-        public void SendRawDatagram(byte[] data)
+        /// Any bytes, to the port pens go to (udp_port), or with toPosePort to the one poses go to.
+        public void SendRawDatagram(byte[] data, bool toPosePort = false)
         {
-            udp.Send(data, data.Length);
+            if (toPosePort) udp.Client.SendTo(data, poseEndPoint);
+            else udp.Send(data, data.Length);
         }
 
         long SendSample(string type, ref long seq, double[] position, double[] quat, double[] devicePosition, double[] deviceQuat)
@@ -191,8 +198,7 @@ namespace VRScroll.Live
                 sample["device_position_mm"] = devicePosition;
                 sample["device_quat_wxyz"] = deviceQuat;
             }
-            var bytes = Encoding.UTF8.GetBytes(Json.Write(sample));
-            udp.Send(bytes, bytes.Length);
+            SendRawDatagram(Encoding.UTF8.GetBytes(Json.Write(sample)), type == "pose");
             return seq++;
         }
 
