@@ -158,6 +158,9 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
     out = {"sent": {}, "status": None, "waits": {}}
     async with LiveClient(url, protocol=protocol) as client:
         await client.set_target(shape=shape)
+        processes = pids()
+        # under SCHED_FIFO from the settling on: the service's per-stage figures (its last 2,000 samples) are all so
+        prioritise([pid for name, pid in processes.items() if name != "emulator"], fifo)  # not on the way
         for k in range(45):  # settle: half a second of poses, not measured
             client.send_pose(*hover(start, k / POSE_HZ))
             await asyncio.sleep(1 / POSE_HZ)
@@ -166,8 +169,6 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         client.drain("estimates")
 
         hold_collection()  # this client's garbage collected before each send, not amid a round trip it times
-        processes = pids()
-        prioritise([pid for name, pid in processes.items() if name != "emulator"], fifo)  # not on the way
         ran = {name: schedstat(pid) for name, pid in processes.items()}
         sent, t0 = 0, time.perf_counter()
         while (t := time.perf_counter() - t0) < seconds:
@@ -271,8 +272,14 @@ def session(args, code=None) -> dict:
                                  capture_output=True, text=True, timeout=120 + 2 * args.seconds)
             seen = json.loads(run.stdout.strip().splitlines()[-1]) if run.returncode == 0 else {}
             m["csharp"] = {"pose_ms": seen.get("measure_pose_ms"), "pen_ms": seen.get("measure_pen_ms"),
-                           "error": None if seen else (run.stderr.strip() or run.stdout.strip())[-300:]}
+                           "error": None if seen else error_text(run)}
         return m
+
+
+def error_text(run: subprocess.CompletedProcess) -> str:
+    """A failed C# run in a few lines: its exit status, the start and the end of what it said."""
+    said = (run.stderr.strip() or run.stdout.strip())
+    return f"exit {run.returncode}: " + (said if len(said) <= 700 else f"{said[:400]} ... {said[-300:]}")
 
 
 def csharp_line(m: dict) -> str:

@@ -46,9 +46,8 @@ import time
 
 import numpy as np
 import trimesh
-from scipy.spatial.transform import Rotation
 
-from twin.device.kinematics import pose_matrix
+from twin.device.kinematics import pose_matrix, quat_matrix
 from twin.device.spec import DeviceSpec
 from twin.formats.target import approximation_json
 from twin.live.collection import collect_if_due, hold_collection
@@ -99,7 +98,7 @@ class _Poses:
         frame estimates' datagram."""
         sample, addr, arrived, taken, parsed = pose
         started = time.perf_counter()
-        pose_4x4 = pose_matrix(sample.position, Rotation.from_quat(sample.quat, scalar_first=True).as_matrix())
+        pose_4x4 = pose_matrix(sample.position, quat_matrix(sample.quat))
         try:
             approx = approximate(fields, pose_4x4, self.spec, self.variant)
         except Exception as exc:  # the compiled code refused this pose: the client is told, the worker goes on
