@@ -276,11 +276,11 @@ class Worker:
         """Send a request whose reply nobody awaits ("session": sent before this returns, so before anything the
         caller sends next); a restarted worker gets it too."""
         self._replay[request[0]] = request
-        if self._proc is not None and self._restarting is None:
+        if self._proc is not None:
             try:
                 self._post(request, lambda value: None)
             except WorkerError:
-                pass  # the restart replays it
+                pass  # it died: the restart replays it
 
     async def call(self, *request):
         """Send one request ("target", "latest", "stats", "field") and await its reply; WorkerError if refused, or
@@ -306,8 +306,8 @@ class Worker:
             print(f"vrscroll serve: the approximation worker died (exit {self._exitcode}); restart {self.restarts}",
                   file=sys.stderr, flush=True)
             self.start()
-            for request in list(self._replay.values()):
-                await self._send(request)
+            for kind in list(self._replay):  # each as it is when sent: a newer one told meanwhile is not undone
+                await self._send(self._replay[kind])
         except WorkerError as exc:
             print(f"vrscroll serve: the restarted approximation worker refused its state: {exc}", file=sys.stderr,
                   flush=True)
