@@ -10,6 +10,7 @@ of the worker that decides which pose is approximated next:
   service named (the controlling client's secret) and the stream's newest sequence number;
 - the newest valid pose is kept (memory: one pose) and goes when the rate limit lets it (a token bucket:
   at most APPROXIMATION_RATE_HZ on average, RATE_BURST back to back);
+- datagrams the kernel dropped (the socket's buffer full, in a flood) are counted too (SO_RXQ_OVFL);
 - errors are counted, and reported (to the service, which tells the controlling client) at most once per
   ERROR_INTERVAL per code, with the count since the last report, and only for datagrams from where the
   controller's valid poses come from.
@@ -28,9 +29,12 @@ from twin.live.messages import APPROXIMATION_RATE_HZ, ERROR_INTERVAL, MAX_DATAGR
 
 RATE_BURST = 2.0  # approximations the rate limit lets through back to back (poses at 90 Hz jitter)
 DRAIN_MAX = 256  # datagrams taken off the socket in one go: a flood cannot keep the pipe's requests waiting
-SO_TIMESTAMPNS = 35  # Linux's socket option (asm-generic/socket.h; Python does not name it): each datagram's
-# arrival time in the kernel (CLOCK_REALTIME, a struct timespec), in its ancillary data
+# Linux's socket options (asm-generic/socket.h; Python names neither), each in a datagram's ancillary data:
+SO_TIMESTAMPNS = 35  # its arrival time in the kernel (CLOCK_REALTIME, a struct timespec)
+SO_RXQ_OVFL = 40  # how many datagrams the kernel has dropped on this socket so far (its buffer full: a flood)
 _TIMESPEC = struct.Struct("@qq")  # s, ns
+_DROPS = struct.Struct("@I")
+_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size) + socket.CMSG_SPACE(_DROPS.size)
 
 
 class PoseIntake:
@@ -56,7 +60,7 @@ class PoseIntake:
     def take(self, data: bytes, addr, arrived: float, taken: float) -> None:
         """One datagram from addr that reached the socket at `arrived` and was taken off it at `taken`
         (perf_counter s)."""
-        self.counts["datagrams"] += 1
+        self.counts["pose_datagrams"] += 1
         try:
             sample = parse_datagram(data)
             if sample.kind != "pose":
@@ -88,16 +92,19 @@ class PoseIntake:
         realtime_offset = time.time() - time.perf_counter()  # CLOCK_REALTIME -> perf_counter s
         for _ in range(DRAIN_MAX):
             try:
-                data, ancillary, _, addr = sock.recvmsg(MAX_DATAGRAM_BYTES + 1, socket.CMSG_SPACE(_TIMESPEC.size))
+                data, ancillary, _, addr = sock.recvmsg(MAX_DATAGRAM_BYTES + 1, _ANCILLARY)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:  # an ICMP error queued on the socket (a client gone): nothing to take
                 continue
-            taken = time.perf_counter()
-            arrived = next((s + ns * 1e-9 - realtime_offset for level, kind, value in ancillary
-                            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS
-                            for s, ns in [_TIMESPEC.unpack_from(value)]), taken)
-            self.take(data, addr, min(arrived, taken), taken)
+            taken = arrived = time.perf_counter()
+            for level, kind, value in ancillary:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                    s, ns = _TIMESPEC.unpack_from(value)
+                    arrived = min(s + ns * 1e-9 - realtime_offset, taken)
+                elif level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL:
+                    self.counts["pose_dropped"] = _DROPS.unpack_from(value)[0]  # since the socket was made
+            self.take(data, addr, arrived, taken)
 
     def wait_s(self, now: float) -> float | None:
         """s until the pending pose may go (0: now); None when no pose is pending."""
@@ -133,10 +140,11 @@ class PoseIntake:
 
 def pose_socket(host: str) -> socket.socket:
     """A datagram socket on host (any free port) for the worker's pose stream: non-blocking, each datagram
-    stamped with its arrival in the kernel."""
+    stamped with its arrival in the kernel and the count of those the kernel dropped so far."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_DGRAM)
     sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
     sock.setblocking(False)
     sock.bind((host, 0))
     return sock

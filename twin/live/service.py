@@ -209,6 +209,7 @@ class LiveService:
         """Start the worker, the initial target, the morpher and both sockets; ready(port) once serving."""
         loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
+        self._poses = pose_socket(self.config.host)  # before any client can be welcomed with its port
         self.worker.start()
         try:
             if self.config.shape or self.config.mesh:
@@ -222,7 +223,6 @@ class LiveService:
                 self.port = server.sockets[0].getsockname()[1]
                 self._udp, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self),
                                                                    local_addr=(self.config.host, self.port))
-                self._poses = pose_socket(self.config.host)
                 self.worker.share_sockets(self._udp.get_extra_info("socket"), self._poses)
                 if ready:
                     ready(self.port)
