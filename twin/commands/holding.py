@@ -65,7 +65,8 @@ def run(args) -> int:
             port = link.url
     except (GateRefused, DeviceNotReady) as exc:
         raise UserError(str(exc)) from None
-    fit = fit_backdrive(releases, spec, profile.hinges, profile.ranges() or prior_ranges(spec))
+    ranges = profile.ranges(prior_ranges(spec))
+    fit = fit_backdrive(releases, spec, profile.hinges, ranges)
     e = fit.estimate
     written = None
     if profile.name:
@@ -86,7 +87,7 @@ def run(args) -> int:
         return 0
     print(f"backdrive_efficiency {e.value:.3f} (prior {e.prior:.3f}; 95 % interval {e.low:.3f} .. {e.high:.3f}; "
           f"{'identifiable' if e.identifiable else 'NOT identifiable'}), {fit.replays} twin releases:\n  {e.note}"
-          + ("" if profile.ranges() else "\n  (an uncalibrated profile: the other parameters' ranges are the spec's "
+          + ("" if ranges.calibrated else "\n  (an uncalibrated profile: the other parameters' ranges are the spec's "
                                           "spread; `vrscroll calibrate` first narrows them)"))
     print(f"sag over {args.release_s:g} s per hinge, deg (mean of the releases):")
     for label, key in (("device", "device"), ("twin before", "twin_before"), ("twin after", "twin_after")):

@@ -41,6 +41,7 @@ from twin.device.variation import scaled
 from twin.hil.calibration import MAX_HALFWIDTH, Estimate, autocorrelation_time
 from twin.hil.mirror import DeviceNotReady, mirror, wait_for_rest
 from twin.link import protocol as P
+from twin.records.ranges import Ranges
 from twin.sim.twin import Twin
 
 RELEASE_S = 0.4  # s recorded after the e-stop: hinges 2-3 sag ~29 deg on the spec's twin, well within the hinge range
@@ -130,10 +131,10 @@ def with_values(plant: DeviceSpec, hinges, values: dict):
     return scaled(plant, scales), [scaled(h, scales) for h in hinges] if hinges else None
 
 
-def fit_backdrive(releases: list[Release], plant: DeviceSpec, hinges=None, ranges: dict | None = None) -> HoldingFit:
+def fit_backdrive(releases: list[Release], plant: DeviceSpec, hinges=None, ranges: Ranges | None = None) -> HoldingFit:
     """backdrive_efficiency from releases (module docstring), about the plant's value (its prior). ranges:
-    what is known of the other parameters, {field: (low, high) SI} (a calibration's intervals): the
-    interval is widened by how far each would move the fit from either end of its range."""
+    what is known of the other parameters (a calibration's intervals, SI): the interval is widened by how far
+    each would move the fit from either end of its shared range."""
     count = [0]
 
     def residual(x: float, p: DeviceSpec, h) -> list[np.ndarray]:
@@ -163,7 +164,8 @@ def fit_backdrive(releases: list[Release], plant: DeviceSpec, hinges=None, range
 
     down, up = min(edge(lo) - x, -SEARCH_TOL), max(edge(hi) - x, SEARCH_TOL)  # log, the fit's own interval
     moved = []
-    others = {f: ends for f, ends in (ranges or {}).items() if f != "backdrive_efficiency"}
+    others = {f: ends for f, ends in (ranges.shared if ranges else {}).items()
+              if f != "backdrive_efficiency"}
     for f, ends in others.items():  # each other parameter at either end of its range, the fit again
         shifts = [best(*with_values(plant, hinges, {f: v}))[0] - x for v in ends]
         down, up = down + min(0.0, *shifts), up + max(0.0, *shifts)
