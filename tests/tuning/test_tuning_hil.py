@@ -19,14 +19,15 @@ from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
 from twin.formats.gains import read_gains, write_gains
 from twin.formats.run import read_run, write_run_meta
+from twin.formats.scenario import write_scenario
 from twin.formats.trace import TraceWriter, read_trace
 from twin.hil.calibration import trace_rmse
 from twin.hil.calibration_verdict import held_out_improved
 from twin.hil.compare import compare
 from twin.hil.device_gains import device_gains
 from twin.hil.mirror import device_step, mirror
-from twin.hil.shared_plant import (ALIKE, SCENARIO, SHARED_BACKLASH_DEG, SHARED_PLANT, SHARED_SCALES, record_soft,
-                                   shared_truth)
+from twin.hil.shared_plant import (ALIKE, SHARED_BACKLASH_DEG, SHARED_PLANT, SHARED_SCALES, record_soft,
+                                   shared_truth, training_scenario)
 from twin.link import protocol as P
 from twin.link.serial_link import Link
 from twin.records.gains import Gains
@@ -164,7 +165,7 @@ def test_tuned_gains_on_the_emulator_settle_as_the_twin_predicts(tuned, emulator
 def test_hil_interrupted_half_way_keeps_both_traces(emulator, tmp_path):
     emu = emulator()
     scen = tmp_path / "steps.toml"
-    scen.write_text(SCENARIO.format(duration=3.0, t1=1.0, t2=2.0))
+    write_scenario(scen, training_scenario(3.0, 1.0, 2.0))
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "twin.cli", "hil", str(scen), "--serial", emu.port, "--out", str(out)],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -191,7 +192,7 @@ def test_hil_interrupted_half_way_keeps_both_traces(emulator, tmp_path):
 def test_hil_command_writes_report(emulator, tmp_path, capsys):
     emu = emulator()
     scen = tmp_path / "s.toml"
-    scen.write_text(SCENARIO.format(duration=1.2, t1=0.4, t2=0.8))
+    write_scenario(scen, training_scenario(1.2, 0.4, 0.8))
     out = tmp_path / "run"
     assert vrscroll(["hil", str(scen), "--serial", emu.port, "--out", str(out)]) == 0
     report = (out / "report.md").read_text()
