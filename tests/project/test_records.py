@@ -183,7 +183,8 @@ def test_a_gains_file_is_written_whole_and_reads_back_as_the_record(spec, tmp_pa
 def test_a_profiles_ranges_are_one_record_its_hinges_own_inside(spec):
     """A per-hinge calibration's intervals are one Ranges (the shared values' and each hinge's own, the twin's
     values that reproduce the runs); uncalibrated, the spread about the spec or the tuner's tolerance are Ranges
-    too, and a calibration of each hinge's values only takes its shared ones from them; corners spans them: the nominal and 2^k corners, each hinge at its own intervals' ends."""
+    too, and a calibration of each hinge's values only takes its shared ones from them; corners spans them: the
+    nominal and 2^k corners, each hinge at its own intervals' ends."""
     speed = spec.no_load_speed
     own = [0.8, 1.0, 1.2, 0.9, 1.1, 1.05]
     hinges = [{"no_load_speed": Estimate(speed * x, speed, speed * x * 0.9, speed * x * 1.1, True, "test",
