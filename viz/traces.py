@@ -65,7 +65,11 @@ def hinge_figure(path, title: str, series: list[tuple[str, object]], hinges, ban
         for ax in axes[:, c]:
             ax.grid(True, lw=0.3)
     fig.suptitle(title + ("; dotted: settle time (docs/device.md)" if settle else ""), fontsize=11)
-    fig.tight_layout()
+    # fixed margins (in): room for the tick labels and titles, not measured from a draw as tight_layout does, which
+    # draws every axis once more before the PNG's own draw: half the figure's time (1.1 -> 0.5 s for six hinges)
+    width, height = fig.get_size_inches()
+    fig.subplots_adjust(left=0.8 / width, right=1 - 0.15 / width, bottom=0.55 / height, top=1 - 0.75 / height,
+                        hspace=0.22, wspace=0.28)
     path = Path(path)
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -87,8 +87,8 @@ def test_calibrate_serial_writes_each_hinges_values_into_the_profile_and_tune_re
         assert e["low"] <= truth <= e["high"]
     profile = select_profile("flat4")
     assert profile.mount == "flat"  # as the experiments ran: later commands hold the twin on its table
-    assert profile.hinge_ranges() == [{p: (h["parameters"][p]["low"], h["parameters"][p]["high"]) for p in PROFILED}
-                                      for h in out["hinges"]]
+    assert profile.ranges().hinges == tuple({p: (h["parameters"][p]["low"], h["parameters"][p]["high"])
+                                             for p in PROFILED} for h in out["hinges"])
     rc = vrscroll(["tune", "--device", "flat4", "--population", "8", "--generations", "2", "--json", "-"])
     tuned = json.loads(capsys.readouterr().out)
     assert set(tuned["goal"]["ranges"]) == set(PROFILED)

@@ -13,6 +13,7 @@ from twin.hil.holding import Release, fit_backdrive, sag_after_cut, twin_release
 from twin.link import protocol as P
 from twin.link.drawn_plant import drawn_plant
 from twin.link.serial_link import Link
+from twin.records.ranges import Ranges
 from twin.sim.twin import Twin
 
 
@@ -37,7 +38,7 @@ def test_the_fit_finds_the_value_of_a_plant_it_can_represent():
     assert fit.sag_deg["twin_after"] == pytest.approx(fit.sag_deg["device"], abs=0.3)
     assert abs(fit.sag_deg["twin_before"][2] - fit.sag_deg["device"][2]) > 3.0  # 0.5 sags visibly faster
     speed = spec.no_load_speed
-    wide = fit_backdrive(releases, spec, ranges={"no_load_speed": (speed * 0.7, speed * 1.3)}).estimate
+    wide = fit_backdrive(releases, spec, ranges=Ranges({"no_load_speed": (speed * 0.7, speed * 1.3)}, "test")).estimate
     assert wide.low < e.low and wide.high > e.high and not wide.identifiable
     assert wide.low <= truth <= wide.high and "no_load_speed" in wide.note
 

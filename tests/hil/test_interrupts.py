@@ -11,18 +11,11 @@ import time
 import pytest
 
 from twin.link import protocol as P
+from twin.formats.scenario import scenario_of_steps, write_scenario
 from twin.link.serial_link import Link
 from twin.paths import cli_command, cli_env
 
-LONG = """name = "long"
-duration_s = 6.0
-[[step]]
-t_s = 0.0
-angles_deg = [30, 20, 10, 10, 20, 30]
-[[step]]
-t_s = 3.0
-angles_deg = [5, 40, 25, 0, -10, 60]
-"""
+LONG = scenario_of_steps("long", [(0.0, [30, 20, 10, 10, 20, 30]), (3.0, [5, 40, 25, 0, -10, 60])], 6.0)
 
 
 def _rx(emu, name: str) -> list[dict]:
@@ -77,7 +70,7 @@ def _assert_e_stopped(emu, moved_at):
 def test_an_interrupt_e_stops_the_device(command, sig, emulator, tmp_path):
     emu = emulator("--speed-scale", "0.3")  # slow: the move is still under way when interrupted
     scenario = tmp_path / "s.toml"
-    scenario.write_text(LONG)
+    write_scenario(scenario, LONG)
     # a tolerance no slow plant exceeds: the command is still watching the move when the signal comes
     args = {"mirror": MIRROR, "hil": ["hil", str(scenario), "--out", str(tmp_path / "run"), "--tolerance-deg", "170"]}
     proc, moved_at = _start_moving(args[command], emu, tmp_path)

@@ -11,7 +11,7 @@ from controllers.pid import PidGains
 from twin.cli import main as vrscroll
 from twin.commands.options import select_profile
 from twin.device.mount import table_height
-from twin.formats.scenario import read_scenario
+from twin.formats.scenario import read_scenario, scenario_of_steps, write_scenario
 from twin.formats.trace import read_trace
 from twin.hil.mirror import TIME_SLACK
 from twin.link import protocol as P
@@ -103,15 +103,7 @@ def test_the_mount_is_recorded_in_the_profile_and_old_profiles_hang(capsys, devi
     assert rc == 2 and "mount" in err and "hanging, flat, stand" in err and err.count("\n") == 1, err
 
 
-STEPS = """name = "later"
-duration_s = 1.2
-[[step]]
-t_s = 0.0
-angles_deg = [20, 10, 0, 0, 10, 20]
-[[step]]
-t_s = 0.6
-angles_deg = [20, 10, 30, 0, 10, 20]
-"""
+STEPS = scenario_of_steps("later", [(0.0, [20, 10, 0, 0, 10, 20]), (0.6, [20, 10, 30, 0, 10, 20])], 1.2)
 
 
 def test_hil_estops_on_a_jammed_hinge_within_its_tolerance_and_names_it(emulator, tmp_path, capsys):
@@ -120,7 +112,7 @@ def test_hil_estops_on_a_jammed_hinge_within_its_tolerance_and_names_it(emulator
     stopped, up to there; the device had parted from the twin by the tolerance and a frame's motion, not by
     what the scenario would have made of it."""
     emu = emulator("--lying-flat", "--jam-hinge", "2", "--jam-after-s", "0")
-    (tmp_path / "later.toml").write_text(STEPS)
+    write_scenario(tmp_path / "later.toml", STEPS)
     tol = 5.0
     rc, out, err = _run(capsys, "hil", str(tmp_path / "later.toml"), "--serial", emu.port, "--out",
                         str(tmp_path / "run"), "--tolerance-deg", str(tol), "--mount", "flat")

@@ -16,7 +16,9 @@ from twin.device.variation import corners, scaled
 from twin.live.morph import TwinMorpher
 from twin.formats.profile import read_profile, spec_defaults, updated, write_profile
 from twin.records.calibration import Calibration, Estimate
+from twin.records.gains import Gains
 from twin.records.profile import Holding
+from twin.records.ranges import Ranges
 from twin.tuning.tuner import RobustEvaluator, TuneGoal
 
 ONE_STEP = """name = "one"
@@ -71,7 +73,7 @@ def test_device_selects_a_profile_and_it_is_remembered(capsys, spec):
 def test_a_profiles_gains_are_the_twins(capsys, spec, device_profiles):
     _run(capsys, "device", "create", "soft")
     soft = PidGains.from_spec(spec).replace(kp=0.003, ki=0.0, kd=0.0)
-    write_gains(device_profiles / "soft" / "gains.json", [soft] * spec.n_hinges)
+    write_gains(device_profiles / "soft" / "gains.json", Gains([soft] * spec.n_hinges))
     assert read_profile(device_profiles / "soft").gains == [soft] * spec.n_hinges
     rc, out, _ = _run(capsys, "simulate", "30", "30", "30", "30", "30", "30", "--json", "-", "--device", "soft",
                       "--max-time-s", "1.0")
@@ -137,16 +139,17 @@ def test_tuning_a_profile_calibrated_per_hinge_scores_each_hinge_on_its_own_plan
     calibration = Calibration(["test"], {}, _hinge_estimates(spec, 4, 0.6))
     write_profile_values("uneven", {}, "test", calibration=calibration)
     profile = read_profile(device_profiles / "uneven")
-    ranges = {"no_load_speed": (spec.no_load_speed * 0.9, spec.no_load_speed * 1.1)}
-    uneven = TuneGoal(ranges=ranges, hinges=tuple(profile.hinges), hinge_ranges=profile.hinge_ranges())
-    plants = corners(spec, ranges, uneven.hinges, uneven.hinge_ranges)
+    shared_ranges = {"no_load_speed": (spec.no_load_speed * 0.9, spec.no_load_speed * 1.1)}
+    ranges = profile.ranges(Ranges(shared_ranges, "test"))
+    uneven = TuneGoal(ranges=ranges, hinges=tuple(profile.hinges))
+    plants = corners(spec, ranges, uneven.hinges)
     assert [p.hinges[4].no_load_speed / spec.no_load_speed for p in plants] == pytest.approx([0.6, 0.57, 0.63])
     assert [p.hinges[1].no_load_speed / spec.no_load_speed for p in plants] == pytest.approx([1.0, 0.95, 1.05])
     assert [p.spec.no_load_speed / spec.no_load_speed for p in plants] == pytest.approx([1.0, 0.9, 1.1])
     gains = PidGains.from_spec(spec)
     kp, ki, kd = (np.full((1, spec.n_hinges), getattr(gains, k)) for k in ("kp", "ki", "kd"))
     own, _ = RobustEvaluator(spec, uneven, 1).costs(kp, ki, kd)  # (1, plant, hinge), s
-    shared, _ = RobustEvaluator(spec, TuneGoal(ranges=ranges), 1).costs(kp, ki, kd)
+    shared, _ = RobustEvaluator(spec, TuneGoal(ranges=Ranges(shared_ranges, "test")), 1).costs(kp, ki, kd)
     assert np.all(own[0, :, 4] > shared[0, :, 4] + 0.01), (own[0, :, 4], shared[0, :, 4])
     assert own[0, :, 1] == pytest.approx(shared[0, :, 1], abs=5e-3)
     out = _run(capsys, "tune", "--device", "uneven", "--population", "4", "--generations", "1", "--json", "t.json")[1]

@@ -20,7 +20,7 @@ from rerun_read import read_rrd
 from twin.cli import main as vrscroll
 from twin.device.mjcf import load_model
 from twin.formats.run import read_run
-from twin.formats.scenario import read_scenario
+from twin.formats.scenario import read_scenario, scenario_of_steps, write_scenario
 from twin.hil.compare import METRICS, compare
 from twin.hil.mirror import mirror
 from twin.hil.record import run_hil
@@ -32,15 +32,7 @@ from twin.sim.response import move_settle_time, settle_time
 from viz.render import FPS, SIZE, DeviceCamera
 from viz.viewer import TWIN_ALPHA, pair_model, run_frames
 
-TWO_STEPS = """name = "two"
-duration_s = 1.2
-[[step]]
-t_s = 0.0
-angles_deg = [20, 10, 5, 5, 10, 20]
-[[step]]
-t_s = 0.6
-angles_deg = [-15, 30, -20, 15, 0, -25]
-"""
+TWO_STEPS = scenario_of_steps("two", [(0.0, [20, 10, 5, 5, 10, 20]), (0.6, [-15, 30, -20, 15, 0, -25])], 1.2)
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +42,7 @@ def runs(tmp_path_factory, spec):
     folder = tmp_path_factory.mktemp("runs")
     emu = EmulatorProcess(folder / "emulator.jsonl", *FIXED_PLANT, "--zeroed")
     try:
-        (folder / "s.toml").write_text(TWO_STEPS)
+        write_scenario(folder / "s.toml", TWO_STEPS)
         with Link(emu.port) as link:
             assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
             for name in "ab":
@@ -266,7 +258,7 @@ def test_mirror_simulate_and_a_move_on_a_target_write_rerun_recordings(spec, emu
 def test_a_run_the_device_stopped_names_the_fault_and_can_still_be_watched(emulator, tmp_path, spec, monkeypatch,
                                                                            capsys):
     emu = emulator("--jam-hinge", "2", "--jam-after-s", "0.3")  # hinge 2 jams mid-run: the device's stall check stops it
-    (tmp_path / "s.toml").write_text(TWO_STEPS)
+    write_scenario(tmp_path / "s.toml", TWO_STEPS)
     # (a tolerance no hinge reaches: at the default 5 deg the host's divergence stop comes first, test_mount.py's)
     assert vrscroll(["hil", str(tmp_path / "s.toml"), "--serial", emu.port, "--out", str(tmp_path / "run"),
                      "--tolerance-deg", "90"]) == 2

@@ -207,7 +207,8 @@ def test_redirect_command_writes_the_samples_and_the_picture(stairs, tmp_path, c
     assert len(rows) == 50 and rows[0]["t_s"] == "0.0"
     field = build_field(SPEC, *(lambda a: (a.root_pose, a.angles, a.widths))(read_approximation(approx_json, SPEC)),
                         mesh, fields)
-    expected = redirect(field, *read_pen_samples(pens)[1:3])
+    samples = read_pen_samples(pens)
+    expected = redirect(field, samples.position, samples.orientation)
     got = np.array([[float(r[f"virtual_{c}_mm"]) for c in "xyz"] for r in rows]) / 1e3
     assert np.abs(got - expected.position).max() < 1e-6
     assert [int(r["within_thresholds"]) for r in rows] == within_samples(expected).astype(int).tolist()

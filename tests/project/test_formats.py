@@ -16,6 +16,7 @@ from twin.device.spec_toml import write_spec_toml
 from twin.formats.target import read_approximation, read_target, write_approximation
 from twin.formats.trace import TWIN_COLUMNS, TraceWriter, read_trace
 from twin.formats.trials import read_trials, write_trials
+from twin.records.gains import Gains
 from controllers.pid import GAIN_BOUNDS
 
 SPEC = load_spec()
@@ -37,8 +38,8 @@ def test_gains_round_trip_anywhere_in_the_bounds(tmp_path):
     rng = np.random.default_rng(7)
     for i in range(5):
         gains = random_gains(rng)
-        write_gains(tmp_path / f"g{i}.json", gains, {"seed": 7})
-        assert read_gains(tmp_path / f"g{i}.json", N) == gains
+        write_gains(tmp_path / f"g{i}.json", Gains(gains, {"seed": 7}))
+        assert read_gains(tmp_path / f"g{i}.json", N) == Gains(gains, {"seed": 7})
 
 
 def _gains_doc():
@@ -73,7 +74,7 @@ def test_gains_outside_the_bounds_are_not_written(tmp_path):
     gains = [PidGains.from_spec(SPEC)] * N
     gains[5] = gains[5].replace(derivative_cutoff=900.0)  # above the 1 kHz loop's Nyquist rate
     with pytest.raises(ValueError, match="hinge 5: derivative_cutoff_hz = 900"):
-        write_gains(tmp_path / "g.json", gains)
+        write_gains(tmp_path / "g.json", Gains(gains))
     assert not (tmp_path / "g.json").exists()
 
 
@@ -269,7 +270,7 @@ def _run(folder, status="complete"):
                             "before": {"state": "IDLE", "counts": [0] * N, "target_counts": [0] * N},
                             "changes": [{"t_s": 0.0, "angles_deg": [10] * N}], "status": status})
     _trace(folder / "device.csv", rows=20)
-    write_gains(folder / "gains.json", [PidGains.from_spec(SPEC)] * N)
+    write_gains(folder / "gains.json", Gains([PidGains.from_spec(SPEC)] * N))
     return folder
 
 

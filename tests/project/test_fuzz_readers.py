@@ -23,6 +23,7 @@ from twin.formats.target import read_approximation, read_target
 from twin.formats.trace import read_trace
 from twin.formats.trials import read_trials
 from twin.morphpatch.shapes import shape_names
+from twin.records.gains import Gains
 
 SPEC = load_spec()
 
@@ -148,7 +149,7 @@ def _valid_files(tmp_path) -> dict:
     import tomllib
 
     out = {}
-    write_gains(tmp_path / "gains.json", [PidGains.from_spec(SPEC)] * SPEC.n_hinges)
+    write_gains(tmp_path / "gains.json", Gains([PidGains.from_spec(SPEC)] * SPEC.n_hinges))
     write_scenario(tmp_path / "scenario.toml", Scenario("s", [0.0] * 6, [0.0, 0.5], [[0.1] * 6, [0.2] * 6], 1.0))
     (tmp_path / "scenario.json").write_text(json.dumps(tomllib.loads((tmp_path / "scenario.toml").read_text())))
     write_sweep(tmp_path / "sweep.toml", ["cube"], 2, 0, ["full"], {"flap_gap": [0.001, 0.002]})

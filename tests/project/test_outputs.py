@@ -23,9 +23,10 @@ from twin.formats.sweep import write_sweep
 from twin.formats.target import write_approximation
 from twin.formats.trials import write_trials
 from twin.paths import cli_command, cli_env, replacing
+from twin.records.gains import Gains
 
 WRITERS = {
-    "gains": lambda p, spec: write_gains(p, [PidGains.from_spec(spec)] * spec.n_hinges),
+    "gains": lambda p, spec: write_gains(p, Gains([PidGains.from_spec(spec)] * spec.n_hinges)),
     "scenario": lambda p, spec: write_scenario(p, Scenario("s", [0.0] * 6, [0.0], [[0.1] * 6], 1.0)),
     "spec": lambda p, spec: write_spec_toml(p, SPEC_PATH, {}, "test"),
     "trials": lambda p, spec: write_trials(p, [{"participant": "a", "condition": 1.0, "natural": True,
@@ -80,7 +81,7 @@ def test_a_fifo_nobody_reads_is_refused_at_once(writer, tmp_path, spec):
 def test_a_character_device_is_written_in_place(tmp_path, spec):
     with replacing("/dev/null") as tmp:
         assert str(tmp) == "/dev/null"
-    write_gains("/dev/null", [PidGains.from_spec(spec)] * spec.n_hinges)
+    write_gains("/dev/null", Gains([PidGains.from_spec(spec)] * spec.n_hinges))
     assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
 
 
@@ -91,7 +92,7 @@ def test_a_folder_or_a_socket_is_refused(tmp_path, spec):
     try:
         for name, kind in (("folder", "a folder"), ("sock", "a socket")):
             with pytest.raises(ValueError, match=kind):
-                write_gains(tmp_path / name, [PidGains.from_spec(spec)] * spec.n_hinges)
+                write_gains(tmp_path / name, Gains([PidGains.from_spec(spec)] * spec.n_hinges))
     finally:
         server.close()
     assert stat.S_ISSOCK(os.stat(tmp_path / "sock").st_mode)
@@ -100,8 +101,8 @@ def test_a_folder_or_a_socket_is_refused(tmp_path, spec):
 def test_a_regular_file_is_still_replaced_whole(tmp_path, spec):
     path = tmp_path / "g.json"
     path.write_text("old")
-    write_gains(path, [PidGains.from_spec(spec)] * spec.n_hinges)
-    assert len(read_gains(path, spec.n_hinges)) == spec.n_hinges
+    write_gains(path, Gains([PidGains.from_spec(spec)] * spec.n_hinges))
+    assert len(read_gains(path, spec.n_hinges).hinges) == spec.n_hinges
 
 
 @pytest.mark.slow
@@ -147,7 +148,7 @@ def test_a_reader_that_reads_to_the_end_gets_the_whole_file(tmp_path, spec):
             deadline = time.monotonic() + 10
             while time.monotonic() < deadline:
                 try:  # refused until cat has the FIFO open
-                    write_gains(fifo, [PidGains.from_spec(spec)] * spec.n_hinges)
+                    write_gains(fifo, Gains([PidGains.from_spec(spec)] * spec.n_hinges))
                     done.append(True)
                     return
                 except ValueError:
@@ -160,4 +161,4 @@ def test_a_reader_that_reads_to_the_end_gets_the_whole_file(tmp_path, spec):
         cat.wait(10)
     finally:
         cat.kill()
-    assert len(read_gains(copy, spec.n_hinges)) == spec.n_hinges
+    assert len(read_gains(copy, spec.n_hinges).hinges) == spec.n_hinges

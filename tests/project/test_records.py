@@ -4,6 +4,7 @@ sits at the bottom of the contract, beside the device, and breaks it by reaching
 
 import importlib
 import inspect
+import json
 import pkgutil
 import re
 
@@ -11,25 +12,30 @@ import numpy as np
 import pytest
 
 import twin.formats
+from controllers.pid import PidGains
 from test_layers import copy_tree, lint_imports
 from twin.device.spec import spec_sources
+from twin.device.variation import corners, prior_ranges, tolerance_ranges
+from twin.formats.gains import read_gains, write_gains
 from twin.formats.move_report import move_rows
 from twin.formats.profile import read_profile, spec_defaults, updated, write_profile
 from twin.formats.target import approximation_json, read_approximation, write_approximation
 from twin.formats.trace import TraceWriter, read_trace, write_trace
 from twin.records.approximation import Approximation
 from twin.records.calibration import Calibration, Estimate
+from twin.records.gains import Gains
 from twin.records.move_report import MoveReport
 from twin.records.profile import Holding, Profile
+from twin.records.ranges import Ranges
 from twin.records.trace import Trace, joined
 from twin.sim.response import move_report, move_settle_time
 from twin.sim.twin import Twin
 
-RECORDS = ("Approximation", "Trace", "MoveReport", "Calibration", "Estimate", "Profile", "Holding")
+RECORDS = ("Approximation", "Trace", "MoveReport", "Calibration", "Estimate", "Profile", "Holding", "Gains", "Ranges",
+           "PenSamples")
 # functions of twin.formats that still return a dict, each with why: what issue 39 has not yet made a record
 NOT_YET = {
     "twin.formats.run.read_run_meta": "run.json before it is checked whole; read_run gives the Run record",
-    "twin.formats.pen.read_pen_samples": "the pen CSV's extra columns, passed through to the writer unread",
     "twin.formats.records.read_jsonl": "append-only logs of any JSON objects (sweep, Table 1): no one record",
     "twin.formats.sweep.read_records": "the sweep's records by key: JSON objects the sweep itself writes",
     "twin.formats.records.check_record": "one line of such a log, checked and given back as read",
@@ -152,10 +158,59 @@ def test_a_profile_is_written_whole_and_reads_back_as_the_record(spec, device_pr
     assert {f: s for f, s in back.sources.items() if f != "gear_friction"} == \
         {f: s for f, s in spec_sources().items() if f != "gear_friction"}
     assert [h.no_load_speed for h in back.hinges] == pytest.approx([h.no_load_speed for h in made.hinges], rel=1e-6)
-    assert back.ranges() == made.ranges() and back.hinge_ranges() == made.hinge_ranges()
+    assert back.ranges() == made.ranges()
     files = {p.name: p.read_bytes() for p in folder.iterdir()}
     write_profile(back)
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == files
+
+
+def test_a_gains_file_is_written_whole_and_reads_back_as_the_record(spec, tmp_path):
+    """write_gains takes the Gains record (each hinge's gains and what they were made for) and read_gains gives the
+    same record back, its meta included; a file whose meta is not an object is refused, naming it."""
+    rng = np.random.default_rng(3)
+    base = PidGains.from_spec(spec)
+    gains = Gains([base.replace(kp=base.kp * rng.uniform(0.5, 2), kd=base.kd * rng.uniform(0.5, 2))
+                   for _ in range(spec.n_hinges)], {"device_profile": "drawn", "goal": {"step_deg": 30.0}})
+    write_gains(tmp_path / "g.json", gains)
+    back = read_gains(tmp_path / "g.json", spec.n_hinges)
+    assert isinstance(back, Gains) and back == gains
+    doc = json.loads((tmp_path / "g.json").read_text())
+    (tmp_path / "bad.json").write_text(json.dumps({**doc, "meta": [1]}))
+    with pytest.raises(ValueError, match=r"bad.json: \"meta\" must be an object"):
+        read_gains(tmp_path / "bad.json", spec.n_hinges)
+
+
+def test_a_profiles_ranges_are_one_record_its_hinges_own_inside(spec):
+    """A per-hinge calibration's intervals are one Ranges (the shared values' and each hinge's own, the twin's
+    values that reproduce the runs); uncalibrated, the spread about the spec or the tuner's tolerance are Ranges
+    too, and a calibration of each hinge's values only takes its shared ones from them; corners spans them: the
+    nominal and 2^k corners, each hinge at its own intervals' ends."""
+    speed = spec.no_load_speed
+    own = [0.8, 1.0, 1.2, 0.9, 1.1, 1.05]
+    hinges = [{"no_load_speed": Estimate(speed * x, speed, speed * x * 0.9, speed * x * 1.1, True, "test",
+                                         runs_low=speed * x * 0.95, runs_high=speed * x * 1.05)} for x in own]
+    shared = {"no_load_speed": Estimate(speed, speed, speed * 0.8, speed * 1.2, True, "test"),
+              "gear_friction": Estimate(spec.gear_friction, spec.gear_friction, spec.gear_friction * 0.5,
+                                        spec.gear_friction * 2, False, "test")}
+    profile = updated(spec_defaults(), calibration=Calibration(["run"], shared, hinges))
+    ranges = profile.ranges()
+    assert isinstance(ranges, Ranges) and ranges.calibrated
+    assert ranges.shared == {p: (e.low, e.high) for p, e in shared.items()}
+    assert [r["no_load_speed"] for r in ranges.hinges] == [(speed * x * 0.95, speed * x * 1.05) for x in own]
+    plants = corners(spec, ranges, profile.hinges)
+    assert len(plants) == 1 + 2 ** 2
+    for plant in plants[1:]:  # each hinge at an end of its own interval, never the shared one's
+        for h, x in enumerate(own):
+            assert plant.hinges[h].no_load_speed / speed == pytest.approx(x * 0.95) or \
+                plant.hinges[h].no_load_speed / speed == pytest.approx(x * 1.05)
+    assert updated(spec_defaults()).ranges() is None
+    per_hinge_only = updated(spec_defaults(), calibration=Calibration(["run"], {}, hinges))
+    spread = per_hinge_only.ranges(prior_ranges(spec))  # the shared values as uncalibrated, each hinge its own
+    assert per_hinge_only.ranges() is None and not spread.calibrated
+    assert spread.shared == prior_ranges(spec).shared and spread.hinges == ranges.hinges
+    for uncalibrated in (prior_ranges(spec), tolerance_ranges(spec, 0.2)):
+        assert isinstance(uncalibrated, Ranges) and not uncalibrated.calibrated and uncalibrated.hinges is None
+        assert all(lo < getattr(spec, p) < hi for p, (lo, hi) in uncalibrated.shared.items())
 
 
 def test_the_record_layer_reaches_neither_up_nor_sideways(tmp_path):

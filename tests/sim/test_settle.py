@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from twin.sim.response import move_settle_time
-from twin.sim.settle import SettleTracker
+from twin.sim.settle import SettleTracker, hold_samples
 from twin.sim.twin import Twin
 
 
@@ -22,3 +22,18 @@ def test_the_twins_stop_a_tracker_and_the_recordings_settle_time_agree(spec, see
     stopped = Twin(spec).move_to(targets, max_time=1.0, stop_when_settled=True)  # the compiled loop's own stop
     assert np.array_equal(stopped.counts, whole.counts[:len(stopped.time)])
     assert stopped.time[-1] == pytest.approx(fed + spec.settle_hold - spec.firmware_dt, abs=1e-9)
+
+
+@pytest.mark.parametrize("period", [0.001, 0.002, 0.003, 0.0111])
+def test_the_compiled_loops_hold_count_is_the_trackers_hold(spec, period):
+    """The twin's stop counts ticks in the band (hold_samples); a tracker fed samples at that period, every one
+    in the band after some outside it, settles on the same sample: the hold as a count is the tracker's rule,
+    for periods the hold is and is not a whole multiple of."""
+    need = hold_samples(spec.settle_hold, period)
+    target = np.zeros(spec.n_hinges, np.int64)
+    tracker = SettleTracker(target, spec.settle_band, spec.settle_hold, period)
+    outside = np.full(spec.n_hinges, spec.settle_band + 1)
+    times = np.arange(3 + 2 * need) * period
+    fed = [tracker.feed(t, outside if k < 3 else target) for k, t in enumerate(times)]
+    first = next(k for k, s in enumerate(fed) if s is not None)
+    assert first - 3 + 1 == need and fed[first] == pytest.approx(times[3], abs=1e-12)

@@ -19,16 +19,18 @@ from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
 from twin.formats.gains import read_gains, write_gains
 from twin.formats.run import read_run, write_run_meta
+from twin.formats.scenario import write_scenario
 from twin.formats.trace import TraceWriter, read_trace
 from twin.hil.calibration import trace_rmse
 from twin.hil.calibration_verdict import held_out_improved
 from twin.hil.compare import compare
 from twin.hil.device_gains import device_gains
 from twin.hil.mirror import device_step, mirror
-from twin.hil.shared_plant import (ALIKE, SCENARIO, SHARED_BACKLASH_DEG, SHARED_PLANT, SHARED_SCALES, record_soft,
-                                   shared_truth)
+from twin.hil.shared_plant import (ALIKE, SHARED_BACKLASH_DEG, SHARED_PLANT, SHARED_SCALES, record_soft,
+                                   shared_truth, training_scenario)
 from twin.link import protocol as P
 from twin.link.serial_link import Link
+from twin.records.gains import Gains
 from twin.sim.batch import TwinBatch
 from twin.sim.gate import check_move
 from twin.sim.replay import twin_at_start
@@ -60,8 +62,8 @@ def test_tuned_gains_beat_the_spec_defaults_on_the_twin(tuned, tmp_path):
     gate = check_move(spec, np.zeros(spec.n_hinges), np.full(spec.n_hinges, goal.step), result.gains)
     assert gate.passed, gate.text()
     path = tmp_path / "gains.json"
-    write_gains(path, result.gains, {"test": True})
-    assert read_gains(path, spec.n_hinges) == result.gains
+    write_gains(path, Gains(result.gains, {"test": True}))
+    assert read_gains(path, spec.n_hinges) == Gains(result.gains, {"test": True})
     assert json.loads(path.read_text())["units"]["kp"] == "duty/count"
 
 
@@ -100,7 +102,7 @@ def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device
     assert vrscroll(["tune", "--population", "8", "--generations", "2", "--threads", "2", "--out", str(out),
                      "--serial", emu.port, "--log", str(log)]) == 0
     text = capsys.readouterr().out
-    gains = read_gains(out, spec.n_hinges)
+    gains = read_gains(out, spec.n_hinges).hinges
     # the device got every hinge's tuned gains, and holds them
     pushed = {e["hinge"]: e["gains"] for e in emu.events("rx") if e["msg"] == "SET_GAINS"}
     assert pushed == {k: dataclasses.asdict(P.Gains.from_pid(g)) for k, g in enumerate(gains)}
@@ -163,7 +165,7 @@ def test_tuned_gains_on_the_emulator_settle_as_the_twin_predicts(tuned, emulator
 def test_hil_interrupted_half_way_keeps_both_traces(emulator, tmp_path):
     emu = emulator()
     scen = tmp_path / "steps.toml"
-    scen.write_text(SCENARIO.format(duration=3.0, t1=1.0, t2=2.0))
+    write_scenario(scen, training_scenario(3.0, 1.0, 2.0))
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "twin.cli", "hil", str(scen), "--serial", emu.port, "--out", str(out)],
                             cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -190,7 +192,7 @@ def test_hil_interrupted_half_way_keeps_both_traces(emulator, tmp_path):
 def test_hil_command_writes_report(emulator, tmp_path, capsys):
     emu = emulator()
     scen = tmp_path / "s.toml"
-    scen.write_text(SCENARIO.format(duration=1.2, t1=0.4, t2=0.8))
+    write_scenario(scen, training_scenario(1.2, 0.4, 0.8))
     out = tmp_path / "run"
     assert vrscroll(["hil", str(scen), "--serial", emu.port, "--out", str(out)]) == 0
     report = (out / "report.md").read_text()
@@ -305,7 +307,7 @@ def _device_gains(port):
 
 def _gains_file(path, spec, **hinge_changes):
     """A gains file of the spec's gains, hinge k's changed by hinge_changes {k: {key: value or None to drop}}."""
-    write_gains(path, [PidGains.from_spec(spec)] * spec.n_hinges)
+    write_gains(path, Gains([PidGains.from_spec(spec)] * spec.n_hinges))
     doc = json.loads(path.read_text())
     for k, change in hinge_changes.items():
         for key, value in change.items():
@@ -370,7 +372,7 @@ def test_calibrate_refuses_a_run_that_did_not_complete(spec, tmp_path, capsys):
         for i in range(50):
             w.write(i * 0.002, target_deg=[10.0] * n, angle_deg=[0.0] * n, counts=[0] * n, duty=[0.1] * n,
                     current_A=[0.1] * n)
-    write_gains(run / "gains.json", [PidGains.from_spec(spec)] * n)
+    write_gains(run / "gains.json", Gains([PidGains.from_spec(spec)] * n))
     assert vrscroll(["calibrate", str(run), "--out", str(tmp_path / "cal.toml")]) == 2
     err = capsys.readouterr().err
     assert f"{run}: the run did not complete (status 'running'" in err and "--incomplete" in err
@@ -418,4 +420,4 @@ def test_tune_says_which_limit_it_could_not_keep_on_which_plant(spec):
         if h in over:
             assert f"overshoots {math.degrees(result.overshoot[h]):.2f} deg (limit 0.05)" in line
     ranges = tolerance_ranges(spec, goal.tolerance)
-    assert all(r["parameter"] in ranges and r["end"] in ("low", "high") for r in result.sensitivity)
+    assert all(r["parameter"] in ranges.shared and r["end"] in ("low", "high") for r in result.sensitivity)

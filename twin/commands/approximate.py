@@ -19,18 +19,17 @@ from __future__ import annotations
 
 import json
 
-import igl
 import numpy as np
 
 from twin.commands.options import add_json, add_target, output_file
 from twin.device.spec import load_spec
 from twin.errors import UserError
+from twin.evaluation.starts import target_and_start as target_start
 from twin.formats.target import approximation_json, write_approximation
-from twin.morphpatch.approximation import VARIANTS, approximate, frames, measured, pose_from_mm_deg
+from twin.morphpatch.approximation import VARIANTS, approximate, frames, measured
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.resting import refusal, resting, resting_json
-from twin.morphpatch.default_start import default_start
-from twin.morphpatch.shapes import load_mesh, load_shape, shape_names, shape_table
+from twin.morphpatch.shapes import shape_names
 from viz.scene import render_approximation
 
 def add_arguments(p) -> None:
@@ -57,20 +56,9 @@ def _parse_start(text: str) -> list[float]:
 
 
 def target_and_start(args):
-    """(name, mesh, start as [x,y,z mm, roll,pitch,yaw deg], start pose 4x4) from --shape/--mesh and --start;
-    a start inside the target is refused (a UserError)."""
-    if args.shape:
-        mesh, name = load_shape(args.shape), args.shape
-        default = shape_table()[args.shape]["start"]
-    else:
-        mesh, name = load_mesh(args.mesh), args.mesh
-        default = None if args.start else default_start(mesh, build_fields(mesh), load_spec())
-    start = _parse_start(args.start) if args.start else default
-    pose = pose_from_mm_deg(start)
-    if igl.signed_distance(pose[None, :3, 3], mesh.vertices, mesh.faces)[0][0] < 0:
-        raise UserError(f"--start {','.join(f'{v:g}' for v in start)}: the anchor starts inside the target; give a "
-                        "start outside it, on the side the device comes from (docs/approximation.md, Starts)")
-    return name, mesh, start, pose
+    """(name, mesh, start as [x,y,z mm, roll,pitch,yaw deg], start pose 4x4) from --shape/--mesh and --start
+    (twin.evaluation.starts.target_and_start)."""
+    return target_start(args.shape, args.mesh, _parse_start(args.start) if args.start else None)
 
 
 def write_result(args, name, start, result, mesh, spec, extra: dict | None = None) -> None:

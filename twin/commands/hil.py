@@ -47,7 +47,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     profile, spec = opened(args)
     scenario = read_scenario(args.scenario, spec)
-    gains = read_gains(args.gains, spec.n_hinges) if args.gains else \
+    gains = read_gains(args.gains, spec.n_hinges).hinges if args.gains else \
         profile.gains if profile.gains_from != "spec" else None
     out = Path(args.out or f"hil-{scenario.name}-{datetime.datetime.now():%Y%m%d-%H%M%S}")
     status = recorded_status(out)

@@ -21,16 +21,10 @@ from twin.commands.options import (
     within,
     write_json,
 )
-from twin.device.variation import prior_ranges
 from twin.errors import UserError
-from twin.formats.profile import updated, write_profile
-from twin.hil.holding import RELEASE_S, fit_backdrive, record_release, sag_after_cut, with_values
+from twin.hil.holding import PREDICT_S, RELEASE_S, measure_holding
 from twin.hil.mirror import DeviceNotReady
-from twin.records.profile import Holding
 from twin.sim.gate import GateRefused
-
-PREDICT_S = (1.0, 5.0)  # s after the drive is cut: what the twin reports, braked
-UNPOWERED_S = (0.1, 0.5)  # s after a pack is pulled: what the twin reports, the windings open
 
 
 def add_arguments(p) -> None:
@@ -53,55 +47,38 @@ def run(args) -> int:
         raise UserError(f"holding releases the flaps under gravity, which the {profile.mount} mount takes away: hang "
                         "the device from its root flap and give --mount hanging (docs/device.md, \"Mounts\")")
     quiet = json_to_stdout(args)
-    releases = []
+
+    def progress(k, release):
+        if not quiet:
+            print(f"release {k + 1}/{args.releases}: {len(release.t)} frames, sag per hinge "
+                  + " ".join(f"{d:.1f}" for d in release.angle_deg[-1] - release.angle_deg[0]) + " deg", flush=True)
+
     try:
         with link_errors(), device_session(args, spec) as (link, spec):
-            for k in range(args.releases):
-                releases.append(record_release(link, spec, args.release_s, args.tolerance_deg, profile.hinges))
-                if not quiet:
-                    print(f"release {k + 1}/{args.releases}: {len(releases[-1].t)} frames, sag per hinge "
-                          + " ".join(f"{d:.1f}" for d in releases[-1].angle_deg[-1] - releases[-1].angle_deg[0])
-                          + " deg", flush=True)
-            port = link.url
+            got = measure_holding(link, spec, profile, args.releases, args.release_s, args.tolerance_deg, progress)
     except (GateRefused, DeviceNotReady) as exc:
         raise UserError(str(exc)) from None
-    fit = fit_backdrive(releases, spec, profile.hinges, profile.ranges() or prior_ranges(spec))
-    e = fit.estimate
-    written = None
-    if profile.name:
-        written = write_profile(updated(profile, {"backdrive_efficiency": e.value},
-                                        f"measured by `vrscroll holding` from {len(releases)} release(s) on {port}",
-                                        holding=Holding(port, len(releases), {"backdrive_efficiency": e})),
-                                by="vrscroll holding")
-    fitted, hinges = with_values(spec, profile.hinges, {"backdrive_efficiency": e.value})
-    predicted = {f"{s:g}": sag_after_cut(fitted, s, hinges).round(2).tolist() for s in PREDICT_S}
-    unpowered = {f"{s:g}": sag_after_cut(fitted, s, hinges, braked=False).round(2).tolist() for s in UNPOWERED_S}
-    out = {"device_profile": profile.label, "written": str(written) if written else None,
-           "backdrive_efficiency": e.to_json(), "autocorrelation_frames": round(fit.autocorrelation_frames, 1),
-           "replays": fit.replays, "sag_deg": fit.sag_deg,
-           "braked_from_flat_deg": predicted, "unpowered_from_flat_deg": unpowered,
-           "releases": [r.to_json() for r in releases]}
-    write_json(args.json, out)
+    write_json(args.json, got.to_json())
     if quiet:
         return 0
+    e, fit = got.fit.estimate, got.fit
     print(f"backdrive_efficiency {e.value:.3f} (prior {e.prior:.3f}; 95 % interval {e.low:.3f} .. {e.high:.3f}; "
           f"{'identifiable' if e.identifiable else 'NOT identifiable'}), {fit.replays} twin releases:\n  {e.note}"
-          + ("" if profile.ranges() else "\n  (an uncalibrated profile: the other parameters' ranges are the spec's "
-                                          "spread; `vrscroll calibrate` first narrows them)"))
+          + ("" if got.ranges.calibrated else "\n  (an uncalibrated profile: the other parameters' ranges are the "
+                                              "spec's spread; `vrscroll calibrate` first narrows them)"))
     print(f"sag over {args.release_s:g} s per hinge, deg (mean of the releases):")
     for label, key in (("device", "device"), ("twin before", "twin_before"), ("twin after", "twin_after")):
         print(f"  {label:<12}" + " ".join(f"{d:7.2f}" for d in fit.sag_deg[key]))
     print("the twin, braked with its drive cut at flat (root flap held level), hinge angles, deg:")
-    for s, angles in predicted.items():
+    for s, angles in got.braked.items():
         print(f"  after {s} s: " + " ".join(f"{a:7.1f}" for a in angles))
-    limit = math.degrees(spec.hinge_limit)
-    held = [k for k, a in enumerate(predicted[f"{PREDICT_S[0]:g}"]) if abs(a) < 1.0]
+    held = [k for k, a in enumerate(got.braked[f"{PREDICT_S[0]:g}"]) if abs(a) < 1.0]
     print(f"holds within 1 deg for {PREDICT_S[0]:g} s: hinges {held or 'none'}; the others sag towards their "
-          f"limits (+-{limit:g} deg) or until a flap rests on something")
+          f"limits (+-{math.degrees(spec.hinge_limit):g} deg) or until a flap rests on something")
     print("the twin, its pack pulled at flat (no power: the windings open and carry no current, so only the "
           "gearboxes' friction holds; the efficiency fitted above does not act), hinge angles, deg:")
-    for s, angles in unpowered.items():
+    for s, angles in got.unpowered.items():
         print(f"  after {s} s: " + " ".join(f"{a:7.1f}" for a in angles))
-    print(f"kept in device profile {profile.name} ({written})" if written else
+    print(f"kept in device profile {profile.name} ({got.written})" if got.written else
           "not kept: no device profile (--device NAME keeps it)")
     return 0

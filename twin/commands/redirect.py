@@ -64,13 +64,12 @@ def run(args) -> int:
           f"(largest {summary['largest_offset_mm']:.1f} mm, {summary['largest_rotation_deg']:.1f} deg; "
           f"no target along the normal on {summary['no_target_share']:.1%})")
     if pens:
-        columns, positions, orientations, device_poses = pens
-        result = redirect(field, positions, orientations, device_poses)
+        result = redirect(field, pens.position, pens.orientation, pens.device_pose)
         within = within_samples(result)
         out = Path(args.out) if args.out else Path(args.pens).with_name(Path(args.pens).stem + "_redirected.csv")
-        write_redirected(out, columns, result, within)
-        summary.update({"samples": len(positions), "samples_within": int(within.sum()), "out": str(out)})
-        print(f"{len(positions)} pen samples redirected, {within.mean():.1%} within the thresholds "
+        write_redirected(out, pens, result, within)
+        summary.update({"samples": len(pens.position), "samples_within": int(within.sum()), "out": str(out)})
+        print(f"{len(pens.position)} pen samples redirected, {within.mean():.1%} within the thresholds "
               f"(largest {result.offset.max() * 1e3:.1f} mm, {np.degrees(result.angle.max()):.1f} deg): {out}")
     if args.png:
         render_redirection(mesh, field, args.png, title=f"{name}: pen redirection, blur {args.sigma_mm:g} mm")

@@ -31,16 +31,15 @@ def run(args) -> int:
     if args.gains and args.serial:
         raise UserError("give --gains FILE or --serial PORT, not both")
     if args.gains:
-        gains = read_gains(args.gains, spec.n_hinges)
+        gains = read_gains(args.gains, spec.n_hinges).hinges
     elif args.serial:
         with link_errors(), Link(args.serial, hinges=spec.n_hinges) as link:
             gains = device_gains(link, spec.n_hinges)
     else:
         gains = profile.gains
-    ranges = profile.ranges() or prior_ranges(spec)
-    plants = corners(spec, ranges, profile.hinges, profile.hinge_ranges())
-    print(f"gating every move on {len(plants)} plants (nominal and the corners of "
-          f"{'the calibrated intervals' if profile.ranges() else 'the spread about the spec'}), "
+    ranges = profile.ranges(prior_ranges(spec))
+    plants = corners(spec, ranges, profile.hinges)
+    print(f"gating every move on {len(plants)} plants (nominal and the corners of {ranges.what}), "
           f"mount: {profile.mount}", flush=True)
 
     try:

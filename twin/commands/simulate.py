@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -24,15 +23,9 @@ from twin.commands.options import (
     write_json,
 )
 from twin.checks import cell, hinge_angles
-from twin.errors import UserError
-from twin.formats.move_report import move_rows
+from twin.evaluation.twin_move import simulate_move
 from twin.formats.target import read_approximation
 from twin.formats.trace import write_trace
-from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
-from twin.morphpatch.surface_metrics import match, match_json
-from twin.records.approximation import Approximation
-from twin.sim.gate import check_move
-from twin.sim.response import move_report
 from twin.sim.targets import check_targets
 from viz.traces import hinge_figure
 from viz.viewer import show_move
@@ -73,42 +66,23 @@ def run(args) -> int:
     check_targets(spec, targets)
     start = np.zeros(spec.n_hinges) if not args.start else hinge_angles(
         [cell(v, f"--from[{k}]") for k, v in enumerate(args.start.split(","))], spec.n_hinges, spec.hinge_limit, "--from")
-    twin = profile_twin(profile)
-    gate = check_move(spec, start, targets, profile.gains, settle_limit=args.max_time_s, twin=twin)
-    if gate.prediction is None:
-        raise UserError(gate.refusal())
-    trace = gate.prediction  # the move until settled, as simulated by the gate
-    if args.hold:  # ... or the whole --max-time-s
-        twin.reset(start)
-        trace = twin.move_to(targets, max_time=args.max_time_s, stop_when_settled=False)
-    report = move_report(twin.spec, trace)
-    rows = move_rows(report)
-    summary = {
-        "device_profile": profile.label,
-        "simulated_s": round(trace.duration, 3),
-        "wall_s": round(trace.wall_time, 4),
-        "real_time_factor": round(trace.real_time_factor, 1),
-        "settled": report.settled,
-        "start_deg": np.degrees(start).round(3).tolist(),
-        "gate": gate.to_dict(),
-        "hinges": rows,
-    }
-    if approx is not None:
-        summary.update(_on_target(spec, approx, trace, args.targets[0]))
+    move = simulate_move(profile_twin(profile), profile.gains, start, targets, args.max_time_s, args.hold, approx,
+                         args.targets[0])
+    gate, trace, summary = move.gate, move.trace, move.to_json(profile.label)
     if args.trace:
         write_trace(args.trace, trace)
         summary["trace_csv"] = args.trace
-    band = math.degrees(twin.spec.settle_band * twin.spec.rad_per_count)
     hinge_figure(args.plot, f"simulate: the twin's step response ({profile.label})", [("twin", trace)],
-                 range(twin.spec.n_hinges), band, settle={"twin": report.settle_time})
+                 range(spec.n_hinges), math.degrees(spec.settle_band * spec.rad_per_count),
+                 settle={"twin": move.report.settle_time})
     summary["plot_png"] = args.plot
     lines = []
     if args.rerun:
         from viz.rerun_log import log_move
 
-        lines.append(log_move(args.rerun, twin.spec, trace))
+        lines.append(log_move(args.rerun, spec, trace))
     if args.view:
-        lines.append(show_move(twin.spec, trace, args.view_out))
+        lines.append(show_move(spec, trace, args.view_out))
     write_json(args.json, summary)
     if json_to_stdout(args):
         print("\n".join(lines), file=sys.stderr)
@@ -117,7 +91,7 @@ def run(args) -> int:
     print(gate.text())
     print(f"{'hinge':>5} {'target_deg':>10} {'final_deg':>9} {'settle_time_s':>13} {'overshoot_deg':>13} "
           f"{'ss_err_deg':>10} {'ss_err_counts':>13} {'peak_A':>6}")
-    for r in rows:
+    for r in summary["hinges"]:
         print(f"{r['hinge']:>5} {r['target_deg']:>10.2f} {r['final_deg']:>9.2f} {r['settle_time_s']:>13.3f} "
               f"{r['overshoot_deg']:>13.2f} {r['steady_state_error_deg']:>10.2f} "
               f"{r['steady_state_error_counts']:>13.1f} {r['peak_current_A']:>6.2f}")
@@ -142,21 +116,3 @@ def _number(text: str) -> bool:
     except ValueError:
         return False
     return True
-
-
-def _on_target(spec, approx: Approximation, trace, path: str) -> dict:
-    """The MSD, HD (mm) and the share of the touch surface inside the target (match_json) where the twin ended, on the approximation's target (a shape's name, or a mesh path
-    relative to the approximation file or the working folder); a note where the target cannot be read."""
-    target = approx.target
-    out = {"target": target, "approximation_msd_mm": None if approx.msd is None else round(approx.msd * 1e3, 3)}
-    if target is None:
-        return {**out, "target_note": f"{path} names no target"}
-    if target in shape_names():
-        mesh = load_shape(target)
-    else:
-        mesh_path = next((p for p in (Path(path).parent / target, Path(target)) if p.is_file()), None)
-        if mesh_path is None:
-            return {**out, "target_note": f"its target {target!r} is neither a shape nor a mesh file found here"}
-        mesh = load_mesh(mesh_path)
-    return {**out, **match_json(match(spec, mesh, approx.root_pose, trace.true_angle[-1], approx.widths),
-                                "_after_morph")}

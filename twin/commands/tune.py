@@ -34,6 +34,7 @@ from twin.formats.move_report import move_rows
 from twin.formats.profile import write_profile_gains
 from twin.hil.confirm import confirm_step
 from twin.hil.mirror import DeviceNotReady
+from twin.records.gains import Gains
 from twin.sim.gate import GateRefused
 from twin.tuning.tuner import profile_goal, step_report, tune, tuned_summary
 
@@ -89,11 +90,10 @@ def run(args) -> int:
     quiet = json_to_stdout(args)
     if not quiet:
         units = spec_units(SPEC_PATH)
-        print(("calibrated: the twin's values that reproduce its runs" if profile.ranges()
-               else f"uncalibrated, +-{args.tolerance_pct:g} %")
+        print(("calibrated: the twin's values that reproduce its runs" if ranges.calibrated else ranges.what)
               + ": tuned over " + ", ".join(f"{p} {shown_range(lo, hi, units.get(p, ''))}"
-                                           for p, (lo, hi) in ranges.items())
-              + f" ({2 ** len(ranges) + 1} plants: nominal and corners)"
+                                           for p, (lo, hi) in ranges.shared.items())
+              + f" ({2 ** len(ranges.shared) + 1} plants: nominal and corners)"
               + ("; each hinge about its own calibrated values, at its own intervals' corners" if profile.hinges
                  else ""))
     with make_backend(args.backend, args.workers) if args.backend else contextlib.nullcontext() as backend:
@@ -109,11 +109,11 @@ def run(args) -> int:
     written = []
     if args.out or not profile.name:
         written.append(args.out or "gains.json")
-        write_gains(written[-1], result.gains, meta)
+        write_gains(written[-1], Gains(result.gains, meta))
 
     def into_profile() -> None:  # with --serial, only once the device holds them: the profile says what it has
         if profile.name:
-            written.insert(0, str(write_profile_gains(profile.name, result.gains, meta)))
+            written.insert(0, str(write_profile_gains(profile.name, Gains(result.gains, meta))))
 
     if not args.serial:
         into_profile()

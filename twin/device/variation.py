@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from twin.device.spec import DeviceSpec
+from twin.records.ranges import Ranges
 
 # the spec fields a profile may hold other values of than the spec's: the plant parameters calibration fits
 # (gear_stiction moves with gear_friction), how the gearbox passes a load that drives it, which a release
@@ -54,10 +55,10 @@ def scaled(spec: DeviceSpec, scales: dict) -> DeviceSpec:
     return spec.replace(**(moved | {p: getattr(spec, p) * float(x) for p, x in scales.items()}))
 
 
-def prior_ranges(spec: DeviceSpec) -> dict:
-    """What is known of an uncalibrated device: each parameter within SPREAD of the spec's value,
-    {field: (low, high) SI}."""
-    return {p: (getattr(spec, p) * lo, getattr(spec, p) * hi) for p, (lo, hi) in SPREAD.items()}
+def prior_ranges(spec: DeviceSpec) -> Ranges:
+    """What is known of an uncalibrated device: each parameter within SPREAD of the spec's value, SI."""
+    return Ranges({p: (getattr(spec, p) * lo, getattr(spec, p) * hi) for p, (lo, hi) in SPREAD.items()},
+                  "the spread about the spec")
 
 
 def bounded_ranges(spec: DeviceSpec) -> dict:
@@ -67,12 +68,13 @@ def bounded_ranges(spec: DeviceSpec) -> dict:
             for p, (lo, hi) in BOUNDED.items()}
 
 
-def tolerance_ranges(spec: DeviceSpec, tolerance: float) -> dict:
-    """The ranges of an uncalibrated spec, {field: (low, high) SI}: motor constant and gear friction each
-    x (1 +- tolerance). The motor constant is derived from the no-load speed (K ~ V / (N w0)), so a motor
-    constant x (1 + t) is a no-load speed / (1 + t)."""
-    return {"no_load_speed": (spec.no_load_speed / (1 + tolerance), spec.no_load_speed / (1 - tolerance)),
-            "gear_friction": (spec.gear_friction * (1 - tolerance), spec.gear_friction * (1 + tolerance))}
+def tolerance_ranges(spec: DeviceSpec, tolerance: float) -> Ranges:
+    """The ranges of an uncalibrated spec, SI: motor constant and gear friction each x (1 +- tolerance). The
+    motor constant is derived from the no-load speed (K ~ V / (N w0)), so a motor constant x (1 + t) is a no-load
+    speed / (1 + t)."""
+    return Ranges({"no_load_speed": (spec.no_load_speed / (1 + tolerance), spec.no_load_speed / (1 - tolerance)),
+                   "gear_friction": (spec.gear_friction * (1 - tolerance), spec.gear_friction * (1 + tolerance))},
+                  f"uncalibrated, +-{tolerance * 100:g} %")
 
 
 class Plant(NamedTuple):
@@ -83,30 +85,29 @@ class Plant(NamedTuple):
     hinges: tuple | None = None
 
 
-def at_ends(spec: DeviceSpec, ranges: dict, ends: dict, hinges=None, hinge_ranges=None) -> Plant:
-    """The plant with each field p of `ends` at one end of its range (ends[p]: 0 low, 1 high). ranges:
-    {field: (low, high) SI} of the shared values. hinges: each hinge's own spec, or None; hinge_ranges: per
-    hinge, {field: (low, high) SI} of its own values where it has any: a hinge goes to its own range's end,
-    or, for a field it has no range of, to the shared range's end as a multiple of the shared value."""
-    shared = scaled(spec, {p: float(ranges[p][e]) / getattr(spec, p) for p, e in ends.items()})
+def at_ends(spec: DeviceSpec, ranges: Ranges, ends: dict, hinges=None) -> Plant:
+    """The plant with each field p of `ends` at one end of its range (ends[p]: 0 low, 1 high). hinges: each
+    hinge's own spec, or None: a hinge goes to the end of its own range (ranges.hinges) where it has one, or,
+    for a field it has no range of, to the shared range's end as a multiple of the shared value."""
+    shared = scaled(spec, {p: float(ranges.shared[p][e]) / getattr(spec, p) for p, e in ends.items()})
     if hinges is None:
         return Plant(shared)
     own = []
     for h, hs in enumerate(hinges):
-        mine = hinge_ranges[h] if hinge_ranges else {}
+        mine = ranges.hinges[h] if ranges.hinges else {}
         own.append(scaled(hs, {p: float(mine[p][e]) / getattr(hs, p) if p in mine
-                               else float(ranges[p][e]) / getattr(spec, p) for p, e in ends.items()}))
+                               else float(ranges.shared[p][e]) / getattr(spec, p) for p, e in ends.items()}))
     return Plant(shared, tuple(own))
 
 
-def corners(spec: DeviceSpec, ranges: dict, hinges=None, hinge_ranges=None) -> list[Plant]:
-    """The nominal plant, then every corner of the box `ranges` ({field: (low, high) SI}) spans: 2^k plants
-    for k ranges, each hinge at its own ranges' corners where hinges and hinge_ranges give them (`at_ends`).
-    A field that moves another (MOVES_WITH) moves it in proportion."""
+def corners(spec: DeviceSpec, ranges: Ranges, hinges=None) -> list[Plant]:
+    """The nominal plant, then every corner of the box `ranges` spans: 2^k plants for k shared ranges, each hinge
+    at its own ranges' corners where hinges (each hinge's own spec) and ranges.hinges give them (`at_ends`). A
+    field that moves another (MOVES_WITH) moves it in proportion."""
     plants = [Plant(spec, None if hinges is None else tuple(hinges))]
-    names = list(ranges)
+    names = list(ranges.shared)
     for corner in itertools.product((0, 1), repeat=len(names)):
-        plants.append(at_ends(spec, ranges, dict(zip(names, corner)), hinges, hinge_ranges))
+        plants.append(at_ends(spec, ranges, dict(zip(names, corner)), hinges))
     return plants
 
 

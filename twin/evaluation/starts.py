@@ -13,17 +13,24 @@ published, so this is our documented stand-in):
    across a concave region) is dropped and drawn again, in order, from the same stream.
 
 The same seed gives the same starts on any machine (numpy's PCG64).
+
+`target_and_start` is the one start a command is given (or the target's default) for its target.
 """
 
 from __future__ import annotations
 
 import math
 
+import igl
 import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from twin.morphpatch.fields import exact_signed_distance
+from twin.device.spec import load_spec
+from twin.morphpatch.approximation import pose_from_mm_deg
+from twin.morphpatch.default_start import default_start
+from twin.morphpatch.fields import build_fields, exact_signed_distance
+from twin.morphpatch.shapes import load_mesh, load_shape, shape_table
 
 STANDOFF = (0.02, 0.06)  # m
 MAX_TILT = math.radians(30.0)
@@ -74,3 +81,21 @@ def _z_to(n: np.ndarray) -> Rotation:
     if s < 1e-12:
         return Rotation.identity() if c > 0 else Rotation.from_rotvec([math.pi, 0.0, 0.0])
     return Rotation.from_rotvec(axis / s * math.atan2(s, c))
+
+
+def target_and_start(shape: str | None, mesh_path: str | None, start: list[float] | None):
+    """(name, mesh, start as [x,y,z mm, roll,pitch,yaw deg], start pose 4x4) of a named shape or a mesh file and
+    the start given (None: the shape's own in shapes.toml, or a mesh's twin.morphpatch.default_start). ValueError
+    naming --start for a start inside the target."""
+    if shape:
+        mesh, name = load_shape(shape), shape
+        default = shape_table()[shape]["start"]
+    else:
+        mesh, name = load_mesh(mesh_path), mesh_path
+        default = None if start else default_start(mesh, build_fields(mesh), load_spec())
+    start = start or default
+    pose = pose_from_mm_deg(start)
+    if igl.signed_distance(pose[None, :3, 3], mesh.vertices, mesh.faces)[0][0] < 0:
+        raise ValueError(f"--start {','.join(f'{v:g}' for v in start)}: the anchor starts inside the target; give a "
+                         "start outside it, on the side the device comes from (docs/approximation.md, Starts)")
+    return name, mesh, start, pose

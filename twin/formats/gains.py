@@ -5,7 +5,8 @@
                  "deadband_duty", "hold_band_counts"}, ...], "meta": {...}}
 
 Every value is checked against the bounds the firmware takes (`controllers.pid.GAIN_BOUNDS`,
-docs/protocol.md "Gain bounds"), so a gains file that reads is one the device accepts.
+docs/protocol.md "Gain bounds"), so a gains file that reads is one the device accepts. Read and written whole as
+the record twin.records.gains.Gains (the gains per hinge and the file's "meta").
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from pathlib import Path
 from controllers.pid import GAIN_BOUNDS, PidGains
 from twin.checks import json_object, known_keys, number, required_keys
 from twin.paths import replacing
+from twin.records.gains import Gains
 
 GAINS_FORMAT = "vrscroll-gains/1"
 # file key -> PidGains field
@@ -38,27 +40,30 @@ def check_gains(gains, where: str = "gains") -> None:
                                  f"[{lo:g}, {hi:g}] (docs/protocol.md, Gain bounds)")
 
 
-def write_gains(path, gains: list[PidGains], meta: dict | None = None) -> None:
-    """Write a gains file atomically (checked against the firmware's bounds first)."""
-    check_gains(gains, str(path))
+def write_gains(path, gains: Gains) -> None:
+    """Write the gains record as a gains file, atomically (checked against the firmware's bounds first)."""
+    check_gains(gains.hinges, str(path))
     doc = {
         "format": GAINS_FORMAT,
         "units": UNITS,
         "hinges": [{"hinge": k, **{key: (int(getattr(g, f)) if key == "hold_band_counts" else getattr(g, f))
-                                   for key, f in KEYS.items()}} for k, g in enumerate(gains)],
-        **({"meta": meta} if meta else {}),
+                                   for key, f in KEYS.items()}} for k, g in enumerate(gains.hinges)],
+        **({"meta": gains.meta} if gains.meta else {}),
     }
     with replacing(path) as tmp:
         tmp.write_text(json.dumps(doc, indent=2) + "\n")
 
 
-def read_gains(path, n: int | None = None) -> list[PidGains]:
-    """Per-hinge gains from a gains file; ValueError naming the file, hinge and key for anything wrong."""
+def read_gains(path, n: int | None = None) -> Gains:
+    """The gains record of a gains file (n: the hinges it must hold); ValueError naming the file, hinge and key for
+    anything wrong."""
     path = Path(path)
     doc = json_object(path)
     if doc.get("format") != GAINS_FORMAT:
         raise ValueError(f"{path}: not a {GAINS_FORMAT} gains file (no \"format\": \"{GAINS_FORMAT}\")")
     known_keys(doc, ("format", "units", "hinges", "meta"), str(path))
+    if not isinstance(doc.get("meta", {}), dict):
+        raise ValueError(f"{path}: \"meta\" must be an object")
     hinges = doc.get("hinges")
     if not isinstance(hinges, list) or not hinges:
         raise ValueError(f"{path}: \"hinges\" must be a list with one entry per hinge")
@@ -83,4 +88,4 @@ def read_gains(path, n: int | None = None) -> list[PidGains]:
     if n is not None and len(out) != n:
         raise ValueError(f"{path}: gains for {len(out)} hinges, the device has {n}")
     check_gains(out, str(path))
-    return out
+    return Gains(out, doc.get("meta", {}))

@@ -18,6 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from twin.checks import REACH_M, read_text
 from twin.paths import replacing
+from twin.records.pen import PenSamples
 
 REDIRECTED_COLUMNS = ("virtual_x_mm", "virtual_y_mm", "virtual_z_mm", "virtual_qw", "virtual_qx", "virtual_qy",
                       "virtual_qz", "offset_mm", "rotation_deg", "height_mm", "flap", "within_thresholds")
@@ -26,8 +27,8 @@ PEN_COLUMNS = ("x_mm", "y_mm", "z_mm", "qw", "qx", "qy", "qz")
 DEVICE_COLUMNS = tuple(f"device_{c}" for c in PEN_COLUMNS)
 
 
-def read_pen_samples(path) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | None]:
-    """Read a pen CSV: (all columns as given, positions (N, 3) m, orientations (N, 4), device poses or None).
+def read_pen_samples(path) -> PenSamples:
+    """Read a pen CSV as the record (positions m, unit orientations, device poses or None, every column as given).
 
     Required columns x_mm, y_mm, z_mm, qw, qx, qy, qz (pen tip, world); optional
     device_x_mm ... device_qz (tracked device pose); any other column is passed through.
@@ -81,12 +82,13 @@ def read_pen_samples(path) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray | N
         poses = np.tile(np.eye(4), (len(v), 1, 1))
         poses[:, :3, :3] = Rotation.from_quat(v[:, 10:14], scalar_first=True).as_matrix()
         poses[:, :3, 3] = v[:, 7:10] / 1e3
-    return rows, v[:, :3] / 1e3, v[:, 3:7], poses
+    return PenSamples(v[:, :3] / 1e3, v[:, 3:7], poses, rows)
 
 
-def write_redirected(path, columns: dict, redirected, within: np.ndarray) -> None:
-    """Write the input columns followed by the virtual pen and the redirection applied (mm, deg);
+def write_redirected(path, pens: PenSamples, redirected, within: np.ndarray) -> None:
+    """Write the pen file's columns followed by the virtual pen and the redirection applied (mm, deg);
     redirected: a twin.morphpatch.redirection.Redirected (SI)."""
+    columns = pens.columns
     names = list(columns)
     with replacing(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.writer(f)

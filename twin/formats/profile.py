@@ -44,6 +44,7 @@ from twin.device.variation import PLANT_FIELDS, scaled
 from twin.formats.gains import read_gains, write_gains
 from twin.paths import replacing
 from twin.records.calibration import Calibration, Estimate
+from twin.records.gains import Gains
 from twin.records.profile import Holding, Profile
 
 PROFILE_FORMAT = "vrscroll-profile/1"
@@ -196,7 +197,7 @@ def read_profile(folder) -> Profile:
     design_unchanged(spec, load_spec(), folder / SPEC)
     plant_is_physical(spec, folder / SPEC, calibration.hinges if calibration else None)
     if (folder / GAINS).is_file():
-        gains, source = read_gains(folder / GAINS, spec.n_hinges), str(folder / GAINS)
+        gains, source = read_gains(folder / GAINS, spec.n_hinges).hinges, str(folder / GAINS)
     else:
         gains, source = [PidGains.from_spec(spec)] * spec.n_hinges, "spec"
     return Profile(folder.name, folder, spec, spec_sources(folder / SPEC, defaults=load_spec()), gains, source, mount,
@@ -248,13 +249,13 @@ def write_profile(profile: Profile, by: str = "vrscroll calibrate") -> Path:
     return folder
 
 
-def write_profile_gains(name: str, gains: list[PidGains], meta: dict | None = None) -> Path:
-    """Store gains as the profile's gains.json (the profile must exist). Returns the file."""
+def write_profile_gains(name: str, gains: Gains) -> Path:
+    """Store the gains record as the profile's gains.json (the profile must exist). Returns the file."""
     folder = profile_dir(name)
     if not (folder / META).is_file():
         raise ValueError(f"device profile {name!r} is not in {profiles_dir()}: calibrate first "
                          f"(`vrscroll calibrate RUN --device {name}`) or `vrscroll device create {name}`")
-    write_gains(folder / GAINS, gains, meta)
+    write_gains(folder / GAINS, gains)
     return folder / GAINS
 
 

@@ -182,4 +182,4 @@ def read_run(run_dir, spec: DeviceSpec, incomplete: bool = False) -> Run:
             raise ValueError(f"{d / name}: its last time {trace.time[-1]:g} s is past the longest a run spans, "
                              f"{MAX_RUN_S:g} s (MAX_RUN_S)")
     return Run(d, meta["scenario"], meta["status"], run_start(meta), run_changes(meta), traces["device.csv"],
-               traces["twin.csv"], read_gains(d / "gains.json", n), meta)
+               traces["twin.csv"], read_gains(d / "gains.json", n).hinges, meta)

@@ -94,6 +94,14 @@ def read_scenario(path, spec: DeviceSpec) -> Scenario:
     return Scenario(name, start, times, targets, duration)
 
 
+def scenario_of_steps(name: str, steps, duration: float, start_deg=None) -> Scenario:
+    """A scenario from its steps as people write them: (t s, hinge angles deg) each, the first at 0, from start_deg
+    (default flat); duration s."""
+    n = len(steps[0][1])
+    return Scenario(name, np.radians(np.zeros(n) if start_deg is None else np.asarray(start_deg, float)),
+                    [float(t) for t, _ in steps], [np.radians(np.asarray(a, float)) for _, a in steps], float(duration))
+
+
 def write_scenario(path, scenario: Scenario) -> None:
     """Write a scenario as TOML (angles in degrees)."""
     deg = (lambda a: "[" + ", ".join(f"{math.degrees(x):.6g}" for x in a) + "]")

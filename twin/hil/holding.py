@@ -24,6 +24,9 @@ intervals; the spec's spread for an uncalibrated device): the braking torque goe
 constant squared, so an unidentified no-load speed leaves the efficiency unidentified too.
 Identifiable as in calibration: the interval within x(1 -+ MAX_HALFWIDTH). Angles in deg where they
 are reported, SI otherwise.
+
+`measure_holding` is `vrscroll holding`'s whole job: the releases, the fit, the profile with the fitted value
+and its record (written where it has a name), and what the twin then says a braked and an unpowered device do.
 """
 
 from __future__ import annotations
@@ -37,10 +40,13 @@ from scipy.optimize import brentq, minimize_scalar
 
 from controllers.encoder import angle_from_counts
 from twin.device.spec import DeviceSpec
-from twin.device.variation import scaled
+from twin.device.variation import prior_ranges, scaled
+from twin.formats.profile import updated, write_profile
 from twin.hil.calibration import MAX_HALFWIDTH, Estimate, autocorrelation_time
 from twin.hil.mirror import DeviceNotReady, mirror, wait_for_rest
 from twin.link import protocol as P
+from twin.records.profile import Holding, Profile
+from twin.records.ranges import Ranges
 from twin.sim.twin import Twin
 
 RELEASE_S = 0.4  # s recorded after the e-stop: hinges 2-3 sag ~29 deg on the spec's twin, well within the hinge range
@@ -49,6 +55,8 @@ BOUNDS = (0.05, 1.0)  # backdrive_efficiency's range searched: from nearly self-
 CHI2_95 = 3.84  # chi-square quantile, one degree of freedom, 95 %
 SEARCH_TOL = 0.005  # log: the search's resolution, the least half-width of an interval
 TELEMETRY_HZ = 500
+PREDICT_S = (1.0, 5.0)  # s after the drive is cut: what the twin reports, braked
+UNPOWERED_S = (0.1, 0.5)  # s after a pack is pulled: what the twin reports, the windings open
 
 
 @dataclasses.dataclass
@@ -130,10 +138,10 @@ def with_values(plant: DeviceSpec, hinges, values: dict):
     return scaled(plant, scales), [scaled(h, scales) for h in hinges] if hinges else None
 
 
-def fit_backdrive(releases: list[Release], plant: DeviceSpec, hinges=None, ranges: dict | None = None) -> HoldingFit:
+def fit_backdrive(releases: list[Release], plant: DeviceSpec, hinges=None, ranges: Ranges | None = None) -> HoldingFit:
     """backdrive_efficiency from releases (module docstring), about the plant's value (its prior). ranges:
-    what is known of the other parameters, {field: (low, high) SI} (a calibration's intervals): the
-    interval is widened by how far each would move the fit from either end of its range."""
+    what is known of the other parameters (a calibration's intervals, SI): the interval is widened by how far
+    each would move the fit from either end of its shared range."""
     count = [0]
 
     def residual(x: float, p: DeviceSpec, h) -> list[np.ndarray]:
@@ -163,7 +171,8 @@ def fit_backdrive(releases: list[Release], plant: DeviceSpec, hinges=None, range
 
     down, up = min(edge(lo) - x, -SEARCH_TOL), max(edge(hi) - x, SEARCH_TOL)  # log, the fit's own interval
     moved = []
-    others = {f: ends for f, ends in (ranges or {}).items() if f != "backdrive_efficiency"}
+    others = {f: ends for f, ends in (ranges.shared if ranges else {}).items()
+              if f != "backdrive_efficiency"}
     for f, ends in others.items():  # each other parameter at either end of its range, the fit again
         shifts = [best(*with_values(plant, hinges, {f: v}))[0] - x for v in ends]
         down, up = down + min(0.0, *shifts), up + max(0.0, *shifts)
@@ -194,3 +203,46 @@ def sag_after_cut(plant: DeviceSpec, duration: float, hinges=None, braked: bool 
     twin.reset(np.full(plant.n_hinges, POSE))
     twin.firmware.estop()
     return np.degrees((twin.hold(duration) if braked else twin.unpowered(duration)).true_angle[-1])
+
+
+@dataclasses.dataclass(frozen=True)
+class HoldingMeasured:
+    """What `measure_holding` found: the releases, the fit, and the twin's prediction with the fitted value."""
+
+    releases: list[Release]
+    fit: HoldingFit
+    ranges: Ranges  # what was known of the other parameters (a calibration's intervals, or the spec's spread)
+    profile: Profile  # the profile with the fitted value and its Holding record
+    written: str | None  # the profile's folder where it was kept (a named profile), else None
+    braked: dict[str, list[float]]  # s after the drive is cut (PREDICT_S) -> each hinge's angle, deg
+    unpowered: dict[str, list[float]]  # s after a pack is pulled (UNPOWERED_S) -> each hinge's angle, deg
+
+    def to_json(self) -> dict:
+        e = self.fit.estimate
+        return {"device_profile": self.profile.label, "written": self.written, "backdrive_efficiency": e.to_json(),
+                "autocorrelation_frames": round(self.fit.autocorrelation_frames, 1), "replays": self.fit.replays,
+                "sag_deg": self.fit.sag_deg, "braked_from_flat_deg": self.braked,
+                "unpowered_from_flat_deg": self.unpowered, "releases": [r.to_json() for r in self.releases]}
+
+
+def measure_holding(link, spec: DeviceSpec, profile: Profile, count: int, duration: float = RELEASE_S,
+                    tolerance_deg: float = 5.0, progress=None) -> HoldingMeasured:
+    """`count` releases of `duration` s on the device (record_release; progress(k, release) after each), the
+    back-driven efficiency fitted about the profile's plant with what is known of the others, the profile with
+    it (written where the profile has a name), and the twin's sag after a cut, braked and unpowered."""
+    releases = []
+    for k in range(count):
+        releases.append(record_release(link, spec, duration, tolerance_deg, profile.hinges))
+        if progress:
+            progress(k, releases[-1])
+    ranges = profile.ranges(prior_ranges(spec))
+    fit = fit_backdrive(releases, spec, profile.hinges, ranges)
+    e = fit.estimate
+    fitted, hinges = with_values(spec, profile.hinges, {"backdrive_efficiency": e.value})
+    profile = updated(profile, {"backdrive_efficiency": e.value},
+                      f"measured by `vrscroll holding` from {count} release(s) on {link.url}",
+                      holding=Holding(link.url, count, {"backdrive_efficiency": e}))
+    written = str(write_profile(profile, by="vrscroll holding")) if profile.name else None
+    braked = {f"{s:g}": sag_after_cut(fitted, s, hinges).round(2).tolist() for s in PREDICT_S}
+    unpowered = {f"{s:g}": sag_after_cut(fitted, s, hinges, braked=False).round(2).tolist() for s in UNPOWERED_S}
+    return HoldingMeasured(releases, fit, ranges, profile, written, braked, unpowered)

@@ -35,6 +35,7 @@ from twin.hil.device_gains import device_gains, push_gains, restore_gains
 from twin.hil.mirror import (HOST_SLACK_S, TIME_SLACK, FrameTimes, deviation, faults_text, mirror, parted_text,
                              start_meta, telemetry_trace, wait_for_rest)
 from twin.link import protocol as P
+from twin.records.gains import Gains
 from twin.records.profile import NO_PROFILE
 from twin.sim.gate import GateRefused, check_scenario, enforce
 from twin.sim.replay import replay_targets, twin_at_start
@@ -89,7 +90,7 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
         raise RuntimeError(f"could not bring the device to the scenario's start: {res.message}")
     if scenario_path:
         shutil.copy(scenario_path, out / ("scenario" + Path(scenario_path).suffix))
-    write_gains(out / "gains.json", gains, {"source": f"read from the device at {link.url}"})
+    write_gains(out / "gains.json", Gains(gains, {"source": f"read from the device at {link.url}"}))
     state = wait_for_rest(link, spec)
     meta = {"scenario": scenario.name, **start_meta(prior, state), "telemetry_hz": telemetry_hz,
             "firmware_dt_s": dt, "changes": [], "status": "running", "port": link.url,

@@ -3,7 +3,7 @@
 
 SHARED_PLANT and ALIKE are the emulator's options for it (every hinge alike, no cogging, no friction ripple,
 windings that do not warm), `shared_truth` the same plant as a spec (the twin given the emulator's own values);
-`record_soft` wakes the emulated device and records a training run (SCENARIO) and a held-out one (HOLDOUT)
+`record_soft` wakes the emulated device and records a training run (`training_scenario`) and a held-out one (HOLDOUT)
 with soft gains, whose slow creeps show the friction in the duty.
 """
 
@@ -16,36 +16,20 @@ import numpy as np
 from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec
 from twin.device.variation import scaled
-from twin.formats.scenario import read_scenario
+from twin.formats.scenario import read_scenario, scenario_of_steps, write_scenario
 from twin.hil.mirror import mirror
 from twin.hil.record import run_hil
 from twin.link.serial_link import Link
 
-SCENARIO = """name = "steps"
-duration_s = {duration}
-[[step]]
-t_s = 0.0
-angles_deg = [30, 20, 10, 10, 20, 30]
-[[step]]
-t_s = {t1}
-angles_deg = [5, 40, 25, 0, -10, 60]
-[[step]]
-t_s = {t2}
-angles_deg = [8, 8, 8, 8, 8, 8]
-"""
 
-HOLDOUT = """name = "holdout"
-duration_s = 1.8
-[[step]]
-t_s = 0.0
-angles_deg = [45, 5, 20, 30, 10, 15]
-[[step]]
-t_s = 0.6
-angles_deg = [10, 30, 5, 15, 50, 40]
-[[step]]
-t_s = 1.2
-angles_deg = [25, 15, 35, 5, 20, 0]
-"""
+def training_scenario(duration: float, t1: float, t2: float):
+    """The training scenario "steps": three targets, at 0, t1 and t2 s, over duration s (twin.formats.scenario)."""
+    return scenario_of_steps("steps", [(0.0, [30, 20, 10, 10, 20, 30]), (t1, [5, 40, 25, 0, -10, 60]),
+                                       (t2, [8, 8, 8, 8, 8, 8])], duration)
+
+
+HOLDOUT = scenario_of_steps("holdout", [(0.0, [45, 5, 20, 30, 10, 15]), (0.6, [10, 30, 5, 15, 50, 40]),
+                                        (1.2, [25, 15, 35, 5, 20, 0])], 1.8)
 
 SHARED_SCALES = {"no_load_speed": 0.75, "gear_friction": 1.6, "rotor_inertia": 1.3, "gear_damping": 1.0}
 SHARED_BACKLASH_DEG = 0.05
@@ -70,8 +54,8 @@ def record_soft(emu, spec: DeviceSpec, folder):
     RuntimeError where the device did not come to flat."""
     soft = PidGains.from_spec(spec).replace(kp=0.015, ki=0.05, kd=0.0003)
     train, hold = folder / "train", folder / "hold"
-    (folder / "a.toml").write_text(SCENARIO.format(duration=2.0, t1=0.7, t2=1.4))
-    (folder / "b.toml").write_text(HOLDOUT)
+    write_scenario(folder / "a.toml", training_scenario(2.0, 0.7, 1.4))
+    write_scenario(folder / "b.toml", HOLDOUT)
     with Link(emu.port) as link:
         woken = mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=WAKE_TOLERANCE_DEG)
         if not woken.ok:

@@ -6,6 +6,7 @@ import dataclasses
 from pathlib import Path
 
 from twin.records.calibration import Calibration, Estimate
+from twin.records.ranges import Ranges
 
 NO_PROFILE = "spec defaults"  # how reports name the absence of a profile
 
@@ -44,13 +45,14 @@ class Profile:
         """How every report names it: the profile's name, or "spec defaults"."""
         return self.name or NO_PROFILE
 
-    def ranges(self) -> dict[str, tuple[float, float]]:
-        """parameter -> (low, high) SI, what tuning covers: the twin's values that reproduce the calibration's
-        runs (Estimate.runs_range) ({} when not calibrated)."""
-        return {p: e.runs_range for p, e in self.calibration.parameters.items()} if self.calibration else {}
-
-    def hinge_ranges(self) -> list[dict[str, tuple[float, float]]] | None:
-        """Per hinge, parameter -> (low, high) SI, as `ranges` for its own values (None where calibration fitted
-        none)."""
+    def ranges(self, uncalibrated: Ranges | None = None) -> Ranges | None:
+        """What tuning covers, SI: the twin's values that reproduce the calibration's runs (Estimate.runs_range),
+        each hinge's own where calibration fitted per-hinge values. Where calibration fitted no shared value (none
+        ran, or it fitted each hinge's only) the shared values' are `uncalibrated`'s (twin.device.variation's
+        spread or tolerance about the spec), or None where that is None."""
         rows = self.calibration.hinges if self.calibration else None
-        return [{p: e.runs_range for p, e in row.items()} for row in rows] if rows else None
+        own = tuple({p: e.runs_range for p, e in row.items()} for row in rows) if rows else None
+        if self.calibration and self.calibration.parameters:
+            return Ranges({p: e.runs_range for p, e in self.calibration.parameters.items()}, "the calibrated intervals",
+                          own, calibrated=True)
+        return None if uncalibrated is None else dataclasses.replace(uncalibrated, hinges=own)

@@ -15,7 +15,7 @@ from controllers import core
 from controllers.encoder import counts_from_motor_angle
 from twin.device.flap_collision import apart
 from twin.sim.drive import DECAY_COAST, drive
-from twin.sim.settle import in_band
+from twin.sim.settle import samples_in_band
 
 # MuJoCo's C API and the firmware core's control tick, for the compiled loops
 LIBMUJOCO = ctypes.CDLL(os.path.join(os.path.dirname(mujoco.__file__), f"libmujoco.so.{mujoco.__version__}"))
@@ -54,7 +54,8 @@ def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata
                    qfrc_applied, enc_adr, qadr, gear_dof, cpr_motor, params, bus, target, counts, duty, decay, pwm,
                    max_ticks, settle_band, hold_ticks, stop_when_settled, unpowered, rec_angle, rec_counts, rec_duty,
                    rec_current, rec_torque):
-    """Run firmware ticks until settled (if asked) or max_ticks; returns the ticks run. unpowered: the drive
+    """Run firmware ticks until settled (if asked: hold_ticks ticks in a row in the band, twin.sim.settle) or
+    max_ticks; returns the ticks run. unpowered: the drive
     without power (a pack pulled): zero PWM and the windings open on every hinge, whatever the core commands.
 
     m_free: the model with contacts disabled, stepped where `apart(spreads, hinge angles)` (no spreads: never);
@@ -75,7 +76,7 @@ def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata
                 pwm[h] = 0.0
                 decay[h] = DECAY_COAST
         bus[0] = drive(params, pwm, decay, qvel, gear_dof, ctrl, qfrc_applied, current)
-        settled = in_band(target, counts, settle_band)  # the settle rule (twin.sim.settle), a tick at a time
+        ticks_in_band = samples_in_band(target, counts, settle_band, ticks_in_band)  # the settle rule (twin.sim.settle)
         for h in range(n):
             rec_angle[i, h] = qpos[qadr[h]]
             rec_counts[i, h] = counts[h]
@@ -86,7 +87,6 @@ def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata
             rec_torque[i, h] = qfrc[gear_dof[h]] + qfrc_applied[gear_dof[h]]
         for _ in range(substeps - 1):  # finer physics than the firmware, drive held
             mj_step(step_model(m, m_free, spreads, qpos, qadr, angles), d)
-        ticks_in_band = ticks_in_band + 1 if settled else 0
         if stop_when_settled and ticks_in_band >= hold_ticks:
             return i + 1
     return max_ticks

@@ -2,8 +2,8 @@
 within the firmware's settle band (spec.settle_band counts) of its target for spec.settle_hold s; its settle
 time is when they entered the band to stay (docs/device.md, "Settle time").
 
-One home for the rule as it runs: the twin's stop (twin.sim.kernels.firmware_loop: `in_band`, tick by tick)
-and the device's watch (twin.hil.mirror: `SettleTracker`, frame by frame) both apply it here; a whole
+One home for the rule as it runs: the twin's stop (twin.sim.kernels.firmware_loop: `samples_in_band` tick by
+tick, until `hold_samples` ticks in a row) and the device's watch (twin.hil.mirror: `SettleTracker`, frame by frame) both apply it here; a whole
 recording's settle time is twin.sim.response.settle_time, the same rule looking back (the samples in the band
 from the last entry to the record's end), which a tracker fed the same samples agrees with.
 """
@@ -23,6 +23,19 @@ def in_band(target, counts, band) -> bool:
         if abs(target[h] - counts[h]) > band:
             return False
     return True
+
+
+@numba.njit(cache=True)
+def samples_in_band(target, counts, band, before: int) -> int:
+    """The rule a sample on: how many samples in a row, this one included, every hinge's counts have been within
+    `band` counts of its target (0: this one is outside); `before` is the count at the sample before."""
+    return before + 1 if in_band(target, counts, band) else 0
+
+
+def hold_samples(hold: float, period: float) -> int:
+    """How many samples in a row in the band settle a move when each stands for `period` s: the least k with
+    k * period >= hold s, what SettleTracker asks of samples at that period (a float's last bit aside)."""
+    return max(1, math.ceil(hold / period - 1e-9))
 
 
 class SettleTracker:

@@ -33,6 +33,7 @@ from twin.device.spec import DeviceSpec, load_spec
 from twin.records.trace import Trace
 from twin.sim.drive import drive_params
 from twin.sim.hinges import Hinges, contact_free_spreads, physics_substeps, place_hinges
+from twin.sim.settle import hold_samples
 from twin.sim.targets import TargetError, check_targets
 
 
@@ -195,7 +196,7 @@ class Twin:
             m._address, self._free_model._address, spreads, d._address, self.substeps, self.firmware.address,
             self._now_us, tick_us(s), d.sensordata, d.qpos, d.qvel, d.ctrl, d.qfrc_actuator, d.qfrc_applied, h.enc,
             h.qadr, h.gear_dof, float(s.counts_per_motor_rev), self._params, self._bus, self._target, self._counts,
-            self._duty, self._decay, self._pwm, ticks, s.settle_band, int(round(s.settle_hold / s.firmware_dt)),
+            self._duty, self._decay, self._pwm, ticks, s.settle_band, hold_samples(s.settle_hold, s.firmware_dt),
             stop_when_settled, unpowered, *rec)
         wall = time.perf_counter() - start
         self._now_us = (self._now_us + done * tick_us(s)) & 0xFFFFFFFF

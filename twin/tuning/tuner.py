@@ -56,6 +56,7 @@ from controllers.pid import PidGains
 from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec
 from twin.device.variation import Plant, at_ends, corners, tolerance_ranges
+from twin.records.ranges import Ranges
 from twin.search import CrossEntropy
 from twin.sim.batch import TwinBatch
 from twin.sim.gate import current_limits
@@ -71,8 +72,8 @@ STD_FLOOR = 0.05  # log gain: the search's least spread (5 %: finer than the enc
 @dataclasses.dataclass
 class TuneGoal:
     """What the tuner minimises: worst-plant settle time with overshoot under max_overshoot (rad), over the
-    plants `ranges` spans: {spec field: (low, high) SI}, e.g. the intervals calibration left open
-    (twin.records.profile.Profile.ranges); empty: +-tolerance on motor constant and gear friction. With
+    plants `ranges` spans (twin.records.ranges.Ranges), e.g. the intervals calibration left open
+    (twin.records.profile.Profile.ranges); None: +-tolerance on motor constant and gear friction. With
     `hinges`, every plant gives each hinge its own values, at its own intervals' corners (variation.corners).
     mount: how the device is held (twin.device.mount): every plant's twin is held so."""
 
@@ -80,10 +81,13 @@ class TuneGoal:
     tolerance: float = 0.20  # +- fraction on motor constant and gear friction, where no ranges are given
     step: float = math.radians(30.0)  # rad, every hinge steps from flat to this
     duration: float = 1.0  # s simulated per candidate: the window of the tuner's and the report's metrics
-    ranges: dict = dataclasses.field(default_factory=dict)  # spec field -> (low, high), SI
+    ranges: Ranges | None = None  # the plants' intervals, SI (each hinge's own where it has them)
     hinges: tuple | None = None  # each hinge's own spec (a per-hinge calibration's), or None: all the spec's
-    hinge_ranges: list | None = None  # per hinge, {spec field: (low, high) SI} of its own values' intervals
     mount: str = DEFAULT_MOUNT
+
+    def plant_ranges(self, spec: DeviceSpec) -> Ranges:
+        """The ranges tuned over: the goal's, or +-tolerance about the spec's motor constant and gear friction."""
+        return self.ranges or tolerance_ranges(spec, self.tolerance)
 
 
 def profile_goal(profile, max_overshoot: float, tolerance: float, step: float, duration: float) -> TuneGoal:
@@ -92,8 +96,8 @@ def profile_goal(profile, max_overshoot: float, tolerance: float, step: float, d
     spec), each hinge its own plant and intervals where it was calibrated per hinge (Profile.hinges), held as the
     profile says. max_overshoot, step rad; duration s."""
     return TuneGoal(max_overshoot, tolerance, step, duration,
-                    profile.ranges() or tolerance_ranges(profile.spec, tolerance),
-                    None if profile.hinges is None else tuple(profile.hinges), profile.hinge_ranges(), profile.mount)
+                    profile.ranges(tolerance_ranges(profile.spec, tolerance)),
+                    None if profile.hinges is None else tuple(profile.hinges), profile.mount)
 
 
 def step_scores(spec: DeviceSpec, out: dict, target: np.ndarray) -> dict:
@@ -179,8 +183,7 @@ class RobustEvaluator:
         the nominal and the corners of the goal's ranges."""
         self.spec, self.goal, self.population = spec, goal, population
         self.base = per_hinge(base or PidGains.from_spec(spec), spec.n_hinges)
-        self.plants = plants or corners(spec, goal.ranges or tolerance_ranges(spec, goal.tolerance), goal.hinges,
-                                        goal.hinge_ranges)
+        self.plants = plants or corners(spec, goal.plant_ranges(spec), goal.hinges)
         self.nplant = len(self.plants)
         self.backend = backend
         if backend is None:  # simulation index = candidate * nplant + plant
@@ -320,8 +323,9 @@ def tuned_summary(goal: TuneGoal, result: TuneResult, stated: dict) -> dict:
     """What a tuning found, as JSON (a gains file's meta, `vrscroll tune --json`): the goal (`stated`: as the
     command line gave it, deg and s; its ranges SI) and, per hinge, the worst plant's numbers."""
     pairs = (lambda ranges: {p: [float(lo), float(hi)] for p, (lo, hi) in ranges.items()})
-    return {"goal": {**stated, "ranges": pairs(goal.ranges),
-                     **({"hinge_ranges": [pairs(row) for row in goal.hinge_ranges]} if goal.hinge_ranges else {})},
+    ranges = goal.ranges
+    return {"goal": {**stated, "ranges": pairs(ranges.shared) if ranges else {},
+                     **({"hinge_ranges": [pairs(row) for row in ranges.hinges]} if ranges and ranges.hinges else {})},
             "worst_plant_settle_s": [round(float(x), 4) for x in result.settle],
             "worst_plant_overshoot_deg": [round(math.degrees(x), 4) for x in result.overshoot],
             "worst_plant_peak_current_A": [round(float(x), 3) for x in result.peak_current],
@@ -344,9 +348,9 @@ def range_sensitivity(spec: DeviceSpec, goal: TuneGoal, gains, nthread: int = 0,
     """Which parameter's range sets each hinge's worst case for these gains: every range's two ends, one at a
     time (the others nominal). Returns (per hinge {"parameter", "end" ("low"/"high"), "cost_s"}: the end with
     the highest cost (s, the tuner's), and the simulations run)."""
-    ranges = goal.ranges or tolerance_ranges(spec, goal.tolerance)
-    ends = [(p, end) for p in ranges for end in ("low", "high")]
-    plants = [at_ends(spec, ranges, {p: int(end == "high")}, goal.hinges, goal.hinge_ranges) for p, end in ends]
+    ranges = goal.plant_ranges(spec)
+    ends = [(p, end) for p in ranges.shared for end in ("low", "high")]
+    plants = [at_ends(spec, ranges, {p: int(end == "high")}, goal.hinges) for p, end in ends]
     ev = RobustEvaluator(spec, goal, 1, nthread, gains, backend=backend, plants=plants)
     cost, _ = ev.costs(*(np.array([[getattr(g, k) for g in gains]]) for k in ("kp", "ki", "kd")))
     worst = cost[0].argmax(axis=0)  # per hinge, the end
