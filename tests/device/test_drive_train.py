@@ -26,6 +26,7 @@ from twin.sim.plant import (
     as_twin,
     draw_plant,
 )
+from twin.device.mjcf import load_model, motor_attributes
 from twin.sim.gate import GateRefused, check_move, check_scenario, enforce
 from twin.sim.response import move_report, step_metrics
 from twin.sim.twin import Twin
@@ -196,32 +197,39 @@ def test_one_hinges_own_motor_moves_that_hinge_only(spec):
 
 
 def test_cogging_ripple_and_a_warming_winding_are_in_the_plant(spec):
-    """Cogging: with no current, the motor's torque depends on its angle, by its drawn share of the stall
-    torque, the spec's cogging_periods a turn. Ripple: a moving gearbox's extra friction is the drawn share of its
-    Coulomb friction, with the final gear's mesh. The winding: at its power-on temperature, then warmer while
-    the motor is held at stall."""
-    draw = HingeDraw(cogging=0.04, ripple=0.15, ripple_phase=0.3, winding_c=30.0)
+    """Cogging: at rest, the torque on the motor depends on its angle as MuJoCo's dcmotor `cogging` has it (its
+    drawn share of the stall torque, the spec's cogging_periods a turn, its phase); turning a whole period within
+    a tick, none is left (averaged over the turn, not aliased). Ripple: a moving gearbox's extra friction is the
+    drawn share of its Coulomb friction, with the final gear's mesh. The winding: at its power-on temperature, then
+    warmer while the motor is held at stall."""
+    draw = HingeDraw(cogging=0.04, cogging_phase=1.1, ripple=0.15, ripple_phase=0.3, winding_c=30.0)
     plant = Plant(spec, PlantOptions(hinges=(draw,) * spec.n_hinges), random.Random(0))
     m, d, k = plant.model, plant.data, 2
     g, q = plant.hinges.gear_dof[k], plant.hinges.gear_qadr[k]
     s = plant.hinge_specs[k]
     stall = s.motor_constant * s.supply_voltage / s.drive_resistance  # N*m at the motor
-    torques = []
-    for motor_angle in np.linspace(0, 2 * np.pi / s.cogging_periods, 9):
-        d.qpos[q] = motor_angle / s.gear_ratio
-        d.ctrl[:] = 0.0
-        mujoco.mj_forward(m, d)
-        torques.append(d.actuator_force[k])
-    assert np.ptp(torques) == pytest.approx(2 * 0.04 * stall, rel=0.05)  # (the actuator's force: at the motor)
     assert d.act[m.actuator_actadr[k]] == 5.0  # K above the ambient (25 deg C): the winding at 30 deg C
     d.qpos[q], d.qvel[:], d.ctrl[k] = 0.0, 0.0, s.supply_voltage  # the stalled winding's torque: R x (1 + 0.393 % x 5)
     mujoco.mj_forward(m, d)
-    assert d.actuator_force[k] == pytest.approx(stall / (1 + 0.00393 * 5.0) + torques[0], rel=0.01)  # (+ the cogging)
-    d.qvel[g] = 1.0  # rad/s at the gearbox output, well past the Stribeck speed
-    plant.actuate(np.zeros(spec.n_hinges, np.float32), np.zeros(spec.n_hinges, np.uint8))
-    expected = -0.15 * s.gear_friction * math.sin(2 * math.pi * d.qpos[q] / RIPPLE_PERIOD + 0.3)
-    # (the step has moved the joint on: the ripple applied was the one at the tick's start, within a 1e-3 turn)
-    assert d.qfrc_applied[g] == pytest.approx(expected, abs=0.02 * s.gear_friction)
+    assert d.actuator_force[k] == pytest.approx(stall / (1 + 0.00393 * 5.0), rel=0.01)
+    # MuJoCo's own cogging, on a model of this motor with the dcmotor's attribute (the plant's own is 0)
+    mine = load_model(spec, motors=[motor_attributes(s.replace(cogging=0.04, cogging_phase=1.1))] * spec.n_hinges)
+    theirs = mujoco.MjData(mine)
+    coast = np.zeros(spec.n_hinges, np.uint8)
+    for motor_angle in np.linspace(0, 2 * np.pi / s.cogging_periods, 9):
+        d.qpos[q], d.qvel[:], d.ctrl[:] = motor_angle / s.gear_ratio, 0.0, 0.0
+        mujoco.mj_forward(m, d)
+        assert d.actuator_force[k] == pytest.approx(0.0, abs=1e-12)  # (the dcmotor's cogging is not the plant's)
+        plant.actuate(np.zeros(spec.n_hinges, np.float32), coast)  # the torque applied over this tick
+        theirs.qpos[mine.jnt_qposadr[mine.actuator_trnid[k, 0]]] = motor_angle / s.gear_ratio
+        mujoco.mj_forward(mine, theirs)
+        assert d.qfrc_applied[g] == pytest.approx(theirs.actuator_force[k] * s.gear_ratio, abs=1e-3 * stall)
+    d.qpos[q], d.qvel[:] = 0.3, 0.0
+    d.qvel[g] = 2 * np.pi / (s.cogging_periods * spec.firmware_dt * s.gear_ratio)  # a period a tick
+    mujoco.mj_forward(m, d)
+    plant.actuate(np.zeros(spec.n_hinges, np.float32), coast)
+    ripple = -0.15 * s.gear_friction * math.sin(2 * math.pi * 0.3 / RIPPLE_PERIOD + 0.3)
+    assert d.qfrc_applied[g] == pytest.approx(ripple, abs=1e-3 * stall * s.gear_ratio)  # no cogging left
     plant.hold_hinge(k, 0.0)
     pwm, brake = np.zeros(spec.n_hinges, np.float32), np.ones(spec.n_hinges, np.uint8)
     pwm[k] = 1.0
