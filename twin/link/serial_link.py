@@ -49,8 +49,17 @@ class NackError(LinkError):
         self.detail = detail
         name = self.reason.name if isinstance(self.reason, P.Nack) else f"reason {reason}"
         hint = (f": its zero is unconfirmed since it started: {zero_hint('PORT')}"
-                if self.reason == P.Nack.ZERO_UNCONFIRMED else f" (detail {detail})")
+                if self.reason == P.Nack.ZERO_UNCONFIRMED else
+                f": hinge {detail} is disabled on the device (braked, never driven: a dead wire bring-up named, or "
+                f"disabled by hand); mend it and run `vrscroll bringup`, or `vrscroll status --serial PORT "
+                f"--enable-hinges {detail}`" if self.reason == P.Nack.HINGE_DISABLED
+                else f" (detail {detail})")
         super().__init__(f"device refused {msg_name}: {name}{hint}")
+
+
+def hinge_list(bits: int) -> list[int]:
+    """The hinges whose bits are set in a per-hinge bit mask (STATE's derated and disabled)."""
+    return [k for k in range(bits.bit_length()) if bits >> k & 1]
 
 
 def zero_hint(port: str) -> str:
@@ -375,6 +384,8 @@ class Link:
         if reply.zero_confirmed not in (0, 1) or reply.wiring_set not in (0, 1):
             raise self.distrust(f"HELLO says zero_confirmed {reply.zero_confirmed}, wiring_set {reply.wiring_set}: "
                                 "each is 0 or 1")
+        if reply.disabled >> reply.n_hinges:
+            raise self.distrust(f"HELLO says hinges {hinge_list(reply.disabled)} are disabled, of {reply.n_hinges}")
         self.info = reply
         self.zero_confirmed = bool(reply.zero_confirmed)
         return reply
@@ -487,11 +498,23 @@ class Link:
         return self.request(P.GetWiring())
 
     def set_wiring(self, encoder, flags, bridge) -> P.Ack:
-        """The wiring correction (see protocol.SetWiring): kept on the device; its zero must be confirmed again."""
+        """The wiring correction (see protocol.SetWiring), disabled hinges included: kept on the device; a change
+        of encoder, bridge or direction leaves its zero to be confirmed again (a hinge disabled or enabled alone
+        keeps it: read back)."""
         ack = self.request(P.SetWiring(tuple(int(e) for e in encoder), tuple(int(f) for f in flags),
                                        tuple(int(b) for b in bridge)))
         self.zero_confirmed = False
+        self.zero_confirmed = bool(self.get_state().zero_confirmed)
         return ack
+
+    def set_disabled(self, hinges) -> P.WiringReply:
+        """Disable exactly `hinges` (braked, never driven; the device IDLE), the rest of its wiring as it holds it;
+        the wiring it then holds."""
+        w = self.get_wiring()
+        off = set(int(h) for h in hinges)
+        flags = [(f & ~P.WIRING_DISABLED) | (P.WIRING_DISABLED if k in off else 0) for k, f in enumerate(w.flags)]
+        self.set_wiring(w.encoder, flags, w.bridge)
+        return self.get_wiring()
 
     def estop(self) -> P.Ack:
         return self.request(P.EStop(), timeout=0.05, retries=5)
@@ -605,6 +628,8 @@ class Link:
                 return f"{name} has {len(msg.counts)} hinges, the device {n}"
             if msg.fault_hinge != 0xFF and (n is None or msg.fault_hinge >= n):
                 return f"{name} blames hinge {msg.fault_hinge}, of {n}"
+        if isinstance(msg, P.StateMsg) and n is not None and msg.disabled >> n:
+            return f"STATE says hinges {hinge_list(msg.disabled)} are disabled, of {n}"
         if isinstance(msg, P.GainsReply) and n is not None and msg.hinge >= n:
             return f"GAINS for hinge {msg.hinge}, of {n}"
         stamp = getattr(msg, "time_us", None)
