@@ -95,6 +95,7 @@ TELEMETRY_KEPT = 10_000
 HELLO_RANGES = {"loop_rate_hz": LOOP_RATE_RANGE, "watchdog_ms": (100, 60_000), "max_telemetry_hz": (1, 10_000)}
 CLOCK_AHEAD_S = 0.25  # s the device's clock may run ahead of the host's over a session ...
 CLOCK_DRIFT = 1e-3  # ... plus this share of the session's length (a crystal is within 1e-4)
+ESTOP_RETRY_S = 0.05  # s between an ESTOP's tries
 CLOCK_BACK_US = 1000  # µs a stamp may precede the one before it (one tick: a reply and a frame stamped apart)
 CLOCK_STUCK_S = 0.2  # s of host time after which a reply stamped as the last stamp means a stopped clock
 MAX_LOOP_RATE_KHZ = 2  # program samples kept per ms of PROGRAM_MAX_MS: bounded, whatever the device sends
@@ -517,7 +518,10 @@ class Link:
         return self.get_wiring()
 
     def estop(self) -> P.Ack:
-        return self.request(P.EStop(), timeout=0.05, retries=5)
+        """ESTOP, resent every ESTOP_RETRY_S (sooner than other requests: a lost one is sent again at once) for as long
+        as any request waits (timeout x (retries + 1)), and at least 6 times."""
+        tries = max(6, round(self.timeout * (self.retries + 1) / ESTOP_RETRY_S))
+        return self.request(P.EStop(), timeout=ESTOP_RETRY_S, retries=tries - 1)
 
     def clear_fault(self) -> P.Ack:
         return self.request(P.ClearFault())
