@@ -499,7 +499,8 @@ def test_a_disabled_hinge_stays_braked_and_its_motion_is_refused_through_a_clear
     assert hello.disabled == 0b100 and hello.wiring_set == 1 and ask(c, P.GetWiring(), 3)[1].flags == flags
     ask(c, P.ConfirmZero(), 4)
     program = P.Program(2, -100, 100, 100, 1, (1000,) + (0,) * 15, (50,) + (0,) * 15)
-    for seq, cmd in enumerate((P.Pulse(2, 1000, 30), program, P.SetTargets((10, 0, spec.stall_counts + 1, 0, 0, 0))), 5):
+    moving = P.SetTargets((10, 0, spec.stall_counts + 1, 0, 0, 0))
+    for seq, cmd in enumerate((P.Pulse(2, 1000, 30), program, moving), 5):
         assert ask(c, cmd, seq)[1] == P.NackMsg(cmd.MSG, P.Nack.HINGE_DISABLED, 2), cmd
     assert ask(c, P.Pulse(1, 1000, 30), 8)[1].MSG == P.MsgId.ACK  # the others are driven
     for t in range(1, 40):

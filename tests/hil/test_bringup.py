@@ -244,7 +244,7 @@ UNTOLD = {"crossed:0,5": "hinge 0: its bridge turns encoder input 5",
 UNTOLD_HANGING = {f: f"hinge {f[-1]}: positive drive turns encoder input {f[-1]} down"
                   for f in CORRECTED if "reversed" in f}
 # ... nor an encoder and a motor both reversed from a hinge as built: each hinge counting up is named
-UNTOLD_UP = r"hinge \d: positive drive turns encoder input \d up: as built, or with its encoder's A and B and its motor's"
+UNTOLD_UP = r"hinge \d: positive drive turns encoder input \d up: as built, or with its encoder's A and B and its"
 
 
 def bring_up_named_or_corrected(spec, faults, seed, lying_flat, before=None, hand=True):

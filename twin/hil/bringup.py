@@ -351,7 +351,8 @@ def on_one_table(checks: list[HingeCheck]) -> list[HingeCheck]:
         return checks
     shown = f"hinge{'s' if len(none) > 1 else ''} {', '.join(map(str, none))} showed no table"
     return [dataclasses.replace(c, encoder_reversed=False, decided=False, told="", note=(
-        f"{reversal(c.hinge, c.encoder, c.turns_up)}; the way that lifts flap {c.hinge} seemed to tell which ({c.told}), but "
+        f"{reversal(c.hinge, c.encoder, c.turns_up)}; the way that lifts flap {c.hinge} seemed to tell which "
+        f"({c.told}), but "
         f"{shown}: the device is not lying flat, and nothing is told. {how_to_decide(c.hinge)}")) if c.told else c
         for c in checks]
 
