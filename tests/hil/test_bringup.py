@@ -455,7 +455,8 @@ def test_with_the_bridge_map_a_hinge_on_another_bridge_moves_its_own_flap_and_re
     assert peak[1] > 2 * peak[3], peak  # hinge 3 holds against the lift's reaction: a third of hinge 1's, measured
 
 
-@pytest.mark.parametrize("retries", [3, SERVED_LINK_RETRIES], ids=["link-default", "served"])
+@pytest.mark.parametrize("retries", [pytest.param(3, marks=pytest.mark.slow), SERVED_LINK_RETRIES],
+                         ids=["link-default", "served"])  # the default Link's timeout: the cause, shown (slow: 8 s)
 def test_a_link_to_a_served_emulator_waits_out_its_thread_being_unscheduled(spec, retries):
     """The slow sweeps' link timeouts: the served emulator's thread left unscheduled for 1 s (measured under load:
     0.29-0.33 s, and whole seconds behind the wall clock) while the host's Link runs on. The Link's own 4 tries of
