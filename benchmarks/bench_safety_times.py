@@ -6,7 +6,8 @@
   with the board's pull-ups on the DRV8833 inputs and without them;
 - blind: a hinge with a dead wire (the emulator's encoder-dead, channel-dead, input-open) given a +10 deg target
   anyway (the core in the loop, drawn seed 61, SET_TARGETS with no gate): when the core faults and how far the flap
-  went meanwhile (docs/firmware.md, "What software cannot mend").
+  went meanwhile (docs/firmware.md, "What software cannot mend"); then with the hinge disabled, as bring-up now
+  leaves it (SET_WIRING's WIRING_DISABLED): what the device answers and how far the flap went in 3 s.
 
     python benchmarks/bench_safety_times.py
 
@@ -60,9 +61,10 @@ def unbraked_after_reset(pull_ups: bool) -> np.ndarray:
     return np.array([(1 - board.bridge_shares(k)[2]) * elapsed for k in range(6)])
 
 
-def driven_blind(spec, fault: str, flat: bool, seed: int = 61) -> tuple[int | None, str, float]:
-    """A +10 deg target on the faulty hinge alone: (ms to the core's fault or None in 3 s, the fault, the flap's
-    largest travel, deg)."""
+def driven_blind(spec, fault: str, flat: bool, seed: int = 61,
+                 disabled: bool = False) -> tuple[int | None, str, float]:
+    """A +10 deg target on the faulty hinge alone (disabled first: SET_WIRING's WIRING_DISABLED on it): (ms to the
+    core's fault or None in 3 s, the fault or the NACK's reason, the flap's largest travel, deg)."""
     p = argparse.ArgumentParser()
     emulate.add_arguments(p)
     args = p.parse_args([*emulator_args(seed), "--latency-ms", "0", "--zeroed", *(["--lying-flat"] * flat),
@@ -72,17 +74,23 @@ def driven_blind(spec, fault: str, flat: bool, seed: int = 61) -> tuple[int | No
     start = emu.plant.angles.copy()
     targets = [0] * spec.n_hinges
     targets[k] = round(np.radians(10) / spec.rad_per_count)
+    n, said = spec.n_hinges, P.Decoder()
+    if disabled:
+        flags = tuple(P.WIRING_DISABLED if h == k else 0 for h in range(n))
+        emu.receive(P.encode(P.SetWiring(tuple(range(n)), flags, tuple(range(n))), 100_000))
     emu.receive(P.encode(P.SetTargets(tuple(targets)), 1))
+    refused = "none"
     travel = 0.0
     for t in range(3000):
         if t % 50 == 0:
             emu.receive(P.encode(P.Heartbeat(), 2 + t))
         emu.step()
-        emu.take_output()
+        refused = next((P.enum_name(P.Nack, m.reason) for _, m in said.feed(emu.take_output())
+                        if isinstance(m, P.NackMsg)), refused)
         travel = max(travel, abs(float(np.degrees(emu.plant.angles - start)[k])))
         if emu.firmware.state == P.State.FAULT:
             return t + 1, P.enum_name(P.Fault, emu.firmware.faults), travel
-    return None, "none", travel
+    return None, refused, travel
 
 
 def main() -> None:
@@ -95,9 +103,11 @@ def main() -> None:
               f"the first tick: " + ", ".join(f"{x:.0f}" for x in us) + " us (hinges 0-5)")
     for fault, flat in (("encoder-dead:5", True), ("encoder-dead:5", False), ("channel-dead:3", True),
                         ("input-open:4,2", True)):
-        ms, what, travel = driven_blind(spec, fault, flat)
-        print(f"blind: {fault} {'lying flat' if flat else 'hanging'}, +10 deg anyway: "
-              + (f"{what} after {ms} ms" if ms else "no fault in 3 s") + f", the flap moved up to {travel:.0f} deg")
+        for disabled in (False, True):
+            ms, what, travel = driven_blind(spec, fault, flat, disabled=disabled)
+            print(f"blind: {fault} {'lying flat' if flat else 'hanging'}{', disabled' if disabled else ''}, "
+                  "+10 deg anyway: " + (f"{what} after {ms} ms" if ms else f"no fault in 3 s (NACK {what})")
+                  + f", the flap moved up to {travel:.0f} deg")
 
 
 if __name__ == "__main__":

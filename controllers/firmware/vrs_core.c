@@ -158,26 +158,45 @@ int vrs_confirm_zero(vrs_core *c)
 
 void vrs_mark_zero_confirmed(vrs_core *c) { c->zero_confirmed = 1; }
 
+/* the wiring flags that change what a hinge's counts mean (not VRS_WIRING_DISABLED) */
+#define WIRING_COUNTS_FLAGS (VRS_WIRING_ENCODER_REVERSED | VRS_WIRING_MOTOR_REVERSED)
+
 int vrs_set_wiring(vrs_core *c, const vrs_wiring *w)
 {
-    uint8_t k, seen = 0, driven = 0;
+    uint8_t k, seen = 0, driven = 0, moved = 0;
     if (c->state != VRS_STATE_IDLE)
         return VRS_NACK_BAD_STATE;
     for (k = 0; k < c->cfg.n_hinges; k++) {
         if (w->encoder[k] >= c->cfg.n_hinges || (seen & (1u << w->encoder[k]))
             || w->bridge[k] >= c->cfg.n_hinges || (driven & (1u << w->bridge[k]))
-            || (w->flags[k] & ~(VRS_WIRING_ENCODER_REVERSED | VRS_WIRING_MOTOR_REVERSED)))
+            || (w->flags[k] & ~(WIRING_COUNTS_FLAGS | VRS_WIRING_DISABLED)))
             return VRS_NACK_BAD_VALUE;
         seen = (uint8_t)(seen | (1u << w->encoder[k]));
         driven = (uint8_t)(driven | (1u << w->bridge[k]));
+        moved |= (uint8_t)(w->encoder[k] != c->wiring.encoder[k] || w->bridge[k] != c->wiring.bridge[k]
+                           || (w->flags[k] ^ c->wiring.flags[k]) & WIRING_COUNTS_FLAGS);
     }
     if (memcmp(&c->wiring, w, sizeof *w) != 0) {
         c->wiring = *w;
         c->wiring_changed = 1;
-        c->zero_confirmed = 0;  /* the counts mean something else now */
+    }
+    if (moved) {  /* the counts mean something else now; a hinge disabled or enabled alone keeps the zero */
+        c->zero_confirmed = 0;
         memset(c->zero, 0, sizeof c->zero);
     }
     return 0;
+}
+
+/* whether hinge k is disabled (VRS_WIRING_DISABLED): braked, never driven */
+static int disabled(const vrs_core *c, uint8_t k) { return (c->wiring.flags[k] & VRS_WIRING_DISABLED) != 0; }
+
+uint8_t vrs_get_disabled(const vrs_core *c)
+{
+    uint8_t k, bits = 0;
+    for (k = 0; k < c->cfg.n_hinges; k++)
+        if (disabled(c, k))
+            bits = (uint8_t)(bits | (1u << k));
+    return bits;
 }
 
 void vrs_get_wiring(const vrs_core *c, vrs_wiring *out) { *out = c->wiring; }
@@ -191,11 +210,12 @@ int vrs_take_wiring_change(vrs_core *c, vrs_wiring *out)
     return 1;
 }
 
+/* whether no correction is applied (disabled hinges are HELLO's own field) */
 static int wiring_is_identity(const vrs_core *c)
 {
     uint8_t k;
     for (k = 0; k < c->cfg.n_hinges; k++)
-        if (c->wiring.encoder[k] != k || c->wiring.bridge[k] != k || c->wiring.flags[k])
+        if (c->wiring.encoder[k] != k || c->wiring.bridge[k] != k || c->wiring.flags[k] & WIRING_COUNTS_FLAGS)
             return 0;
     return 1;
 }
@@ -235,6 +255,8 @@ static int program_start(vrs_core *c, const vrs_program_spec *p, float max_duty,
     if (p->hinge >= c->cfg.n_hinges || p->n_segments == 0 || p->n_segments > VRS_PROGRAM_MAX_SEGMENTS
         || p->timeout_ms == 0 || p->timeout_ms > VRS_PROGRAM_MAX_MS)
         return VRS_NACK_BAD_VALUE;
+    if (disabled(c, p->hinge))
+        return VRS_NACK_HINGE_DISABLED;
     for (i = 0; i < p->n_segments; i++) {
         int16_t d;
         if (!(p->duty[i] >= -1.0f && p->duty[i] <= 1.0f) || p->ms[i] == 0)  /* NaN too */
@@ -411,9 +433,12 @@ static int set_targets(vrs_core *c, const int32_t *counts, uint32_t now_us, uint
         return VRS_NACK_ZERO_UNCONFIRMED;
     }
     for (k = 0; k < n; k++)
-        if (counts[k] > c->cfg.limit_counts || counts[k] < -c->cfg.limit_counts) {
+        if (disabled(c, k) ? counts[k] - c->counts[k] > c->cfg.stall_counts
+                                 || c->counts[k] - counts[k] > c->cfg.stall_counts
+                           : counts[k] > c->cfg.limit_counts || counts[k] < -c->cfg.limit_counts) {
+            /* a disabled hinge takes only where it stands (within stall_counts: it is braked there) */
             *detail = k;
-            return VRS_NACK_OUT_OF_RANGE;
+            return disabled(c, k) ? VRS_NACK_HINGE_DISABLED : VRS_NACK_OUT_OF_RANGE;
         }
     memcpy(c->targets, counts, n * sizeof counts[0]);
     if (c->state == VRS_STATE_HOLDING)
@@ -556,6 +581,7 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         out[9] = c->setup_error;
         out[10] = c->zero_confirmed;
         out[11] = (uint32_t)!wiring_is_identity(c);
+        out[12] = vrs_get_disabled(c);
         memset(c->replies, 0, sizeof c->replies);  /* a new session: its seqs start again */
         reply(c, id, seq, crc, VRS_MSG_HELLO_REPLY, out, 0);
         return;
@@ -568,9 +594,10 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         out[7] = c->rx_bad_frames;
         out[8] = c->zero_confirmed;
         out[9] = c->derated;
-        put_positions(c, out + 10);
+        out[10] = vrs_get_disabled(c);
+        put_positions(c, out + 11);
         for (k = 0; k < nh; k++)  /* what the PID holds a load with, hidden at rest (its duty is off) */
-            out[10 + 2 * nh + k] = (uint32_t)(int32_t)duty_to_wire(c->pid[k].integral);
+            out[11 + 2 * nh + k] = (uint32_t)(int32_t)duty_to_wire(c->pid[k].integral);
         reply(c, id, seq, crc, VRS_MSG_STATE, out, nh);
         return;
     case VRS_MSG_SET_TARGETS:
@@ -767,6 +794,8 @@ static void checks(vrs_core *c, uint32_t now_us)
     }
     for (k = 0; k < n; k++) {
         int32_t out = c->counts[k] < 0 ? -c->counts[k] : c->counts[k];
+        if (disabled(c, k))  /* braked, never driven: where it sags (or a dead encoder says) stops no other */
+            continue;
         if (out > c->limit_out[k]) {
             fault(c, VRS_FAULT_LIMIT, k);
             return;
@@ -862,9 +891,13 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
     driving = c->state == VRS_STATE_ACTIVE || c->state == VRS_STATE_HOLDING;
     for (k = 0; k < n; k++) {
         float i;
-        if (driving)
+        if (driving && !disabled(c, k))
             c->duty[k] = vrs_pid_update(&c->pid[k], &c->gains[k], c->alpha[k], c->dt, c->targets[k], c->counts[k]);
-        else {
+        else if (disabled(c, k)) {  /* braked in every state; its target is where it stands */
+            c->duty[k] = 0.0f;
+            c->targets[k] = c->pid[k].prev = c->counts[k];
+            c->pid[k].rate = c->pid[k].integral = 0.0f;
+        } else {
             c->duty[k] = program_duty(c, k);
             c->pid[k].prev = c->counts[k];
         }

@@ -60,7 +60,8 @@ typedef struct {
 } vrs_config;
 
 /* the wiring correction: hinge k reads encoder input encoder[k], its motor is on H-bridge bridge[k], and
- * flags[k] (VRS_WIRING_*) turn its encoder's count and its motor's drive around; the identity after vrs_init */
+ * flags[k] (VRS_WIRING_*) turn its encoder's count and its motor's drive around, or disable it (braked, never
+ * driven); the identity after vrs_init */
 typedef struct {
     uint8_t encoder[VRS_MAX_HINGES];
     uint8_t flags[VRS_MAX_HINGES];
@@ -229,6 +230,11 @@ uint8_t vrs_get_derated(const vrs_core *c);
 int vrs_set_wiring(vrs_core *c, const vrs_wiring *w);
 void vrs_get_wiring(const vrs_core *c, vrs_wiring *out);
 int vrs_take_wiring_change(vrs_core *c, vrs_wiring *out);
+/* Bit k: hinge k is disabled (flags[k] & VRS_WIRING_DISABLED): braked in every state, its PULSE and PROGRAM
+ * refused and a target that moves it (more than stall_counts from where it stands) refused, VRS_NACK_HINGE_DISABLED
+ * naming it; CLEAR_FAULT and a restart keep it (it is the wiring's). Disabling or enabling a hinge alone keeps the
+ * zero. */
+uint8_t vrs_get_disabled(const vrs_core *c);
 
 /* The board's start, after vrs_init: why it reset (esp_reset_reason_t, reported in HELLO_REPLY), and a
  * set-up call that failed (VRS_SETUP_*, for the hinge it was setting up, 0xFF for the board): the core

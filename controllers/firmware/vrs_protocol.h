@@ -4,7 +4,7 @@
 #define VRS_PROTOCOL_H
 
 /* framing (docs/protocol.md) */
-#define VRS_PROTOCOL_VERSION 5
+#define VRS_PROTOCOL_VERSION 6
 #define VRS_MAX_PAYLOAD 512
 #define VRS_DUTY_SCALE 32767
 #define VRS_GAIN_SCALE 10000000
@@ -19,6 +19,7 @@
 #define VRS_PROGRAM_RATE_TICKS 8
 #define VRS_WIRING_ENCODER_REVERSED 0x01
 #define VRS_WIRING_MOTOR_REVERSED 0x02
+#define VRS_WIRING_DISABLED 0x04
 
 /* message ids */
 #define VRS_MSG_HELLO 0x01
@@ -69,8 +70,8 @@
     X(GET_GAINS, "B", "") \
     X(ACK, "BI", "") \
     X(NACK, "BBB", "") \
-    X(HELLO_REPLY, "BBBBBHHHBBBB", "") \
-    X(STATE, "BBBBHBIIBB", "iih") \
+    X(HELLO_REPLY, "BBBBBHHHBBBBB", "") \
+    X(STATE, "BBBBHBIIBBB", "iih") \
     X(GAINS, "BiiiHHHH", "") \
     X(TELEMETRY, "IBHB", "iihh")
 
@@ -83,6 +84,7 @@
 #define VRS_NACK_BAD_VALUE 6
 #define VRS_NACK_FAULT_PERSISTS 7
 #define VRS_NACK_ZERO_UNCONFIRMED 8
+#define VRS_NACK_HINGE_DISABLED 9
 
 /* device states */
 #define VRS_STATE_IDLE 0

@@ -483,7 +483,61 @@ def test_the_wiring_correction_reads_the_named_input_turned_around_and_drives_th
     for bad in ((0, 0, 2, 3, 4, 5), (0, 1, 2, 3, 4, 6)):
         assert ask(idle, P.SetWiring(bad, (0,) * 6, identity))[1].reason == P.Nack.BAD_VALUE
         assert ask(idle, P.SetWiring(identity, (0,) * 6, bad))[1].reason == P.Nack.BAD_VALUE  # bridges too
-    assert ask(idle, P.SetWiring(identity, (4,) * 6, identity))[1].reason == P.Nack.BAD_VALUE
+    assert ask(idle, P.SetWiring(identity, (8,) * 6, identity))[1].reason == P.Nack.BAD_VALUE  # no such flag
+
+
+def test_a_disabled_hinge_stays_braked_and_its_motion_is_refused_through_a_cleared_fault(spec):
+    """Hinge 2 disabled, its motor on bridge 4 (a dead wire bring-up named): HELLO and STATE say so, its PULSE and
+    PROGRAM and a target that moves it are refused naming it, and in ACTIVE, HOLDING and after a fault cleared its
+    bridge stays at zero duty, braked, while the others are driven; its encoder reading past the range stops nothing.
+    Enabled again, with the zero kept, it is driven."""
+    c = make(spec, watchdog_ms=200, host_away_hold_ms=500, stall_duty=2.0)
+    bridge, flags = (0, 1, 4, 3, 2, 5), (0, 0, P.WIRING_DISABLED, 0, 0, 0)
+    c.tick(0, [0] * 6)
+    assert ask(c, P.SetWiring(tuple(range(6)), flags, bridge), 1)[1].MSG == P.MsgId.ACK
+    hello = ask(c, P.Hello(), 2)[1]
+    assert hello.disabled == 0b100 and hello.wiring_set == 1 and ask(c, P.GetWiring(), 3)[1].flags == flags
+    ask(c, P.ConfirmZero(), 4)
+    program = P.Program(2, -100, 100, 100, 1, (1000,) + (0,) * 15, (50,) + (0,) * 15)
+    moving = P.SetTargets((10, 0, spec.stall_counts + 1, 0, 0, 0))
+    for seq, cmd in enumerate((P.Pulse(2, 1000, 30), program, moving), 5):
+        assert ask(c, cmd, seq)[1] == P.NackMsg(cmd.MSG, P.Nack.HINGE_DISABLED, 2), cmd
+    assert ask(c, P.Pulse(1, 1000, 30), 8)[1].MSG == P.MsgId.ACK  # the others are driven
+    for t in range(1, 40):
+        c.tick(t * 1000, [0] * 6)
+    assert {m.MSG for _, m in replies(c)} == {P.MsgId.PROGRAM_SAMPLE}
+    far = limit(spec) + spec.limit_margin + 100  # counts: past the LIMIT fault's bound
+    raw, up = [0] * 6, (30, 30, None, 30, 30, 30)
+
+    def targets(at):
+        return tuple(at if k == 2 else x for k, x in enumerate(up))
+
+    assert ask(c, P.SetTargets(targets(spec.stall_counts)), 9, 40_000)[1].MSG == P.MsgId.ACK  # where it stands
+    for seq, ticks in enumerate((range(41, 600), range(600, 1200)), 10):
+        for t in ticks:
+            raw[2] = far if t % 2 else 0  # a dead channel, glitching
+            duty, decay = c.tick(t * 1000, raw)
+            assert duty[4] == 0 and decay[4] == 1 and duty[0] > 0 and duty[2] > 0, (t, duty)  # bridge 2: hinge 4
+            if t % 100 == 0:
+                c.rx(P.encode(P.Heartbeat(), t), t * 1000)
+        state = ask(c, P.GetState(), seq, t * 1000)[1]
+        assert state.disabled == 0b100 and state.targets[2] == state.counts[2] == raw[2]
+        assert c.state == P.State.ACTIVE and c.faults == 0
+        c.estop()
+        assert c.clear_fault() == 0 and c.state == P.State.IDLE  # a cleared fault ...
+        assert ask(c, P.SetTargets(targets(raw[2] + 50)), seq + 10, t * 1000)[1] == \
+            P.NackMsg(P.MsgId.SET_TARGETS, P.Nack.HINGE_DISABLED, 2)  # ... cannot drive it
+        assert ask(c, P.SetTargets(targets(raw[2])), seq + 20, t * 1000)[1].MSG == P.MsgId.ACK
+    for t in range(1200, 2000):  # the host gone quiet: HOLDING holds the others, hinge 2 still braked
+        duty, _ = c.tick(t * 1000, raw)
+        assert duty[4] == 0
+    assert c.state == P.State.FAULT and c.faults == P.Fault.WATCHDOG and c.clear_fault() == 0
+    c.tick(2_000_000, [0] * 6)
+    assert ask(c, P.SetWiring(tuple(range(6)), (0,) * 6, bridge), 40, 2_000_000)[1].MSG == P.MsgId.ACK
+    assert ask(c, P.Hello(), 41, 2_000_000)[1].disabled == 0
+    assert ask(c, P.SetTargets((0, 0, 60, 0, 0, 0)), 42, 2_000_000)[1].MSG == P.MsgId.ACK  # the zero kept
+    duty, _ = c.tick(2_001_000, [0] * 6)
+    assert duty[4] > 0  # enabled again: driven on its bridge
 
 
 def test_the_bridge_map_drives_each_hinge_on_its_bridge_and_reads_its_current_there(spec):

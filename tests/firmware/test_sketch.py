@@ -318,3 +318,23 @@ def test_a_runaway_faults_within_the_stall_window(spec, fault):
     assert board.faults == P.Fault.RUNAWAY and board.fault_hinge == k, (board.faults, board.fault_hinge)
     assert tick <= 3 * spec.stall_time * 100 + 5, tick
     assert np.all(board.run_tick(0, emu.counts, None, 8000)[0] == 0)
+
+
+def test_a_disabled_hinge_is_kept_in_flash_and_no_cleared_fault_drives_it():
+    """Hinge 3 disabled (SET_WIRING's WIRING_DISABLED, as bring-up sets it for a dead wire): the sketch keeps it in
+    NVS with the wiring, so after a power cycle HELLO and STATE still name it; with the zero confirmed and a fault
+    cleared, a target that moves it is refused naming it, and under targets for every other hinge its bridge brakes
+    the whole time while theirs drive."""
+    board = sketch.Sketch(np.zeros(6))
+    identity, off = tuple(range(6)), (0, 0, 0, P.WIRING_DISABLED, 0, 0)
+    assert frames(board, P.SetWiring(identity, off, identity))[0].MSG == P.MsgId.ACK
+    board.reset(P.ResetReason.POWERON)
+    hello, state = frames(board, P.Hello(), P.GetState())
+    assert hello.disabled == state.disabled == 0b1000 and hello.wiring_set == 0
+    assert frames(board, P.ConfirmZero(), P.EStop(), P.ClearFault())[2].MSG == P.MsgId.ACK
+    for refused in (P.SetTargets((60, 60, 60, 60, 60, 60)), P.Pulse(3, 1000, 30)):
+        assert frames(board, refused)[0] == P.NackMsg(refused.MSG, P.Nack.HINGE_DISABLED, 3)
+    assert frames(board, P.SetTargets((60, 60, 60, 0, 60, 60)))[0].MSG == P.MsgId.ACK
+    ticks = [board.run_tick(0, board._positions, None, 8000) for _ in range(100)]
+    assert all(pwm[3] == 0 and decay[3] == 1 and np.all(np.delete(pwm, 3) > 0) for pwm, decay in ticks[2:]), ticks[:3]
+    assert board.state == P.State.ACTIVE

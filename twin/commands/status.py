@@ -10,21 +10,30 @@ from controllers.encoder import angle_from_counts
 from twin.commands.options import (
     add_device_option,
     add_serial,
+    comma_list,
     device_session,
     link_errors,
     opened,
     profile_line,
     within,
 )
+from twin.errors import UserError
 from twin.hil.mirror import faults_text
 from twin.link import protocol as P
-from twin.link.serial_link import zero_hint
+from twin.link.serial_link import hinge_list, zero_hint
 
 
 def add_arguments(p) -> None:
     add_serial(p, required=True)
     p.add_argument("--clear-fault", action="store_true", help="clear an ESTOP or FAULT first")
     p.add_argument("--estop", action="store_true", help="e-stop the device first")
+    p.add_argument("--disable-hinges", type=comma_list(), metavar="K1,K2,...",
+                   help="disable these hinges on the device (kept with its wiring, across power cycles and "
+                        "CLEAR_FAULT): braked, never driven, their targets and pulses refused; the device IDLE "
+                        "(with --clear-fault from a fault)")
+    p.add_argument("--enable-hinges", type=comma_list(), metavar="K1,K2,...",
+                   help="enable these hinges again (once the dead wire is mended; bring-up does it for a hinge it "
+                        "finds healthy)")
     p.add_argument("--log", help="session log, JSON lines")
     p.add_argument("--watch", type=within(0, 86400, "s"), nargs="?", const=0.0, metavar="SECONDS",
                    help="then a live readout of the hinge angles, 5 lines a second, for SECONDS (none or 0: until "
@@ -39,6 +48,10 @@ def run(args) -> int:
             link.estop()
         if args.clear_fault:
             link.clear_fault()
+        if args.disable_hinges or args.enable_hinges:
+            off = set(hinge_list(link.get_state().disabled))
+            off = (off | _hinges(args.disable_hinges, spec)) - _hinges(args.enable_hinges, spec)
+            link.set_disabled(sorted(off))
         s = link.get_state()
         info = link.info
         held = [link.get_gains(k) for k in range(spec.n_hinges)]  # as the wire carries them
@@ -46,6 +59,16 @@ def run(args) -> int:
         if args.watch is not None:
             watch(link, spec, args.watch)
     return 0
+
+
+def _hinges(items, spec) -> set[int]:
+    """Hinge numbers from --disable-hinges / --enable-hinges; UserError naming one the device does not have."""
+    out = set()
+    for text in items or ():
+        if not text.isdigit() or int(text) >= spec.n_hinges:
+            raise UserError(f"hinge {text!r}: the device's hinges are 0 to {spec.n_hinges - 1}")
+        out.add(int(text))
+    return out
 
 
 WATCH_PERIOD_S = 0.2
@@ -75,8 +98,12 @@ def _report(spec, profile, s, info, held, port) -> None:
           + ("" if info.setup_error == P.SetupStep.NONE else
              f"; set-up failed at {P.enum_name(P.SetupStep, info.setup_error)} (docs/firmware.md, 'Set-up faults')"))
     print(f"zero     {'confirmed' if s.zero_confirmed else 'UNCONFIRMED: ' + zero_hint(port)}")
+    if s.disabled:
+        print(f"disabled hinges {hinge_list(s.disabled)}: braked, never driven, their targets and pulses refused "
+              "(bring-up found a dead wire, or you disabled them); `--enable-hinges` once mended, or run bring-up "
+              "again")
     if s.derated:
-        print(f"derated  hinges {[k for k in range(spec.n_hinges) if s.derated >> k & 1]}: held to the motor's "
+        print(f"derated  hinges {hinge_list(s.derated)}: held to the motor's "
               "continuous current by the I2t protection")
     print(f"state    {P.enum_name(P.State, s.state)}")
     print(f"faults   {faults_text(s.faults)}" + (f" (hinge {s.fault_hinge})" if s.fault_hinge != 0xFF else ""))

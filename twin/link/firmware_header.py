@@ -48,7 +48,8 @@ def header(spec: DeviceSpec | None = None) -> str:
            f"#define VRS_PROGRAM_LOOKAHEAD_MS {P.PROGRAM_LOOKAHEAD_MS}",
            f"#define VRS_PROGRAM_RATE_TICKS {P.PROGRAM_RATE_TICKS}",
            f"#define VRS_WIRING_ENCODER_REVERSED 0x{P.WIRING_ENCODER_REVERSED:02X}",
-           f"#define VRS_WIRING_MOTOR_REVERSED 0x{P.WIRING_MOTOR_REVERSED:02X}", "",
+           f"#define VRS_WIRING_MOTOR_REVERSED 0x{P.WIRING_MOTOR_REVERSED:02X}",
+           f"#define VRS_WIRING_DISABLED 0x{P.WIRING_DISABLED:02X}", "",
            "/* message ids */"]
     out += [f"#define VRS_MSG_{m.name} 0x{m.value:02X}" for m in P.MsgId]
     out += ["", "/* bodies: X(name, fixed fields, per-hinge fields after a count byte n); codes B H I h i are",

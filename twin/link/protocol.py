@@ -23,9 +23,10 @@ import struct
 from controllers.pid import PidGains
 from controllers.program import ProgramEnd  # noqa: F401  (the end reasons' one home; the header writes them)
 
-PROTOCOL_VERSION = 5  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING;
+PROTOCOL_VERSION = 6  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING;
 # 3: STATE carries each hinge's PID integral; 4: PROGRAM, GET_PROGRAM, PROGRAM_STATUS, PROGRAM_SAMPLE (PULSE is a
-# program of one segment: the range and a stall end it); 5: SET_WIRING and WIRING carry each hinge's bridge
+# program of one segment: the range and a stall end it); 5: SET_WIRING and WIRING carry each hinge's bridge;
+# 6: SET_WIRING's WIRING_DISABLED flag, HELLO_REPLY and STATE carry the disabled hinges, NACK HINGE_DISABLED
 MAX_FRAME = 512  # bytes of decoded payload (header + body + crc); longer is garbage
 DUTY_SCALE = 32767  # duty [-1, 1] on the wire as int16 duty * 32767
 GAIN_SCALE = 10_000_000  # kp, ki, kd on the wire as int32 gain * 1e7
@@ -40,6 +41,8 @@ PROGRAM_LOOKAHEAD_MS = 40  # the window ends a program where the hinge would be 
 PROGRAM_RATE_TICKS = 8  # ticks over which the core measures that speed
 WIRING_ENCODER_REVERSED = 0x01  # SET_WIRING flags: the hinge's encoder counts the other way (A and B swapped)
 WIRING_MOTOR_REVERSED = 0x02  # ... its motor turns the other way (its two leads swapped)
+WIRING_DISABLED = 0x04  # ... the hinge is disabled: braked, never driven (a dead wire, or the user's choice); kept
+# with the wiring across power cycles and CLEAR_FAULT alike
 
 _HEADER = struct.Struct("<BBH")
 
@@ -84,6 +87,7 @@ class Nack(enum.IntEnum):
     BAD_VALUE = 6  # e.g. a telemetry rate over the maximum
     FAULT_PERSISTS = 7  # CLEAR_FAULT while the cause is still there
     ZERO_UNCONFIRMED = 8  # SET_TARGETS before CONFIRM_ZERO since the device started
+    HINGE_DISABLED = 9  # a target that moves a disabled hinge, or a PULSE or PROGRAM on one (detail: the hinge)
 
 
 class State(enum.IntEnum):
@@ -438,6 +442,7 @@ class HelloReply:
     setup_error: int = SetupStep.NONE  # SetupStep: the first set-up call that failed at boot
     zero_confirmed: int = 0  # 1 once CONFIRM_ZERO was heard since the start
     wiring_set: int = 0  # 1 when a wiring correction other than the identity is applied
+    disabled: int = 0  # bit k: hinge k is disabled (SET_WIRING's WIRING_DISABLED): braked, never driven
 
 
 @dataclasses.dataclass(frozen=True)
@@ -456,6 +461,7 @@ class StateMsg:
     integral: tuple[int, ...]  # each hinge's PID integral, duty * DUTY_SCALE: the effort it holds a load with
     zero_confirmed: int = 0  # 1 once CONFIRM_ZERO was heard since the start
     derated: int = 0  # bit k: hinge k's duty held to its continuous rating by the I2t protection
+    disabled: int = 0  # bit k: hinge k is disabled (SET_WIRING's WIRING_DISABLED): braked, never driven
 
     @property
     def integral_duty(self) -> tuple[float, ...]:
@@ -579,9 +585,10 @@ LAYOUTS = {
     MsgId.HELLO_REPLY: Layout(HelloReply, (("firmware", "3B"), ("protocol", "B"), ("n_hinges", "B"),
                                            ("loop_rate_hz", "H"), ("watchdog_ms", "H"), ("max_telemetry_hz", "H"),
                                            ("reset_reason", "B"), ("setup_error", "B"), ("zero_confirmed", "B"),
-                                           ("wiring_set", "B"))),
+                                           ("wiring_set", "B"), ("disabled", "B"))),
     MsgId.STATE: Layout(StateMsg, (("firmware", "3B"), ("state", "B"), ("faults", "H"), ("fault_hinge", "B"),
-                                   ("time_us", "I"), ("rx_bad_frames", "I"), ("zero_confirmed", "B"), ("derated", "B")),
+                                   ("time_us", "I"), ("rx_bad_frames", "I"), ("zero_confirmed", "B"), ("derated", "B"),
+                                   ("disabled", "B")),
                         (("counts", "i"), ("targets", "i"), ("integral", "h"))),
     MsgId.GAINS: Layout(GainsReply, (("hinge", "B"), ("gains", "gains"))),
     MsgId.TELEMETRY: Layout(Telemetry, (("time_us", "I"), ("state", "B"), ("faults", "H"), ("fault_hinge", "B")),

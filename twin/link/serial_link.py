@@ -49,8 +49,17 @@ class NackError(LinkError):
         self.detail = detail
         name = self.reason.name if isinstance(self.reason, P.Nack) else f"reason {reason}"
         hint = (f": its zero is unconfirmed since it started: {zero_hint('PORT')}"
-                if self.reason == P.Nack.ZERO_UNCONFIRMED else f" (detail {detail})")
+                if self.reason == P.Nack.ZERO_UNCONFIRMED else
+                f": hinge {detail} is disabled on the device (braked, never driven: a dead wire bring-up named, or "
+                f"disabled by hand); mend it and run `vrscroll bringup`, or `vrscroll status --serial PORT "
+                f"--enable-hinges {detail}`" if self.reason == P.Nack.HINGE_DISABLED
+                else f" (detail {detail})")
         super().__init__(f"device refused {msg_name}: {name}{hint}")
+
+
+def hinge_list(bits: int) -> list[int]:
+    """The hinges whose bits are set in a per-hinge bit mask (STATE's derated and disabled)."""
+    return [k for k in range(bits.bit_length()) if bits >> k & 1]
 
 
 def zero_hint(port: str) -> str:
@@ -86,6 +95,7 @@ TELEMETRY_KEPT = 10_000
 HELLO_RANGES = {"loop_rate_hz": LOOP_RATE_RANGE, "watchdog_ms": (100, 60_000), "max_telemetry_hz": (1, 10_000)}
 CLOCK_AHEAD_S = 0.25  # s the device's clock may run ahead of the host's over a session ...
 CLOCK_DRIFT = 1e-3  # ... plus this share of the session's length (a crystal is within 1e-4)
+ESTOP_RETRY_S = 0.05  # s between an ESTOP's tries
 CLOCK_BACK_US = 1000  # µs a stamp may precede the one before it (one tick: a reply and a frame stamped apart)
 CLOCK_STUCK_S = 0.2  # s of host time after which a reply stamped as the last stamp means a stopped clock
 MAX_LOOP_RATE_KHZ = 2  # program samples kept per ms of PROGRAM_MAX_MS: bounded, whatever the device sends
@@ -375,6 +385,8 @@ class Link:
         if reply.zero_confirmed not in (0, 1) or reply.wiring_set not in (0, 1):
             raise self.distrust(f"HELLO says zero_confirmed {reply.zero_confirmed}, wiring_set {reply.wiring_set}: "
                                 "each is 0 or 1")
+        if reply.disabled >> reply.n_hinges:
+            raise self.distrust(f"HELLO says hinges {hinge_list(reply.disabled)} are disabled, of {reply.n_hinges}")
         self.info = reply
         self.zero_confirmed = bool(reply.zero_confirmed)
         return reply
@@ -487,14 +499,29 @@ class Link:
         return self.request(P.GetWiring())
 
     def set_wiring(self, encoder, flags, bridge) -> P.Ack:
-        """The wiring correction (see protocol.SetWiring): kept on the device; its zero must be confirmed again."""
+        """The wiring correction (see protocol.SetWiring), disabled hinges included: kept on the device; a change
+        of encoder, bridge or direction leaves its zero to be confirmed again (a hinge disabled or enabled alone
+        keeps it: read back)."""
         ack = self.request(P.SetWiring(tuple(int(e) for e in encoder), tuple(int(f) for f in flags),
                                        tuple(int(b) for b in bridge)))
         self.zero_confirmed = False
+        self.zero_confirmed = bool(self.get_state().zero_confirmed)
         return ack
 
+    def set_disabled(self, hinges) -> P.WiringReply:
+        """Disable exactly `hinges` (braked, never driven; the device IDLE), the rest of its wiring as it holds it;
+        the wiring it then holds."""
+        w = self.get_wiring()
+        off = set(int(h) for h in hinges)
+        flags = [(f & ~P.WIRING_DISABLED) | (P.WIRING_DISABLED if k in off else 0) for k, f in enumerate(w.flags)]
+        self.set_wiring(w.encoder, flags, w.bridge)
+        return self.get_wiring()
+
     def estop(self) -> P.Ack:
-        return self.request(P.EStop(), timeout=0.05, retries=5)
+        """ESTOP, resent every ESTOP_RETRY_S (sooner than other requests: a lost one is sent again at once) for as long
+        as any request waits (timeout x (retries + 1)), and at least 6 times."""
+        tries = max(6, round(self.timeout * (self.retries + 1) / ESTOP_RETRY_S))
+        return self.request(P.EStop(), timeout=ESTOP_RETRY_S, retries=tries - 1)
 
     def clear_fault(self) -> P.Ack:
         return self.request(P.ClearFault())
@@ -605,6 +632,8 @@ class Link:
                 return f"{name} has {len(msg.counts)} hinges, the device {n}"
             if msg.fault_hinge != 0xFF and (n is None or msg.fault_hinge >= n):
                 return f"{name} blames hinge {msg.fault_hinge}, of {n}"
+        if isinstance(msg, P.StateMsg) and n is not None and msg.disabled >> n:
+            return f"STATE says hinges {hinge_list(msg.disabled)} are disabled, of {n}"
         if isinstance(msg, P.GainsReply) and n is not None and msg.hinge >= n:
             return f"GAINS for hinge {msg.hinge}, of {n}"
         stamp = getattr(msg, "time_us", None)

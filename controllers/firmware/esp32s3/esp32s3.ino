@@ -298,7 +298,7 @@ void setup()
     read_counts(NULL, counts);  /* zero unconfirmed: SET_TARGETS is refused until the host's CONFIRM_ZERO */
     vrs_init(&core, &cfg, gains, counts);
     vrs_set_reset_reason(&core, (uint8_t)esp_reset_reason());
-    vrs_wiring wiring;  /* the correction `vrscroll bringup` stored, applied from the first tick */
+    vrs_wiring wiring;  /* the correction `vrscroll bringup` stored, its disabled hinges too: from the first tick */
     if (prefs.begin("vrscroll", false) && prefs.getBytesLength("wiring") == sizeof wiring
         && prefs.getBytes("wiring", &wiring, sizeof wiring) == sizeof wiring)
         vrs_set_wiring(&core, &wiring);
