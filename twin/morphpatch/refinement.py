@@ -288,14 +288,20 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
 def _lifted(grid, device, local, rot, anchor, angles, widths, inside_limit):
     """A trial state projected back onto the bound on depth: where a sample lies deeper in the target than
     inside_limit (m), the anchor lifted along the root's normal by the excess (and half the limit), at most
-    LIFT_TRIES times. (anchor (3,) m, the sum of r(S)^2 m^2 there, the deepest sample's depth m.)"""
+    LIFT_TRIES times, and no more once a lift leaves more than half the excess it met (a step that curls a flap
+    into the target, which no lift of the root mends: the step is refused; 14 % fewer sums in the bounded searches,
+    the same results on eight corpus shapes: docs/approximation.md, "How far the bounds allow"). (anchor (3,) m, the sum of r(S)^2 m^2 there, the
+    deepest sample's depth m.)"""
     normal = rot[:, 2].copy()
     cost, deepest, _ = _cost(grid, device, local, rot, anchor, angles, widths)
     for _ in range(LIFT_TRIES):
         if deepest <= inside_limit:
             break
+        excess = deepest - inside_limit
         anchor = anchor + (deepest - 0.5 * inside_limit) * normal
         cost, deepest, _ = _cost(grid, device, local, rot, anchor, angles, widths)
+        if deepest - inside_limit > 0.5 * excess:
+            break
     return anchor, cost, deepest
 
 
