@@ -214,8 +214,9 @@ def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angl
     """Ours: the refinement (twin.morphpatch.refinement) from the pipeline's pose and, where the objective at
     that pose with the root turned by TURN about its normal (step 6 redone there) is at most TURN_TRIED
     times the objective where the first refinement ended, from that turned pose too; of the results that rest
-    on the target from outside the one the objective prefers: (root pose 4x4, hinge angles rad, whether it
-    rests). Flaps at the pitch: ours is a pose the device takes, judged as the device is built."""
+    on the target from outside the one whose samples lie nearer the target on the grid (mean |S|, what the MSD
+    measures: twin.morphpatch.refinement.grid_msd): (root pose 4x4, hinge angles rad, whether it rests). Flaps at
+    the pitch: ours is a pose the device takes, judged as the device is built."""
     widths = np.full(spec.n_flaps, spec.flap_pitch)
     local = lay.flap.local(widths)
     p, a, rests = refine(fields, spec, local, pose, angles, widths, centre)

@@ -27,7 +27,8 @@ target from outside (issue 37; docs/approximation.md, "Resting from outside"):
   goes deeper is lifted back along the root's normal (`_lifted`) and refused if it still does; the
   search starts from poses that rest (`_feasible`: the first phase's end, its angles scaled down (SCALES),
   each lifted along its normal until it rests, by at most LIFT_REACH; where no lift within the anchor's ball
-  rests, the ball goes up with the lift), searched from each, the best kept, or, where none rests, returns
+  rests, the ball goes up with the lift; and the pipeline's own pose so lifted), searched from each, the one
+  whose samples lie nearest the target on the grid kept (mean |S|: `grid_msd`), or, where none rests, returns
   saying so;
 - the anchor stays (nearly) out of the target, at most ANCHOR_DEPTH in: where a step
   would take it deeper, it is moved back along grad S, and while it is at that depth
@@ -215,8 +216,10 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
     """One Levenberg-Marquardt search from a state: no sample deeper than inside_limit (m; inf: no bound but
     the objective's), no more flaps through the target than `passing`. (rot, anchor, angles, flaps through.)
     Within the bound on depth, a kept state's anchor must be reached from the snapped one in a straight line
-    to PATH_DEPTH, not CHORD_DEPTH: a slide round a cup's bottom edge to its wall cut the edge 4 mm deep on the
-    exact mesh, which the grid's rounded edge hid."""
+    no deeper than the start's anchor is (at least PATH_DEPTH), not CHORD_DEPTH: a slide round a cup's bottom
+    edge to its wall cut the edge 4 mm deep on the exact mesh, which the grid's rounded edge hid; and held to
+    PATH_DEPTH alone, a start whose own chord dipped 1-2 mm (the first phase's end at the edge of the ball on a
+    convex target) never kept a step (docs/approximation.md, "Where the bounded search stalled")."""
     chord_depth = CHORD_DEPTH if inside_limit == np.inf else max(PATH_DEPTH, _path_dip(grid, centre, anchor))
     boxes, _, _, limit = device
     start = (rot, anchor, angles, passing)
