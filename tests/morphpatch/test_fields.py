@@ -174,3 +174,21 @@ def test_a_long_field_build_shows_its_progress(monkeypatch, capsys):
     module._MEMORY.clear()
     whole = build_fields(mesh, spacing=0.004, margin=0.02, disk_cache=False)
     assert np.array_equal(chunked.sdf, whole.sdf) and np.array_equal(chunked.edge_index, whole.edge_index)
+
+
+def test_a_segments_dip_into_the_target_is_its_deepest_point(cube):
+    """_path_dip (how deep a straight line goes into the target, what ours' bounded search holds a kept anchor's
+    chord to): on segments drawn about the cube, within the grid's error of the exact deepest point on the segment
+    (libigl), 0 where it stays out, and a segment is clear to a depth just below its dip only where `_path_clear`
+    says so just above it."""
+    mesh, fields = cube
+    rng = np.random.default_rng(11)
+    centre = mesh.bounds.mean(axis=0)
+    for _ in range(20):
+        a, b = centre + rng.uniform(-0.12, 0.12, (2, 3))
+        dip = module._path_dip(fields.grid, a, b)
+        along = a + np.linspace(0, 1, 400)[:, None] * (b - a)
+        exact = max(0.0, -float(exact_signed_distance(mesh, along)[0].min()))
+        assert dip == pytest.approx(exact, abs=MAX_TOL), (a, b)
+        assert module._path_clear(fields.grid, a, b, dip + 1e-4)
+        assert dip == 0.0 or not module._path_clear(fields.grid, a, b, dip - 1e-4)

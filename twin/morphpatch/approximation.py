@@ -66,7 +66,7 @@ from twin.checks import REACH_M
 from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_flap, pose_matrix
 from twin.device.spec import DeviceSpec, load_spec
 from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate, _path_clear
-from twin.morphpatch.refinement import objective, refine, uncurled
+from twin.morphpatch.refinement import grid_msd, objective, refine, uncurled
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
 from twin.morphpatch.surface_metrics import match
 from twin.records.approximation import Approximation
@@ -214,8 +214,9 @@ def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angl
     """Ours: the refinement (twin.morphpatch.refinement) from the pipeline's pose and, where the objective at
     that pose with the root turned by TURN about its normal (step 6 redone there) is at most TURN_TRIED
     times the objective where the first refinement ended, from that turned pose too; of the results that rest
-    on the target from outside the one the objective prefers: (root pose 4x4, hinge angles rad, whether it
-    rests). Flaps at the pitch: ours is a pose the device takes, judged as the device is built."""
+    on the target from outside the one whose samples lie nearer the target on the grid (mean |S|, what the MSD
+    measures: twin.morphpatch.refinement.grid_msd): (root pose 4x4, hinge angles rad, whether it rests). Flaps at
+    the pitch: ours is a pose the device takes, judged as the device is built."""
     widths = np.full(spec.n_flaps, spec.flap_pitch)
     local = lay.flap.local(widths)
     p, a, rests = refine(fields, spec, local, pose, angles, widths, centre)
@@ -226,7 +227,8 @@ def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angl
     if rests and objective(fields, spec, local, turned, uncurled(spec, turned_angles), widths) > TURN_TRIED * cost:
         return p, a, True
     tp, ta, turned_rests = refine(fields, spec, local, turned, turned_angles, widths, centre)
-    if not turned_rests or objective(fields, spec, local, tp, ta, widths) >= cost:
+    if not turned_rests or (rests and grid_msd(fields, spec, local, tp, ta, widths)
+                            >= grid_msd(fields, spec, local, p, a, widths)):
         return p, a, rests
     return tp, ta, True
 

@@ -202,6 +202,19 @@ def _path_clear(grid, a, b, depth=PATH_DEPTH):
 
 
 @numba.njit(cache=True)
+def _path_dip(grid, a, b):
+    """How deep (m) the segment a -> b (m) goes into the target at its deepest, sampled every PATH_STEP; 0 if it
+    stays out."""
+    n = int(math.sqrt((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2 + (b[2] - a[2]) ** 2) / PATH_STEP) + 1
+    lowest = 0.0
+    for k in range(n + 1):
+        f = k / n
+        lowest = min(lowest, _interpolate(grid, a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]),
+                                          a[2] + f * (b[2] - a[2]))[0])
+    return -lowest
+
+
+@numba.njit(cache=True)
 def _trilinear(grid, points):
     """S and grad S (N, 4) at points (N, 3), m; grid: `Fields.grid`."""
     out = np.empty((points.shape[0], 4))
