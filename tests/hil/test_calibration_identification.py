@@ -4,11 +4,11 @@ winding the twin leaves out), lying flat on a table; the drawn values are read o
 
 What is asserted is what the fit achieves on every plant tried (docs/tuning-hil-calibration.md,
 "Identification", has the measured figures): every hinge fitted, each value inside its interval, the no-load
-speed within 10 % of the drawn value and its 95 % interval holding it. Not met, and asserted only by the slow
-twenty-plant test (an expected failure): the interval no wider than x1.5 (with the discrepancy the fit's own
-intervals leave out, measured on seeds 1-3, the no-load speed's are x1.57 wide at the median); the issue's targets
-for the friction and the rotor inertia are measured by benchmarks/bench_calibration.py --identify, not met, and
-not asserted."""
+speed within 10 % of the drawn value, its 95 % interval holding it and no wider than x1.5. Not met, and asserted
+only by the slow twenty-plant test (an expected failure): every hinge's no-load speed within 10 % with 90 % of
+the intervals holding it (seeds 21-23: 16 of 18 within 10 %, 16 of 18 intervals holding, seed 22's hinge 3 at
+x1.62); the issue's targets for the friction and the rotor inertia are measured by benchmarks/
+bench_calibration.py --identify, not met, and not asserted."""
 
 import dataclasses
 import json
@@ -52,7 +52,8 @@ def test_each_experiment_is_a_program_the_device_accepts_from_rest_to_rest(spec)
 def test_each_hinge_is_identified_on_a_drawn_plant(spec, seed, hinges):
     """A hinge of a drawn plant (beside the root, lifting three flaps; the outermost, lifting one): every
     program starts from rest and is fitted; its drive down never reaches the table; the fit gives every value
-    inside its interval, the no-load speed within 10 % of the drawn value and its interval holding it."""
+    inside its interval, the no-load speed within 10 % of the drawn value, its interval holding it and no wider
+    than x1.5."""
     dev = EmulatedDevice(spec, seed)
     moves, device_s = experiments(dev.run_program, spec, hinges)
     for k in hinges:
@@ -65,6 +66,7 @@ def test_each_hinge_is_identified_on_a_drawn_plant(spec, seed, hinges):
             assert 0 < fit.low[p] <= fit.values[p] <= fit.high[p], p
         truth = dev.truth[k].no_load_speed
         assert fit.low["no_load_speed"] <= truth <= fit.high["no_load_speed"]
+        assert fit.high["no_load_speed"] / fit.low["no_load_speed"] <= SPEED_WIDTH
         assert abs(fit.values["no_load_speed"] / truth - 1) <= SPEED_ERROR
     assert 1.0 < device_s < 15.0  # a hinge's experiments: seconds of device time
 
@@ -125,8 +127,8 @@ def test_calibrate_serial_refuses_a_profile_that_says_the_device_is_not_lying_fl
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="not met: on 3 plants x 6 hinges (seeds 21-23) 16/18 intervals hold the "
-                   "drawn no-load speed, x1.64 wide (median) with the discrepancy term; seed 22's hinge 2 fitted "
-                   "x2.07 (benchmarks/bench_calibration.py --identify)")
+                   "drawn no-load speed, x1.13 wide (median) with the discrepancy term; seed 22's hinge 3 fitted "
+                   "x1.62 (benchmarks/bench_calibration.py --identify)")
 def test_twenty_drawn_plants_every_hinges_no_load_speed(spec):
     """The issue's criteria on 20 drawn plants x 6 hinges, for the value the experiments pin down: the no-load
     speed within 10 % of the drawn value and its 95 % interval no wider than x1.5 on every hinge, the intervals
