@@ -142,8 +142,12 @@ def _quat(obj: dict, key: str) -> np.ndarray:
     return q / norm
 
 
-def parse_datagram(data: bytes) -> Sample:
-    """A pose or pen datagram; ProtocolError("oversized" | "malformed" | "unknown_type") if not one."""
+DATAGRAM_PORTS = {"pose": "pose_port", "pen": "udp_port"}  # the welcome's port each kind of datagram goes to
+
+
+def parse_datagram(data: bytes, port: str | None = None) -> Sample:
+    """A pose or pen datagram; ProtocolError("oversized" | "malformed" | "unknown_type") if not one, or not of
+    the kind that goes to `port` (a DATAGRAM_PORTS kind; None: either)."""
     if len(data) > MAX_DATAGRAM_BYTES:
         raise ProtocolError("oversized", f"datagram of {len(data)} bytes, limit {MAX_DATAGRAM_BYTES}")
     obj, kind = _typed_object(data, "datagram", DATAGRAM_TYPES)
@@ -160,6 +164,9 @@ def parse_datagram(data: bytes) -> Sample:
     if kind == "pen" and ("device_position_mm" in obj or "device_quat_wxyz" in obj):
         rotation = Rotation.from_quat(_quat(obj, "device_quat_wxyz"), scalar_first=True).as_matrix()
         device = pose_matrix(_position(obj, "device_position_mm"), rotation)
+    if port is not None and kind != port:
+        raise ProtocolError("unknown_type", f"{kind} datagrams go to the welcome's {DATAGRAM_PORTS[kind]}, {port}s "
+                                            f"to its {DATAGRAM_PORTS[port]}")
     return Sample(kind, session, seq, position, quat, device, t_s)
 
 

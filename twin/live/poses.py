@@ -62,10 +62,7 @@ class PoseIntake:
         (perf_counter s)."""
         self.counts["pose_datagrams"] += 1
         try:
-            sample = parse_datagram(data)
-            if sample.kind != "pose":
-                raise ProtocolError("unknown_type", f"{sample.kind} datagrams go to the welcome's udp_port, "
-                                                    "poses to its pose_port")
+            sample = parse_datagram(data, "pose")
         except ProtocolError as exc:
             self.counts[exc.code] += 1
             if addr == self.addr:

@@ -421,10 +421,7 @@ class LiveService:
         client = self.controller
         known = client is not None and client.udp_addr == addr
         try:
-            sample = parse_datagram(data)
-            if sample.kind != "pen":
-                raise ProtocolError("unknown_type", f"{sample.kind} datagrams go to the welcome's pose_port, pens "
-                                                    "to its udp_port")
+            sample = parse_datagram(data, "pen")
         except ProtocolError as exc:
             self.counts[exc.code] += 1
             if known:
