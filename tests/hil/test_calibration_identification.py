@@ -48,7 +48,9 @@ def test_each_experiment_is_a_program_the_device_accepts_from_rest_to_rest(spec)
             assert [p.segments[1][0] for p in made] == sorted(p.segments[1][0] for p in made)
 
 
-@pytest.mark.parametrize("seed, hinges", [(3, (3,)), (11, (0,))])
+@pytest.mark.parametrize("seed, hinges", [(3, (3,)), pytest.param(11, (0,), marks=pytest.mark.slow)])  # (the
+# outermost hinge's fit, 35 s, in the slow suite beside the twenty plants; the default suite's second drawn plant
+# is the replay test's below)
 def test_each_hinge_is_identified_on_a_drawn_plant(spec, seed, hinges):
     """A hinge of a drawn plant (beside the root, lifting three flaps; the outermost, lifting one): every
     program starts from rest and is fitted; its drive down never reaches the table; the fit gives every value
