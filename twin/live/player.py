@@ -25,9 +25,8 @@ import math
 import time
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from twin.device.kinematics import flap_frames
+from twin.device.kinematics import flap_frames, matrix_quat
 from twin.device.spec import DeviceSpec
 from twin.evaluation.starts import approach_starts
 from twin.formats.target import message_approximation
@@ -74,10 +73,6 @@ def stroke(spec: DeviceSpec, root_pose, angles, widths, duration: float = STROKE
     return points, rotation_between(np.tile([0.0, 0.0, 1.0], (n, 1)), normals)
 
 
-def _quat(rotation: np.ndarray) -> np.ndarray:
-    return Rotation.from_matrix(rotation).as_quat(scalar_first=True)
-
-
 async def _paced(count: int, rate_hz: float):
     """Yield 0..count-1 at rate_hz on the wall clock (late ticks are not made up twice)."""
     t0 = time.perf_counter()
@@ -101,11 +96,11 @@ async def play_shape(client: LiveClient, spec: DeviceSpec, name: str, attempts: 
     for start in starts:
         poses = approach(start)
         held = poses[-1]
-        quat = _quat(held[:3, :3])
+        quat = matrix_quat(held[:3, :3])
         last = None
         async for k in _paced(len(poses) + int(HOLD_S * POSE_HZ), POSE_HZ):
             pose = poses[min(k, len(poses) - 1)]
-            last = client.send_pose(pose[:3, 3] * 1e3, _quat(pose[:3, :3]))
+            last = client.send_pose(pose[:3, 3] * 1e3, matrix_quat(pose[:3, :3]))
         got = client.drain("approximation")
         while not got or got[-1]["seq"] != last:
             try:
