@@ -6,6 +6,7 @@ by the way that lifts the flap off the table."""
 import argparse
 import dataclasses
 import itertools
+import json
 import re
 import threading
 import time
@@ -77,6 +78,24 @@ def test_bringup_of_a_board_wired_right_stores_the_identity_says_where_and_zero_
     assert vrscroll("status", "--serial", dev.port, "--estop", "--clear-fault").returncode == 0
     r = vrscroll("zero", "--serial", dev.port)
     assert r.returncode == 0 and "zero confirmed" in r.stdout, r.stderr
+
+
+@pytest.mark.slow  # 15-20 s (every hinge's table test); the default suite checks the message without a profile above
+def test_bringup_with_a_profile_selected_keeps_the_correction_there_as_the_device_holds_it(emulator, device_profiles):
+    """A reversed motor lying flat, told by the table and corrected: the correction the device holds (its flash)
+    is also the selected profile's wiring.json, with what bring-up found, and bring-up says where both are."""
+    assert vrscroll("device", "create", "bench").returncode == 0
+    dev = emulator("--ideal", "--lying-flat", "--wiring-fault", "motor-reversed:5")
+    r = vrscroll("bringup", "--serial", dev.port, "--device", "bench", "--no-move")
+    assert r.returncode == 0, r.stdout + r.stderr
+    kept = device_profiles / "bench" / "wiring.json"
+    assert f"kept on the device (its flash, across power cycles, HELLO's wiring_set) and in {kept}" in r.stdout, \
+        r.stdout
+    on_device = [e for e in dev.events("rx") if e["msg"] == "SET_WIRING"][-1]
+    doc = json.loads(kept.read_text())
+    assert [doc[k] for k in ("encoder", "flags", "bridge")] == [on_device[k] for k in ("encoder", "flags", "bridge")]
+    assert doc["flags"] == [0, 0, 0, 0, 0, P.WIRING_MOTOR_REVERSED], doc
+    assert any(line.startswith("hinge 5: positive drive turns it the negative way") for line in doc["found"]), doc
 
 
 @pytest.mark.slow  # 6 s each; the default suite has the lying-flat dead encoder below, whose hinge 3 answers alike
