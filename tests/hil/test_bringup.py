@@ -80,6 +80,20 @@ def test_bringup_of_a_board_wired_right_stores_the_identity_says_where_and_zero_
     assert r.returncode == 0 and "zero confirmed" in r.stdout, r.stderr
 
 
+def test_zero_once_the_last_sessions_hold_has_ended_clears_the_watchdog_fault_itself(emulator):
+    """After bring-up's last move (or any session's) the device holds its targets, then releases them (FAULT
+    WATCHDOG, the hold shortened to 0.3 s here): nothing went wrong, so `zero` clears it and confirms, where it used
+    to point to `--clear-fault`."""
+    dev = emulator("--ideal", "--lying-flat", "--host-away-hold-ms", "300")
+    with Link(dev.port, hinges=6) as link:
+        link.set_targets([40] * 6)
+    time.sleep(1.0)  # 200 ms of watchdog, 300 ms of hold
+    with Link(dev.port, hinges=6) as link:
+        assert link.get_state().faults == P.Fault.WATCHDOG
+    r = vrscroll("zero", "--serial", dev.port)
+    assert r.returncode == 0 and "zero confirmed" in r.stdout, r.stdout + r.stderr
+
+
 @pytest.mark.slow  # 15-20 s (every hinge's table test); the default suite checks the message without a profile above
 def test_bringup_with_a_profile_selected_keeps_the_correction_there_as_the_device_holds_it(emulator, device_profiles):
     """A reversed motor lying flat, told by the table and corrected: the correction the device holds (its flash)
