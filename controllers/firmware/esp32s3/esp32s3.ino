@@ -224,8 +224,8 @@ static const vrs_hw hw = {NULL, micros_now, read_counts, write_drive, serial_rea
 /* The brake that does not need loop(): should loop() fall more than LOOP_LATE_TICKS ticks behind the
  * timer (a wait that never ends, a bug), the timer's interrupt sets every compare value to 0, so every
  * bridge brakes from the next PWM period: the driven input high for the whole period beside the one
- * forced high (a compare event at the period's start outranks the timer's EMPTY: ESP32-S3 TRM, MCPWM
- * generator event priority). mcpwm_comparator_set_compare_value is the MCPWM call ESP-IDF allows in an
+ * forced high (at compare 0 a generator high at EMPTY and low at the compare stays low: ESP-IDF v5.4.1's
+ * test app, test_mcpwm_gen.c "mcpwm_duty_empty_full"). mcpwm_comparator_set_compare_value is the MCPWM call ESP-IDF allows in an
  * ISR (docs: "MCPWM", ISR and thread safety). loop(), once back, writes its own compare values again.
  * The task watchdog (enableLoopWDT, 5 s) then resets a board whose loop() does not come back. */
 #ifndef LOOP_LATE_TICKS /* overridable for the host build's benchmark (the brake taken out) */
