@@ -108,9 +108,14 @@ def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device
     assert pushed == {k: dataclasses.asdict(P.Gains.from_pid(g)) for k, g in enumerate(gains)}
     with Link(emu.port) as link:
         assert [link.get_gains(k) for k in range(spec.n_hinges)] == [P.Gains.from_pid(g) for g in gains]
-    # then ran the same step (flat, then 30 deg on every hinge) and printed its metrics beside the twin's
-    steps = [e["counts"] for e in emu.events("rx") if e["msg"] == "SET_TARGETS"]
-    assert steps[-1] == target_counts(spec, np.full(spec.n_hinges, math.radians(30.0))).tolist()
+    # then ran the same step (flat, then 30 deg on every hinge) and printed its metrics beside the twin's; the
+    # gains were pushed at flat, once the move there (from wherever the device stood, with the gains it held) was
+    # done: the tuner checked its limits on the step from flat, not on that move
+    heard = [(e["msg"], e.get("counts")) for e in emu.events("rx") if e["msg"] in ("SET_TARGETS", "SET_GAINS")]
+    assert heard[-1] == ("SET_TARGETS", target_counts(spec, np.full(spec.n_hinges, math.radians(30.0))).tolist())
+    first_gains = heard.index(("SET_GAINS", None))
+    assert heard[first_gains - 1] == ("SET_TARGETS", [0] * spec.n_hinges), heard
+    assert [m for m, _ in heard[first_gains:-1]] == ["SET_GAINS"] * spec.n_hinges, heard
     assert f"device at {emu.port}: settled: settle time" in text
     lines = text.splitlines()
     head = next(i for i, ln in enumerate(lines) if "device settle s" in ln and "twin settle s" in ln)

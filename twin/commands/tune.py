@@ -146,12 +146,19 @@ def run(args) -> int:
 def confirm_on_device(args, spec, gains, step, pushed, quiet=False, hinges=None, mount=DEFAULT_MOUNT) -> list[dict]:
     """The tuned gains pushed and a step run on the device beside the twin's prediction (twin.hil.confirm),
     printed; pushed() is called once the device holds them."""
+    held = []  # once the device holds the tuned gains
+
+    def hold() -> None:
+        pushed()
+        held.append(True)
+
     try:
         with link_errors(f" (session log: {args.log})"), device_session(args, spec) as (link, spec):
-            rows, message = confirm_step(link, spec, gains, np.full(spec.n_hinges, step), args.duration_s, pushed,
+            rows, message = confirm_step(link, spec, gains, np.full(spec.n_hinges, step), args.duration_s, hold,
                                          hinges, mount)
     except (GateRefused, DeviceNotReady) as exc:
-        raise UserError(f"{exc} (the tuned gains are on the device and in its profile)") from None
+        raise UserError(f"{exc} (" + ("the tuned gains are on the device and in its profile" if held else
+                                      "nothing pushed: the device holds the gains it had") + ")") from None
     if not quiet:
         print(f"device at {args.serial}: {message}")
         print(f"{'hinge':>5} {'device settle s':>15} {'twin settle s':>13} {'device over deg':>15} "
