@@ -25,6 +25,7 @@ from twin.hil.calibration import trace_rmse
 from twin.hil.calibration_verdict import held_out_improved
 from twin.hil.compare import compare
 from twin.hil.device_gains import device_gains
+from twin.hil.identification import SHOWN_BY
 from twin.hil.mirror import device_step, mirror
 from twin.hil.shared_plant import (ALIKE, SHARED_BACKLASH_DEG, SHARED_PLANT, SHARED_SCALES, record_soft,
                                    shared_truth, training_scenario)
@@ -92,7 +93,15 @@ def test_tune_command_writes_a_gains_file(tmp_path, capsys):
     # a limit out of reach: the gains are written, each hinge that breaks it named, and the exit status says so
     assert vrscroll(["tune", "--population", "6", "--generations", "1", "--threads", "2", "--out", str(out),
                      "--max-overshoot-deg", "0.05"]) == 1
-    assert "NOT KEPT" in capsys.readouterr().out and json.loads(out.read_text())["meta"]["limits_broken"]
+    text = capsys.readouterr().out
+    meta = json.loads(out.read_text())["meta"]
+    assert "NOT KEPT" in text and meta["limits_broken"]
+    # and says which interval's end sets each broken hinge's worst case, and which experiment shows that value
+    said = next(ln for ln in text.splitlines() if ln.startswith("its worst case set by "))
+    for broken in meta["limits_broken"]:
+        row = meta["worst_case_range"][int(broken.split(":")[0].split()[1])]
+        assert f"{row['parameter']} at the {row['end']} end of its interval" in said, (said, row)
+        assert SHOWN_BY[row["parameter"]] in said
 
 
 def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device(emulator, tmp_path, capsys):

@@ -33,6 +33,7 @@ from twin.formats.gains import write_gains
 from twin.formats.move_report import move_rows
 from twin.formats.profile import write_profile_gains
 from twin.hil.confirm import confirm_step
+from twin.hil.identification import narrowing
 from twin.hil.mirror import DeviceNotReady
 from twin.records.gains import Gains
 from twin.sim.gate import GateRefused
@@ -128,13 +129,16 @@ def run(args) -> int:
         print("worst case set by (each range's ends, one at a time): " + "; ".join(
             f"hinge {h} {r['parameter']} {r['end']}" for h, r in enumerate(result.sensitivity)))
         print("every limit kept on every plant" if not result.broken else
-              "NOT KEPT on its worst plant (the best the search found):\n  " + "\n  ".join(result.broken))
+              "NOT KEPT on its worst plant (the best the search found):\n  " + "\n  ".join(result.broken)
+              + "\nits worst case set by " + narrowing(result.sensitivity, np.flatnonzero(result.cost >= goal.duration)))
         print("gains written to " + (", ".join(written) if written else
                                      f"device profile {profile.name} once the device holds them"))
     if args.serial and result.broken:
         write_json(args.json, summary)
         raise UserError(f"not pushed to {args.serial}: the tuned gains break a limit on a plant the tuning covered "
-                        "(printed above); loosen the goal or narrow the ranges")
+                        "(printed above), its worst case set by "
+                        + narrowing(result.sensitivity, np.flatnonzero(result.cost >= goal.duration))
+                        + ": narrow those intervals (`calibrate --serial` lying flat) or loosen the goal")
     if args.serial:
         summary["device"] = confirm_on_device(args, spec, result.gains, step, into_profile, quiet=quiet,
                                                hinges=profile.hinges, mount=profile.mount)
