@@ -49,12 +49,19 @@ def confirmed(session, gains, step: float, duration: float, pushed, hinges=None,
     """confirm_step on the device `session` opens (a context manager giving (link, spec)), every hinge stepping
     to `step` (rad): (its rows, them in words). UserError (one line) for a refusal, a device not ready or the
     link (naming the session log)."""
+    held = []  # once the device holds the tuned gains
+
+    def hold() -> None:
+        pushed()
+        held.append(True)
+
     try:
         with session as (link, spec):
-            rows, message = confirm_step(link, spec, gains, np.full(spec.n_hinges, step), duration, pushed, hinges,
+            rows, message = confirm_step(link, spec, gains, np.full(spec.n_hinges, step), duration, hold, hinges,
                                          mount)
     except (GateRefused, DeviceNotReady) as exc:
-        raise UserError(f"{exc} (the tuned gains are on the device and in its profile)") from None
+        raise UserError(f"{exc} (" + ("the tuned gains are on the device and in its profile" if held else
+                                      "nothing pushed: the device holds the gains it had") + ")") from None
     except LinkError as exc:
         raise UserError(f"link: {exc} (session log: {log})") from None
     lines = [f"device at {link.url}: {message}",
