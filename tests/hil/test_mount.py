@@ -1,5 +1,6 @@
-"""The device's mount in the twin (hanging, flat on a table, on a stand), recorded in the profile and used by the
-commands; `hil` stopping on divergence through the whole scenario."""
+"""The device's mount in the twin and the emulator (hanging, flat on a table, on a stand), recorded in the profile
+and used by the commands, a profile's mount the device is not in; `hil` stopping on divergence through the whole
+scenario."""
 
 import argparse
 import json
