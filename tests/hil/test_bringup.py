@@ -430,7 +430,7 @@ def test_with_the_bridge_map_a_hinge_on_another_bridge_moves_its_own_flap_and_re
     on hinge 1 moves flap 1 alone, and hinge 1's telemetry current is motor 1's (the emulator senses each bridge's
     motor; read from the wrong bridge, hinge 1 showed hinge 3's 395 mA and hinge 3 its 1313). Ticked by hand, no
     pty: a second of device time."""
-    flat_plant = dataclasses.replace(as_twin(spec), lying_flat=True)  # hanging, hinge 3 holding its flap draws too
+    flat_plant = dataclasses.replace(as_twin(spec), mount="flat")  # hanging, hinge 3 holding its flap draws too
     emu = Emulator(spec, EmulatorOptions(plant=flat_plant, zeroed=True,
                                          faults=FaultOptions(latency_ms=0.0, wiring=("bridges-crossed:1,3",))))
     replies = P.Decoder()

@@ -491,12 +491,13 @@ SHOWN_BY = {  # how `calibrate --serial`'s experiments show each value (the modu
 }
 
 
-def narrowing(sensitivity: list[dict], hinges) -> str:
-    """In words, for `hinges`, the value whose interval sets each one's worst case (sensitivity: the tuner's
-    range_sensitivity rows), and how `calibrate --serial`'s experiments show it: what would narrow it."""
+def narrowing(worst_case: list[dict]) -> str:
+    """In words, per interval end that sets a hinge's worst case (rows {"hinge", "parameter", "end"}: the tuner's
+    range_sensitivity), the hinges it sets and how `calibrate --serial`'s experiments show the value: what would
+    narrow it."""
     ends: dict = {}
-    for h in hinges:
-        ends.setdefault((sensitivity[h]["parameter"], sensitivity[h]["end"]), []).append(str(h))
+    for row in worst_case:
+        ends.setdefault((row["parameter"], row["end"]), []).append(str(row["hinge"]))
     return "; ".join(f"{p} at the {end} end of its interval on hinge {', '.join(hs)} ("
                      + (f"calibrate --serial shows it by {SHOWN_BY[p]}" if p in SHOWN_BY else
                         "none of calibrate --serial's experiments shows it") + ")"
