@@ -7,12 +7,14 @@ twin.hil.identification's; this module reads the runs, keeps the result and word
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from twin.device.profile import set_default
+from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
 from twin.device.spec_toml import shown, shown_range, spec_units, write_spec_toml
 from twin.errors import UserError
@@ -21,6 +23,7 @@ from twin.formats.run import read_run
 from twin.hil.calibration import MAX_HALFWIDTH, calibrate, calibrate_hinges, floor_deg, trace_rmse, unexplained
 from twin.hil.compare import not_followed
 from twin.hil.identification import PROFILED, estimates, experiments, fit_hinge, shared_estimates
+from twin.hil.identification_holdout import HOLDOUT_FOLDER, holdout_lines, holdout_report, record_holdout
 from twin.link.serial_link import LinkError, NackError
 from twin.records.calibration import Calibration
 from twin.records.profile import Profile
@@ -214,44 +217,58 @@ def check_lying_flat(profile: Profile) -> None:
 
 def identify(session, profile: Profile, name: str | None, prior: str, say=None) -> Report:
     """`calibrate --serial`: the experiments on the device `session` opens (a context manager giving (link,
-    spec), closed before the fits), each hinge fitted, the profile `name` written (its mount flat, as the
-    experiments ran; made the default); the command's Report. say(line): progress, or None. UserError
+    spec), closed before the fits) and the held-out run after them (twin.hil.identification_holdout), each hinge
+    fitted, the profile `name` written (its mount flat, as the experiments ran; made the default; the held-out
+    run kept in its folder), the held-out run's RMSE with the prior and the identified values; the command's
+    Report. say(line): progress, or None. UserError
     (one line) for a refused experiment, the link, or a fit the experiments cannot give."""
     start = time.monotonic()
-    try:
-        with session as (link, spec):
-            if say:
-                say(f"device profile: {name or profile.label} (prior: {prior}); identifying each hinge, the device "
-                    "lying flat")
-            moves, device_s = experiments(link.run_program, spec, progress=say)
-            port = link.url
-        fits = [fit_hinge(m, spec, say) for m in moves.values()]
-    except NackError as exc:
-        raise UserError(f"the device refused an experiment ({exc}): it runs them IDLE with its zero confirmed, "
-                        "lying flat (`vrscroll zero --serial PORT`)") from None
-    except LinkError as exc:
-        raise UserError(f"link: {exc}") from None
-    except ValueError as exc:
-        raise UserError(f"identification: {exc}") from None
-    wall = time.monotonic() - start
-    per_hinge = [estimates(f, spec, MAX_HALFWIDTH) for f in fits]
-    shared = shared_estimates([{p: e[p] for p in PROFILED} for e in per_hinge])
-    written = []
-    if name:
-        source = f"identified on {port} (vrscroll calibrate --serial)"
+    with tempfile.TemporaryDirectory() as tmp:
+        held_dir = Path(tmp) / HOLDOUT_FOLDER
+        try:
+            with session as (link, spec):
+                if say:
+                    say(f"device profile: {name or profile.label} (prior: {prior}); identifying each hinge, the "
+                        "device lying flat")
+                moves, device_s = experiments(link.run_program, spec, progress=say)
+                port = link.url
+                if say:
+                    say("the held-out run: a closed-loop scenario no fit sees, from flat")
+                held, not_recorded = record_holdout(link, spec, held_dir, name or "")
+            fits = [fit_hinge(m, spec, say) for m in moves.values()]
+        except NackError as exc:
+            raise UserError(f"the device refused an experiment ({exc}): it runs them IDLE with its zero confirmed, "
+                            "lying flat (`vrscroll zero --serial PORT`)") from None
+        except LinkError as exc:
+            raise UserError(f"link: {exc}") from None
+        except ValueError as exc:
+            raise UserError(f"identification: {exc}") from None
+        wall = time.monotonic() - start
+        per_hinge = [estimates(f, spec, MAX_HALFWIDTH) for f in fits]
+        shared = shared_estimates([{p: e[p] for p in PROFILED} for e in per_hinge])
         calibration = Calibration([f"{port}: identification experiments"], shared,
                                   [{p: e[p] for p in PROFILED} for e in per_hinge])
-        written.append(str(write_profile(updated(profile, {p: e.value for p, e in shared.items()}, source, name=name,
-                                                 calibration=calibration, mount="flat"))))
-        set_default(name)
+        fitted = updated(profile, {p: e.value for p, e in shared.items()},
+                         f"identified on {port} (vrscroll calibrate --serial)", name=name, calibration=calibration,
+                         mount="flat")
+        holdout = ({"run": "not kept (--device NAME keeps it)", **holdout_report(held, profile, fitted, spec)}
+                   if held is not None else {"not_recorded": not_recorded})
+        written = []
+        if name:
+            written.append(str(write_profile(fitted)))
+            set_default(name)
+            if held is not None:  # kept in the profile's folder, the last calibration's replaced
+                kept = profile_dir(name) / HOLDOUT_FOLDER
+                shutil.rmtree(kept, ignore_errors=True)
+                holdout["run"] = str(shutil.copytree(held_dir, kept))
     doc = {"device_profile": name or profile.label, "prior": prior, "written": written, "port": port,
             "parameters": {p: e.to_json() for p, e in shared.items()},
             "hinges": [{"hinge": f.hinge, "parameters": {p: e.to_json() for p, e in est.items()},
                         "held": {p: {"value": v, "low": lo, "high": hi} for p, (v, lo, hi) in f.held.items()},
                         "rms_speed_rad_s": round(f.rms_speed, 4), "windows": f.windows, "replays": f.replays}
                        for f, est in zip(fits, per_hinge)],
-            "device_time_s": round(device_s, 2), "wall_time_s": round(wall, 1)}
-    return Report(doc, _identification_lines(doc, fits, wall, device_s))
+            "holdout": holdout, "device_time_s": round(device_s, 2), "wall_time_s": round(wall, 1)}
+    return Report(doc, _identification_lines(doc, fits, wall, device_s) + holdout_lines(holdout))
 
 
 def _identification_lines(doc: dict, fits, wall: float, device_s: float) -> list[str]:
