@@ -36,8 +36,20 @@ median interval width (high / low), how many intervals hold the drawn value, how
 and the issue's criteria (speed within 10 %, friction within 15 %, inertia within 20 %, identifiable with an
 interval no wider than x1.5); the wall time of the fits and the experiments' device time per plant.
 
+With --compare: issue 36's measure of today's `calibrate` beside the new one, on the same drawn plants in one run.
+Per seed, the plant the emulator draws from it (`emulator_args`, the same draw EmulatedDevice makes; checked
+against its log) lying flat, zeroed: the recorded-runs form (the step scenario for the flat mount, seed 0, and a
+held-out one, seed 1, recorded with `vrscroll hil --mount flat`, then `vrscroll calibrate train --holdout hold
+--per-hinge --json -`: each hinge's own value where the profile keeps them, else the shared one; the two
+scenarios made once, for the spec's gains, which every emulated device has) and the
+identification form (as --identify). One table: per parameter and form, over every (seed, hinge), the median and
+worst error against the hinge's drawn value, the median interval width (high / low), how many intervals hold the
+drawn value and how many values are called identifiable; the wall time of each form per plant. Each seed's
+result is kept in its folder (identification.json, recorded.json): processes given other seeds and the same --out
+share the work, and one given them all prints the table over every plant.
+
     python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal]
-        [--scaling | --holding | --repeat N | --effects | --identify]
+        [--scaling | --holding | --repeat N | --effects | --identify | --compare]
 """
 
 from __future__ import annotations
@@ -47,6 +59,7 @@ import contextlib
 import io
 import json
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -67,7 +80,7 @@ from twin.hil.mirror import mirror  # noqa: E402
 from twin.hil.shared_plant import ALIKE, SHARED_PLANT, record_soft, shared_truth  # noqa: E402
 from twin.link.drawn_plant import EmulatedDevice, drawn_plant, emulator_args  # noqa: E402
 from twin.link.emulator_process import EmulatorProcess  # noqa: E402
-from twin.link.serial_link import Link  # noqa: E402
+from twin.link.serial_link import Link, LinkError  # noqa: E402
 
 
 def verdict(e: dict) -> str:
@@ -80,23 +93,43 @@ def quiet(*args) -> str:
     with contextlib.redirect_stdout(out):
         rc = vrscroll(list(args))
     if rc:
-        raise SystemExit(f"vrscroll {' '.join(args)} failed ({rc})")
+        raise RuntimeError(f"vrscroll {' '.join(args)} failed ({rc})")
     return out.getvalue()
 
 
-def record(seed: int, folder: Path, extra=()) -> dict:
+@contextlib.contextmanager
+def in_real_time():
+    """The block at the default priority (nice 0), the process's own again after: the emulator (a child, which
+    inherits it) and hil's host run paced to real time, and under `nice -n 10` on this loaded 2-core machine
+    the emulator ran at 40-70 % of it and hil stopped (6 recordings of 6: "the device's clock says 3.43 s of
+    the run's 7.60 s have passed, the host's 9.63 s"). Raising a priority needs root; else the block runs as
+    it is."""
+    was = os.getpriority(os.PRIO_PROCESS, 0)
+    with contextlib.suppress(PermissionError):
+        os.setpriority(os.PRIO_PROCESS, 0, min(was, 0))
+    try:
+        yield
+    finally:
+        os.setpriority(os.PRIO_PROCESS, 0, was)
+
+
+def record(seed: int, folder: Path, extra=(), mount: str | None = None, scenarios: Path | None = None) -> dict:
     """Record the calibration scenario (train) and a held-out one (hold) on an emulator drawn from seed (extra:
-    more of its options, after the drawn ones); the drawn plant."""
+    more of its options, after the drawn ones; mount: the scenarios' and the runs' `--mount`, default the
+    profile's; scenarios: a folder with train.toml and hold.toml made for the spec's gains, which the emulator
+    has, else made here for the device's); the drawn plant."""
     spec = load_spec()
     folder.mkdir(parents=True, exist_ok=True)
-    with EmulatorProcess(folder / "emulator.jsonl", "--zeroed", *emulator_args(seed), *extra) as emu:
+    with in_real_time(), EmulatorProcess(folder / "emulator.jsonl", "--zeroed", *emulator_args(seed), *extra) as emu:
         truth = drawn_plant(emu)
         with Link(emu.port) as link:
             assert mirror(link, spec, np.zeros(spec.n_hinges), tolerance_deg=30.0).ok
+        held = ("--mount", mount) if mount else ()
         for name, s in (("train", 0), ("hold", 1)):
-            quiet("scenario", str(folder / f"{name}.toml"), "--serial", emu.port, "--seed", str(s))
-            quiet("hil", str(folder / f"{name}.toml"), "--serial", emu.port, "--out", str(folder / name),
-                  "--tolerance-deg", "30")
+            if scenarios is None:
+                quiet("scenario", str(folder / f"{name}.toml"), "--serial", emu.port, "--seed", str(s), *held)
+            quiet("hil", str((scenarios or folder) / f"{name}.toml"), "--serial", emu.port, "--out",
+                  str(folder / name), "--tolerance-deg", "30", *held)
     return truth
 
 
@@ -271,6 +304,125 @@ def identify(seeds) -> None:
           f"time per plant: median {np.median(device):.1f} s")
 
 
+def row(p: str, form: str, k: int, truth: float, value: float, low: float, high: float, identifiable) -> dict:
+    """One (hinge, parameter, form) of --compare's table: its error against the drawn value, its interval."""
+    return {"p": p, "form": form, "hinge": k, "err": value / truth - 1, "hold": bool(low <= truth <= high),
+            "width": high / low, "identifiable": bool(identifiable)}
+
+
+def cached(path: Path, make):
+    """make()'s JSON result, kept at path and read from there when it is (a run cut short goes on where it
+    stopped; processes given other seeds and the same --out share the work); None (not kept) stays None."""
+    if path.exists():
+        return json.loads(path.read_text())
+    out = make()
+    if out is not None:
+        path.write_text(json.dumps(out))
+    return out
+
+
+def identified(seed: int, spec) -> dict:
+    """The identification form on seed's drawn plant lying flat: {"truth": each hinge's drawn TARGETS, "rows",
+    "wall_s": the fit's wall time, "device_s": the experiments' device time}."""
+    dev = EmulatedDevice(spec, seed)
+    moves, device_s = experiments(dev.run_program, spec)
+    t0 = time.perf_counter()
+    rows, truth = [], []
+    for k in sorted(moves):
+        est = estimates(fit_hinge(moves[k], spec), spec, MAX_HALFWIDTH)
+        truth.append({p: getattr(dev.truth[k], p) for p in TARGETS})
+        rows += [row(p, FORMS[1], k, truth[k][p], est[p].value, est[p].low, est[p].high, est[p].identifiable)
+                 for p in TARGETS]
+    return {"truth": truth, "rows": rows, "wall_s": time.perf_counter() - t0, "device_s": device_s}
+
+
+def recorded_form(seed: int, folder: Path, scenarios: Path, tries: int = 6, pause_s: float = 30.0) -> dict | None:
+    """Today's recorded-runs form on seed's drawn plant lying flat (see --compare): {"truth": each hinge's drawn
+    TARGETS from the emulator's log, "rows" (each hinge's own values where the profile keeps them, else the
+    shared ones), "wall_s": recording and calibrating, "held": the held-out figures}. A recording the machine's
+    load spoiled (the real-time emulator fell behind and `hil` stopped, or the link stopped trusting its clock)
+    is recorded again after pause_s, up to `tries` times; None if none was whole."""
+    t0 = time.perf_counter()
+    for attempt in range(tries):
+        if (folder / "hold" / "run.json").exists():
+            break
+        try:
+            record(seed, folder, ("--mount", "flat"), mount="flat", scenarios=scenarios)
+        except (RuntimeError, AssertionError, LinkError) as exc:
+            print(f"seed {seed}: recording {attempt + 1} of {tries} failed ({exc})", flush=True)
+            shutil.rmtree(folder / "train", ignore_errors=True)
+            shutil.rmtree(folder / "hold", ignore_errors=True)
+            time.sleep(pause_s)
+    if not (folder / "hold" / "run.json").exists():
+        return None
+    cal = json.loads(quiet("calibrate", str(folder / "train"), "--holdout", str(folder / "hold"), "--per-hinge",
+                           "--out", str(folder / "cal.toml"), "--json", "-"))
+    fit = cal["per_hinge_fit"]
+    own = {h["hinge"]: h["parameters"] for h in fit["hinges"]} if fit["kept"] else {}
+    truth = [{p: h[p] for p in TARGETS} for h in _drawn(folder)["hinges"]]
+    rows = [row(p, FORMS[0], k, truth[k][p], e["value"], e["low"], e["high"], e["identifiable"])
+            for k in range(len(truth)) for p in TARGETS for e in [own.get(k, {}).get(p, cal["parameters"][p])]]
+    return {"truth": truth, "rows": rows, "wall_s": time.perf_counter() - t0,
+            "held": {**cal["holdout"], "per_hinge_kept": fit["kept"]}}
+
+
+FORMS = ("recorded runs", "identification")
+
+
+def compare(seeds, base: Path) -> None:
+    """Issue 36's measure: today's calibrate beside the identification, on the same plants (see --compare)."""
+    spec = load_spec()
+    os.environ["VRSCROLL_DEVICES"] = str(base / "devices")  # no profile of the user's is read or written
+    base.mkdir(parents=True, exist_ok=True)
+    for name, s in (("train", 0), ("hold", 1)):  # the same for every plant: made once, before any emulator runs
+        if not (base / f"{name}.toml").exists():
+            quiet("scenario", str(base / f"{name}.toml"), "--seed", str(s), "--mount", "flat")
+    rows, walls, done = [], {form: [] for form in FORMS}, []
+    for seed in seeds:
+        folder = base / f"seed{seed}"
+        folder.mkdir(exist_ok=True)
+        new = cached(folder / "identification.json", lambda: identified(seed, spec))
+        old = cached(folder / "recorded.json", lambda: recorded_form(seed, folder, base))
+        if old is None:
+            print(f"seed {seed}: no whole recording, left out of the table", flush=True)
+            continue
+        assert np.allclose([[h[p] for p in TARGETS] for h in new["truth"]],  # the same plant: the log's draw is
+                           [[h[p] for p in TARGETS] for h in old["truth"]], rtol=1e-9)  # EmulatedDevice's
+        done.append(seed)
+        rows += old["rows"] + new["rows"]
+        walls[FORMS[0]].append(old["wall_s"])
+        walls[FORMS[1]].append(new["wall_s"])
+        h = old["held"]
+        print(f"seed {seed}: recorded runs {old['wall_s']:.0f} s (held-out {h['overall_before_deg']:.3f} -> "
+              f"{h['overall_after_deg']:.3f} deg, per-hinge values {'kept' if h['per_hinge_kept'] else 'not kept'}"
+              f"); identification fit {new['wall_s']:.0f} s, experiments {new['device_s']:.1f} s of device "
+              "time", flush=True)
+    if not done:
+        return
+    seeds = done
+    n = len(seeds) * spec.n_hinges
+    print(f"\nover {len(seeds)} plants x {spec.n_hinges} hinges = {n} (seeds {' '.join(map(str, seeds))}; error: "
+          f"fitted / drawn - 1; width: high / low of the 95 % interval)")
+    print(f"{'parameter':<14} {'form':<15} {'median err':>10} {'worst err':>10} {'median width':>13} "
+          f"{'holding':>8} {'identifiable':>12} {'meets issue':>11}")
+    for p, target in TARGETS.items():
+        for form in FORMS:
+            mine = [r for r in rows if r["p"] == p and r["form"] == form]
+            err = np.abs([r["err"] for r in mine])
+            met = sum(abs(r["err"]) <= target and r["identifiable"] and r["width"] <= MAX_WIDTH for r in mine)
+            print(f"{p:<14} {form:<15} {np.median(err):>10.1%} {err.max():>10.1%} "
+                  f"{'x%.3f' % np.median([r['width'] for r in mine]):>13} "
+                  f"{sum(r['hold'] for r in mine):>4}/{len(mine):<3} "
+                  f"{sum(r['identifiable'] for r in mine):>8}/{len(mine):<3} "
+                  f"{met:>7}/{len(mine):<3}")
+    print(f"(meets issue: within {', '.join(f'{p} {t:.0%}' for p, t in TARGETS.items())} of the drawn value, "
+          f"called identifiable, interval no wider than x{MAX_WIDTH})")
+    print("wall time per plant, this machine (2 shared cores): " + "; ".join(
+        f"{form} median {np.median(w):.0f} s" for form, w in walls.items())
+          + " (recorded runs: recording both runs and calibrating; identification: the fit, the experiments "
+          "in-process as fast as the CPU steps them)")
+
+
 def _drawn(folder: Path) -> dict:
     """The emulator's start event (its drawn plant and hinges), from the log in a seed's folder."""
     with open(folder / "emulator.jsonl") as f:
@@ -290,7 +442,12 @@ def main() -> None:
                     help="instead: issue 36's identification experiments and per-hinge fit on each seed's plant")
     ap.add_argument("--effects", action="store_true",
                     help="instead: per seed, the shared fit with each effect the twin does not model taken out")
+    ap.add_argument("--compare", action="store_true",
+                    help="instead: today's calibrate (recorded runs) beside the identification on the same plants")
     args = ap.parse_args()
+    if args.compare:
+        compare(args.seeds, Path(args.out or tempfile.mkdtemp(prefix="bench-cal-")))
+        return
     if args.identify:
         identify(args.seeds)
         return

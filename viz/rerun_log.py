@@ -17,6 +17,8 @@ Rerun is an optional extra (`pip install '.[rerun]'`); open a recording with `re
 from __future__ import annotations
 
 import dataclasses
+import threading
+import time
 from pathlib import Path
 
 import mujoco
@@ -193,3 +195,18 @@ def add_move(rec: RerunRecording, at: float, telemetry=None, prediction=None) ->
         series["twin"], panels["twin"] = pred, (pred.time, pred.true_angle)
     if panels:
         rec.add(at, series, panels)
+
+
+def morph_recording(path, spec: DeviceSpec, morpher) -> RerunRecording:
+    """A recording (`vrscroll serve --rerun`) every morph of `morpher` (twin.live.morph's) is added to, at its
+    time since now (s): the morpher's on_move set to add it."""
+    recording = RerunRecording(path, spec)
+    started = time.monotonic()
+    lock = threading.Lock()  # morphs run in a worker thread
+
+    def on_move(telemetry, prediction):
+        with lock:
+            add_move(recording, time.monotonic() - started, telemetry, prediction)
+
+    morpher.on_move = on_move
+    return recording

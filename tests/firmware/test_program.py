@@ -290,7 +290,7 @@ def test_programs_at_full_duty_stop_inside_their_window_on_drawn_plants(spec):
     for seed in range(1, 5):
         for flat in (False, True):
             opt = drawn_options(PlantRanges(), FaultOptions(), seed, zeroed=True)
-            opt = dataclasses.replace(opt, plant=dataclasses.replace(opt.plant, lying_flat=flat))
+            opt = dataclasses.replace(opt, plant=dataclasses.replace(opt.plant, mount="flat" if flat else "hanging"))
             for hinge in range(spec.n_hinges):
                 for sign in (1, -1):
                     emu = Emulator(spec, opt)

@@ -22,7 +22,8 @@ from twin.link import protocol as P
 from twin.link.drawn_plant import emulator_args
 from twin.link.emulator import Emulator, EmulatorOptions
 from twin.link.faults import FaultOptions, Miswiring
-from twin.link.pty_device import SERVED_LINK_RETRIES, served
+from twin.link.pty_device import served
+from twin.link.serial_link import PTY_RETRIES
 from twin.link.serial_link import Link, LinkTimeout, NackError
 from twin.sim.plant import as_twin
 
@@ -199,7 +200,7 @@ def test_without_a_hand_crossed_cables_are_named_and_nothing_stored(emulator):
 
 def test_a_hand_tells_a_reversed_encoder_from_a_reversed_motor_and_the_flap_then_moves_the_right_way(spec):
     emu = emulator_with(spec, "encoder-reversed:4")
-    with served(emu) as port, Link(port, hinges=spec.n_hinges, retries=SERVED_LINK_RETRIES) as link:
+    with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
         checks = bring_up(link, spec, hand_on(emu, link), say=lambda line: None)
         assert [(c.encoder_reversed, c.motor_reversed) for c in checks][4] == (True, False)
         assert not any(c.encoder_reversed or c.motor_reversed for i, c in enumerate(checks) if i != 4)
@@ -212,12 +213,12 @@ def test_a_hand_tells_a_reversed_encoder_from_a_reversed_motor_and_the_flap_then
 
 def test_the_sketch_keeps_the_correction_across_a_reset(spec):
     emu = emulator_with(spec, "crossed:0,5", "motor-reversed:3", sketch=True)
-    with served(emu) as port, Link(port, hinges=spec.n_hinges, retries=SERVED_LINK_RETRIES) as link:
+    with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
         bring_up(link, spec, hand_on(emu, link), say=lambda line: None)
         stored = link.get_wiring()
     assert list(stored.encoder) == [5, 1, 2, 3, 4, 0] and stored.flags[3] == P.WIRING_MOTOR_REVERSED
     emu.firmware.reset(P.ResetReason.POWERON)  # off and on: the flash keeps it
-    with served(emu) as port, Link(port, hinges=spec.n_hinges, retries=SERVED_LINK_RETRIES) as link:
+    with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
         assert link.info.wiring_set == 1 and link.info.zero_confirmed == 0
         assert link.get_wiring() == stored
 
@@ -290,7 +291,7 @@ def bring_up_named_or_corrected(spec, faults, seed, lying_flat, before=None, han
     nothing stored; else the correction stored, and a move of every hinge to +10 deg moves every flap up by about
     that."""
     emu = drawn_emulator(spec, seed, lying_flat, faults)
-    with served(emu) as port, Link(port, hinges=spec.n_hinges, retries=SERVED_LINK_RETRIES) as link:
+    with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
         if before is not None:
             before(emu)
         cannot = NAMED if hand else {**NAMED, **UNTOLD, **({} if lying_flat else UNTOLD_HANGING)}
@@ -370,7 +371,7 @@ def told_or_refused_never_opposite(spec, faults, seed: int, lying_flat: bool) ->
     fault = faults[0]
     k = int(fault.split(":")[1])
     emu = drawn_emulator(spec, seed, lying_flat, faults)
-    with served(emu) as port, Link(port, hinges=spec.n_hinges, retries=SERVED_LINK_RETRIES) as link:
+    with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
         if lying_flat:
             said = []
             bring_up(link, spec, say=said.append)
@@ -462,7 +463,7 @@ def test_with_the_bridge_map_a_hinge_on_another_bridge_moves_its_own_flap_and_re
     on hinge 1 moves flap 1 alone, and hinge 1's telemetry current is motor 1's (the emulator senses each bridge's
     motor; read from the wrong bridge, hinge 1 showed hinge 3's 395 mA and hinge 3 its 1313). Ticked by hand, no
     pty: a second of device time."""
-    flat_plant = dataclasses.replace(as_twin(spec), lying_flat=True)  # hanging, hinge 3 holding its flap draws too
+    flat_plant = dataclasses.replace(as_twin(spec), mount="flat")  # hanging, hinge 3 holding its flap draws too
     emu = Emulator(spec, EmulatorOptions(plant=flat_plant, zeroed=True,
                                          faults=FaultOptions(latency_ms=0.0, wiring=("bridges-crossed:1,3",))))
     replies = P.Decoder()
@@ -493,13 +494,14 @@ def test_with_the_bridge_map_a_hinge_on_another_bridge_moves_its_own_flap_and_re
     assert peak[1] > 2 * peak[3], peak  # hinge 3 holds against the lift's reaction: a third of hinge 1's, measured
 
 
-@pytest.mark.parametrize("retries", [pytest.param(3, marks=pytest.mark.slow), SERVED_LINK_RETRIES],
+@pytest.mark.parametrize("retries", [pytest.param(3, marks=pytest.mark.slow), None],
                          ids=["link-default", "served"])  # the default Link's timeout: the cause, shown (slow: 8 s)
 def test_a_link_to_a_served_emulator_waits_out_its_thread_being_unscheduled(spec, retries):
     """The slow sweeps' link timeouts: the served emulator's thread left unscheduled for 1 s (measured under load:
     0.29-0.33 s, and whole seconds behind the wall clock) while the host's Link runs on. The Link's own 4 tries of
     100 ms (what a real device, which does not share the host's CPU, answers within) run out, GET_STATE and ESTOP
-    alike; a Link to a served emulator (SERVED_LINK_RETRIES) waits the stall out and is answered."""
+    alike; a Link to a pseudo-terminal (an emulator on the host's CPU: PTY_RETRIES by default) waits the stall out
+    and is answered."""
     emu = emulator_with(spec)
     step, stall = emu.step, threading.Event()
 
@@ -512,7 +514,8 @@ def test_a_link_to_a_served_emulator_waits_out_its_thread_being_unscheduled(spec
     with served(emu) as port, Link(port, hinges=spec.n_hinges, retries=retries) as link:
         for ask in (link.get_state, link.estop):
             stall.set()
-            if retries == SERVED_LINK_RETRIES:
+            if retries is None:
+                assert link.retries == PTY_RETRIES
                 ask()
             else:
                 with pytest.raises(LinkTimeout):
@@ -536,7 +539,7 @@ def test_on_a_device_slower_than_the_wall_clock_bring_up_reads_each_pulse_in_the
         time.sleep(0.002)
     emu.step = slow_step
     wall = time.monotonic()
-    with served(emu) as port, Link(port, hinges=spec.n_hinges, retries=SERVED_LINK_RETRIES) as link:
+    with served(emu) as port, Link(port, hinges=spec.n_hinges) as link:
         bring_up(link, spec, say=lambda line: None)
         wiring = link.get_wiring()
     assert emu.time < 0.7 * (time.monotonic() - wall)  # the device did run slower than the wall clock

@@ -13,6 +13,7 @@ bench_calibration.py --identify, not met, and not asserted."""
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -107,6 +108,9 @@ def test_calibrate_serial_writes_each_hinges_values_into_the_profile_and_tune_re
             assert isinstance(e["identifiable"], bool) and 0 < e["low"] <= e["value"] <= e["high"]
         e, truth = h["parameters"]["no_load_speed"], hinges[h["hinge"]]["no_load_speed"]
         assert e["low"] <= truth <= e["high"]
+    held = out["holdout"]  # the closed-loop run after the experiments, which no fit saw, kept in the profile
+    assert [r["hinge"] for r in held["hinges"]] == list(range(6)) and Path(held["run"], "run.json").exists()
+    assert all(0 < r["floor_deg"] <= r["rmse_identified_deg"] + 0.05 for r in held["hinges"]), held
     profile = select_profile("flat4")
     assert profile.mount == "flat"  # as the experiments ran: later commands hold the twin on its table
     assert profile.ranges().hinges == tuple({p: (h["parameters"][p]["low"], h["parameters"][p]["high"])

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from controllers import core
+from controllers.program import ProgramEnd
 from controllers.pid import PidGains
 from twin.device.spec import load_spec
 from twin.hil.mirror import mirror
@@ -21,7 +22,7 @@ from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions
 from twin.link.faults import FaultOptions
 from twin.link.pty_device import open_pty, serve
-from twin.link.serial_link import DeviceUntrusted, Link
+from twin.link.serial_link import DeviceUntrusted, Link, LinkError, on_pty
 from twin.paths import cli_command, cli_env
 
 TARGETS = np.radians([40.0, -30.0, 20.0, 20.0, -30.0, 40.0])
@@ -212,3 +213,49 @@ def test_a_hello_with_a_0_hz_loop_is_a_one_line_error(liar):
                          timeout=60)
     assert run.returncode == 2, run.stderr
     assert "loop_rate_hz 0" in run.stderr and "Traceback" not in run.stderr and len(run.stderr.splitlines()) == 1
+
+
+def _heard_program(emu, seq, msg):
+    if isinstance(msg, P.Program):
+        emu.programmed = emu.tick
+    return None  # run it
+
+
+def _drives_on(emu, seq, msg):
+    """After PROGRAM, every PROGRAM_STATUS says it still runs, its ticks counting on past its timeout."""
+    if isinstance(msg, P.ProgramStatus) and getattr(emu, "programmed", None) is not None:
+        return dataclasses.replace(msg, end=int(ProgramEnd.RUNNING), ticks=emu.tick - emu.programmed)
+    return msg
+
+
+def _stands_still(emu, seq, msg):
+    """After PROGRAM, every PROGRAM_STATUS says it still runs at tick 5: a loop that stopped."""
+    if isinstance(msg, P.ProgramStatus) and getattr(emu, "programmed", None) is not None:
+        return dataclasses.replace(msg, end=int(ProgramEnd.RUNNING), ticks=5)
+    return msg
+
+
+@pytest.mark.parametrize("lie, words", [(_drives_on, r"after 1\.3\d* s of its own time \(its end at 1\.3 s\): e-stopped"),
+                                        (_stands_still, r"after 0\.005 s of its own time \(its end at 1\.3 s\): e-stopped")],
+                         ids=["past-its-timeout", "ticks-stand-still"])
+def test_a_program_that_does_not_end_is_e_stopped_by_the_devices_own_clock(liar, spec, lie, words):
+    """The host times a program by the ticks the device reports (a loaded host's emulator may lag the host's
+    clock): a program whose ticks run past its end, or stop advancing for PROGRAM_STILL_S, is e-stopped."""
+    port, events = liar(lie, _heard_program)
+    with Link(port, hinges=spec.n_hinges) as link:
+        with pytest.raises(LinkError, match=words):
+            link.run_program(0, ((0.15, 0.3),), (round(-1.0 / spec.rad_per_count), round(1.0 / spec.rad_per_count)))
+    assert _rx(events, "ESTOP") and [e for e in events("fault") if e["fault"] == "ESTOP"]
+
+
+def test_only_a_pseudo_terminal_is_taken_for_an_emulator_on_this_host(tmp_path):
+    """A Link waits PTY_RETRIES on a pseudo-terminal (an emulator sharing the host's CPU), the 4 tries a real
+    device answers within on anything else."""
+    master, slave, path = open_pty()
+    try:
+        assert on_pty(path)
+    finally:
+        os.close(master)
+        os.close(slave)
+    (tmp_path / "file").write_text("")
+    assert not any(on_pty(p) for p in (str(tmp_path / "file"), "/dev/null", "/dev/ttyUSB9", "socket://x:1"))

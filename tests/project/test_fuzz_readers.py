@@ -16,7 +16,8 @@ from twin.evaluation.table1 import METHODS
 from twin.formats.gains import read_gains
 from twin.formats.pen import read_pen_samples
 from twin.formats.profile import read_profile
-from twin.formats.run import read_run_meta
+from twin.checks import json_object
+from twin.formats.run import check_run_json
 from twin.formats.scenario import read_scenario
 from twin.formats.sweep import read_sweep
 from twin.formats.target import read_approximation, read_target
@@ -46,7 +47,7 @@ READERS = {
     "trace.csv": lambda p: read_trace(p, SPEC.n_hinges, SPEC.hinge_limit),
     "pens.csv": read_pen_samples,
     "trials.csv": read_trials,
-    "run.json": lambda p: read_run_meta(p.parent, SPEC),
+    "run.json": lambda p: check_run_json(json_object(p), p, SPEC),
     "profile.json": _profile,
 }
 

@@ -33,12 +33,13 @@ from twin.sim.twin import Twin
 
 RECORDS = ("Approximation", "Trace", "MoveReport", "Calibration", "Estimate", "Profile", "Holding", "Gains", "Ranges",
            "PenSamples")
-# functions of twin.formats that still return a dict, each with why: what issue 39 has not yet made a record
+# functions of twin.formats that return a dict, each with why it stays one (issue 39's contract): a results log's
+# lines are the rows of several programs (a design sweep's, Table 1's), each row the keys its program writes and an
+# older row without the keys added since; one record would be the union of them all, every field optional.
+# check_record checks each field a row holds (its range, its type) as the line is read.
 NOT_YET = {
-    "twin.formats.run.read_run_meta": "run.json before it is checked whole; read_run gives the Run record",
-    "twin.formats.records.read_jsonl": "append-only logs of any JSON objects (sweep, Table 1): no one record",
-    "twin.formats.sweep.read_records": "the sweep's records by key: JSON objects the sweep itself writes",
-    "twin.formats.records.check_record": "one line of such a log, checked and given back as read",
+    "twin.formats.records.read_jsonl": "a results log's rows (sweep, Table 1), each checked (check_record)",
+    "twin.formats.sweep.read_records": "the same rows of a sweep's log by key: the rows the sweep itself wrote",
 }
 
 

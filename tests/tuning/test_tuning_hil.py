@@ -25,6 +25,7 @@ from twin.hil.calibration import trace_rmse
 from twin.hil.calibration_verdict import held_out_improved
 from twin.hil.compare import compare
 from twin.hil.device_gains import device_gains
+from twin.hil.identification import SHOWN_BY
 from twin.hil.mirror import device_step, mirror
 from twin.hil.shared_plant import (ALIKE, SHARED_BACKLASH_DEG, SHARED_PLANT, SHARED_SCALES, record_soft,
                                    shared_truth, training_scenario)
@@ -92,7 +93,15 @@ def test_tune_command_writes_a_gains_file(tmp_path, capsys):
     # a limit out of reach: the gains are written, each hinge that breaks it named, and the exit status says so
     assert vrscroll(["tune", "--population", "6", "--generations", "1", "--threads", "2", "--out", str(out),
                      "--max-overshoot-deg", "0.05"]) == 1
-    assert "NOT KEPT" in capsys.readouterr().out and json.loads(out.read_text())["meta"]["limits_broken"]
+    text = capsys.readouterr().out
+    meta = json.loads(out.read_text())["meta"]
+    assert "NOT KEPT" in text and meta["limits_broken"]
+    # and says which interval's end sets each broken hinge's worst case, and which experiment shows that value
+    said = next(ln for ln in text.splitlines() if ln.startswith("its worst case set by "))
+    for broken in meta["limits_broken"]:
+        row = meta["worst_case_range"][int(broken.split(":")[0].split()[1])]
+        assert f"{row['parameter']} at the {row['end']} end of its interval" in said, (said, row)
+        assert SHOWN_BY[row["parameter"]] in said
 
 
 def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device(emulator, tmp_path, capsys):
@@ -108,9 +117,14 @@ def test_tune_command_with_port_pushes_the_gains_and_runs_the_step_on_the_device
     assert pushed == {k: dataclasses.asdict(P.Gains.from_pid(g)) for k, g in enumerate(gains)}
     with Link(emu.port) as link:
         assert [link.get_gains(k) for k in range(spec.n_hinges)] == [P.Gains.from_pid(g) for g in gains]
-    # then ran the same step (flat, then 30 deg on every hinge) and printed its metrics beside the twin's
-    steps = [e["counts"] for e in emu.events("rx") if e["msg"] == "SET_TARGETS"]
-    assert steps[-1] == target_counts(spec, np.full(spec.n_hinges, math.radians(30.0))).tolist()
+    # then ran the same step (flat, then 30 deg on every hinge) and printed its metrics beside the twin's; the
+    # gains were pushed at flat, once the move there (from wherever the device stood, with the gains it held) was
+    # done: the tuner checked its limits on the step from flat, not on that move
+    heard = [(e["msg"], e.get("counts")) for e in emu.events("rx") if e["msg"] in ("SET_TARGETS", "SET_GAINS")]
+    assert heard[-1] == ("SET_TARGETS", target_counts(spec, np.full(spec.n_hinges, math.radians(30.0))).tolist())
+    first_gains = heard.index(("SET_GAINS", None))
+    assert heard[first_gains - 1] == ("SET_TARGETS", [0] * spec.n_hinges), heard
+    assert [m for m, _ in heard[first_gains:-1]] == ["SET_GAINS"] * spec.n_hinges, heard
     assert f"device at {emu.port}: settled: settle time" in text
     lines = text.splitlines()
     head = next(i for i, ln in enumerate(lines) if "device settle s" in ln and "twin settle s" in ln)

@@ -19,12 +19,10 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
-
 from twin.commands.options import add_json, add_target, output_file
 from twin.device.spec import load_spec
 from twin.errors import UserError
-from twin.evaluation.starts import target_and_start as target_start
+from twin.evaluation.starts import parse_start, target_and_start as target_start
 from twin.formats.target import approximation_json, write_approximation
 from twin.morphpatch.approximation import VARIANTS, approximate, frames, measured
 from twin.morphpatch.fields import build_fields
@@ -45,20 +43,10 @@ def add_target_arguments(p) -> None:
     add_json(p, "the result (it is printed on standard output in any case)")
 
 
-def _parse_start(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise UserError(f"--start {text!r}: expected six numbers x,y,z,roll,pitch,yaw (mm, deg)") from None
-    if len(values) != 6 or not np.all(np.isfinite(values)):
-        raise UserError(f"--start {text!r}: expected six finite numbers x,y,z,roll,pitch,yaw (mm, deg)")
-    return values
-
-
 def target_and_start(args):
     """(name, mesh, start as [x,y,z mm, roll,pitch,yaw deg], start pose 4x4) from --shape/--mesh and --start
     (twin.evaluation.starts.target_and_start)."""
-    return target_start(args.shape, args.mesh, _parse_start(args.start) if args.start else None)
+    return target_start(args.shape, args.mesh, parse_start(args.start) if args.start else None)
 
 
 def write_result(args, name, start, result, mesh, spec, extra: dict | None = None) -> None:

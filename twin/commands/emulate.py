@@ -9,6 +9,7 @@ import math
 import os
 import signal
 
+from twin.device.mount import DEFAULT_MOUNT, MOUNTS
 from twin.device.spec import DeviceSpec, load_spec
 from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
 from twin.link.faults import FaultOptions, Miswiring
@@ -66,9 +67,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="run the whole ESP32-S3 sketch on stand-ins for its peripherals (encoders decoded from "
                         "quadrature edges, MCPWM through the H-bridges, USB CDC buffers), not the C core alone "
                         "(docs/firmware.md, 'The sketch in the loop'); needs a C++ compiler")
-    p.add_argument("--lying-flat", action="store_true",
-                   help="the device lies flat on a table (its flaps cannot fold below it), instead of hanging from "
-                        "its root flap, where the flaps beside the root sag under gravity while nothing drives them")
+    held = p.add_mutually_exclusive_group()
+    held.add_argument("--mount", choices=MOUNTS, default=DEFAULT_MOUNT,
+                      help="how the device is held, its plant the twin's model of that mount (docs/device.md "
+                           "\"Mounts\"): hanging from its root flap (the flaps beside the root sag under gravity "
+                           "while nothing drives them), flat on a table (its flaps cannot fold below it), or on a "
+                           "stand on its edge (gravity loads no hinge) (default %(default)s)")
+    held.add_argument("--lying-flat", dest="mount", action="store_const", const="flat",
+                      help="the same as --mount flat (bring-up's zero and the identification are done lying flat)")
     p.add_argument("--zeroed", action="store_true",
                    help="start with the zero confirmed, as if `vrscroll zero` had run at power-on while the flaps lay "
                         "flat (by default, as a real device, it refuses to move until confirmed)")
@@ -136,7 +142,7 @@ def options_from_args(args, spec: DeviceSpec) -> EmulatorOptions:
     opt = drawn_options(ranges, faults, args.seed, args.watchdog_ms, args.encoder_miss, args.pack_voltage_v,
                         args.sketch, args.zeroed, spec.n_hinges)
     return dataclasses.replace(opt, host_away_hold_ms=args.host_away_hold_ms,
-                               plant=dataclasses.replace(opt.plant, lying_flat=args.lying_flat,
+                               plant=dataclasses.replace(opt.plant, mount=args.mount,
                                                          hinges=() if args.ideal else opt.plant.hinges,
                                                          warming=not args.no_warming))
 

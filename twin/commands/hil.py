@@ -1,30 +1,16 @@
-"""`vrscroll hil SCENARIO --serial PORT`: one scenario on the device and on the twin, compared (docs/tuning-hil-calibration.md)."""
+"""`vrscroll hil SCENARIO --serial PORT`: one scenario on the device and on the twin, compared (docs/tuning-hil-calibration.md;
+twin.hil.hil_run)."""
 
 from __future__ import annotations
 
-import datetime
 import sys
-from pathlib import Path
 
-from twin.commands.options import (
-    add_device_option,
-    add_mount,
-    add_rerun,
-    add_serial,
-    add_tolerance_deg,
-    device_session,
-    opened,
-    within,
-)
-from twin.errors import UserError
+from twin.commands.options import (add_device_option, add_mount, add_rerun, add_serial, add_tolerance_deg,
+                                   device_session, opened, within)
 from twin.formats.gains import read_gains
-from twin.formats.run import read_run, recorded_status
 from twin.formats.scenario import read_scenario
-from twin.hil.compare import compare, metrics_text, not_followed
-from twin.hil.mirror import DeviceNotReady
-from twin.hil.record import Diverged, GainsRestored, run_hil
-from twin.link.serial_link import LinkError, NackError
-from twin.sim.gate import GateRefused
+from twin.hil.compare import metrics_text, not_followed
+from twin.hil.hil_run import record_hil, run_folder
 from viz.hil_report import write_report
 
 
@@ -49,56 +35,11 @@ def run(args) -> int:
     scenario = read_scenario(args.scenario, spec)
     gains = read_gains(args.gains, spec.n_hinges).hinges if args.gains else \
         profile.gains if profile.gains_from != "spec" else None
-    out = Path(args.out or f"hil-{scenario.name}-{datetime.datetime.now():%Y%m%d-%H%M%S}")
-    status = recorded_status(out)
-    if status and not args.overwrite:  # a run is a measurement that cannot be taken again
-        raise UserError(f"{out} holds a run already (run.json, status {status!r}): give another --out, or "
-                        "--overwrite to record over it")
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    try:
-        return _record(args, profile, spec, scenario, gains, out)
-    finally:
-        if created and not any(out.iterdir()):  # nothing recorded (a port that would not open): no empty folder
-            out.rmdir()
-
-
-def _record(args, profile, spec, scenario, gains, out: Path) -> int:
+    out = run_folder(scenario, args.out, args.overwrite)
     log = args.log or str(out / "session.jsonl")
-    last = [0.0]
-
-    def progress(t):
-        if t - last[0] >= 0.5:
-            last[0] = t
-            print(f"t={t:6.2f} s of {scenario.duration:.2f} s", flush=True)
-
-    try:
-        with device_session(args, spec, log) as (link, spec):
-            run_hil(link, spec, scenario, out, telemetry_hz=args.telemetry_hz, scenario_path=args.scenario,
-                    on_progress=progress, gains=gains, tolerance_deg=args.tolerance_deg, profile=profile.label,
-                    hinges=profile.hinges, mount=profile.mount)
-    except GainsRestored as exc:
-        print(exc.report.text())
-        raise UserError(f"refused by the gate: {exc} (the gains of {args.gains or profile.gains_from} were sent, "
-                        "then the device's "
-                        "previous gains sent back; no target was sent)") from None
-    except GateRefused as exc:
-        print(exc.report.text())
-        raise UserError(f"scenario refused by the gate: {exc} (nothing was sent)") from None
-    except NackError as exc:
-        raise UserError(f"{exc}; the hinges already changed got their previous gains back, no target was sent") \
-            from None
-    except DeviceNotReady as exc:
-        raise UserError(str(exc)) from None
-    except Diverged as exc:
-        raise UserError(f"stopped: {exc} (the run up to there is kept in {out}, marked stopped; `vrscroll view "
-                        f"{out}` shows it)") from None
-    except LinkError as exc:
-        raise UserError(f"link: {exc} (session log: {log}; traces so far in {out})") from None
-    except RuntimeError as exc:
-        raise UserError(f"{exc} (traces so far in {out})") from None
-    run_ = read_run(out, spec)
-    rows = compare(spec, run_.device, run_.twin, [t for t, _ in run_.changes])
+    spec, run_, rows = record_hil(device_session(args, spec, log), profile, scenario, args.scenario, out, gains,
+                                  args.gains or profile.gains_from, log, args.telemetry_hz, args.tolerance_deg,
+                                  lambda line: print(line, flush=True))
     report = write_report(spec, out, rows)
     print(metrics_text(rows))
     print(f"report: {report} (each column defined there)")

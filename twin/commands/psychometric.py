@@ -15,8 +15,8 @@ from pathlib import Path
 
 from twin.commands.options import add_json, json_to_stdout, write_json
 from twin.errors import UserError
-from twin.formats.trials import read_trials, write_trials
-from twin.perception.fit_report import example_trials, fit_result, paper_fit, report_text
+from twin.formats.trials import read_trials
+from twin.perception.fit_report import fit_result, paper_fit, report_text, write_example
 from twin.perception.thresholds import paper_fits
 from viz.charts import psychometric_curves
 
@@ -41,18 +41,9 @@ def add_arguments(p) -> None:
                         f"(default {surfaces[0]!r})")
 
 
-def write_example(path: Path, surface: str, seed: int) -> None:
-    if path.exists():
-        raise UserError(f"{path} exists; --example writes a new file and does not overwrite")
-    rows, f = example_trials(surface, seed)
-    write_trials(path, rows, f.unit)
-    print(f"wrote {path}: {len(rows)} trials drawn from the paper's {surface} curve "
-          f"(a = {f.a} /{f.unit}, b = {f.b}; {f.participants} participants x {f.repeats} repeats, seed {seed})")
-
-
 def run(args) -> int:
     if args.example:
-        write_example(Path(args.data or EXAMPLE), args.example, args.seed)
+        print(write_example(Path(args.data or EXAMPLE), args.example, args.seed))
         return 0
     if args.data is None:
         raise UserError("name the trials file to fit (DATA.csv), or write one with --example")

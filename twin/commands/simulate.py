@@ -7,26 +7,10 @@ from __future__ import annotations
 import math
 import sys
 
-import numpy as np
-
-from twin.commands.options import (
-    add_device_option,
-    add_json,
-    add_mount,
-    add_rerun,
-    json_to_stdout,
-    output_file,
-    profile_line,
-    profile_of,
-    profile_twin,
-    within,
-    write_json,
-)
-from twin.checks import cell, hinge_angles
-from twin.evaluation.twin_move import simulate_move
-from twin.formats.target import read_approximation
+from twin.commands.options import (add_device_option, add_json, add_mount, add_rerun, json_to_stdout, output_file,
+                                   profile_line, profile_of, profile_twin, within, write_json)
+from twin.evaluation.twin_move import move_lines, move_targets, simulate_move
 from twin.formats.trace import write_trace
-from twin.sim.targets import check_targets
 from viz.traces import hinge_figure
 from viz.viewer import show_move
 
@@ -57,22 +41,14 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     profile = profile_of(args)
     spec = profile.spec
-    approx = None
-    if len(args.targets) == 1 and not _number(args.targets[0]):
-        approx = read_approximation(args.targets[0], spec)
-        targets = approx.angles
-    else:
-        targets = np.radians([cell(v, f"target {k}") for k, v in enumerate(args.targets)])
-    check_targets(spec, targets)
-    start = np.zeros(spec.n_hinges) if not args.start else hinge_angles(
-        [cell(v, f"--from[{k}]") for k, v in enumerate(args.start.split(","))], spec.n_hinges, spec.hinge_limit, "--from")
+    targets, start, approx = move_targets(spec, args.targets, args.start)
     move = simulate_move(profile_twin(profile), profile.gains, start, targets, args.max_time_s, args.hold, approx,
                          args.targets[0])
-    gate, trace, summary = move.gate, move.trace, move.to_json(profile.label)
+    summary = move.to_json(profile.label)
     if args.trace:
-        write_trace(args.trace, trace)
+        write_trace(args.trace, move.trace)
         summary["trace_csv"] = args.trace
-    hinge_figure(args.plot, f"simulate: the twin's step response ({profile.label})", [("twin", trace)],
+    hinge_figure(args.plot, f"simulate: the twin's step response ({profile.label})", [("twin", move.trace)],
                  range(spec.n_hinges), math.degrees(spec.settle_band * spec.rad_per_count),
                  settle={"twin": move.report.settle_time})
     summary["plot_png"] = args.plot
@@ -80,39 +56,14 @@ def run(args) -> int:
     if args.rerun:
         from viz.rerun_log import log_move
 
-        lines.append(log_move(args.rerun, spec, trace))
+        lines.append(log_move(args.rerun, spec, move.trace))
     if args.view:
-        lines.append(show_move(spec, trace, args.view_out))
+        lines.append(show_move(spec, move.trace, args.view_out))
     write_json(args.json, summary)
     if json_to_stdout(args):
         print("\n".join(lines), file=sys.stderr)
-        return 0 if gate.passed else 1
-    print(profile_line(profile))
-    print(gate.text())
-    print(f"{'hinge':>5} {'target_deg':>10} {'final_deg':>9} {'settle_time_s':>13} {'overshoot_deg':>13} "
-          f"{'ss_err_deg':>10} {'ss_err_counts':>13} {'peak_A':>6}")
-    for r in summary["hinges"]:
-        print(f"{r['hinge']:>5} {r['target_deg']:>10.2f} {r['final_deg']:>9.2f} {r['settle_time_s']:>13.3f} "
-              f"{r['overshoot_deg']:>13.2f} {r['steady_state_error_deg']:>10.2f} "
-              f"{r['steady_state_error_counts']:>13.1f} {r['peak_current_A']:>6.2f}")
-    print(f"simulated {summary['simulated_s']} s in {summary['wall_s']} s wall "
-          f"({summary['real_time_factor']}x real time); settled: {summary['settled']}")
-    if "msd_after_morph_mm" in summary:
-        print(f"on {summary['target']}: MSD where the twin ended {summary['msd_after_morph_mm']} mm "
-              f"(HD {summary['hd_after_morph_mm']} mm; the approximation's own {summary['approximation_msd_mm']} mm); "
-              f"{summary['inside_after_morph_percent']} % of the touch surface inside the target, up to "
-              f"{summary['inside_depth_after_morph_mm']} mm deep")
-    elif approx is not None:
-        print(f"no MSD: {summary['target_note']}")
-    if args.trace:
-        print(f"trace: {args.trace}")
-    print(f"step response: {args.plot}" + "".join("\n" + line for line in lines))
-    return 0 if gate.passed else 1
-
-
-def _number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
+    else:
+        print("\n".join([profile_line(profile), *move_lines(move, summary)] + ([f"trace: {args.trace}"] if args.trace
+                                                                                else [])
+                        + [f"step response: {args.plot}", *lines]))
+    return 0 if move.gate.passed else 1

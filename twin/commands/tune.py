@@ -1,42 +1,19 @@
 """`vrscroll tune`: robust PID gains per hinge on the twin of the device profile in use, over the parameter
 ranges its calibration left open (each hinge about its own values, where calibrated per hinge); stored in the
 profile; with --serial, confirmed on the device. Exit 1 where the best gains found still break a limit on some
-plant (each named; with --serial they are not pushed)."""
+plant (each named; with --serial they are not pushed). The work and its report: twin.tuning.tuned_gains."""
 
 from __future__ import annotations
 
 import contextlib
-import math
 
-import numpy as np
-
-from twin.commands.options import (
-    add_device_option,
-    add_json,
-    add_mount,
-    add_serial,
-    add_threads,
-    device_session,
-    json_to_stdout,
-    link_errors,
-    opened,
-    output_file,
-    within,
-    write_json,
-)
-from twin.device.mount import DEFAULT_MOUNT
-from twin.device.spec import SPEC_PATH
-from twin.device.spec_toml import shown_range, spec_units
+from twin.commands.options import (add_device_option, add_json, add_mount, add_serial, add_threads, device_session,
+                                   json_to_stdout, opened, output_file, within, write_json)
 from twin.errors import UserError
 from twin.evaluation.backends import BACKENDS, WORKERS_PER_CORE, make_backend
-from twin.formats.gains import write_gains
-from twin.formats.move_report import move_rows
-from twin.formats.profile import write_profile_gains
-from twin.hil.confirm import confirm_step
-from twin.hil.mirror import DeviceNotReady
-from twin.records.gains import Gains
-from twin.sim.gate import GateRefused
-from twin.tuning.tuner import profile_goal, step_report, tune, tuned_summary
+from twin.hil.confirm import confirmed
+from twin.hil.identification import narrowing
+from twin.tuning.tuned_gains import goal_of, ranges_line, tune_profile
 
 
 def add_arguments(p) -> None:
@@ -69,94 +46,30 @@ def add_arguments(p) -> None:
     add_mount(p)
 
 
-def _line(label, rows):
-    return f"{label:<16}" + "  ".join(f"{r['settle_time_s'] * 1000:6.0f} ms {r['overshoot_deg']:5.2f} deg"
-                                      if not math.isnan(r['settle_time_s']) else f"{'unsettled':>9} "
-                                      f"{r['overshoot_deg']:5.2f} deg" for r in rows)
-
-
 def run(args) -> int:
     profile, spec = opened(args)
-    step = math.radians(args.step_deg)
-    if not abs(step) <= spec.hinge_limit:
-        raise UserError(f"--step-deg {args.step_deg}: outside the hinge range")
-    smallest = 2 * spec.settle_band * spec.rad_per_count  # a step inside the settle band is settled before it starts
-    if not abs(step) >= smallest:
-        raise UserError(f"--step-deg {args.step_deg}: a step must leave the settle band to test anything: at least "
-                        f"{math.degrees(smallest):.2f} deg (twice the band of {spec.settle_band} counts)")
-    goal = profile_goal(profile, math.radians(args.max_overshoot_deg), args.tolerance_pct / 100, step, args.duration_s)
-    ranges = goal.ranges
-    before = profile.gains
-    quiet = json_to_stdout(args)
-    if not quiet:
-        units = spec_units(SPEC_PATH)
-        print(("calibrated: the twin's values that reproduce its runs" if ranges.calibrated else ranges.what)
-              + ": tuned over " + ", ".join(f"{p} {shown_range(lo, hi, units.get(p, ''))}"
-                                           for p, (lo, hi) in ranges.shared.items())
-              + f" ({2 ** len(ranges.shared) + 1} plants: nominal and corners)"
-              + ("; each hinge about its own calibrated values, at its own intervals' corners" if profile.hinges
-                 else ""))
+    stated = {"max_overshoot_deg": args.max_overshoot_deg, "step_deg": args.step_deg, "duration_s": args.duration_s}
+    goal = goal_of(profile, args.max_overshoot_deg, args.tolerance_pct, args.step_deg, args.duration_s)
+    say = None if json_to_stdout(args) else (lambda line: print(line, flush=True))
+    if say:
+        say(ranges_line(profile, goal))
     with make_backend(args.backend, args.workers) if args.backend else contextlib.nullcontext() as backend:
-        result = tune(spec, goal, population=args.population, generations=args.generations, seed=args.seed,
-                      nthread=args.threads, start=before, backend=backend,
-                      progress=None if quiet else lambda g, c, t: print(
-                          f"generation {g + 1}/{args.generations}: worst-plant cost per hinge "
-                          + " ".join(f"{x * 1000:5.0f}" for x in c) + f" ms  ({t:.1f} s)", flush=True))
-    rows_before = move_rows(step_report(spec, before, goal, hinges=profile.hinges)[0])
-    rows_after = move_rows(step_report(spec, result.gains, goal, hinges=profile.hinges)[0])
-    meta = {"device_profile": profile.label, **tuned_summary(goal, result, {
-        "max_overshoot_deg": args.max_overshoot_deg, "step_deg": args.step_deg, "duration_s": args.duration_s})}
-    written = []
-    if args.out or not profile.name:
-        written.append(args.out or "gains.json")
-        write_gains(written[-1], Gains(result.gains, meta))
-
-    def into_profile() -> None:  # with --serial, only once the device holds them: the profile says what it has
-        if profile.name:
-            written.insert(0, str(write_profile_gains(profile.name, Gains(result.gains, meta))))
-
-    if not args.serial:
-        into_profile()
-    summary = {"gains_files": written, "before": rows_before, "after": rows_after, **meta}
-    if not quiet:
-        print(f"tuned in {result.wall_time:.1f} s ({result.simulations} simulations of {args.duration_s} s); "
-              f"nominal twin, step to {args.step_deg} deg, per hinge settle / overshoot:")
-        print(_line("before", rows_before))
-        print(_line("tuned", rows_after))
-        print("worst plant     " + "  ".join(f"{s * 1000:6.0f} ms {math.degrees(o):5.2f} deg"
-                                          for s, o in zip(result.settle, result.overshoot)))
-        print("worst case set by (each range's ends, one at a time): " + "; ".join(
-            f"hinge {h} {r['parameter']} {r['end']}" for h, r in enumerate(result.sensitivity)))
-        print("every limit kept on every plant" if not result.broken else
-              "NOT KEPT on its worst plant (the best the search found):\n  " + "\n  ".join(result.broken))
-        print("gains written to " + (", ".join(written) if written else
-                                     f"device profile {profile.name} once the device holds them"))
-    if args.serial and result.broken:
-        write_json(args.json, summary)
+        tuned = tune_profile(profile, goal, stated, args.out, not args.serial, population=args.population,
+                             generations=args.generations, seed=args.seed, nthread=args.threads, backend=backend,
+                             progress=say)
+    worst = "its worst case set by " + narrowing(tuned.worst_case) if tuned.broken else ""
+    if say:
+        print("\n".join(tuned.report.lines + ([worst] if worst else [])))
+    if args.serial and tuned.broken:
+        write_json(args.json, tuned.report.doc)
         raise UserError(f"not pushed to {args.serial}: the tuned gains break a limit on a plant the tuning covered "
-                        "(printed above); loosen the goal or narrow the ranges")
+                        f"(printed above), {worst}: narrow those intervals (`calibrate --serial` lying flat) or "
+                        "loosen the goal")
     if args.serial:
-        summary["device"] = confirm_on_device(args, spec, result.gains, step, into_profile, quiet=quiet,
-                                               hinges=profile.hinges, mount=profile.mount)
-        summary["gains_files"] = written
-    write_json(args.json, summary)
-    return 1 if result.broken else 0
-
-
-def confirm_on_device(args, spec, gains, step, pushed, quiet=False, hinges=None, mount=DEFAULT_MOUNT) -> list[dict]:
-    """The tuned gains pushed and a step run on the device beside the twin's prediction (twin.hil.confirm),
-    printed; pushed() is called once the device holds them."""
-    try:
-        with link_errors(f" (session log: {args.log})"), device_session(args, spec) as (link, spec):
-            rows, message = confirm_step(link, spec, gains, np.full(spec.n_hinges, step), args.duration_s, pushed,
-                                         hinges, mount)
-    except (GateRefused, DeviceNotReady) as exc:
-        raise UserError(f"{exc} (the tuned gains are on the device and in its profile)") from None
-    if not quiet:
-        print(f"device at {args.serial}: {message}")
-        print(f"{'hinge':>5} {'device settle s':>15} {'twin settle s':>13} {'device over deg':>15} "
-              f"{'twin over deg':>13}")
-        for r in rows:
-            print(f"{r['hinge']:>5} {r['device_settle_s']:>15.3f} {r['twin_settle_s']:>13.3f} "
-                  f"{r['device_overshoot_deg']:>15.3f} {r['twin_overshoot_deg']:>13.3f}")
-    return rows
+        rows, lines = confirmed(device_session(args, spec), tuned.gains.hinges, goal.step, args.duration_s,
+                                lambda: tuned.keep_in(profile), profile.hinges, profile.mount, args.log)
+        tuned.report.doc["device"] = rows
+        if say:
+            print("\n".join(lines))
+    write_json(args.json, tuned.report.doc)
+    return 1 if tuned.broken else 0

@@ -27,6 +27,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from twin.device.spec import load_spec
+from twin.errors import UserError
 from twin.morphpatch.approximation import pose_from_mm_deg
 from twin.morphpatch.default_start import default_start
 from twin.morphpatch.fields import build_fields, exact_signed_distance
@@ -81,6 +82,17 @@ def _z_to(n: np.ndarray) -> Rotation:
     if s < 1e-12:
         return Rotation.identity() if c > 0 else Rotation.from_rotvec([math.pi, 0.0, 0.0])
     return Rotation.from_rotvec(axis / s * math.atan2(s, c))
+
+
+def parse_start(text: str) -> list[float]:
+    """--start's x,y,z (mm), roll,pitch,yaw (deg) as six numbers; UserError for anything else."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise UserError(f"--start {text!r}: expected six numbers x,y,z,roll,pitch,yaw (mm, deg)") from None
+    if len(values) != 6 or not np.all(np.isfinite(values)):
+        raise UserError(f"--start {text!r}: expected six finite numbers x,y,z,roll,pitch,yaw (mm, deg)")
+    return values
 
 
 def target_and_start(shape: str | None, mesh_path: str | None, start: list[float] | None):

@@ -9,7 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
+from twin.checks import cell, hinge_angles
+from twin.device.spec import DeviceSpec
 from twin.formats.move_report import move_rows
+from twin.formats.target import read_approximation
 from twin.morphpatch.shapes import load_mesh, load_shape, shape_names
 from twin.morphpatch.surface_metrics import match, match_json
 from twin.records.approximation import Approximation
@@ -17,6 +20,7 @@ from twin.records.move_report import MoveReport
 from twin.records.trace import Trace
 from twin.sim.gate import GateReport, check_move
 from twin.sim.response import move_report
+from twin.sim.targets import check_targets
 from twin.sim.twin import Twin
 
 
@@ -36,6 +40,51 @@ class TwinMove:
                 "wall_s": round(self.trace.wall_time, 4), "real_time_factor": round(self.trace.real_time_factor, 1),
                 "settled": self.report.settled, "start_deg": np.degrees(self.start).round(3).tolist(),
                 "gate": self.gate.to_dict(), "hinges": move_rows(self.report), **self.on_target}
+
+
+def move_targets(spec: DeviceSpec, words: list[str], start: str | None) -> tuple[np.ndarray, np.ndarray, Approximation | None]:
+    """(targets, start rad, the approximation or None) from the command line's targets (deg, one per hinge, or
+    one approximation file) and --from (deg, comma-separated; None: flat). ValueError (TargetError) naming what
+    is wrong."""
+    approx = None
+    if len(words) == 1 and not _number(words[0]):
+        approx = read_approximation(words[0], spec)
+        targets = approx.angles
+    else:
+        targets = np.radians([cell(v, f"target {k}") for k, v in enumerate(words)])
+    check_targets(spec, targets)
+    from_ = np.zeros(spec.n_hinges) if not start else hinge_angles(
+        [cell(v, f"--from[{k}]") for k, v in enumerate(start.split(","))], spec.n_hinges, spec.hinge_limit, "--from")
+    return targets, from_, approx
+
+
+def _number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def move_lines(move: TwinMove, doc: dict) -> list[str]:
+    """The move's report in words (deg, s, mm): the gate, each hinge's step response, the time it took, and
+    where the twin ended on an approximation's target; doc: its JSON (to_json)."""
+    lines = [move.gate.text(),
+             f"{'hinge':>5} {'target_deg':>10} {'final_deg':>9} {'settle_time_s':>13} {'overshoot_deg':>13} "
+             f"{'ss_err_deg':>10} {'ss_err_counts':>13} {'peak_A':>6}"]
+    lines += [f"{r['hinge']:>5} {r['target_deg']:>10.2f} {r['final_deg']:>9.2f} {r['settle_time_s']:>13.3f} "
+              f"{r['overshoot_deg']:>13.2f} {r['steady_state_error_deg']:>10.2f} "
+              f"{r['steady_state_error_counts']:>13.1f} {r['peak_current_A']:>6.2f}" for r in doc["hinges"]]
+    lines.append(f"simulated {doc['simulated_s']} s in {doc['wall_s']} s wall "
+                 f"({doc['real_time_factor']}x real time); settled: {doc['settled']}")
+    if "msd_after_morph_mm" in doc:
+        lines.append(f"on {doc['target']}: MSD where the twin ended {doc['msd_after_morph_mm']} mm "
+                     f"(HD {doc['hd_after_morph_mm']} mm; the approximation's own {doc['approximation_msd_mm']} mm); "
+                     f"{doc['inside_after_morph_percent']} % of the touch surface inside the target, up to "
+                     f"{doc['inside_depth_after_morph_mm']} mm deep")
+    elif "target_note" in doc:
+        lines.append(f"no MSD: {doc['target_note']}")
+    return lines
 
 
 def simulate_move(twin: Twin, gains, start, targets, max_time: float, hold: bool = False,

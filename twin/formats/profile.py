@@ -39,7 +39,7 @@ from twin.checks import json_object, known_keys, number, required_keys
 from twin.device.mount import DEFAULT_MOUNT, check_mount
 from twin.device.profile import profile_dir, profiles_dir
 from twin.device.spec import SPEC_PATH, DeviceSpec, load_spec, spec_sources
-from twin.device.spec_toml import write_spec_toml
+from twin.device.spec_toml import shown, shown_range, spec_units, write_spec_toml
 from twin.device.variation import PLANT_FIELDS, scaled
 from twin.formats.gains import read_gains, write_gains
 from twin.paths import replacing
@@ -285,3 +285,42 @@ def create_profile(name: str, mount: str | None = None) -> Path:
     (folder / SPEC).write_text(Path(SPEC_PATH).read_text())
     _write_meta(folder, {"mount": mount} if mount else {})
     return folder
+
+
+def profile_lines(profile: Profile) -> list[str]:
+    """A profile in words (`vrscroll device show`): its folder, mount, gains, calibration (each value in the spec
+    file's unit), holding, the spec values not the spec's defaults, and the hinges."""
+    lines = []
+    say = lines.append
+    say(f"device profile: {profile.label}" + (f" ({profile.folder})" if profile.folder else ""))
+    say(f"mount: {profile.mount}")
+    say(f"gains: {profile.gains_from}")
+    for k, g in enumerate(profile.gains):
+        say(f"  hinge {k}: kp {g.kp:g} ki {g.ki:g} kd {g.kd:g}")
+    sources = profile.sources
+    units = spec_units(SPEC_PATH)  # each value in the unit the spec file gives it in
+    if profile.calibration:
+        say("calibration from " + ", ".join(profile.calibration.runs) + ":")
+        for p, e in profile.calibration.parameters.items():
+            u = units.get(p, "")
+            say(f"  {p:<14} {shown(e.value, u, '.6g')}  (prior {shown(e.prior, u, '.6g')}; interval "
+                f"{shown_range(e.low, e.high, u, '.6g')}; "
+                f"{'identifiable' if e.identifiable else 'NOT identifiable'}): {e.note}")
+        for k, row in enumerate(profile.calibration.hinges or []):
+            say(f"  hinge {k}'s own, x the shared value (95 % interval): " + "; ".join(
+                f"{p} x{e.value / e.prior:.3f} (x{e.low / e.prior:.2f} .. x{e.high / e.prior:.2f}"
+                f"{', identifiable' if e.identifiable else ''})" for p, e in row.items()))
+    else:
+        say("not calibrated")
+    for p, e in (profile.holding.parameters if profile.holding else {}).items():
+        u = units.get(p, "")
+        say(f"holding (vrscroll holding, {profile.holding.releases} release(s) on {profile.holding.port}): "
+            f"{p} {shown(e.value, u, '.3g')} (prior {shown(e.prior, u, '.3g')}; interval "
+            f"{shown_range(e.low, e.high, u, '.3g')}; {'identifiable' if e.identifiable else 'NOT identifiable'})")
+    defaults = spec_sources()
+    changed = [f for f, s in sources.items() if s != defaults.get(f)]
+    say("spec values not the spec's defaults: " + (", ".join(
+        f"{f} = {shown(getattr(profile.spec, f), units.get(f, ''), '.6g')} ({sources[f]})" for f in changed)
+        if changed else "none"))
+    say(f"hinge limit {math.degrees(profile.spec.hinge_limit):g} deg, {profile.spec.n_hinges} hinges")
+    return lines

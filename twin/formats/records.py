@@ -81,13 +81,15 @@ def read_jsonl(path, required=(), together=()) -> list[dict]:
             except ValueError:
                 continue
             if isinstance(record, dict):
-                out.append(check_record(record, required, f"{path} line {n}", together))
+                check_record(record, required, f"{path} line {n}", together)
+                out.append(record)
     return out
 
 
-def check_record(record: dict, required, where: str, together=()) -> dict:
-    """record, once each `required` key is there, each group of `together` there whole or not at all (fields one
-    summary takes together, which older records lack), and each result field present is what the programs write:
+def check_record(record: dict, required, where: str, together=()) -> None:
+    """Check one record of a log: each `required` key there, each group of `together` there whole or not at all
+    (fields one summary takes together, which older records lack), and each result field present is what the
+    programs write:
     NUMBER_FIELDS finite numbers within their ranges (`morph_time_s` also null), FLAG_FIELDS true or false,
     `angles_deg` a list of numbers, TEXT_FIELDS strings and WHOLE_FIELDS whole numbers; ValueError naming `where`
     and the field otherwise."""
@@ -115,4 +117,3 @@ def check_record(record: dict, required, where: str, together=()) -> dict:
         if present and len(present) < len(group):
             key = next(k for k in group if k not in record)
             raise ValueError(f"{where}: missing {key!r} (it comes with {present[0]!r})")
-    return record

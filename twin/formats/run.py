@@ -71,7 +71,7 @@ class Run:
 
 
 def run_start(meta: dict) -> RunStart:
-    """The start of a run from its run.json (checked by read_run_meta, or being written by the recorder)."""
+    """The start of a run from its run.json (checked by check_run_json, or being written by the recorder)."""
     before = meta.get("before") or {}
     counts = {k: np.asarray(before[k], np.int64) if k in before else None for k in ("counts", "target_counts")}
     integral = meta.get("start_integral_duty")
@@ -118,10 +118,9 @@ def _duties(value, n: int, where: str) -> None:
         raise ValueError(f"{where}: expected {n} duties, numbers from -1 to 1, got {value!r}")
 
 
-def read_run_meta(run_dir, spec: DeviceSpec) -> dict:
-    """run.json, checked: its keys, the hinge count of every list, the angles within the hinge range."""
-    path = Path(run_dir) / "run.json"
-    meta = json_object(path)
+def check_run_json(meta, path, spec: DeviceSpec) -> None:
+    """A run's run.json as read (meta, from `path`), checked: its keys, the hinge count of every list, the angles
+    within the hinge range; ValueError naming the key. read_run makes the Run record of it."""
     known_keys(meta, RUN_KEYS, str(path))
     required_keys(meta, ("scenario", "status", "changes", "start_counts", "start_target_counts"), str(path))
     for key in ("scenario", "status"):  # names, shown in reports and compared between runs
@@ -156,7 +155,6 @@ def read_run_meta(run_dir, spec: DeviceSpec) -> dict:
             raise ValueError(f"{where}: t_s {t} is before the previous change's {last}")
         last = t
         hinge_angles(c.get("angles_deg"), n, spec.hinge_limit, f"{where}: angles_deg")
-    return meta
 
 
 def read_run(run_dir, spec: DeviceSpec, incomplete: bool = False) -> Run:
@@ -170,7 +168,8 @@ def read_run(run_dir, spec: DeviceSpec, incomplete: bool = False) -> Run:
         raise ValueError(f"{d}: not a run folder (no such directory)")
     if not (d / "run.json").is_file():
         raise ValueError(f"{d}: not a run folder (no run.json)")
-    meta = read_run_meta(d, spec)
+    meta = json_object(d / "run.json")
+    check_run_json(meta, d / "run.json", spec)
     if meta["status"] != COMPLETE and not incomplete:
         raise ValueError(f"{d}: the run did not complete (status {meta['status']!r}: killed, interrupted or failed "
                          "while it was recorded)")

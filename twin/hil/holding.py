@@ -224,6 +224,30 @@ class HoldingMeasured:
                 "sag_deg": self.fit.sag_deg, "braked_from_flat_deg": self.braked,
                 "unpowered_from_flat_deg": self.unpowered, "releases": [r.to_json() for r in self.releases]}
 
+    def lines(self, spec: DeviceSpec, release_s: float) -> list[str]:
+        """What was found, in words (deg; release_s: each release's s): the fitted value, the sag of the device
+        and the twin before and after the fit, the twin braked and unpowered after its drive is cut, where kept."""
+        e, fit = self.fit.estimate, self.fit
+        lines = [f"backdrive_efficiency {e.value:.3f} (prior {e.prior:.3f}; 95 % interval {e.low:.3f} .. "
+                 f"{e.high:.3f}; {'identifiable' if e.identifiable else 'NOT identifiable'}), {fit.replays} twin "
+                 f"releases:\n  {e.note}"
+                 + ("" if self.ranges.calibrated else "\n  (an uncalibrated profile: the other parameters' ranges "
+                                                     "are the spec's spread; `vrscroll calibrate` first narrows them)"),
+                 f"sag over {release_s:g} s per hinge, deg (mean of the releases):"]
+        lines += [f"  {label:<12}" + " ".join(f"{d:7.2f}" for d in fit.sag_deg[key])
+                  for label, key in (("device", "device"), ("twin before", "twin_before"), ("twin after", "twin_after"))]
+        lines.append("the twin, braked with its drive cut at flat (root flap held level), hinge angles, deg:")
+        lines += [f"  after {s} s: " + " ".join(f"{a:7.1f}" for a in angles) for s, angles in self.braked.items()]
+        held = [k for k, a in enumerate(self.braked[f"{PREDICT_S[0]:g}"]) if abs(a) < 1.0]
+        lines += [f"holds within 1 deg for {PREDICT_S[0]:g} s: hinges {held or 'none'}; the others sag towards their "
+                  f"limits (+-{math.degrees(spec.hinge_limit):g} deg) or until a flap rests on something",
+                  "the twin, its pack pulled at flat (no power: the windings open and carry no current, so only the "
+                  "gearboxes' friction holds; the efficiency fitted above does not act), hinge angles, deg:"]
+        lines += [f"  after {s} s: " + " ".join(f"{a:7.1f}" for a in angles) for s, angles in self.unpowered.items()]
+        lines.append(f"kept in device profile {self.profile.name} ({self.written})" if self.written else
+                     "not kept: no device profile (--device NAME keeps it)")
+        return lines
+
 
 def measure_holding(link, spec: DeviceSpec, profile: Profile, count: int, duration: float = RELEASE_S,
                     tolerance_deg: float = 5.0, progress=None) -> HoldingMeasured:

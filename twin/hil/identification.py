@@ -478,3 +478,27 @@ def shared_estimates(per_hinge: list[dict]) -> dict:
                           all(e.identifiable for e in es),
                           "the hinges' geometric mean, the interval spanning each hinge's own")
     return out
+
+
+SHOWN_BY = {  # how `calibrate --serial`'s experiments show each value (the module's docstring), so what narrows its
+# interval: tune names it where its worst case is at an interval's end
+    "no_load_speed": "the speed each duty gives along the raises and descents",
+    "gear_friction": "the raises against the flaps' weight beside the drives down with it (the friction's sign "
+                     "turns with the motion, the weight's does not)",
+    "rotor_inertia": "each drive's first 30-50 ms from rest",
+    "resistance": "how the weight's torque, changing along a raise, slows it",
+    "backdrive_efficiency": "the descents the flaps' weight drives faster than the motor",
+}
+
+
+def narrowing(worst_case: list[dict]) -> str:
+    """In words, per interval end that sets a hinge's worst case (rows {"hinge", "parameter", "end"}: the tuner's
+    range_sensitivity), the hinges it sets and how `calibrate --serial`'s experiments show the value: what would
+    narrow it."""
+    ends: dict = {}
+    for row in worst_case:
+        ends.setdefault((row["parameter"], row["end"]), []).append(str(row["hinge"]))
+    return "; ".join(f"{p} at the {end} end of its interval on hinge {', '.join(hs)} ("
+                     + (f"calibrate --serial shows it by {SHOWN_BY[p]}" if p in SHOWN_BY else
+                        "none of calibrate --serial's experiments shows it") + ")"
+                     for (p, end), hs in ends.items())

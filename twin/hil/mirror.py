@@ -266,8 +266,11 @@ def telemetry_trace(spec: DeviceSpec, frames) -> Trace:
                  current=column("current_ma", float) / 1000.0)
 
 
-def device_step(link: Link, spec: DeviceSpec, targets, settle_limit: float = 2.0, mount: str = DEFAULT_MOUNT):
-    """Bring the device to flat, then step to targets (rad), both gated through `mirror` (mount: its).
+def device_step(link: Link, spec: DeviceSpec, targets, settle_limit: float = 2.0, mount: str = DEFAULT_MOUNT,
+                hinges=None, at_flat=None):
+    """Bring the device to flat, call at_flat() once it rests there (e.g. push the gains the step is for, so the
+    move to flat is made with the gains the device held), then step to targets (rad), both moves gated through
+    `mirror` (mount, hinges: the twin's, as mirror's).
 
     Returns (t s, angle deg (frames, n), where the step started (twin.formats.run.RunStart: for
     twin.sim.replay.twin_at_start), the step's MirrorResult): the device's encoder angles from the moment
@@ -275,11 +278,13 @@ def device_step(link: Link, spec: DeviceSpec, targets, settle_limit: float = 2.0
     """
     n = spec.n_hinges
     prior = wait_for_rest(link, spec)
-    res = mirror(link, spec, np.zeros(n), settle_limit=settle_limit, mount=mount)
+    res = mirror(link, spec, np.zeros(n), settle_limit=settle_limit, mount=mount, hinges=hinges)
     if not res.ok:
         raise RuntimeError(f"device did not reach flat: {res.message}")
+    if at_flat is not None:
+        at_flat()
     start = run_start(start_meta(prior, wait_for_rest(link, spec)))
     ts, ys = [], []
-    res = mirror(link, spec, targets, settle_limit=settle_limit, tolerance_deg=30.0, mount=mount,
+    res = mirror(link, spec, targets, settle_limit=settle_limit, tolerance_deg=30.0, mount=mount, hinges=hinges,
                  on_frame=lambda t, dev, pred: (ts.append(t), ys.append(np.array(dev))))
     return np.array(ts), np.array(ys).reshape(-1, n), start, res

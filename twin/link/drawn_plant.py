@@ -53,7 +53,7 @@ class EmulatedDevice:
 
     def __init__(self, spec, seed: int):
         opt, _ = draw_plant(PlantRanges(), random.Random(seed), encoder_miss=ENCODER_MISS, n_hinges=spec.n_hinges)
-        self.emulator = Emulator(spec, EmulatorOptions(plant=dataclasses.replace(opt, lying_flat=True),
+        self.emulator = Emulator(spec, EmulatorOptions(plant=dataclasses.replace(opt, mount="flat"),
                                                        faults=FaultOptions(latency_ms=0.0), zeroed=True, seed=seed))
         self.seq = 0
 

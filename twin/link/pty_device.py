@@ -19,14 +19,7 @@ import tty
 from twin.link.emulator import Emulator
 
 UART_BUFFER = 8192  # bytes the device can have on their way to the host; it sends no more until they drain
-# An emulator served here is a thread of the host's own process, which the machine's load can leave unscheduled
-# while the host's threads run: in the slow bring-up sweeps on 2 cores shared by five sessions (load 8-9) its loop
-# stopped for 0.29 and 0.33 s at once in both test workers while the host's Link sent its 2nd and 3rd try of
-# 100 ms (the Link's 4 tries, 0.4 s, are what a real device answers within: it does not share the host's CPU), and
-# bring-up once took 0.2-1 s behind the wall clock; the gen-2 collections of a long test session held the process
-# (host and device alike) 0.33-0.66 s. A Link to a served emulator waits out such a stall: SERVED_LINK_RETRIES tries
-# of the Link's 100 ms, 2 s in all.
-SERVED_LINK_RETRIES = 19
+# An emulator served here shares the host's CPU: a Link to its pty waits as serial_link.PTY_RETRIES says.
 
 
 def open_pty() -> tuple[int, int, str]:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import queue
 import threading
 import time
@@ -98,6 +99,16 @@ CLOCK_DRIFT = 1e-3  # ... plus this share of the session's length (a crystal is 
 ESTOP_RETRY_S = 0.05  # s between an ESTOP's tries
 CLOCK_BACK_US = 1000  # µs a stamp may precede the one before it (one tick: a reply and a frame stamped apart)
 CLOCK_STUCK_S = 0.2  # s of host time after which a reply stamped as the last stamp means a stopped clock
+PTY_RETRIES = 19  # a Link's resends where the device is on a pseudo-terminal: an emulator on this host's own CPU
+# (`vrscroll emulate`, twin.link.pty_device.served), which the machine's load can leave unscheduled while the host
+# runs. In the slow bring-up sweeps on 2 cores shared by five sessions (load 8-9) a served emulator's loop stopped
+# for 0.29 and 0.33 s at once in both test workers while the Link sent its 2nd and 3rd try of 100 ms (a real
+# device, which does not share the host's CPU, answers within the 4 tries' 0.4 s), and the gen-2 collections of a
+# long test session held the process 0.33-0.66 s; `calibrate --serial` on `vrscroll emulate` at load 21 lost a
+# GET_PROGRAM's 4 tries. 20 tries of the Link's 100 ms wait out 2 s.
+PROGRAM_STILL_S = 2.0  # s of host time a running program's ticks may stand still (wait_program): a device's loop
+# that stopped; a loaded host's emulator left without a core goes on within it (at load 9 on 2 cores its thread
+# was left waiting up to 0.56 s: PTY_RETRIES)
 MAX_LOOP_RATE_KHZ = 2  # program samples kept per ms of PROGRAM_MAX_MS: bounded, whatever the device sends
 
 
@@ -124,23 +135,33 @@ def program_message(hinge: int, segments, window_counts, timeout_s: float | None
                      tuple(round(d * P.DUTY_SCALE) for d, _ in segments) + (0,) * pad, tuple(ms) + (0,) * pad)
 
 
+def on_pty(url: str) -> bool:
+    """Whether url is a pseudo-terminal's path (a device emulated on this host), by its device number's major
+    (Linux's UNIX98 pty slaves: 136-143)."""
+    try:
+        return 136 <= os.major(os.stat(url).st_rdev) <= 143
+    except (OSError, ValueError):
+        return False
+
+
 class Link:
     """One session with a device over a serial port.
 
     timeout: s to wait for each reply; retries: resends (with the same sequence
-    number; every command is idempotent) before LinkTimeout; heartbeat: s between
+    number; every command is idempotent) before LinkTimeout (default: 3, or PTY_RETRIES where url is a
+    pseudo-terminal: an emulator on this host's CPU, `vrscroll emulate`); heartbeat: s between
     heartbeats (None: none, e.g. to test the watchdog); telemetry_callback: called
     from the reader thread with each (seq, Telemetry) instead of queueing it; hinges: the hinge count of
     the spec the host uses (a device whose HELLO says otherwise is refused).
     """
 
-    def __init__(self, url: str, log_path=None, baudrate: int = 921600, timeout: float = 0.1, retries: int = 3,
+    def __init__(self, url: str, log_path=None, baudrate: int = 921600, timeout: float = 0.1, retries: int | None = None,
                  heartbeat: float | None = 0.05, telemetry_callback=None, log_telemetry: bool = True,
                  hinges: int | None = None):
         self.url = url
         self.hinges = hinges  # the hinge count the host's spec has: a device that says otherwise is refused
         self.timeout = timeout
-        self.retries = retries
+        self.retries = retries if retries is not None else PTY_RETRIES if on_pty(url) else 3
         self.heartbeat_interval = heartbeat
         self.telemetry_callback = telemetry_callback
         self.log_telemetry = log_telemetry
@@ -445,15 +466,26 @@ class Link:
         return self.request(P.Pulse(hinge, int(duty * P.DUTY_SCALE), round(duration_s * 1000)))
 
     def wait_program(self, timeout_s: float = P.PULSE_MAX_MS / 1000 + 1.0, poll_s: float = 0.01) -> P.ProgramStatus:
-        """Wait until the device's last program (or PULSE) has ended; its PROGRAM_STATUS. LinkError after
-        timeout_s."""
-        deadline = time.monotonic() + timeout_s
+        """Wait until the device's last program (or PULSE) has ended; its PROGRAM_STATUS. LinkError once the device's
+        own clock (the ticks it reports) shows it running past timeout_s, or once its ticks stop advancing for
+        PROGRAM_STILL_S of the host's time: timed by the device, so a host or an emulator that a loaded machine
+        leaves waiting for a core is not taken for a device that drives on."""
+        dt = self.tick_s
+        last, since = -1, time.monotonic()
         while (status := self.request(P.GetProgram())).end == ProgramEnd.RUNNING:
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if status.ticks != last:
+                last, since = status.ticks, now
+            if status.ticks * dt > timeout_s or now - since > PROGRAM_STILL_S:
                 raise LinkError(f"{self.url}: the device's program on hinge {status.hinge} still runs after "
-                                f"{timeout_s:g} s")
+                                f"{status.ticks * dt:g} s of its own time (its end at {timeout_s:g} s)")
             time.sleep(poll_s)
         return status
+
+    @property
+    def tick_s(self) -> float:
+        """s per firmware tick (HELLO's loop rate; 1 kHz before HELLO)."""
+        return 1.0 / (self.info.loop_rate_hz if self.info and self.info.loop_rate_hz else 1000)
 
     def run_program(self, hinge: int, segments, window_counts, timeout_s: float | None = None,
                     poll_s: float = 0.02) -> ProgramRun:
@@ -466,7 +498,7 @@ class Link:
         poll_s, and gives one sample per firmware tick (PROGRAM_SAMPLE), those lost on the way counted.
         ValueError, and nothing sent, outside the bounds; NackError where the device refuses."""
         msg = program_message(hinge, segments, window_counts, timeout_s)
-        dt = 1.0 / (self.info.loop_rate_hz if self.info and self.info.loop_rate_hz else 1000)
+        dt = self.tick_s
         self.wait_program()  # a pulse or program still running would refuse it
         with self._pending_lock:
             self._samples = {}
@@ -474,11 +506,10 @@ class Link:
         self.request(msg)
         try:
             status = self.wait_program(msg.timeout_ms / 1000 + 1.0, poll_s)
-        except LinkError:
+        except LinkError as exc:
             if self.error is None:  # the link stands: the device kept driving past the program's timeout
                 self.estop()
-                raise LinkError(f"{self.url}: the device's program on hinge {hinge} did not end by its timeout "
-                                f"({msg.timeout_ms} ms): e-stopped") from None
+                raise LinkError(f"{exc}: e-stopped") from None
             raise
         with self._pending_lock:  # every sample was queued before the status that says the program ended
             samples, self._samples = self._samples, {}

@@ -3,9 +3,12 @@ printed fit beside it, the text, and example trials drawn from the paper's curve
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
-from twin.formats.trials import Trials
+from twin.errors import UserError
+from twin.formats.trials import Trials, write_trials
 from twin.perception.psychometric import FIT_METHOD, analyse, simulate_trials, threshold
 from twin.perception.thresholds import detection_rule, paper_fits
 
@@ -31,6 +34,17 @@ def example_trials(surface: str, seed: int):
     f = next(f for f in paper_fits() if f.surface == surface)
     return simulate_trials(f.a, f.b, f.conditions, f.participants, f.repeats, np.random.default_rng(seed),
                            detection_rule()["min_confidence"]), f
+
+
+def write_example(path: Path, surface: str, seed: int) -> str:
+    """Write example trials (example_trials) to a new file at path; what was written, in a line. UserError where
+    the file exists (it is not overwritten)."""
+    if path.exists():
+        raise UserError(f"{path} exists; --example writes a new file and does not overwrite")
+    rows, f = example_trials(surface, seed)
+    write_trials(path, rows, f.unit)
+    return (f"wrote {path}: {len(rows)} trials drawn from the paper's {surface} curve "
+            f"(a = {f.a} /{f.unit}, b = {f.b}; {f.participants} participants x {f.repeats} repeats, seed {seed})")
 
 
 def report_text(result: dict) -> str:

@@ -9,6 +9,7 @@ their own arithmetic. One record per concept, shared by every layer that holds o
     gains.Gains                   a gains file: one PID gain set per hinge and what they were made for
     ranges.Ranges                 the plants a device may be: each plant parameter's interval, per hinge too
     pen.PenSamples                a pen file's samples: the pen tip's positions and orientations, the device's poses
+    report.Report                 a command's result: its --json document and its report's lines
 
 The bottom of the code's layers, below `twin.device` (README "Layout"): imports neither the device nor
 anything above it (the device's plant variation makes and takes `Ranges`), so `twin.formats` reads and writes

@@ -10,6 +10,11 @@ still runs draws what the two steps from rest do not). Both check:
 - table:     lying flat (mount "flat"), no target puts a flap below the table (mm; the hinge that takes
              its flap there named): the twin's table would stop it, and a device driven into a table
              levers itself off it at full duty;
+- lying_flat: lying flat, the move's start (the device's present angles) puts no flap more than
+             NOT_FLAT_DEPTH below the table (mm; the flap named): a device that says it lies flat but whose
+             flaps hang below its table is held otherwise (hanging, its flaps sagged), and the twin, which
+             cannot start inside its table, would predict nothing of it (check_move only: a scenario's start
+             is a plan, gated as a target by the move there);
 - collision: no flap-on-flap contact anywhere along the simulated trajectory
              (trace angles replayed through mj_forward, every `collision_step` s; the
              same contact as twin.device.flap_collision finds without MuJoCo);
@@ -135,6 +140,7 @@ def check_move(spec: DeviceSpec, start, targets, gains=None, settle_limit: float
     targets = np.asarray(targets, float)
     mount = twin.mount if twin is not None else mount
     checks = _target_checks(spec, [targets], mount)
+    checks += _start_checks(spec, start, mount) if all(c.passed for c in checks) else []
     if not all(c.passed for c in checks):
         return GateReport(start, targets, checks, None)
     twin = _twin_at(spec, start, gains, twin, integral, mount)
@@ -199,6 +205,27 @@ def _target_checks(spec: DeviceSpec, steps, mount: str) -> list[Check]:
     if mount == "flat" and checks[0].passed:
         checks.append(_table_check(spec, steps))
     return checks
+
+
+# m: the deepest a flap of a device lying flat may read below its table at rest. A flap resting on the table
+# reads a little under it through each hinge's count (0.3 deg) and backlash (up to 0.5 deg): -1 deg on every
+# hinge puts the outermost flap 2.7 mm under, -3 deg 8.2 mm; a device hanging from its root flap sags tens of
+# degrees within a second (hinges 2-3 to -58 and -65 deg in 2 s on the emulator: flap 0 66 mm under).
+NOT_FLAT_DEPTH = 0.010
+
+
+def _start_checks(spec: DeviceSpec, start: np.ndarray, mount: str) -> list[Check]:
+    """Lying flat: the start (the device's present angles) puts no flap more than NOT_FLAT_DEPTH below the
+    table, the deepest flap named (else the device is not lying flat)."""
+    if mount != "flat":
+        return []
+    depth = below_table(spec, start)
+    j = int(np.argmax(depth))
+    ok = bool(depth[j] <= NOT_FLAT_DEPTH)
+    detail = "no flap below the table at the start" if ok else (
+        f"flap {j} lies {depth[j] * 1000:.1f} mm below the table at the start: the device is not lying flat as its "
+        "mount says; hanging? (docs/device.md, \"Mounts\")")
+    return [Check("lying_flat", ok, float(depth[j]) * 1000, NOT_FLAT_DEPTH * 1000, "mm", detail)]
 
 
 def below_table(spec: DeviceSpec, angles) -> np.ndarray:

@@ -41,6 +41,7 @@ import numpy as np
 
 from controllers.encoder import counts_from_motor_angles
 from twin.device.mjcf import load_model, motor_attributes
+from twin.device.mount import DEFAULT_MOUNT, check_mount
 from twin.device.spec import DeviceSpec
 from twin.device.variation import SPREAD, scaled
 from twin.sim.drive import drive, drive_params
@@ -84,9 +85,16 @@ class PlantOptions:
     backlash_deg: float = 0.0  # dead zone between gearbox output and flap, deg (full width)
     encoder_miss: float = 0.0  # probability that the counter misses an edge (they accumulate)
     pack_voltage: float | None = None  # V, the pack's open-circuit voltage (None: the spec's supply_voltage)
-    lying_flat: bool = False  # on a table (the flaps cannot fold below it), not held up by the root flap
+    mount: str = DEFAULT_MOUNT  # how the device is held (twin.device.mount.MOUNTS): its model is the twin's
     hinges: tuple = ()  # a HingeDraw per hinge; empty: every hinge the shared draw's, nothing the twin leaves out
     warming: bool = True  # with hinges: the windings warm as they work (their resistance with them)
+    # the older spelling of mount="flat", kept while twin.hil.identification (another session's file) says it
+    lying_flat: dataclasses.InitVar[bool] = False
+
+    def __post_init__(self, lying_flat: bool):
+        check_mount(self.mount, "plant mount")
+        if lying_flat:
+            object.__setattr__(self, "mount", "flat")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -191,7 +199,7 @@ class Plant:
             raise ValueError(f"the plant draws {len(opt.hinges)} hinges; the device has {self.spec.n_hinges}")
         self.hinge_specs = hinge_specs(self.spec, opt)
         motors = [_motor(s, h, opt.warming) for s, h in zip(self.hinge_specs, opt.hinges)] or None
-        self.model = load_model(self.spec, mount="flat" if opt.lying_flat else "hanging", motors=motors)
+        self.model = load_model(self.spec, mount=opt.mount, motors=motors)  # held as the twin of that mount is
         self.data = mujoco.MjData(self.model)
         self.substeps = physics_substeps(self.spec, self.model)
         n = self.spec.n_hinges
