@@ -10,8 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from twin.live.messages import (MAX_DATAGRAM_BYTES, ProtocolError, SampleBuffer, decode_reply, encode_sample,
-                                parse_sample)
+from twin.formats.target import approximation_json
+from twin.live.messages import (MAX_DATAGRAM_BYTES, ApproximationReply, ProtocolError, SampleBuffer, decode_reply,
+                                encode_sample, estimates_datagram, parse_sample)
 from twin.live.pens import PenRedirection
 from twin.morphpatch.approximation import approximate, pose_from_mm_deg
 from twin.morphpatch.fields import build_fields
@@ -85,14 +86,35 @@ def test_a_reused_buffer_reads_each_datagram_alone():
     assert buffer.check(buffer.load(long), "pen") == 0 and buffer.sample().seq == 3
 
 
-@settings(max_examples=200, deadline=None)
-@given(data=st.binary(max_size=200))
+@settings(max_examples=300, deadline=None)
+@given(data=st.one_of(st.binary(max_size=300), st.builds(
+    lambda kind, flags, n, rest: b"VS\x04" + bytes([kind, flags, n, n]) + rest,
+    st.integers(0, 6), st.integers(0, 255), st.integers(0, 12), st.binary(min_size=0, max_size=300))))
 def test_a_client_reads_any_reply_or_refuses_it(data):
     try:
-        reply = decode_reply(b"{" + data if data[:1] == b"{" else data)
-    except ValueError:
+        reply = decode_reply(data)
+    except ValueError:  # json.JSONDecodeError is one
         return
-    assert isinstance(reply, dict)
+    assert isinstance(reply, (dict, list, str, int, float, bool, type(None)))  # JSON, or one of the replies
+    if data[:1] != b"{":
+        assert reply["type"] in ("pen_redirected", "approximation", "estimates") and reply["seq"] >= 0
+
+
+def test_the_approximations_reply_carries_what_its_json_did(field, spec):
+    """Each number of `approximation_json` (the `locked` event's), from the reply's doubles before its rounding."""
+    fields = build_fields(load_shape("cylinder"))
+    reply = ApproximationReply(spec.n_hinges, spec.n_flaps)
+    for k, start in enumerate(([14, -9, 185, 4, -6, 23], [-30, 20, 170, -10, 5, 140])):
+        a = approximate(fields, pose_from_mm_deg(start), spec)
+        got = decode_reply(bytes(reply.encode(7 + k, None if k else 2.5, a)))
+        want = approximation_json(a)
+        assert (got["type"], got["seq"], got["t_s"]) == ("approximation", 7 + k, None if k else 2.5)
+        for key, digits in (("root_position_mm", 3), ("root_quat_wxyz", 6), ("angles_deg", 3), ("widths_mm", 3)):
+            assert [round(v, digits) for v in got[key]] == want[key], key
+        assert round(got["time_ms"], 4) == want["time_ms"]
+    estimates = decode_reply(estimates_datagram(9, 1.25, 0.0021, 0.75))
+    assert estimates == {"type": "estimates", "seq": 9, "t_s": 1.25, "msd_estimate_mm": 2.1,
+                         "share_within_estimate": 0.75}
 
 
 @pytest.fixture(scope="module")

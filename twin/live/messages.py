@@ -1,8 +1,8 @@
 """The live service's wire format (docs/live.md): limits, message checks, datagram encoding.
 
 Control channel: WebSocket text frames, one JSON object each, with a "type".
-Datagrams: UDP, at most MAX_DATAGRAM_BYTES: samples and the pen's reply binary (SAMPLE, PEN_REPLY), the
-approximation and its estimates one JSON object each (UTF-8).
+Datagrams: UDP, at most MAX_DATAGRAM_BYTES, binary: samples (SAMPLE), the pen's reply (PEN_REPLY), the
+approximation's (APPROXIMATION_HEAD) and its estimates' (ESTIMATES).
 Units at this edge: mm, degrees, seconds, quaternions w first; SI once parsed.
 Anything wrong raises ProtocolError(code, message): the service answers it with an
 "error" message and keeps the connection.
@@ -20,7 +20,7 @@ import numba
 import numpy as np
 
 from twin.checks import REACH_M, parse_json
-from twin.device.kinematics import pose_matrix, quat_matrix
+from twin.device.kinematics import matrix_quat, pose_matrix, quat_matrix
 
 PROTOCOL_VERSION = 4  # 2: the frame estimates in their own datagram; 3: poses to the worker's own port; 4: samples
 # and the pen's reply binary
@@ -109,13 +109,14 @@ def mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ---- datagrams -------------------------------------------------------------------------
-# Samples (poses and pens) and the pen's reply are binary (protocol 4), little-endian, one fixed layout each
-# (docs/live.md, "Datagrams"): read into one preallocated buffer and checked by compiled code, with no JSON and no
-# Python objects per field. Why: the pen's 0.5 ms budget held ~20 us of JSON parsing and ~17 us of JSON encoding
-# per sample on a warm core, several times that on a loaded one. The approximation and its estimates stay JSON.
+# Every datagram is binary (protocol 4), little-endian, one fixed layout per kind (docs/live.md, "Datagrams"):
+# samples are read into one preallocated buffer and checked by compiled code, replies written into preallocated
+# buffers, with no JSON and no Python objects per field. Why: the pen's 0.5 ms budget held ~20 us of JSON parsing
+# and ~17 us of JSON encoding per sample on a warm core, several times that on a loaded one; a pose's reply's JSON
+# was ~0.1 ms of its CPU.
 
 MAGIC = b"VS"
-KINDS = {"pose": 1, "pen": 2, "pen_redirected": 3}  # a datagram's kind byte
+KINDS = {"pose": 1, "pen": 2, "pen_redirected": 3, "approximation": 4, "estimates": 5}  # a datagram's kind byte
 HAS_T = 1  # flag: t_s given (else none, echoed as none)
 HAS_DEVICE = 2  # sample flag (pens only): the device pose given
 WITHIN = 2  # reply flag: the redirection is within both perception thresholds
@@ -126,6 +127,13 @@ quat_wxyz (4), device_position_mm (3), device_quat_wxyz (4) (float64; zeros unle
 PEN_REPLY = struct.Struct("<2sBBBB2xQd3d4d3d")
 """A pen's reply, 104 bytes: magic "VS", version, kind 3, flags (HAS_T | WITHIN), flap (uint8), 2 zero bytes, seq
 (uint64), t_s, position_mm (3), quat_wxyz (4), offset_mm, rotation_deg, height_mm (float64)."""
+APPROXIMATION_HEAD = struct.Struct("<2sBBBBBxQd")
+"""An approximation's reply: magic "VS", version, kind 4, flags (HAS_T), n_hinges, n_flaps (uint8), a zero byte, seq
+(uint64), t_s, then float64: root_position_mm (3), root_quat_wxyz (4), angles_deg (n_hinges), widths_mm (n_flaps),
+time_ms."""
+ESTIMATES = struct.Struct("<2sBBB3xQd2d")
+"""Its frame estimates' reply, 40 bytes: magic "VS", version, kind 5, flags (HAS_T), 3 zero bytes, seq (uint64), t_s,
+msd_estimate_mm, share_within_estimate (float64)."""
 SESSION_BYTES = slice(8, 24)  # where the session lies in a sample
 BUFFER_WORDS = (MAX_DATAGRAM_BYTES + 1 + 7) // 8  # a receive buffer (float64 words) one byte past the limit
 VALUES = 18
@@ -314,27 +322,70 @@ def encode_pen_reply(values, position, quat, info, position_threshold, rotation_
     return within
 
 
-def decode_reply(data: bytes) -> dict:
-    """A reply datagram as a dict (a client's side): JSON ones as they are, a binary pen reply with the fields
-    docs/live.md names; ValueError if neither."""
-    if data[:1] == b"{":
-        return json.loads(data)
-    if len(data) != PEN_REPLY.size or data[:2] != MAGIC or data[3] != KINDS["pen_redirected"]:
-        raise ValueError(f"a reply of {len(data)} bytes that is neither JSON nor a pen's")
-    _, _, _, flags, flap, seq, t_s, *v = PEN_REPLY.unpack(data)
-    return {"type": "pen_redirected", "seq": seq, "t_s": t_s if flags & HAS_T else None, "position_mm": v[:3],
-            "quat_wxyz": v[3:7], "offset_mm": v[7], "rotation_deg": v[8], "height_mm": v[9], "flap": flap,
-            "within_thresholds": bool(flags & WITHIN)}
+class ApproximationReply:
+    """An approximation's reply datagram for a device of n_hinges and n_flaps, written into one buffer allocated
+    once (`encode`)."""
+
+    def __init__(self, n_hinges: int, n_flaps: int):
+        self._words = np.zeros(APPROXIMATION_HEAD.size // 8 + 8 + n_hinges + n_flaps)
+        self._raw, self._longs = self._words.view(np.uint8), self._words.view(np.uint64)
+        APPROXIMATION_HEAD.pack_into(self._raw, 0, MAGIC, PROTOCOL_VERSION, KINDS["approximation"], 0, n_hinges,
+                                     n_flaps, 0, 0.0)
+        self._reply = memoryview(self._raw)
+
+    def encode(self, seq: int, t_s: float | None, approximation) -> memoryview:
+        """The reply to pose `seq` (its t_s) from an Approximation (SI); the buffer, valid until the next encode."""
+        w, x, y, z = matrix_quat(approximation.root_pose[:3, :3])  # scipy's Rotation to the last bit
+        _encode_approximation(self._raw, self._words, self._longs, seq, math.nan if t_s is None else t_s,
+                              approximation.root_pose, w, x, y, z, approximation.angles, approximation.widths,
+                              approximation.time)
+        return self._reply
 
 
-def approximation_datagram(seq: int, t_s: float | None, approximation: dict) -> bytes:
-    """The reply to a pose: `twin.formats.target.approximation_json`."""
-    obj = {"type": "approximation", "seq": seq, "t_s": t_s, **approximation}
-    return json.dumps(obj, separators=(",", ":")).encode()
+@numba.njit(cache=True)
+def _encode_approximation(raw, words, longs, seq, t_s, root_pose, w, x, y, z, angles, widths, time_s):
+    raw[4] = 0 if math.isnan(t_s) else 1
+    longs[1] = seq
+    words[2] = 0.0 if math.isnan(t_s) else t_s
+    for k in range(3):
+        words[3 + k] = root_pose[k, 3] * 1e3
+    words[6], words[7], words[8], words[9] = w, x, y, z
+    at = 10
+    for k in range(angles.shape[0]):
+        words[at + k] = math.degrees(angles[k])
+    at += angles.shape[0]
+    for k in range(widths.shape[0]):
+        words[at + k] = widths[k] * 1e3
+    words[at + widths.shape[0]] = time_s * 1e3
 
 
 def estimates_datagram(seq: int, t_s: float | None, msd_estimate: float, share_estimate: float) -> bytes:
     """The frame estimates of the approximation of pose `seq` (m, 0..1), sent after it."""
-    obj = {"type": "estimates", "seq": seq, "t_s": t_s, "msd_estimate_mm": round(msd_estimate * 1e3, 3),
-           "share_within_estimate": round(share_estimate, 4)}
-    return json.dumps(obj, separators=(",", ":")).encode()
+    return ESTIMATES.pack(MAGIC, PROTOCOL_VERSION, KINDS["estimates"], 0 if t_s is None else HAS_T, seq,
+                          0.0 if t_s is None else t_s, msd_estimate * 1e3, share_estimate)
+
+
+def decode_reply(data: bytes) -> dict:
+    """A reply datagram as a dict of the fields docs/live.md names (a client's side; a JSON one as it is: protocols
+    1-3 sent JSON); ValueError if it is neither."""
+    if data[:1] == b"{":
+        return json.loads(data)
+    if len(data) < 8 or data[:2] != MAGIC or data[2] != PROTOCOL_VERSION:
+        raise ValueError(f"a reply of {len(data)} bytes that is neither JSON nor protocol {PROTOCOL_VERSION}'s")
+    kind, flags = data[3], data[4]
+    if kind == KINDS["pen_redirected"] and len(data) == PEN_REPLY.size:
+        _, _, _, _, flap, seq, t_s, *v = PEN_REPLY.unpack(data)
+        fields = {"position_mm": v[:3], "quat_wxyz": v[3:7], "offset_mm": v[7], "rotation_deg": v[8],
+                  "height_mm": v[9], "flap": flap, "within_thresholds": bool(flags & WITHIN)}
+    elif kind == KINDS["approximation"] and len(data) == APPROXIMATION_HEAD.size + 8 * (8 + data[5] + data[6]):
+        *_, n_h, n_f, seq, t_s = APPROXIMATION_HEAD.unpack_from(data)
+        v = struct.unpack_from(f"<{8 + n_h + n_f}d", data, APPROXIMATION_HEAD.size)
+        fields = {"root_position_mm": list(v[:3]), "root_quat_wxyz": list(v[3:7]), "angles_deg": list(v[7:7 + n_h]),
+                  "widths_mm": list(v[7 + n_h:-1]), "time_ms": v[-1]}
+    elif kind == KINDS["estimates"] and len(data) == ESTIMATES.size:
+        *_, seq, t_s, msd, share = ESTIMATES.unpack(data)
+        fields = {"msd_estimate_mm": msd, "share_within_estimate": share}
+    else:
+        raise ValueError(f"a reply of {len(data)} bytes, kind {kind}: not one of protocol {PROTOCOL_VERSION}'s")
+    return {"type": next(name for name, k in KINDS.items() if k == kind), "seq": seq,
+            "t_s": t_s if flags & HAS_T else None, **fields}

@@ -50,9 +50,8 @@ import trimesh
 
 from twin.device.kinematics import pose_matrix, quat_matrix
 from twin.device.spec import DeviceSpec
-from twin.formats.target import approximation_json
 from twin.live.collection import collect_if_due, hold_collection
-from twin.live.messages import approximation_datagram, estimates_datagram
+from twin.live.messages import ApproximationReply, estimates_datagram
 from twin.live.poses import PoseIntake
 from twin.live.stages import LATENCY_WINDOW, POSE_CPU_STAGES, POSE_STAGES, StageTimes, percentiles_ms
 from twin.morphpatch.approximation import approximate
@@ -93,6 +92,7 @@ class _Poses:
         self.estimates = collections.deque(maxlen=LATENCY_WINDOW)  # s, estimates' datagram after the reply's
         self.thresholds = load_thresholds()
         self.layout = grid_layout(spec, SAMPLE_SPACING)
+        self.reply = ApproximationReply(spec.n_hinges, spec.n_flaps)
         self.latest = None  # (seq, approximation doubles): the newest sent to this controller for this target
 
     def answer(self, pose: tuple, fields, udp: socket.socket) -> None:
@@ -108,7 +108,7 @@ class _Poses:
             self.intake.report("approximation_failed", f"{type(exc).__name__}: {exc}")
             return
         approximated, cpu_approximated = time.perf_counter(), time.thread_time()
-        udp.sendto(approximation_datagram(seq, t_s, approximation_json(approx)), addr)
+        udp.sendto(self.reply.encode(seq, t_s, approx), addr)
         sent, cpu_sent = time.perf_counter(), time.thread_time()
         msd, share = frame_estimates(self.spec, fields, self.thresholds, approx.root_pose, approx.angles,
                                      approx.widths, self.layout)

@@ -1,5 +1,5 @@
-// The live service's binary datagrams (protocol 4, docs/live.md "Datagrams"): a pose or pen sample out, a pen's
-// reply in. Little-endian on the wire whatever the machine; nothing beyond the .NET base library.
+// The live service's binary datagrams (protocol 4, docs/live.md "Datagrams"): a pose or pen sample out; a pen's
+// reply, an approximation and its frame estimates in. Little-endian on the wire whatever the machine; nothing beyond the .NET base library.
 using System;
 using System.Collections.Generic;
 
@@ -8,8 +8,8 @@ namespace VRScroll.Live
     public static class Datagrams
     {
         public const int SampleBytes = 152;
-        public const int PenReplyBytes = 104;
-        public const byte Pose = 1, Pen = 2, PenRedirected = 3;  // the kind byte
+        public const int PenReplyBytes = 104, EstimatesBytes = 40;
+        public const byte Pose = 1, Pen = 2, PenRedirected = 3, Approximation = 4, Estimates = 5;  // the kind byte
         const byte HasT = 1, HasDevice = 2, Within = 2;  // flags
 
         /// A sample: kind Pose or Pen, the welcome's session as its 16 bytes, seq, t_s (s, this client's clock),
@@ -36,19 +36,44 @@ namespace VRScroll.Live
             return b;
         }
 
-        /// A pen's reply as the fields docs/live.md names (numbers double, arrays List<object>, as Json gives them);
-        /// FormatException if it is not one.
-        public static Dictionary<string, object> DecodePenReply(byte[] b)
+        /// A reply (pen_redirected, approximation, estimates) as the fields docs/live.md names (numbers double, arrays
+        /// List<object>, as Json gives them); FormatException if it is not one of this protocol's.
+        public static Dictionary<string, object> DecodeReply(byte[] b)
         {
-            if (b.Length != PenReplyBytes || b[0] != 'V' || b[1] != 'S' || b[3] != PenRedirected)
-                throw new FormatException("a reply of " + b.Length + " bytes that is not a pen's");
+            if (b.Length < 24 || b[0] != 'V' || b[1] != 'S' || b[2] != LiveClient.ProtocolVersion)
+                throw new FormatException("a reply of " + b.Length + " bytes that is not one of this protocol's");
             int flags = b[4];
-            return new Dictionary<string, object> {
-                { "type", "pen_redirected" }, { "seq", (double)GetLong(b, 8) },
-                { "t_s", (flags & HasT) != 0 ? (object)GetDouble(b, 16) : null },
-                { "position_mm", Doubles(b, 24, 3) }, { "quat_wxyz", Doubles(b, 48, 4) },
-                { "offset_mm", GetDouble(b, 80) }, { "rotation_deg", GetDouble(b, 88) }, { "height_mm", GetDouble(b, 96) },
-                { "flap", (double)b[5] }, { "within_thresholds", (flags & Within) != 0 } };
+            var reply = new Dictionary<string, object> {
+                { "seq", (double)GetLong(b, 8) }, { "t_s", (flags & HasT) != 0 ? (object)GetDouble(b, 16) : null } };
+            if (b[3] == PenRedirected && b.Length == PenReplyBytes)
+            {
+                reply["type"] = "pen_redirected";
+                reply["position_mm"] = Doubles(b, 24, 3);
+                reply["quat_wxyz"] = Doubles(b, 48, 4);
+                reply["offset_mm"] = GetDouble(b, 80);
+                reply["rotation_deg"] = GetDouble(b, 88);
+                reply["height_mm"] = GetDouble(b, 96);
+                reply["flap"] = (double)b[5];
+                reply["within_thresholds"] = (flags & Within) != 0;
+            }
+            else if (b[3] == Approximation && b.Length == 24 + 8 * (8 + b[5] + b[6]))
+            {
+                int hinges = b[5], flaps = b[6];
+                reply["type"] = "approximation";
+                reply["root_position_mm"] = Doubles(b, 24, 3);
+                reply["root_quat_wxyz"] = Doubles(b, 48, 4);
+                reply["angles_deg"] = Doubles(b, 80, hinges);
+                reply["widths_mm"] = Doubles(b, 80 + 8 * hinges, flaps);
+                reply["time_ms"] = GetDouble(b, 80 + 8 * (hinges + flaps));
+            }
+            else if (b[3] == Estimates && b.Length == EstimatesBytes)
+            {
+                reply["type"] = "estimates";
+                reply["msd_estimate_mm"] = GetDouble(b, 24);
+                reply["share_within_estimate"] = GetDouble(b, 32);
+            }
+            else throw new FormatException("a reply of " + b.Length + " bytes, kind " + b[3] + ": not one of this protocol's");
+            return reply;
         }
 
         /// The welcome's session (32 hex digits) as the 16 bytes a sample carries.

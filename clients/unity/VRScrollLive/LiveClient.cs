@@ -1,6 +1,6 @@
 // The transport of the VRScroll live service (docs/live.md) for Unity and any .NET: the control channel
 // over System.Net.WebSockets.ClientWebSocket, the pose and pen datagrams over System.Net.Sockets.UdpClient
-// (binary samples and pen replies: Datagrams.cs; the approximation and its estimates JSON).
+// (binary, both ways: Datagrams.cs).
 // Nothing beyond the .NET base library (compiles with Mono's mcs). Units as on the wire: mm, degrees,
 // quaternions w first, in the service's right-handed frame (z up); converting from Unity's frame is the
 // caller's (see VRScrollLiveDriver.cs).
@@ -214,9 +214,7 @@ namespace VRScroll.Live
                     Dictionary<string, object> reply;
                     try
                     {
-                        reply = result.Buffer.Length > 0 && result.Buffer[0] == '{'
-                            ? Json.ParseObject(Encoding.UTF8.GetString(result.Buffer))
-                            : Datagrams.DecodePenReply(result.Buffer);
+                        reply = Datagrams.DecodeReply(result.Buffer);
                     }
                     catch (FormatException)
                     {
