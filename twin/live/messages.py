@@ -139,6 +139,7 @@ BUFFER_WORDS = (MAX_DATAGRAM_BYTES + 1 + 7) // 8  # a receive buffer (float64 wo
 VALUES = 18
 """A checked sample in SI (float64): seq, t_s (NaN: none), position m (3), quat (4, unit), device position m (3),
 device quat (4, unit), kind (1, 2), has the device pose (0, 1)."""
+DATAGRAM_PORTS = {"pose": "pose_port", "pen": "udp_port"}  # the welcome's port each kind of datagram goes to
 _ERRORS = (  # the compiled check's codes: (error code, message); 0 is a valid sample
     (None, ""),
     ("oversized", f"datagram over the limit of {MAX_DATAGRAM_BYTES} bytes"),
@@ -147,7 +148,8 @@ _ERRORS = (  # the compiled check's codes: (error code, message); 0 is a valid s
     ("malformed", f"not a sample: one starts with {MAGIC.decode()!r}"),
     ("malformed", f"sample version: this service takes {PROTOCOL_VERSION}"),
     ("unknown_type", "sample kind: 1 (pose) or 2 (pen)"),
-    ("unknown_type", "pose datagrams go to the welcome's pose_port, pens to its udp_port"),
+    ("unknown_type", f"pose datagrams go to the welcome's {DATAGRAM_PORTS['pose']}, pens to its "
+                     f"{DATAGRAM_PORTS['pen']}"),
     ("malformed", "flags: 1 (t_s), 2 (device pose, pens only); the reserved bytes zero"),
     ("malformed", "'seq' must be an integer in [0, 2^53)"),
     ("malformed", "'t_s' must be a finite number"),
@@ -158,7 +160,6 @@ _ERRORS = (  # the compiled check's codes: (error code, message); 0 is a valid s
     ("malformed", f"'device_quat_wxyz' must be 4 finite numbers within +-{QUAT_LIMIT:g}"),
     ("malformed", "'device_quat_wxyz' is a zero quaternion"),
 )
-DATAGRAM_PORTS = {"pose": "pose_port", "pen": "udp_port"}  # the welcome's port each kind of datagram goes to
 if sys.byteorder != "little":  # the buffers are read as native float64 (x86, ARM: little-endian)
     raise ImportError("the live service's datagrams are read on little-endian machines only")
 
