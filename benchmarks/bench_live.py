@@ -28,6 +28,10 @@ round by round (order swapped every round), each on a fresh emulator, with the s
 each side's protocol version): the before and after under the same load. Pooled p50 and p99 per
 side, and per round.
 
+CPU: per phase, each process's CPU time (schedstat) per sample sent; the worker's per pose (poses alone) and the
+service's per pen sample (pens at 360 Hz, poses at 90 Hz beside: the service handles only the pens) are pooled
+per side (the median of the rounds) with --against.
+
 --fifo PRIORITY: the processes on the samples' way (this client, the service and its worker; the C# client
 with `chrt`) run under SCHED_FIFO at that priority while they are measured (Linux; needs CAP_SYS_NICE): a
 wake-up then takes a core from any ordinary process at once, which on a shared machine is what a core of
@@ -112,15 +116,17 @@ def prioritise(pids, priority: int) -> None:
                 pass
 
 
-def waits(before: dict, after: dict, seconds: float) -> str:
-    """Per process, between two {name: schedstat} snapshots: its share of a core, and the time it spent runnable
-    but waiting for a core (ms per second of wall clock, and per time it was put on one, us)."""
-    parts = []
+def waits(before: dict, after: dict, seconds: float, samples: int) -> tuple[str, dict]:
+    """Per process, between two {name: schedstat} snapshots: its share of a core, its CPU per sample sent (us), and
+    the time it spent runnable but waiting for a core (ms per second of wall clock, and per time it was put on one,
+    us); and {name: CPU per sample sent, us}."""
+    parts, cpu = [], {}
     for name in after:
         run, wait, slices = after[name] - before[name]
-        parts.append(f"{name} ran {run / seconds:.0%} of a core, waited {wait / seconds * 1e3:.1f} ms/s "
-                     f"({wait / max(slices, 1) * 1e6:.0f} us per wake-up)")
-    return "; ".join(parts)
+        cpu[name] = run / max(samples, 1) * 1e6
+        parts.append(f"{name} ran {run / seconds:.0%} of a core ({cpu[name]:.0f} us CPU per sample), waited "
+                     f"{wait / seconds * 1e3:.1f} ms/s ({wait / max(slices, 1) * 1e6:.0f} us per wake-up)")
+    return "; ".join(parts), cpu
 
 
 def hover(start: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -152,10 +158,12 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
                   pids=lambda: {}, fifo: int = 0) -> dict:
     """One session (saying `protocol` in hello: an older service's): {"pose", "estimates", "worker", "pen",
     "pose_with_pens", "client_send", "client_receive": [s], "sent": {phase: samples sent}, "status": the
-    service's status at the end (None if the lock failed), "waits": {phase: `waits` of the processes pids()}}.
+    service's status at the end (None if the lock failed), "waits": {phase: `waits` of the processes pids()},
+    "cpu_us": {"worker per pose": its CPU per pose, poses alone; "service per pen": its CPU per pen sample, pens
+    and poses}}.
     fifo: the SCHED_FIFO priority of those processes while measured (0: none)."""
     start = pose_from_mm_deg(shape_table()[shape]["start"])
-    out = {"sent": {}, "status": None, "waits": {}}
+    out = {"sent": {}, "status": None, "waits": {}, "cpu_us": {}}
     async with LiveClient(url, protocol=protocol) as client:
         await client.set_target(shape=shape)
         processes = pids()
@@ -182,8 +190,9 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         out["worker"] = [a["time_ms"] / 1e3 for a in replies]
         out["estimates"] = [latency(e) for e in client.drain("estimates")]  # none from a protocol-1 service
         out["sent"]["pose"] = sent
-        out["waits"]["poses"] = waits(ran, {name: schedstat(pid) for name, pid in processes.items()},
-                                      time.perf_counter() - t0)
+        out["waits"]["poses"], cpu = waits(ran, {name: schedstat(pid) for name, pid in processes.items()},
+                                           time.perf_counter() - t0, sent)
+        out["cpu_us"]["worker per pose"] = cpu.get("worker")
 
         release_collection()
         locked = await client.lock()
@@ -209,8 +218,9 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
             await asyncio.sleep(max(0.0, t0 + pens / PEN_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
         release_collection()
-        out["waits"]["pens and poses"] = waits(ran, {name: schedstat(pid) for name, pid in processes.items()},
-                                               time.perf_counter() - t0)
+        out["waits"]["pens and poses"], cpu = waits(ran, {name: schedstat(pid) for name, pid in processes.items()},
+                                                    time.perf_counter() - t0, pens)
+        out["cpu_us"]["service per pen"] = cpu.get("service")
         out["pen"] = [latency(r) for r in client.drain("pen_redirected")]
         out["pose_with_pens"] = [latency(a) for a in client.drain("approximation")]
         out["sent"].update(pen=pens, pose_with_pens=poses)
@@ -238,6 +248,7 @@ def report(m: dict) -> None:
     print(f"service side (arrival -> reply sent): approximation {status['approximation_latency_ms']}, "
           f"pen {status['pen_latency_ms']} ms")
     print(breakdown("where a pose's time went in the service", status.get("pose_path_ms")))
+    print(breakdown("a pose's CPU in the worker", status.get("pose_cpu_ms")))
     print(f"then, off the pose's path: its frame estimates {status.get('estimates_ms')} ms after the "
           "approximation's datagram")
     print(breakdown("where a pen sample's time went in the service", status.get("pen_path_ms")))
@@ -245,6 +256,7 @@ def report(m: dict) -> None:
     print(stats("client: parsing and queueing a reply", m["client_receive"], len(m["client_receive"])))
     for phase, line in m["waits"].items():
         print(f"waiting for a core, {phase}: {line}")
+    print("CPU: " + ", ".join(f"{k} {v:.0f} us" for k, v in m["cpu_us"].items() if v is not None))
     if "csharp" in m:
         print(csharp_line(m))
 
@@ -299,8 +311,8 @@ def build_csharp(folder: Path, code: Path | None = None) -> Path:
     root = (code or Path(__file__).resolve().parents[1]) / "clients" / "unity"
     folder.mkdir()
     exe = folder / "ScriptedSession.exe"
-    sources = [root / "VRScrollLive" / "Json.cs", root / "VRScrollLive" / "LiveClient.cs",
-               root / "tests" / "ScriptedSession.cs"]
+    sources = [*(root / "VRScrollLive").glob("*.cs"), root / "tests" / "ScriptedSession.cs"]
+    sources = [s for s in sources if s.name != "VRScrollLiveDriver.cs"]  # the MonoBehaviour needs Unity
     try:
         build = subprocess.run(["mcs", "-warnaserror", f"-out:{exe}", *map(str, sources)], capture_output=True,
                                text=True)
@@ -319,34 +331,38 @@ def p50_p99(values) -> str:
 def compare(args) -> None:
     """Alternate this code's service and the one in args.against, round by round; pooled and per-round figures."""
     sides = {"before": args.against, "after": None}
-    pooled = {side: {"pose": [], "pose_with_pens": [], "pen": [], "worker": []} for side in sides}
+    pooled = {side: {"pose": [], "pose_with_pens": [], "pen": [], "worker": [], "cpu": []} for side in sides}
     rows = []
     for r in range(args.rounds):
         for side in (("before", "after") if r % 2 == 0 else ("after", "before")):
             before = os.getloadavg()[0]
             m = session(args, sides[side])
             load_1min = f"{before:.2f} -> {os.getloadavg()[0]:.2f}"
-            for key in pooled[side]:
+            for key in ("pose", "pose_with_pens", "pen", "worker"):
                 pooled[side][key] += m.get(key, [])
+            pooled[side]["cpu"].append(m["cpu_us"])
             rows.append((r + 1, side, load_1min, m))
             print(f"round {r + 1} {side}: load {load_1min}; pose {p50_p99(m['pose'])} ms, "
-                  f"pen {p50_p99(m.get('pen', []))} ms, lock {m['lock']}", flush=True)
+                  f"pen {p50_p99(m.get('pen', []))} ms, lock {m['lock']}; CPU "
+                  + ", ".join(f"{k} {v:.0f} us" for k, v in m["cpu_us"].items() if v is not None), flush=True)
             if "csharp" in m:
                 print("  " + csharp_line(m), flush=True)
             for phase, line in m["waits"].items():
                 print(f"  waiting for a core, {phase}: {line}", flush=True)
             if m["status"]:
                 print("  " + breakdown("pose path", m["status"]["pose_path_ms"]))
+                print("  " + breakdown("pose CPU", m["status"].get("pose_cpu_ms")))
                 print("  " + breakdown("pen path", m["status"]["pen_path_ms"]))
             if side == "after" and m["status"]:
                 print("  " + stats("client send", m["client_send"], len(m["client_send"])))
                 print("  " + stats("client receive", m["client_receive"], len(m["client_receive"])))
     print("\n| side | pose -> approximation p50 / p99 ms | with pens running | of which the worker | "
-          "pen -> redirected p50 / p99 ms |")
-    print("|---|---|---|---|---|")
+          "pen -> redirected p50 / p99 ms | worker CPU per pose, us | service CPU per pen, us |")
+    print("|---|---|---|---|---|---|---|")
     for side, v in pooled.items():
+        cpu = {key: [c[key] for c in v["cpu"] if c.get(key) is not None] for key in ("worker per pose", "service per pen")}
         print(f"| {side} | {p50_p99(v['pose'])} | {p50_p99(v['pose_with_pens'])} | {p50_p99(v['worker'])} | "
-              f"{p50_p99(v['pen'])} |")
+              f"{p50_p99(v['pen'])} | " + " | ".join(f"{np.median(c):.0f}" if c else "-" for c in cpu.values()) + " |")
 
 
 def main() -> None:

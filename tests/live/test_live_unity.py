@@ -1,5 +1,5 @@
-"""The Unity client's transport (clients/unity/VRScrollLive: LiveClient.cs, Json.cs), compiled with Mono's
-`mcs` and run under `mono` as a scripted session (clients/unity/tests/ScriptedSession.cs) against the real
+"""The Unity client's transport (clients/unity/VRScrollLive: LiveClient.cs, Datagrams.cs, Json.cs), compiled with
+Mono's `mcs` and run under `mono` as a scripted session (clients/unity/tests/ScriptedSession.cs) against the real
 service with the emulator as the device. The MonoBehaviour (VRScrollLiveDriver.cs) needs Unity and is not
 compiled here.
 
@@ -18,7 +18,8 @@ import pytest
 from twin.live.process import ServiceProcess
 
 ROOT = Path(__file__).resolve().parents[2]
-SOURCES = ["clients/unity/VRScrollLive/Json.cs", "clients/unity/VRScrollLive/LiveClient.cs",
+SOURCES = ["clients/unity/VRScrollLive/Json.cs", "clients/unity/VRScrollLive/Datagrams.cs",
+           "clients/unity/VRScrollLive/LiveClient.cs",
            "clients/unity/tests/ScriptedSession.cs"]
 
 

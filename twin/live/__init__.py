@@ -1,7 +1,7 @@
 """The live service for VR applications: the MorphPatch loop behind a network service.
 
 A control channel (WebSocket, JSON: session, target, lock, events) and datagram streams
-(UDP, JSON: device pose and pen, newest sample wins); a worker process that approximates;
+(UDP: device pose and pen binary, newest sample wins); a worker process that approximates;
 a lock that goes approximate -> gate -> mirror (onto the device over the serial link, or the
 twin alone); a Python client and a session player. The protocol is in docs/live.md.
 

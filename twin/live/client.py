@@ -29,7 +29,7 @@ from urllib.parse import urlparse
 
 from websockets.asyncio.client import connect
 
-from twin.live.messages import MAX_FRAME_BYTES, PROTOCOL_VERSION, sample_datagram
+from twin.live.messages import MAX_FRAME_BYTES, PROTOCOL_VERSION, decode_reply, encode_sample
 
 QUEUE = 4096  # datagram replies kept per kind before the oldest are dropped
 
@@ -53,7 +53,10 @@ class _Replies(asyncio.DatagramProtocol):
         received = time.perf_counter()
         if addr[:2] != self.service:
             return
-        obj = json.loads(data)
+        try:
+            obj = decode_reply(data)
+        except ValueError:
+            return
         obj["received_s"] = received
         self.client.received[obj["type"]] += 1
         _put(self.client._datagram_queues[obj["type"]], obj)
@@ -64,7 +67,8 @@ class LiveClient:
     """One connection: `role` "control" (streams and locks) or "observer" (events only)."""
 
     def __init__(self, url: str, role: str = "control", token: str | None = None, protocol: int = PROTOCOL_VERSION):
-        """protocol: the version said in hello (another only to measure an older service: benchmarks/bench_live.py)."""
+        """protocol: the version said in hello (an older one only to measure an older service, with JSON samples:
+        benchmarks/bench_live.py)."""
         self.url, self.role, self.token, self.protocol = url, role, token, protocol
         self.ws = None
         self.welcome = None
@@ -162,7 +166,8 @@ class LiveClient:
         seq = self._seq[kind]
         self._seq[kind] += 1
         t_s = time.perf_counter()
-        self._udp.sendto(sample_datagram(kind, self.welcome["session"], seq, position_mm, quat_wxyz, t_s=t_s, **extra),
+        encode = encode_sample if self.protocol >= 4 else json_sample
+        self._udp.sendto(encode(kind, self.welcome["session"], seq, position_mm, quat_wxyz, t_s=t_s, **extra),
                          self._ports[kind])
         self.send_s.append(time.perf_counter() - t_s)
         return seq
@@ -202,3 +207,16 @@ class LiveClient:
 def latency(reply: dict) -> float:
     """s from sending the sample (its t_s) to receiving the reply."""
     return reply["received_s"] - reply["t_s"]
+
+
+def json_sample(kind: str, session: str, seq: int, position_mm, quat_wxyz, t_s: float | None = None,
+                device_position_mm=None, device_quat_wxyz=None) -> bytes:
+    """A sample as protocols 1-3 sent it (one JSON object), for measuring an older service against this one."""
+    obj = {"type": kind, "session": session, "seq": int(seq),
+           "position_mm": [float(v) for v in position_mm], "quat_wxyz": [float(v) for v in quat_wxyz]}
+    if t_s is not None:
+        obj["t_s"] = float(t_s)
+    if device_position_mm is not None:
+        obj["device_position_mm"] = [float(v) for v in device_position_mm]
+        obj["device_quat_wxyz"] = [float(v) for v in device_quat_wxyz]
+    return json.dumps(obj, separators=(",", ":")).encode()

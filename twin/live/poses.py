@@ -4,11 +4,13 @@ A pose that came to the service first and was then handed to the worker over a p
 on its way in, each waiting for a core on a loaded machine; taken here, it wakes one. This is the part
 of the worker that decides which pose is approximated next:
 
-- each datagram is stamped with its arrival in the kernel (SO_TIMESTAMPNS), so the time it waited in
-  the socket (the worker busy, or waiting for a core) is measured too;
-- it is parsed and checked as the service checks a pen (`parse_datagram`), then against the session the
+- each datagram is read into one preallocated buffer and stamped with its arrival in the kernel
+  (twin/live/datagrams.py), so the time it waited in the socket (the worker busy, or waiting for a core) is
+  measured too;
+- it is checked as the service checks a pen (`SampleBuffer.check`, compiled), then against the session the
   service named (the controlling client's secret) and the stream's newest sequence number;
-- the newest valid pose is kept (memory: one pose) and goes when the rate limit lets it (a token bucket:
+- the newest valid pose is kept (memory: one pose, in a preallocated array) and goes when the rate limit lets
+  it (a token bucket:
   at most APPROXIMATION_RATE_HZ on average, RATE_BURST back to back);
 - datagrams the kernel dropped (the socket's buffer full, in a flood) are counted too (SO_RXQ_OVFL);
 - errors are counted, and reported (to the service, which tells the controlling client) at most once per
@@ -22,19 +24,14 @@ import collections
 import hmac
 import math
 import socket
-import struct
 import time
 
-from twin.live.messages import APPROXIMATION_RATE_HZ, ERROR_INTERVAL, MAX_DATAGRAM_BYTES, ProtocolError, parse_datagram
+import numpy as np
+
+from twin.live.datagrams import DRAIN_MAX, receive
+from twin.live.messages import APPROXIMATION_RATE_HZ, ERROR_INTERVAL, VALUES, SampleBuffer, sample_error
 
 RATE_BURST = 2.0  # approximations the rate limit lets through back to back (poses at 90 Hz jitter)
-DRAIN_MAX = 256  # datagrams taken off the socket in one go: a flood cannot keep the pipe's requests waiting
-# Linux's socket options (asm-generic/socket.h; Python names neither), each in a datagram's ancillary data:
-SO_TIMESTAMPNS = 35  # its arrival time in the kernel (CLOCK_REALTIME, a struct timespec)
-SO_RXQ_OVFL = 40  # how many datagrams the kernel has dropped on this socket so far (its buffer full: a flood)
-_TIMESPEC = struct.Struct("@qq")  # s, ns
-_DROPS = struct.Struct("@I")
-_ANCILLARY = socket.CMSG_SPACE(_TIMESPEC.size) + socket.CMSG_SPACE(_DROPS.size)
 
 
 class PoseIntake:
@@ -45,7 +42,9 @@ class PoseIntake:
         self.session: bytes | None = None  # the controller's secret; None: no controller, every pose dropped
         self.last_seq = -1
         self.addr = None  # where the controller's valid poses come from
-        self.pending = None  # (Sample, addr, arrived, taken, parsed s): the newest pose not yet approximated
+        self.buffer = SampleBuffer()  # each datagram as it is received and checked
+        self.pose = np.zeros(VALUES)  # the newest valid pose not yet approximated (SampleBuffer.values' layout)
+        self.pending = None  # (addr, arrived, taken, parsed s) of it; None: none pending
         self.tokens, self.filled = burst, time.perf_counter()
         self.counts: collections.Counter = collections.Counter()
         self.reports: list[tuple] = []  # (session, code, message, count) for the service, taken by the worker
@@ -54,54 +53,53 @@ class PoseIntake:
 
     def set_session(self, session: str | None) -> None:
         """A new controller (its secret), or none: the stream starts again."""
-        self.session = None if session is None else session.encode()
+        self.session = None if session is None else bytes.fromhex(session)
         self.last_seq, self.addr, self.pending = -1, None, None
 
     def take(self, data: bytes, addr, arrived: float, taken: float) -> None:
-        """One datagram from addr that reached the socket at `arrived` and was taken off it at `taken`
+        """Bytes from addr, as if received (`received`)."""
+        self.received(self.buffer.load(data), addr, arrived, taken)
+
+    def received(self, n: int, addr, arrived: float, taken: float) -> None:
+        """The n bytes in `buffer` from addr, that reached the socket at `arrived` and were taken off it at `taken`
         (perf_counter s)."""
         self.counts["pose_datagrams"] += 1
-        try:
-            sample = parse_datagram(data, "pose")
-        except ProtocolError as exc:
+        code = self.buffer.check(n, "pose")
+        if code:
+            exc = sample_error(code, n)
             self.counts[exc.code] += 1
             if addr == self.addr:
                 self.report(exc.code, str(exc))
             return
-        if self.session is None or not hmac.compare_digest(sample.session.encode(), self.session):
+        if self.session is None or not hmac.compare_digest(self.buffer.session, self.session):
             self.counts["unknown_session"] += 1
             return
         self.addr = addr
-        if sample.seq <= self.last_seq:
+        seq = int(self.buffer.values[0])
+        if seq <= self.last_seq:
             self.counts["stale"] += 1
-            self.report("stale", f"pose seq {sample.seq} after {self.last_seq}: dropped (the newest wins)")
+            self.report("stale", f"pose seq {seq} after {self.last_seq}: dropped (the newest wins)")
             return
         if self.last_seq >= 0:
-            self.counts["missing"] += sample.seq - self.last_seq - 1
-        self.last_seq = sample.seq
+            self.counts["missing"] += seq - self.last_seq - 1
+        self.last_seq = seq
         self.counts["pose"] += 1
         if self.pending is not None:
             self.counts["superseded"] += 1
-        self.pending = (sample, addr, arrived, taken, time.perf_counter())
+        self.pose[:] = self.buffer.values
+        self.pending = (addr, arrived, taken, time.perf_counter())
 
     def drain(self, sock: socket.socket) -> None:
         """Take what waits on the (non-blocking) socket, at most DRAIN_MAX datagrams."""
-        realtime_offset = time.time() - time.perf_counter()  # CLOCK_REALTIME -> perf_counter s
+        realtime_offset = time.time() - time.perf_counter()
         for _ in range(DRAIN_MAX):
-            try:
-                data, ancillary, _, addr = sock.recvmsg(MAX_DATAGRAM_BYTES + 1, _ANCILLARY)
-            except (BlockingIOError, InterruptedError):
+            got = receive(sock, self.buffer.view, realtime_offset)
+            if got is None:
                 return
-            except OSError:  # an ICMP error queued on the socket (a client gone): nothing to take
-                continue
-            taken = arrived = time.perf_counter()
-            for level, kind, value in ancillary:
-                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
-                    s, ns = _TIMESPEC.unpack_from(value)
-                    arrived = min(s + ns * 1e-9 - realtime_offset, taken)
-                elif level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL:
-                    self.counts["pose_dropped"] = _DROPS.unpack_from(value)[0]  # since the socket was made
-            self.take(data, addr, arrived, taken)
+            n, addr, arrived, taken, drops = got
+            if drops is not None:
+                self.counts["pose_dropped"] = drops  # since the socket was made
+            self.received(n, addr, arrived, taken)
 
     def wait_s(self, now: float) -> float | None:
         """s until the pending pose may go (0: now); None when no pose is pending."""
@@ -111,13 +109,14 @@ class PoseIntake:
         return max(0.0, (1.0 - tokens) / self.rate_hz)
 
     def next(self, now: float) -> tuple | None:
-        """The pending pose (Sample, addr, arrived, taken, parsed) if the rate limit lets it go now (a token spent)."""
+        """The pending pose (its values, addr, arrived, taken, parsed) if the rate limit lets it go now (a token
+        spent); the values are `pose`'s, until the next datagram is taken."""
         self.tokens, self.filled = min(self.burst, self.tokens + (now - self.filled) * self.rate_hz), now
         if self.pending is None or self.tokens < 1.0:
             return None
         self.tokens -= 1.0
-        pose, self.pending = self.pending, None
-        return pose
+        pending, self.pending = self.pending, None
+        return (self.pose, *pending)
 
     def drop_pending(self, code: str, message: str) -> None:
         """The pending pose cannot be approximated (no target yet): dropped, its sender told."""
@@ -131,18 +130,5 @@ class PoseIntake:
         now = time.monotonic()
         if now - self._reported.get(code, -math.inf) >= ERROR_INTERVAL:
             self._reported[code] = now
-            session = None if self.session is None else self.session.decode()
+            session = None if self.session is None else self.session.hex()
             self.reports.append((session, code, message, self._unreported.pop(code)))
-
-
-def pose_socket(host: str) -> socket.socket:
-    """A datagram socket on host (any free port) for the worker's pose stream: non-blocking, each datagram
-    stamped with its arrival in the kernel and the count of those the kernel dropped so far."""
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_DGRAM)
-    sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-    sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
-    sock.setblocking(False)
-    sock.bind((host, 0))
-    return sock
-

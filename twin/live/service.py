@@ -15,7 +15,8 @@
   reports where the time went.
 - Lock: the newest approximation's hinge angles go through the morpher (gate, then the device or
   the twin) in a thread; once done, the redirection field of the reached shape is built by the
-  worker and pen samples are redirected here, as they arrive.
+  worker and pen samples are redirected here, as they arrive (twin/live/pens.py: binary in and
+  out, on state allocated once).
 
 Errors in a client's messages are answered with an "error" event; the connection stays open.
 Datagram errors are reported at most every ERROR_INTERVAL s per kind, with a count.
@@ -52,14 +53,13 @@ from twin.live.messages import (
     error,
     mesh_arrays,
     parse_control,
-    parse_datagram,
-    pen_datagram,
+    sample_error,
 )
+from twin.live.datagrams import DRAIN_MAX, receive, stamped_socket
 from twin.live.morph import MorphOutcome
-from twin.live.poses import pose_socket
+from twin.live.pens import PenRedirection
 from twin.live.stages import LATENCY_WINDOW, PEN_STAGES, StageTimes, percentiles_ms
 from twin.live.worker import Worker, WorkerError
-from twin.morphpatch.redirection import redirect, within_samples
 from twin.morphpatch.shapes import shape_names
 from twin.perception.thresholds import load_thresholds
 
@@ -113,9 +113,10 @@ class _Client:
     def __init__(self, ws):
         self.ws = ws
         self.role = None
-        self.session = None
+        self.session = None  # 32 hex digits (the welcome's), and as the 16 bytes a sample carries
+        self.secret = None
         self.udp_addr = None
-        self.last_seq = {"pose": -1, "pen": -1}
+        self.last_seq = -1  # the pen stream's newest
         self.events: asyncio.Queue = asyncio.Queue(EVENT_QUEUE)
         self.dropped_events = 0
         self._reported: dict[str, float] = {}
@@ -172,14 +173,6 @@ def bounded_connections(held: dict, most: int, counts: collections.Counter) -> t
     return BoundedConnection
 
 
-class _Datagrams(asyncio.DatagramProtocol):
-    def __init__(self, service: "LiveService"):
-        self.service = service
-
-    def datagram_received(self, data: bytes, addr) -> None:
-        self.service.on_datagram(data, addr)
-
-
 class LiveService:
     """The service's state; `run()` serves until `stop()`."""
 
@@ -195,10 +188,10 @@ class LiveService:
         self.observers: set[_Client] = set()
         self.target = None  # info of the target the worker holds
         self.state = "idle"  # "idle", "morphing" or "locked" (pen samples redirected)
-        self.field = None
+        self.pens = PenRedirection(self.thresholds)  # the field pens are redirected with, once locked
         self.counts: collections.Counter = collections.Counter()  # the pose stream's are the worker's (status)
         self.pen_times = StageTimes(PEN_STAGES, LATENCY_WINDOW)  # s per stage, pen arrival -> redirected sent
-        self._udp = None
+        self._udp = None  # the pens' socket (udp_port), which every reply is sent from
         self._poses = None  # the worker's pose socket: bound here, so that it outlives a worker that dies
         self._stop = None
         self._tasks: set[asyncio.Task] = set()
@@ -209,7 +202,7 @@ class LiveService:
         """Start the worker, the initial target, the morpher and both sockets; ready(port) once serving."""
         loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
-        self._poses = pose_socket(self.config.host)  # before any client can be welcomed with its port
+        self._poses = stamped_socket(self.config.host)  # before any client can be welcomed with its port
         self.worker.start()
         try:
             if self.config.shape or self.config.mesh:
@@ -221,9 +214,9 @@ class LiveService:
                              create_connection=bounded_connections({}, socket_bound(), self.counts),
                              backlog=ACCEPT_BACKLOG) as server:
                 self.port = server.sockets[0].getsockname()[1]
-                self._udp, _ = await loop.create_datagram_endpoint(lambda: _Datagrams(self),
-                                                                   local_addr=(self.config.host, self.port))
-                self.worker.share_sockets(self._udp.get_extra_info("socket"), self._poses)
+                self._udp = stamped_socket(self.config.host, self.port)
+                loop.add_reader(self._udp.fileno(), self._pens_readable)
+                self.worker.share_sockets(self._udp, self._poses)
                 if ready:
                     ready(self.port)
                 await self._stop.wait()
@@ -231,6 +224,7 @@ class LiveService:
             for task in self._tasks:
                 task.cancel()
             if self._udp is not None:
+                loop.remove_reader(self._udp.fileno())
                 self._udp.close()
             self.worker.stop()
             if self._poses is not None:
@@ -340,7 +334,8 @@ class LiveService:
             if self.controller is not None:
                 raise ProtocolError("controller_taken", "another client controls the service; connect as 'observer'")
             self.controller = client
-            client.session = secrets.token_hex(16)
+            client.secret = secrets.token_bytes(16)
+            client.session = client.secret.hex()
             self.worker.tell("session", client.session)  # before the welcome: the worker admits its first pose
         else:
             self.observers.add(client)
@@ -352,7 +347,8 @@ class LiveService:
                      "max_control_bytes": MAX_CONTROL_BYTES, "max_datagram_bytes": MAX_DATAGRAM_BYTES})
 
     async def _load_target(self, shape, vertices, faces) -> None:
-        self.target, self.state, self.field = None, "idle", None
+        self.target, self.state = None, "idle"
+        self.pens.set_field(None)
         self.target = await self.worker.call("target", shape, vertices, faces)
         self._broadcast({"type": "target_ready", "target": self.target})
 
@@ -361,7 +357,7 @@ class LiveService:
         try:
             poses = await self.worker.call("stats")
         except WorkerError:  # restarting: its counts start again
-            poses = {"counts": {}, "pose_path_ms": None, "estimates_ms": None}
+            poses = {"counts": {}, "pose_path_ms": None, "pose_cpu_ms": None, "estimates_ms": None}
         counts = self.counts + collections.Counter(poses["counts"])
         pose_path = poses["pose_path_ms"]
         return {"type": "status", "state": self.state, "target": self.target, "variant": self.config.variant,
@@ -369,7 +365,7 @@ class LiveService:
                 "counts": dict(counts),
                 "approximation_latency_ms": pose_path and pose_path["total"],
                 "pen_latency_ms": percentiles_ms(self.pen_times.total()),
-                "pose_path_ms": pose_path, "pen_path_ms": self.pen_times.summary(),
+                "pose_path_ms": pose_path, "pose_cpu_ms": poses["pose_cpu_ms"], "pen_path_ms": self.pen_times.summary(),
                 "estimates_ms": poses["estimates_ms"]}
 
     def _worker_report(self, session: str | None, code: str, message: str, count: int) -> None:
@@ -407,51 +403,63 @@ class LiveService:
             self.state = "idle"
             self._broadcast({"type": "stopped", "message": f"redirection field: {exc}", "angles_deg": None})
             return
-        redirect(field, np.zeros((1, 3)), np.array([[1.0, 0.0, 0.0, 0.0]]))  # loads the compiled kernel now
-        self.field, self.state = field, "locked"
+        self.pens.set_field(field)
+        self.state = "locked"
         settle = outcome.settle_time
         self._broadcast({"type": "done", "message": outcome.message, "seq": seq,
                          "settle_time_s": round(settle, 4) if math.isfinite(settle) else None,
                          "angles_deg": np.degrees(outcome.final).round(3).tolist(), "redirection": summary})
 
     # ---- datagrams ------------------------------------------------------------------------
-    def on_datagram(self, data: bytes, addr) -> None:
-        arrived = time.perf_counter()
+    def _pens_readable(self) -> None:
+        """What waits on the pens' socket, at most DRAIN_MAX datagrams (the event loop's other work between)."""
+        realtime_offset = time.time() - time.perf_counter()
+        for _ in range(DRAIN_MAX):
+            got = receive(self._udp, self.pens.buffer.view, realtime_offset)
+            if got is None:
+                return
+            n, addr, arrived, taken, drops = got
+            if drops is not None:
+                self.counts["pen_dropped"] = drops  # since the socket was made
+            self.on_pen(n, addr, arrived, taken)
+
+    def on_pen(self, n: int, addr, arrived: float, taken: float) -> None:
+        """The n bytes in the pens' buffer from addr, that reached the socket at `arrived` and were taken off it at
+        `taken` (perf_counter s)."""
         self.counts["datagrams"] += 1
         client = self.controller
         known = client is not None and client.udp_addr == addr
-        try:
-            sample = parse_datagram(data, "pen")
-        except ProtocolError as exc:
+        code = self.pens.buffer.check(n, "pen")
+        if code:
+            exc = sample_error(code, n)
             self.counts[exc.code] += 1
             if known:
                 client.report(exc.code, str(exc))
             return
-        if client is None or not hmac.compare_digest(sample.session.encode(), client.session.encode()):
+        if client is None or not hmac.compare_digest(self.pens.buffer.session, client.secret):
             self.counts["unknown_session"] += 1
             return
         client.udp_addr = addr
-        last = client.last_seq[sample.kind]
-        if sample.seq <= last:
+        seq, last = int(self.pens.buffer.values[0]), client.last_seq
+        if seq <= last:
             self.counts["stale"] += 1
-            client.report("stale", f"{sample.kind} seq {sample.seq} after {last}: dropped (the newest wins)")
+            client.report("stale", f"pen seq {seq} after {last}: dropped (the newest wins)")
             return
         if last >= 0:
-            self.counts["missing"] += sample.seq - last - 1
-        client.last_seq[sample.kind] = sample.seq
-        self.counts[sample.kind] += 1
+            self.counts["missing"] += seq - last - 1
+        client.last_seq = seq
+        self.counts["pen"] += 1
         if self.state != "locked":
             self.counts["pen_not_locked"] += 1
             client.report("out_of_order", "pen sample before a lock's morph is done: not redirected")
-        else:
-            parsed = time.perf_counter()
-            r = redirect(self.field, sample.position[None], sample.quat[None],
-                         None if sample.device_pose is None else sample.device_pose[None])
-            within = bool(within_samples(r, self.thresholds)[0])
-            redirected = time.perf_counter()
-            reply = pen_datagram(sample.seq, sample.t_s, r.position[0], r.orientation[0], r.offset[0], r.angle[0],
-                                 r.height[0], r.flap[0], within)
-            encoded = time.perf_counter()
-            self._udp.sendto(reply, addr)
-            self.counts["pen_redirected"] += 1
-            self.pen_times.record((arrived, parsed, redirected, encoded, time.perf_counter()))
+            return
+        checked = time.perf_counter()
+        self.pens.redirect()
+        redirected = time.perf_counter()
+        try:
+            self._udp.sendto(self.pens.reply, addr)
+        except OSError:  # the socket's send buffer full (a flood of replies): this one is lost, as on the network
+            self.counts["reply_not_sent"] += 1
+            return
+        self.counts["pen_redirected"] += 1
+        self.pen_times.record((arrived, taken, checked, redirected, time.perf_counter()))

@@ -23,7 +23,7 @@ requests are answered in order, one at a time:
     b"p" + pickle(("session", the controller's secret or None))  -> b"p" + pickle(None)
     b"p" + pickle(("latest",))  -> b"p" + pickle((seq, approximation doubles) or None): the newest approximation
         sent to the present controller for the present target
-    b"p" + pickle(("stats",))  -> b"p" + pickle({"counts", "pose_path_ms", "estimates_ms"})
+    b"p" + pickle(("stats",))  -> b"p" + pickle({"counts", "pose_path_ms", "pose_cpu_ms", "estimates_ms"})
     b"p" + pickle(("field", root pose 4x4, angles rad, widths m))  -> b"p" + pickle((RedirectionField, summary))
 
 Errors come back as b"e" + one line, and the worker carries on. Unasked, between replies, the
@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import math
 import multiprocessing
 from multiprocessing import reduction
 import pickle
@@ -49,11 +50,10 @@ import trimesh
 
 from twin.device.kinematics import pose_matrix, quat_matrix
 from twin.device.spec import DeviceSpec
-from twin.formats.target import approximation_json
 from twin.live.collection import collect_if_due, hold_collection
-from twin.live.messages import approximation_datagram, estimates_datagram
+from twin.live.messages import ApproximationReply, estimates_datagram
 from twin.live.poses import PoseIntake
-from twin.live.stages import LATENCY_WINDOW, POSE_STAGES, StageTimes, percentiles_ms
+from twin.live.stages import LATENCY_WINDOW, POSE_CPU_STAGES, POSE_STAGES, StageTimes, percentiles_ms
 from twin.morphpatch.approximation import approximate
 from twin.morphpatch.fields import build_fields
 from twin.morphpatch.frame_metrics import frame_estimates
@@ -88,36 +88,40 @@ class _Poses:
         self.spec, self.variant = spec, variant
         self.intake = PoseIntake()
         self.times = StageTimes(POSE_STAGES, LATENCY_WINDOW)  # s per stage, kernel arrival -> approximation sent
+        self.cpu = StageTimes(POSE_CPU_STAGES, LATENCY_WINDOW)  # CPU s per stage of the answer
         self.estimates = collections.deque(maxlen=LATENCY_WINDOW)  # s, estimates' datagram after the reply's
         self.thresholds = load_thresholds()
         self.layout = grid_layout(spec, SAMPLE_SPACING)
+        self.reply = ApproximationReply(spec.n_hinges, spec.n_flaps)
         self.latest = None  # (seq, approximation doubles): the newest sent to this controller for this target
 
     def answer(self, pose: tuple, fields, udp: socket.socket) -> None:
-        """Approximate a pose (Sample, addr, arrived, taken, parsed) and send its datagram to its sender, then its
-        frame estimates' datagram."""
-        sample, addr, arrived, taken, parsed = pose
-        started = time.perf_counter()
-        pose_4x4 = pose_matrix(sample.position, quat_matrix(sample.quat))
+        """Approximate a pose (its values as SampleBuffer's, addr, arrived, taken, parsed) and send its datagram to
+        its sender, then its frame estimates' datagram."""
+        values, addr, arrived, taken, parsed = pose
+        started, cpu_started = time.perf_counter(), time.thread_time()
+        seq, t_s = int(values[0]), None if math.isnan(values[1]) else float(values[1])
+        pose_4x4 = pose_matrix(values[2:5], quat_matrix(values[5:9]))
         try:
             approx = approximate(fields, pose_4x4, self.spec, self.variant)
         except Exception as exc:  # the compiled code refused this pose: the client is told, the worker goes on
             self.intake.report("approximation_failed", f"{type(exc).__name__}: {exc}")
             return
-        approximated = time.perf_counter()
-        udp.sendto(approximation_datagram(sample.seq, sample.t_s, approximation_json(approx)), addr)
-        sent = time.perf_counter()
+        approximated, cpu_approximated = time.perf_counter(), time.thread_time()
+        udp.sendto(self.reply.encode(seq, t_s, approx), addr)
+        sent, cpu_sent = time.perf_counter(), time.thread_time()
         msd, share = frame_estimates(self.spec, fields, self.thresholds, approx.root_pose, approx.angles,
                                      approx.widths, self.layout)
-        udp.sendto(estimates_datagram(sample.seq, sample.t_s, msd, share), addr)
+        udp.sendto(estimates_datagram(seq, t_s, msd, share), addr)
         self.times.record((arrived, taken, parsed, started, approximated, sent))
+        self.cpu.record((cpu_started, cpu_approximated, cpu_sent, time.thread_time()))
         self.estimates.append(time.perf_counter() - sent)
         self.intake.counts["approximations"] += 1
-        self.latest = (sample.seq, approximation_values(approx))
+        self.latest = (seq, approximation_values(approx))
 
     def stats(self) -> dict:
         return {"counts": dict(self.intake.counts), "pose_path_ms": self.times.summary(),
-                "estimates_ms": percentiles_ms(self.estimates)}
+                "pose_cpu_ms": self.cpu.summary(), "estimates_ms": percentiles_ms(self.estimates)}
 
 
 def _request(request: bytes, conn, state: dict, poses: _Poses, selector) -> bytes | None:

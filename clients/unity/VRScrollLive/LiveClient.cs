@@ -1,5 +1,6 @@
 // The transport of the VRScroll live service (docs/live.md) for Unity and any .NET: the control channel
-// over System.Net.WebSockets.ClientWebSocket, the pose and pen datagrams over System.Net.Sockets.UdpClient.
+// over System.Net.WebSockets.ClientWebSocket, the pose and pen datagrams over System.Net.Sockets.UdpClient
+// (binary, both ways: Datagrams.cs).
 // Nothing beyond the .NET base library (compiles with Mono's mcs). Units as on the wire: mm, degrees,
 // quaternions w first, in the service's right-handed frame (z up); converting from Unity's frame is the
 // caller's (see VRScrollLiveDriver.cs).
@@ -28,7 +29,7 @@ namespace VRScroll.Live
 
     public class LiveClient : IDisposable
     {
-        public const int ProtocolVersion = 3;
+        public const int ProtocolVersion = 4;
         const int MaxQueued = 4096;
 
         readonly Uri url;
@@ -42,6 +43,7 @@ namespace VRScroll.Live
         readonly Stopwatch clock = Stopwatch.StartNew();
         UdpClient udp;
         IPEndPoint poseEndPoint;  // the worker's port (protocol 3): poses go there, pens to udp_port
+        byte[] sessionBytes;  // the welcome's session, as samples carry it
         Task controlReceiver, datagramReceiver;
         long poseSeq, penSeq;
         volatile Dictionary<string, object> latestApproximation;
@@ -76,6 +78,7 @@ namespace VRScroll.Live
             Welcome = await ExpectAsync(timeoutS, "welcome");
             if (role == "control")
             {
+                sessionBytes = Datagrams.SessionBytes(Session);
                 udp = new UdpClient(url.Host == "localhost" ? "127.0.0.1" : url.Host, Convert.ToInt32(Welcome["udp_port"]));
                 // every reply comes from udp_port (the connected address); poses are sent past it, to pose_port
                 var service = (IPEndPoint)udp.Client.RemoteEndPoint;
@@ -172,13 +175,13 @@ namespace VRScroll.Live
         /// The tracked device pose (anchor): position mm, orientation w, x, y, z. Returns its seq.
         public long SendPose(double[] positionMm, double[] quatWxyz)
         {
-            return SendSample("pose", ref poseSeq, positionMm, quatWxyz, null, null);
+            return SendSample(Datagrams.Pose, ref poseSeq, positionMm, quatWxyz, null, null);
         }
 
         /// A pen sample (tip mm, orientation w first), optionally with the device pose it was tracked with.
         public long SendPen(double[] positionMm, double[] quatWxyz, double[] devicePositionMm = null, double[] deviceQuatWxyz = null)
         {
-            return SendSample("pen", ref penSeq, positionMm, quatWxyz, devicePositionMm, deviceQuatWxyz);
+            return SendSample(Datagrams.Pen, ref penSeq, positionMm, quatWxyz, devicePositionMm, deviceQuatWxyz);
         }
 
         /// Any bytes, to the port pens go to (udp_port), or with toPosePort to the one poses go to.
@@ -188,17 +191,10 @@ namespace VRScroll.Live
             else udp.Send(data, data.Length);
         }
 
-        long SendSample(string type, ref long seq, double[] position, double[] quat, double[] devicePosition, double[] deviceQuat)
+        long SendSample(byte kind, ref long seq, double[] position, double[] quat, double[] devicePosition, double[] deviceQuat)
         {
-            var sample = new Dictionary<string, object> {
-                { "type", type }, { "session", Session }, { "seq", seq }, { "t_s", Now },
-                { "position_mm", position }, { "quat_wxyz", quat } };
-            if (devicePosition != null)
-            {
-                sample["device_position_mm"] = devicePosition;
-                sample["device_quat_wxyz"] = deviceQuat;
-            }
-            SendRawDatagram(Encoding.UTF8.GetBytes(Json.Write(sample)), type == "pose");
+            SendRawDatagram(Datagrams.EncodeSample(kind, sessionBytes, seq, Now, position, quat, devicePosition, deviceQuat),
+                            kind == Datagrams.Pose);
             return seq++;
         }
 
@@ -215,7 +211,15 @@ namespace VRScroll.Live
                 {
                     var result = await udp.ReceiveAsync();
                     double received = Now;  // stamped before parsing: the round trip is the transport's and the service's
-                    var reply = Json.ParseObject(Encoding.UTF8.GetString(result.Buffer));
+                    Dictionary<string, object> reply;
+                    try
+                    {
+                        reply = Datagrams.DecodeReply(result.Buffer);
+                    }
+                    catch (FormatException)
+                    {
+                        continue;  // not a reply of this protocol: skipped
+                    }
                     reply["received_s"] = received;
                     var type = reply["type"] as string;
                     if (type == "approximation")
