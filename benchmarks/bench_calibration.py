@@ -30,11 +30,12 @@ interval, and each hinge's sag over the release on the device and on the twin be
 
 With --identify: per seed, the plant drawn lying flat, the identification experiments (`vrscroll calibrate
 --serial`'s) run on the emulator in-process (twin/link/drawn_plant.py's EmulatedDevice: the firmware core and the plant, as
-fast as the CPU steps them) and each hinge fitted on the twin's replays: per hinge each value's error against
-the drawn one and its interval; then per parameter over every (seed, hinge) the median and worst error, the
-median interval width (high / low), how many intervals hold the drawn value, how many are called identifiable,
-and the issue's criteria (speed within 10 %, friction within 15 %, inertia within 20 %, identifiable with an
-interval no wider than x1.5); the wall time of the fits and the experiments' device time per plant.
+fast as the CPU steps them) and each hinge fitted on the twin's replays: per hinge how many moves turned, each
+value's error against the drawn one and its interval (where not identifiable, its widest part: identification.WHY);
+then per parameter over every (seed, hinge) the median and worst error, the median interval width (high / low),
+how many intervals hold the drawn value, how many are called identifiable, and the issue's criteria (speed within
+10 %, friction within 15 %, inertia within 20 %, identifiable with an interval no wider than x1.5); the wall time of
+the fits and the experiments' device time per plant.
 
 With --compare: issue 36's measure of today's `calibrate` beside the new one, on the same drawn plants in one run.
 Per seed, the plant the emulator draws from it (`emulator_args`, the same draw EmulatedDevice makes; checked
@@ -75,7 +76,7 @@ from twin.device.spec import load_spec  # noqa: E402
 from twin.formats.run import read_run  # noqa: E402
 from twin.hil.calibration import HINGE_PARAMS, MAX_HALFWIDTH, calibrate, calibrate_hinges, trace_rmse  # noqa: E402
 from twin.hil.calibration_verdict import held_out_improved, judged  # noqa: E402
-from twin.hil.identification import PROFILED, estimates, experiments, fit_hinge  # noqa: E402
+from twin.hil.identification import PROFILED, estimates, experiments, fit_hinge, turned  # noqa: E402
 from twin.hil.mirror import mirror  # noqa: E402
 from twin.hil.shared_plant import ALIKE, SHARED_PLANT, record_soft, shared_truth  # noqa: E402
 from twin.link.drawn_plant import EmulatedDevice, drawn_plant, emulator_args  # noqa: E402
@@ -286,9 +287,10 @@ def identify(seeds) -> None:
                 truth, e = getattr(dev.truth[k], p), est[p]
                 rows.append({"p": p, "err": e.value / truth - 1, "hold": e.low <= truth <= e.high,
                              "width": e.high / e.low, "identifiable": e.identifiable})
+                widest = max(fit.parts[p], key=fit.parts[p].get)
                 cells.append(f"{p} {e.value / truth - 1:+.3f} (x{e.low / truth:.3f} .. x{e.high / truth:.3f}"
-                             f"{', identifiable' if e.identifiable else ''})")
-            print(f"seed {seed} hinge {k}: " + "; ".join(cells), flush=True)
+                             f"{', identifiable' if e.identifiable else ', not: ' + widest})")
+            print(f"seed {seed} hinge {k} ({turned(m)}/{len(m)} moves turned): " + "; ".join(cells), flush=True)
         walls.append(time.perf_counter() - t0)
         device.append(device_s)
     print(f"over {len(seeds)} plants x {spec.n_hinges} hinges (error: fitted / drawn - 1):")

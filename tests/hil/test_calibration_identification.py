@@ -6,11 +6,10 @@ What is asserted is what the fit achieves on every plant tried (docs/tuning-hil-
 "Identification", has the measured figures): every hinge fitted, each value inside its interval, the no-load
 speed within 10 % of the drawn value, its 95 % interval holding it and no wider than x1.5. Not met, and asserted
 only by the slow twenty-plant test (an expected failure): every hinge's no-load speed within 10 % with 90 % of
-the intervals holding it (seeds 21-23: 16 of 18 within 10 %, 17 of 18 intervals holding, seed 22's hinge 3 at
-x1.62); the issue's targets for the friction and the rotor inertia are measured by benchmarks/
+the intervals holding it (seeds 21-23: 17 of 18 within 10 %, 15 of 18 intervals holding, seed 22's hinge 3 at
+x1.12); the issue's targets for the friction and the rotor inertia are measured by benchmarks/
 bench_calibration.py --identify, not met, and not asserted."""
 
-import dataclasses
 import json
 import math
 from pathlib import Path
@@ -20,8 +19,9 @@ import pytest
 
 from twin.cli import main as vrscroll
 from twin.commands.options import select_profile
-from twin.hil.identification import (FITTED, PROFILED, SETTLE_S, SPEEDS, TOP_DEG, experiments, fit_hinge,
-                                     program, residual)
+from twin.hil.identification import (FITTED, HELD, PROFILED, SETTLE_S, SPEEDS, TOP_DEG, VALLEY_COST, VALLEY_GAIN,
+                                     WHY, HingeFit, _valley, estimates, experiments, fit_hinge, program, residual,
+                                     turned)
 from twin.link.drawn_plant import EmulatedDevice, drawn_hinges, emulator_args
 from twin.link.serial_link import program_message
 
@@ -54,13 +54,14 @@ def test_each_experiment_is_a_program_the_device_accepts_from_rest_to_rest(spec)
 # is the replay test's below)
 def test_each_hinge_is_identified_on_a_drawn_plant(spec, seed, hinges):
     """A hinge of a drawn plant (beside the root, lifting three flaps; the outermost, lifting one): every
-    program starts from rest and is fitted; its drive down never reaches the table; the fit gives every value
+    program starts from rest, turns within its window (raised, then driven down: the core's guard at the window's
+    top never ends it first) and is fitted; its drive down never reaches the table; the fit gives every value
     inside its interval, the no-load speed within 10 % of the drawn value, its interval holding it and no wider
     than x1.5."""
     dev = EmulatedDevice(spec, seed)
     moves, device_s = experiments(dev.run_program, spec, hinges)
     for k in hinges:
-        assert len(moves[k]) == len(SPEEDS)
+        assert len(moves[k]) == len(SPEEDS) == turned(moves[k])
         for m in moves[k]:
             driven_down = (m.duty < 0) & np.isfinite(m.counts)
             assert np.all(m.counts[driven_down] > 0)  # off the table: the descent ends above it
@@ -74,21 +75,43 @@ def test_each_hinge_is_identified_on_a_drawn_plant(spec, seed, hinges):
     assert 1.0 < device_s < 15.0  # a hinge's experiments: seconds of device time
 
 
+def test_a_hinge_whose_searches_end_apart_at_as_good_a_fit_carries_their_spread_and_says_so(spec):
+    """The valley part of a hinge's interval: the local searches that end within VALLEY_COST of the best's cost
+    lie as far apart as the moves leave the values open, and the interval carries that (x VALLEY_GAIN); a search
+    that ends at a worse cost says nothing of it. Where that part is the widest, the value is not identifiable and
+    its note says why."""
+    m = len(FITTED)
+    best, apart, worse = np.zeros(m), np.full(m, 0.6), np.full(m, -0.8)
+    valley = _valley([best, apart, worse], [1.0, 1.0 + VALLEY_COST / 2, 1.5], best)
+    assert valley == pytest.approx([0.6 * VALLEY_GAIN.get(p, 0.0) for p in FITTED])
+    assert not _valley([best, worse], [1.0, 1.5], best).any()
+    parts = {p: {"fit": 0.01, "valley": float(v), "left_out": 0.0} for p, v in zip(FITTED, valley)}
+    values = {p: getattr(spec, p) for p in FITTED}
+    sd = {p: math.sqrt(sum(v ** 2 for v in parts[p].values())) for p in FITTED}
+    fit = HingeFit(2, values, {p: values[p] * math.exp(-1.96 * sd[p]) for p in FITTED},
+                   {p: values[p] * math.exp(1.96 * sd[p]) for p in FITTED}, sd, parts,
+                   {q: (1.0, 0.7, 1.6) for q in HELD}, 0.21, 100, 10)
+    wide = {p: sd[p] > math.log(1.15) / 1.96 for p in FITTED}  # (its valley the widest part then)
+    assert any(wide.values())
+    for p, e in estimates(fit, spec, 0.15).items():
+        assert e.identifiable is not wide[p]
+        assert (WHY["valley"] in e.note) is wide[p]
+
+
 def test_the_replays_place_the_hinges_run_before_where_the_device_left_them(spec):
-    """Hinge 0's programs leave its flap raised (its last raise ends at the window's top); hinge 1, run next,
-    turns that flap too. Its moves carry where hinge 0 stood, and the twin's replay at the drawn values places it
-    there: it follows the device closer than a replay with hinge 0 flat (measured on seeds 5, 8, 13: 0.23-0.26
-    rad/s rms against 0.31-0.42)."""
+    """Hinge 0's programs leave its flap off the table; hinge 1, run next, turns that flap too. Its moves carry
+    where hinge 0 stood, and the twin's replay at the drawn values, placing it there, follows the device to the
+    encoder's floor. (Round 4's programs left hinge 0 at 63-84 deg, where a replay with it flat missed the device
+    by 0.31-0.42 rad/s rms against 0.23-0.26 placed, seeds 5, 8, 13; the turning programs leave it at 8-15 deg,
+    where the two are alike: 0.231-0.249 flat, 0.232-0.246 placed.)"""
     dev = EmulatedDevice(spec, 13)
     moves, _ = experiments(dev.run_program, spec, hinges=(0, 1))
     left = dev.emulator.plant.counts[0] * spec.rad_per_count
-    assert left > math.radians(20)  # raised, not on the table
+    assert left > math.radians(5)  # raised, not on the table
     assert all(m.others[0] == pytest.approx(left, abs=spec.rad_per_count) for m in moves[1])
     drawn = {p: getattr(dev.truth[1], p) / getattr(spec, p)
              for p in ("no_load_speed", "gear_friction", "rotor_inertia", "gear_damping", "backdrive_efficiency")}
-    there = np.sqrt(np.mean(residual(spec, 1, drawn, moves[1])[0] ** 2))
-    flat = np.sqrt(np.mean(residual(spec, 1, drawn, [dataclasses.replace(m, others=None) for m in moves[1]])[0] ** 2))
-    assert there < 0.3 and there < 0.9 * flat
+    assert np.sqrt(np.mean(residual(spec, 1, drawn, moves[1])[0] ** 2)) < 0.3
 
 
 @pytest.mark.slow
@@ -132,9 +155,10 @@ def test_calibrate_serial_refuses_a_profile_that_says_the_device_is_not_lying_fl
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="not met: on 3 plants x 6 hinges (seeds 21-23) 16/18 no-load speeds within 10 % "
-                   "and 17/18 intervals holding the drawn value, x1.14 wide (median); seed 22's hinge 3 fitted "
-                   "x1.62 (benchmarks/bench_calibration.py --identify)")
+@pytest.mark.xfail(strict=True, reason="not met: on 3 plants x 6 hinges (seeds 21-23) 17/18 no-load speeds within 10 % "
+                   "and 15/18 intervals holding the drawn value, x1.13 wide (median); seed 22's hinge 3 fitted "
+                   "x1.13, its hinge 4 x1.06 and seed 23's hinge 5 x0.92 outside theirs (benchmarks/"
+                   "bench_calibration.py --identify's fits)")
 def test_twenty_drawn_plants_every_hinges_no_load_speed(spec):
     """The issue's criteria on 20 drawn plants x 6 hinges, for the value the experiments pin down: the no-load
     speed within 10 % of the drawn value and its 95 % interval no wider than x1.5 on every hinge, the intervals
