@@ -278,7 +278,8 @@ def _identification_lines(doc: dict, fits, wall: float, device_s: float) -> list
              "per hinge each value in the spec file's unit, its 95 % interval, and both as multiples of the prior:"]
     for h, f in zip(doc["hinges"], fits):
         lines.append(f"  hinge {f.hinge} (speed residual {f.rms_speed:.2f} rad/s over {f.windows} windows):")
-        lines += [f"    {_estimate_line(p, e, units.get(p, ''), note=False)}" for p, e in h["parameters"].items()]
+        lines += [f"    {_estimate_line(p, e, units.get(p, ''), note=not e['identifiable'])}"  # why not, where not
+                  for p, e in h["parameters"].items()]
     held = doc["hinges"][0]["held"]
     lines.append("held, not shown by the experiments (each anywhere in its range widens the intervals above): "
                  + ", ".join(f"{p} {shown(v['value'], units.get(p, ''))} (x{v['low'] / v['value']:.2g} .. "
