@@ -18,13 +18,11 @@ from twin.commands.options import (
     device_session,
     json_to_stdout,
     output_file,
-    select_profile,
+    profile_or_new,
     within,
     write_json,
 )
-from twin.device.profile import profile_dir
 from twin.errors import UserError
-from twin.formats.profile import spec_defaults
 from twin.hil.calibration_report import calibrate_runs, check_lying_flat, identify
 
 MAX_GENERATIONS = 100  # cross-entropy generations: the search settles in under ten
@@ -58,8 +56,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    new = bool(args.device) and not profile_dir(args.device).is_dir()  # a --device not there yet: a new profile
-    profile = spec_defaults() if new else select_profile(args.device)
+    profile, new = profile_or_new(args.device)  # a --device not there yet: a new profile
     name, prior = args.device or profile.name, "spec defaults" if new else profile.label
     say = None if json_to_stdout(args) else (lambda line: print(line, flush=True))
     if args.serial:

@@ -238,6 +238,14 @@ def select_profile(name: str | None = None) -> Profile:
     return read_profile(folder)
 
 
+def profile_or_new(name: str | None) -> tuple[Profile, bool]:
+    """(the profile called name, or the selected one (select_profile), False), or for a name not there yet (a
+    profile a command makes) (the spec's defaults, True)."""
+    if name and not profile_dir(name).is_dir():
+        return spec_defaults(), True
+    return select_profile(name), False
+
+
 def profile_of(args) -> Profile:
     """The profile args.device names (then remembered as the default), or the selected one, or the spec's
     defaults; held as args.mount where the command has --mount and it was given (recorded in the profile, when
