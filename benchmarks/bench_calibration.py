@@ -45,8 +45,8 @@ scenarios made once, for the spec's gains, which every emulated device has) and 
 identification form (as --identify). One table: per parameter and form, over every (seed, hinge), the median and
 worst error against the hinge's drawn value, the median interval width (high / low), how many intervals hold the
 drawn value and how many values are called identifiable; the wall time of each form per plant. Each seed's
-result is kept in its folder (identification.json, recorded.json): processes given other seeds and the same --out
-share the work, and one given them all prints the table over every plant.
+result is kept in its folder (identification.json, recorded.json): processes given the same seeds (in another
+order) and --out share the work, one recording at a time (two real-time emulators fell behind together).
 
     python benchmarks/bench_calibration.py [--seeds 1 2 3] [--out /tmp/bench-cal]
         [--scaling | --holding | --repeat N | --effects | --identify | --compare]
@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import fcntl
 import io
 import json
 import os
@@ -310,15 +311,36 @@ def row(p: str, form: str, k: int, truth: float, value: float, low: float, high:
             "width": high / low, "identifiable": bool(identifiable)}
 
 
+@contextlib.contextmanager
+def locked(path: Path):
+    """The block alone among the processes that lock path (one waits for the other)."""
+    with open(path, "w") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        yield
+
+
+def busy(path: Path) -> bool:
+    """Whether another process holds path's lock (`locked`) now."""
+    with open(path, "a") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return True
+        fcntl.flock(f, fcntl.LOCK_UN)
+        return False
+
+
 def cached(path: Path, make):
     """make()'s JSON result, kept at path and read from there when it is (a run cut short goes on where it
-    stopped; processes given other seeds and the same --out share the work); None (not kept) stays None."""
-    if path.exists():
-        return json.loads(path.read_text())
-    out = make()
-    if out is not None:
-        path.write_text(json.dumps(out))
-    return out
+    stopped; processes given the same seeds and --out share the work, one waiting while another makes it);
+    None (not kept) stays None."""
+    with locked(path.with_suffix(".lock")):
+        if path.exists():
+            return json.loads(path.read_text())
+        out = make()
+        if out is not None:
+            path.write_text(json.dumps(out))
+        return out
 
 
 def identified(seed: int, spec) -> dict:
@@ -336,23 +358,24 @@ def identified(seed: int, spec) -> dict:
     return {"truth": truth, "rows": rows, "wall_s": time.perf_counter() - t0, "device_s": device_s}
 
 
-def recorded_form(seed: int, folder: Path, scenarios: Path, tries: int = 6, pause_s: float = 30.0) -> dict | None:
+def recorded_form(seed: int, folder: Path, scenarios: Path, tries: int = 20, pause_s: float = 45.0) -> dict | None:
     """Today's recorded-runs form on seed's drawn plant lying flat (see --compare): {"truth": each hinge's drawn
     TARGETS from the emulator's log, "rows" (each hinge's own values where the profile keeps them, else the
     shared ones), "wall_s": recording and calibrating, "held": the held-out figures}. A recording the machine's
     load spoiled (the real-time emulator fell behind and `hil` stopped, or the link stopped trusting its clock)
     is recorded again after pause_s, up to `tries` times; None if none was whole."""
     t0 = time.perf_counter()
-    for attempt in range(tries):
-        if (folder / "hold" / "run.json").exists():
-            break
-        try:
-            record(seed, folder, ("--mount", "flat"), mount="flat", scenarios=scenarios)
-        except (RuntimeError, AssertionError, LinkError) as exc:
-            print(f"seed {seed}: recording {attempt + 1} of {tries} failed ({exc})", flush=True)
-            shutil.rmtree(folder / "train", ignore_errors=True)
-            shutil.rmtree(folder / "hold", ignore_errors=True)
-            time.sleep(pause_s)
+    with locked(scenarios / "recording.lock"):  # one real-time emulator at a time: two fell behind together
+        for attempt in range(tries):
+            if (folder / "hold" / "run.json").exists():
+                break
+            try:
+                record(seed, folder, ("--mount", "flat"), mount="flat", scenarios=scenarios)
+            except (RuntimeError, AssertionError, LinkError) as exc:
+                print(f"seed {seed}: recording {attempt + 1} of {tries} failed ({exc})", flush=True)
+                shutil.rmtree(folder / "train", ignore_errors=True)
+                shutil.rmtree(folder / "hold", ignore_errors=True)
+                time.sleep(pause_s)
     if not (folder / "hold" / "run.json").exists():
         return None
     cal = json.loads(quiet("calibrate", str(folder / "train"), "--holdout", str(folder / "hold"), "--per-hinge",
@@ -377,12 +400,21 @@ def compare(seeds, base: Path) -> None:
     for name, s in (("train", 0), ("hold", 1)):  # the same for every plant: made once, before any emulator runs
         if not (base / f"{name}.toml").exists():
             quiet("scenario", str(base / f"{name}.toml"), "--seed", str(s), "--mount", "flat")
+    for seed in seeds:
+        (base / f"seed{seed}").mkdir(exist_ok=True)
+    # the recordings first, unless another process is recording (one at a time): the fits meanwhile
+    recorded = {}
+    for deferred in (False, True):
+        for seed in seeds:
+            if seed not in recorded and (deferred or not busy(base / "recording.lock")):
+                recorded[seed] = cached(base / f"seed{seed}" / "recorded.json",
+                                        lambda: recorded_form(seed, base / f"seed{seed}", base))
+        if not deferred:
+            identification = {seed: cached(base / f"seed{seed}" / "identification.json",
+                                           lambda: identified(seed, spec)) for seed in seeds}
     rows, walls, done = [], {form: [] for form in FORMS}, []
     for seed in seeds:
-        folder = base / f"seed{seed}"
-        folder.mkdir(exist_ok=True)
-        new = cached(folder / "identification.json", lambda: identified(seed, spec))
-        old = cached(folder / "recorded.json", lambda: recorded_form(seed, folder, base))
+        new, old = identification[seed], recorded[seed]
         if old is None:
             print(f"seed {seed}: no whole recording, left out of the table", flush=True)
             continue
