@@ -1,13 +1,15 @@
-"""`calibrate --serial`'s held-out run (twin.hil.identification_holdout): a closed-loop scenario on the device after
-the experiments, from flat, that no fit sees; the twin with the plant's own values predicts it better than the
-prior, near the floor the encoder and the link set."""
+"""`calibrate --serial`'s check that the device lies flat, and its held-out run (twin.hil.identification_holdout):
+a closed-loop scenario on the device after the experiments, from flat, that no fit sees, which the twin with the
+plant's own values replays near the floor the encoder sets."""
 
 import dataclasses
 import math
+import time
 
 import numpy as np
 import pytest
 
+from twin.cli import main as vrscroll
 from twin.formats.profile import spec_defaults
 from twin.hil.identification_holdout import holdout_lines, holdout_report, record_holdout
 from twin.link.drawn_plant import EmulatedDevice
@@ -40,3 +42,16 @@ def test_the_held_out_run_brings_the_flaps_down_and_the_plants_own_values_replay
     lines = holdout_lines({"run": "x", **doc})
     assert len(lines) == 1 + spec.n_hinges and "-> " in lines[1]
     assert "not recorded" in holdout_lines({"not_recorded": "the gate refused it"})[0]
+
+
+def test_calibrate_serial_refuses_a_device_hanging_whose_profile_says_flat(emulator, capsys):
+    """A device hanging from its root flap (its flaps sagged) under a profile that says it lies flat: calibrate
+    --serial says so in one line and runs no experiment (its programs would raise flaps off no table)."""
+    emu = emulator()  # hanging: the flaps beside the root sag at power-on
+    time.sleep(1.0)
+    assert vrscroll(["device", "create", "said-flat", "--mount", "flat"]) == 0
+    capsys.readouterr()
+    assert vrscroll(["calibrate", "--serial", emu.port, "--device", "said-flat"]) == 2
+    err = capsys.readouterr().err
+    assert "below the table: the device is not lying flat" in err and len(err.strip().splitlines()) == 1, err
+    assert not [e for e in emu.events("rx") if e["msg"] == "PROGRAM"]

@@ -23,7 +23,7 @@ def pulsed(spec, wiring: tuple[str, ...], bridge: int, duty: float):
     """One PULSE of `bridge` at `duty` for PULSE_MS on an emulator with these wiring faults, lying flat, after 0.3 s
     at rest: (each plant shaft's change, counts (n,); each encoder input's change as the firmware read it, counts
     (n,); the pulsed input's count at each tick of the pulse from its PROGRAM_SAMPLEs, relative to before)."""
-    flat = dataclasses.replace(as_twin(spec), lying_flat=True)
+    flat = dataclasses.replace(as_twin(spec), mount="flat")
     emu = Emulator(spec, EmulatorOptions(plant=flat, faults=FaultOptions(latency_ms=0.0, wiring=wiring)))
     replies = P.Decoder()
 

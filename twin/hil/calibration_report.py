@@ -28,6 +28,7 @@ from twin.link.serial_link import LinkError, NackError
 from twin.records.calibration import Calibration
 from twin.records.profile import Profile
 from twin.records.report import Report
+from twin.sim.gate import NOT_FLAT_DEPTH, below_table
 
 
 def read_runs(paths: list[str], holdout: str | None, spec, incomplete: bool, note) -> tuple[list, object]:
@@ -215,6 +216,17 @@ def check_lying_flat(profile: Profile) -> None:
                         f"--device {profile.name} --mount flat`; docs/device.md, \"Mounts\")")
 
 
+def check_lying_there(spec, counts) -> None:
+    """UserError where the device's present angles (counts) put a flap more than the gate's NOT_FLAT_DEPTH below a
+    table: it is not lying flat (hanging, its flaps sagged), and the experiments would raise flaps off no table."""
+    depth = below_table(spec, np.asarray(counts, float) * spec.rad_per_count)
+    j = int(np.argmax(depth))
+    if depth[j] > NOT_FLAT_DEPTH:
+        raise UserError(f"flap {j} lies {depth[j] * 1000:.0f} mm below the table: the device is not lying flat, as "
+                        "the identification experiments need it (hanging? lay it flat, then `vrscroll zero --serial "
+                        "PORT`)")
+
+
 def identify(session, profile: Profile, name: str | None, prior: str, say=None) -> Report:
     """`calibrate --serial`: the experiments on the device `session` opens (a context manager giving (link,
     spec), closed before the fits) and the held-out run after them (twin.hil.identification_holdout), each hinge
@@ -230,6 +242,7 @@ def identify(session, profile: Profile, name: str | None, prior: str, say=None) 
                 if say:
                     say(f"device profile: {name or profile.label} (prior: {prior}); identifying each hinge, the "
                         "device lying flat")
+                check_lying_there(spec, link.get_state().counts)
                 moves, device_s = experiments(link.run_program, spec, progress=say)
                 port = link.url
                 if say:

@@ -266,7 +266,7 @@ def twin_options(spec: DeviceSpec, k: int, scales: dict) -> PlantOptions:
     mine = dataclasses.replace(nominal, cogging=spec.cogging * scales.get("cogging", 1.0),
                                speed=scales.get("no_load_speed", 1.0), friction=scales.get("gear_friction", 1.0),
                                armature=scales.get("rotor_inertia", 1.0), damping=scales.get("gear_damping", 1.0))
-    return PlantOptions(backlash_deg=math.degrees(spec.backlash), lying_flat=True, warming=False,
+    return PlantOptions(backlash_deg=math.degrees(spec.backlash), mount="flat", warming=False,
                         backdrive_scale=scales.get("backdrive_efficiency", 1.0),
                         hinges=tuple(mine if h == k else nominal for h in range(spec.n_hinges)))
 

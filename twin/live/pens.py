@@ -15,7 +15,7 @@ import numpy as np
 
 from twin.device.kinematics import pose_matrix, quat_matrix
 from twin.live.messages import PEN_REPLY, SampleBuffer, encode_pen_reply
-from twin.morphpatch.redirection import RedirectionField, _redirect_kernel
+from twin.morphpatch.redirection import RedirectionField, redirect_kernel
 from twin.perception.thresholds import Thresholds
 
 
@@ -54,6 +54,6 @@ class PenRedirection:
         if values[17]:  # the pen relative to the tracked device, put where the approximation has the device
             carry = self._carry
             carry[:] = self._root @ np.linalg.inv(pose_matrix(values[9:12], quat_matrix(values[12:16]))[None])
-        _redirect_kernel(*self._field, self._position, self._quat, carry, self._out_p, self._out_q, self._info)
+        redirect_kernel(*self._field, self._position, self._quat, carry, self._out_p, self._out_q, self._info)
         return encode_pen_reply(values, self._out_p, self._out_q, self._info, self.thresholds.position,
                                 self.thresholds.rotation, self._raw, self._words, self._longs)

@@ -326,7 +326,7 @@ def redirect(field: RedirectionField, positions, orientations, device_poses=None
     n = len(positions)
     out_p, out_q = np.empty((n, 3)), np.empty((n, 4))
     info = np.empty((n, 6))
-    _redirect_kernel(np.ascontiguousarray(field.frames[:, :3, :3]), np.ascontiguousarray(field.frames[:, :3, 3]),
+    redirect_kernel(np.ascontiguousarray(field.frames[:, :3, :3]), np.ascontiguousarray(field.frames[:, :3, 3]),
                      field.s_edges, field.s0, field.ds, field.y0, field.dy, field.offset, field.rotation,
                      positions, orientations, carry, out_p, out_q, info)
     return Redirected(out_p, out_q, info[:, 0], info[:, 1], info[:, 2], info[:, 3].astype(int), info[:, 4],
@@ -347,8 +347,11 @@ def _qrotate(w, x, y, z, vx, vy, vz):
 
 
 @numba.njit(cache=True)
-def _redirect_kernel(rot, origin, s_edges, s0, ds, y0, dy, offset, rotation, positions, orientations, carry,
-                     out_p, out_q, info):
+def redirect_kernel(rot, origin, s_edges, s0, ds, y0, dy, offset, rotation, positions, orientations, carry,
+                    out_p, out_q, info):
+    """`redirect`'s compiled core on a RedirectionField's arrays: each pen sample (positions m, orientations
+    wxyz) redirected into out_p, out_q and info, allocating nothing (the live service's pen path calls it on
+    arrays it keeps: twin.live.pens)."""
     n_flaps = rot.shape[0]
     ns, ny = offset.shape[0], offset.shape[1]
     for k in range(positions.shape[0]):

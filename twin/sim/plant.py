@@ -88,13 +88,9 @@ class PlantOptions:
     mount: str = DEFAULT_MOUNT  # how the device is held (twin.device.mount.MOUNTS): its model is the twin's
     hinges: tuple = ()  # a HingeDraw per hinge; empty: every hinge the shared draw's, nothing the twin leaves out
     warming: bool = True  # with hinges: the windings warm as they work (their resistance with them)
-    # the older spelling of mount="flat", kept while twin.hil.identification (another session's file) says it
-    lying_flat: dataclasses.InitVar[bool] = False
 
-    def __post_init__(self, lying_flat: bool):
+    def __post_init__(self):
         check_mount(self.mount, "plant mount")
-        if lying_flat:
-            object.__setattr__(self, "mount", "flat")
 
 
 @dataclasses.dataclass(frozen=True)
