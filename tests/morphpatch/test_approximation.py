@@ -147,9 +147,13 @@ def test_frames_of_a_result(spec):
     assert np.allclose(frames(spec, result)[spec.root_flap], result.root_pose)
 
 
-@pytest.fixture
-def cache(tmp_path, monkeypatch):
-    monkeypatch.setenv("VRSCROLL_CACHE", str(tmp_path / "cache"))
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    """One cache folder for this module's commands, not the user's: the cylinder's fields are built once (the
+    second variant's run read them: 60 s of the default suite where each built its own)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("VRSCROLL_CACHE", str(tmp_path_factory.mktemp("cache")))
+        yield
 
 
 @pytest.mark.parametrize("variant", ["no_hcevf", "refined"])

@@ -53,3 +53,18 @@ def receive(sock: socket.socket, into: memoryview, realtime_offset: float) -> tu
         elif level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL:
             drops = _DROPS.unpack_from(value)[0]
     return n, addr, arrived, taken, drops
+
+
+def drain(sock: socket.socket, into: memoryview, counts: dict, dropped: str, handle) -> None:
+    """Take what waits on the non-blocking socket, at most DRAIN_MAX datagrams, each into `into` and handed to
+    handle(bytes, sender, arrived, taken) (`receive`'s); counts[dropped]: the kernel's drops since the socket was
+    made."""
+    realtime_offset = time.time() - time.perf_counter()
+    for _ in range(DRAIN_MAX):
+        got = receive(sock, into, realtime_offset)
+        if got is None:
+            return
+        n, addr, arrived, taken, drops = got
+        if drops is not None:
+            counts[dropped] = drops
+        handle(n, addr, arrived, taken)

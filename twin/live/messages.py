@@ -220,27 +220,32 @@ def check_sample(raw, words, longs, n, port, out):
         if not math.isfinite(words[4]):
             return 10
         out[1] = words[4]
-    if _vector(words, 5, 3, POSITION_LIMIT_MM, 1e3, out, 2) < 0:
-        return 11
-    norm = _vector(words, 8, 4, QUAT_LIMIT, 1.0, out, 5)
-    if norm < 0:
-        return 12
-    if norm < 1e-6:
-        return 13
-    for k in range(5, 9):
-        out[k] /= norm
+    wrong = _pose(words, 5, out, 2)
+    if wrong:
+        return 10 + wrong
     out[16], out[17] = kind, 0.0
     if flags & 2:
-        if _vector(words, 12, 3, POSITION_LIMIT_MM, 1e3, out, 9) < 0:
-            return 14
-        norm = _vector(words, 15, 4, QUAT_LIMIT, 1.0, out, 12)
-        if norm < 0:
-            return 15
-        if norm < 1e-6:
-            return 16
-        for k in range(12, 16):
-            out[k] /= norm
+        wrong = _pose(words, 12, out, 9)
+        if wrong:
+            return 13 + wrong
         out[17] = 1.0
+    return 0
+
+
+@numba.njit(cache=True)
+def _pose(words, at, out, to):
+    """A position (mm) at words[at:at+3] and a quaternion at words[at+3:at+7] into out[to:to+3] (m) and
+    out[to+3:to+7] (made unit): 0, or 1 (a position not finite or out of range), 2 (the same for the quaternion),
+    3 (a quaternion of no length)."""
+    if _vector(words, at, 3, POSITION_LIMIT_MM, 1e3, out, to) < 0:
+        return 1
+    norm = _vector(words, at + 3, 4, QUAT_LIMIT, 1.0, out, to + 3)
+    if norm < 0:
+        return 2
+    if norm < 1e-6:
+        return 3
+    for k in range(to + 3, to + 7):
+        out[k] /= norm
     return 0
 
 

@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from twin.live.datagrams import DRAIN_MAX, receive
+from twin.live.datagrams import drain
 from twin.live.messages import APPROXIMATION_RATE_HZ, ERROR_INTERVAL, VALUES, SampleBuffer, sample_error
 
 RATE_BURST = 2.0  # approximations the rate limit lets through back to back (poses at 90 Hz jitter)
@@ -90,16 +90,8 @@ class PoseIntake:
         self.pending = (addr, arrived, taken, time.perf_counter())
 
     def drain(self, sock: socket.socket) -> None:
-        """Take what waits on the (non-blocking) socket, at most DRAIN_MAX datagrams."""
-        realtime_offset = time.time() - time.perf_counter()
-        for _ in range(DRAIN_MAX):
-            got = receive(sock, self.buffer.view, realtime_offset)
-            if got is None:
-                return
-            n, addr, arrived, taken, drops = got
-            if drops is not None:
-                self.counts["pose_dropped"] = drops  # since the socket was made
-            self.received(n, addr, arrived, taken)
+        """Take what waits on the (non-blocking) socket, at most DRAIN_MAX datagrams (twin.live.datagrams.drain)."""
+        drain(sock, self.buffer.view, self.counts, "pose_dropped", self.received)
 
     def wait_s(self, now: float) -> float | None:
         """s until the pending pose may go (0: now); None when no pose is pending."""

@@ -55,7 +55,7 @@ from twin.live.messages import (
     parse_control,
     sample_error,
 )
-from twin.live.datagrams import DRAIN_MAX, receive, stamped_socket
+from twin.live.datagrams import drain, stamped_socket
 from twin.live.morph import MorphOutcome
 from twin.live.pens import PenRedirection
 from twin.live.stages import LATENCY_WINDOW, PEN_STAGES, StageTimes, percentiles_ms
@@ -413,15 +413,7 @@ class LiveService:
     # ---- datagrams ------------------------------------------------------------------------
     def _pens_readable(self) -> None:
         """What waits on the pens' socket, at most DRAIN_MAX datagrams (the event loop's other work between)."""
-        realtime_offset = time.time() - time.perf_counter()
-        for _ in range(DRAIN_MAX):
-            got = receive(self._udp, self.pens.buffer.view, realtime_offset)
-            if got is None:
-                return
-            n, addr, arrived, taken, drops = got
-            if drops is not None:
-                self.counts["pen_dropped"] = drops  # since the socket was made
-            self.on_pen(n, addr, arrived, taken)
+        drain(self._udp, self.pens.buffer.view, self.counts, "pen_dropped", self.on_pen)
 
     def on_pen(self, n: int, addr, arrived: float, taken: float) -> None:
         """The n bytes in the pens' buffer from addr, that reached the socket at `arrived` and were taken off it at
