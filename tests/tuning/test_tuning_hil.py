@@ -26,7 +26,7 @@ from twin.hil.calibration_verdict import held_out_improved
 from twin.hil.compare import compare
 from twin.hil.device_gains import device_gains
 from twin.hil.identification import SHOWN_BY
-from twin.hil.mirror import device_step, mirror
+from twin.hil.mirror import device_step
 from twin.hil.shared_plant import (ALIKE, SHARED_BACKLASH_DEG, SHARED_PLANT, SHARED_SCALES, record_soft,
                                    shared_truth, training_scenario)
 from twin.link import protocol as P

@@ -155,6 +155,20 @@ def unexplained(rmse_deg, floor) -> np.ndarray:
     return np.sqrt(np.maximum(np.asarray(rmse_deg) ** 2 - np.asarray(floor) ** 2, 0.0))
 
 
+def compared_rows(before, after, floor, keys: tuple[str, str]) -> list[dict]:
+    """Per hinge, two twins' RMSE on one run (deg: before, after, named by keys), its floor and what the second
+    leaves unexplained: {"hinge", keys[0], keys[1], "floor_deg", "unexplained_deg"}, rounded to 1e-4 deg."""
+    left = unexplained(after, floor)
+    return [{"hinge": k, keys[0]: round(float(b), 4), keys[1]: round(float(a), 4), "floor_deg": round(float(f), 4),
+             "unexplained_deg": round(float(u), 4)} for k, (b, a, f, u) in enumerate(zip(before, after, floor, left))]
+
+
+def compared_lines(rows: list[dict], keys: tuple[str, str]) -> list[str]:
+    """compared_rows' rows in words, a line per hinge: "hinge k: before -> after; floor f; unexplained u"."""
+    return [f"  hinge {r['hinge']}: {r[keys[0]]:.3f} -> {r[keys[1]]:.3f}; floor {r['floor_deg']:.3f}; "
+            f"unexplained {r['unexplained_deg']:.3f}" for r in rows]
+
+
 def per_hinge_rmse(runs: list[Run], plant: DeviceSpec, spec: DeviceSpec, hinges=None) -> tuple[np.ndarray, np.ndarray]:
     """(RMSE, floor), each per hinge and deg, over every frame of the runs."""
     n = [len(r.device.time) for r in runs]

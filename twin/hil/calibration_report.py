@@ -20,7 +20,8 @@ from twin.device.spec_toml import shown, shown_range, spec_units, write_spec_tom
 from twin.errors import UserError
 from twin.formats.profile import updated, write_profile
 from twin.formats.run import read_run
-from twin.hil.calibration import MAX_HALFWIDTH, calibrate, calibrate_hinges, floor_deg, trace_rmse, unexplained
+from twin.hil.calibration import (MAX_HALFWIDTH, calibrate, calibrate_hinges, compared_lines, compared_rows, floor_deg,
+                                  trace_rmse, unexplained)
 from twin.hil.compare import not_followed
 from twin.hil.identification import PROFILED, estimates, experiments, fit_hinge, shared_estimates
 from twin.hil.identification_holdout import HOLDOUT_FOLDER, holdout_lines, holdout_report, record_holdout
@@ -116,26 +117,25 @@ def _per_hinge(rmse, floor) -> list[dict]:
              "unexplained_deg": round(float(u), 4)} for k, (r, f, u) in enumerate(zip(rmse, floor, left))]
 
 
+HINGE_KEYS = ("rmse_shared_deg", "rmse_per_hinge_deg")  # a per-hinge fit's RMSE with the shared and its own values
+
+
 def _hinge_fit(hc, holdout, shared) -> dict:
     """A per-hinge calibration for JSON: per hinge its parameters (Estimate, SI; the prior the shared value),
     the training runs' RMSE with the shared and the per-hinge twin, the floor and what is left unexplained;
     with a held-out run, the same on it. "kept": whether the profile keeps them: always without a held-out
     run; with one, only where each hinge's own values predict it no worse overall than the shared ones
     (more values fitted to a short run can overfit it)."""
-    out = {"evaluations": hc.evaluations, "hinges": [], "kept": True}
-    for k, est in enumerate(hc.estimates):
-        out["hinges"].append({"hinge": k, "parameters": {p: e.to_json() for p, e in est.items()},
-                              "rmse_shared_deg": round(float(hc.rmse_before[k]), 4),
-                              "rmse_per_hinge_deg": round(float(hc.rmse_after[k]), 4),
-                              "floor_deg": round(float(hc.floor[k]), 4),
-                              "unexplained_deg": round(float(unexplained(hc.rmse_after[k], hc.floor[k])), 4)})
+    rows = compared_rows(hc.rmse_before, hc.rmse_after, hc.floor, HINGE_KEYS)
+    out = {"evaluations": hc.evaluations,
+           "hinges": [{"hinge": k, "parameters": {p: e.to_json() for p, e in est.items()},
+                       **{c: v for c, v in row.items() if c != "hinge"}}
+                      for k, (est, row) in enumerate(zip(hc.estimates, rows))], "kept": True}
     if holdout is not None:
         shared_rmse = trace_rmse(holdout, shared, shared)
         own = trace_rmse(holdout, shared, shared, hc.hinges)
         floor = floor_deg(holdout, shared)
-        out["holdout"] = [{"hinge": k, "rmse_shared_deg": round(float(a), 4), "rmse_per_hinge_deg": round(float(b), 4),
-                           "floor_deg": round(float(f), 4), "unexplained_deg": round(float(unexplained(b, f)), 4)}
-                          for k, (a, b, f) in enumerate(zip(shared_rmse, own, floor))]
+        out["holdout"] = compared_rows(shared_rmse, own, floor, HINGE_KEYS)
         out["kept"] = bool(np.sqrt(np.mean(own ** 2)) <= np.sqrt(np.mean(shared_rmse ** 2)))
     return out
 
@@ -202,8 +202,7 @@ def _hinge_fit_lines(fit: dict, units: dict) -> list[str]:
         if rows:
             lines.append(f"per hinge, {label}, deg: RMSE with the shared values -> with each hinge's own; floor; "
                          "unexplained")
-            lines += [f"  hinge {r['hinge']}: {r['rmse_shared_deg']:.3f} -> {r['rmse_per_hinge_deg']:.3f}; "
-                      f"floor {r['floor_deg']:.3f}; unexplained {r['unexplained_deg']:.3f}" for r in rows]
+            lines += compared_lines(rows, HINGE_KEYS)
     return lines
 
 

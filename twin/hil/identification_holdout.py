@@ -16,7 +16,7 @@ import numpy as np
 
 from twin.device.spec import DeviceSpec
 from twin.formats.run import read_run
-from twin.hil.calibration import floor_deg, trace_rmse, unexplained
+from twin.hil.calibration import compared_lines, compared_rows, floor_deg, trace_rmse
 from twin.hil.calibration_scenario import calibration_scenario
 from twin.hil.device_gains import device_gains
 from twin.hil.record import Diverged, run_hil
@@ -27,6 +27,7 @@ from twin.sim.gate import GateRefused
 HOLDOUT_FOLDER = "identification-holdout"  # the held-out run's folder in the device profile's (a `hil` run)
 SEED = 36  # the held-out scenario's draw (any one: no fit sees it)
 CYCLES = 1  # of calibration_scenario's: a move out and a ramp about it, 3.7 s of scenario on the device
+KEYS = ("rmse_prior_deg", "rmse_identified_deg")  # the report's per-hinge RMSE with the prior and identified values
 TOLERANCE_DEG = 30.0  # the run is e-stopped where the device parts from the prior twin by more (hil's tolerance)
 
 
@@ -55,11 +56,8 @@ def holdout_report(run, prior: Profile, fitted: Profile, spec: DeviceSpec) -> di
     before = trace_rmse(run, prior.spec, spec, prior.hinges)
     after = trace_rmse(run, fitted.spec, spec, fitted.hinges)
     floor = floor_deg(run, spec)
-    left = unexplained(after, floor)
     rms = (lambda x: round(float(np.sqrt(np.mean(np.asarray(x) ** 2))), 4))
-    return {"hinges": [{"hinge": k, "rmse_prior_deg": round(float(b), 4), "rmse_identified_deg": round(float(a), 4),
-                        "floor_deg": round(float(f), 4), "unexplained_deg": round(float(u), 4)}
-                       for k, (b, a, f, u) in enumerate(zip(before, after, floor, left))],
+    return {"hinges": compared_rows(before, after, floor, KEYS),
             "overall_before_deg": rms(before), "overall_after_deg": rms(after), "floor_deg": rms(floor)}
 
 
@@ -70,6 +68,4 @@ def holdout_lines(doc: dict) -> list[str]:
     lines = [f"held-out run ({doc['run']}), deg: RMSE with the prior -> with the identified values; floor; "
              f"unexplained (overall {doc['overall_before_deg']:.3f} -> {doc['overall_after_deg']:.3f}, "
              f"floor {doc['floor_deg']:.3f})"]
-    lines += [f"  hinge {r['hinge']}: {r['rmse_prior_deg']:.3f} -> {r['rmse_identified_deg']:.3f}; "
-              f"floor {r['floor_deg']:.3f}; unexplained {r['unexplained_deg']:.3f}" for r in doc["hinges"]]
-    return lines
+    return lines + compared_lines(doc["hinges"], KEYS)
