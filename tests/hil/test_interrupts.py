@@ -25,16 +25,16 @@ def _rx(emu, name: str) -> list[dict]:
 MIRROR = ["mirror", "--angles=60,-45,20,30,90,-100", "--settle-limit-s", "5", "--tolerance-deg", "170"]
 
 
-def _start_moving(args, emu, tmp_path, **popen):
-    """The command started on the emulator, once its targets are in and the hinges moving: (process, the
-    device time the targets arrived)."""
+def _start_moving(args, emu, tmp_path, within_s: float = 60.0, **popen):
+    """The command started on the emulator, once its targets are in (within within_s) and the hinges moving:
+    (process, the device time the targets arrived)."""
     # SIGINT as a terminal gives it, whatever this run inherited: a suite started in the background by a
     # non-interactive shell has SIGINT ignored, and a child that starts so never sees Ctrl-C
     preexec = popen.pop("preexec_fn", None) or (lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     proc = subprocess.Popen(cli_command(*args, "--serial", emu.port, "--log", str(tmp_path / "session.jsonl")),
                             env=cli_env(), stderr=subprocess.PIPE, text=True, preexec_fn=preexec,
                             **{"stdout": subprocess.DEVNULL, **popen})
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + within_s
     while not _rx(emu, "SET_TARGETS") and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.02)
     assert _rx(emu, "SET_TARGETS"), proc.stderr.read() if proc.poll() is not None else "no targets sent"
@@ -77,6 +77,16 @@ def test_an_interrupt_e_stops_the_device(command, sig, emulator, tmp_path):
     assert _signalled(proc, sig) == 130, proc.stderr.read()
     _assert_e_stopped(emu, moved_at)
     assert "interrupted" in proc.stderr.read()
+
+
+@pytest.mark.slow  # the experiments run first: 40-60 s
+def test_calibrate_serial_interrupted_in_its_held_out_run_e_stops_the_device(emulator, tmp_path):
+    """calibrate --serial's held-out run (closed loop, after the open-loop experiments) moves the device under
+    targets: SIGTERM there e-stops it, as in any other command that moves it."""
+    emu = emulator("--lying-flat", "--speed-scale", "0.3")
+    proc, moved_at = _start_moving(["calibrate"], emu, tmp_path, within_s=240)
+    assert _signalled(proc, signal.SIGTERM) == 130, proc.stderr.read()
+    _assert_e_stopped(emu, moved_at)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGHUP, pytest.param(signal.SIGQUIT, marks=pytest.mark.slow)],
