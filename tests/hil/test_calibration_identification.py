@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from twin.cli import main as vrscroll
-from twin.commands.options import select_profile
+from twin.formats.profile import select_profile
 from twin.hil.identification import (FITTED, HELD, PROFILED, SETTLE_S, SPEEDS, TOP_DEG, VALLEY_COST, VALLEY_GAIN,
                                      WHY, HingeFit, _valley, estimates, experiments, fit_hinge, program, residual,
                                      turned)

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from twin.commands.options import select_profile
 from twin.cli import main as vrscroll
 from twin.device.spec import load_spec
+from twin.formats.profile import select_profile
 from twin.formats.run import read_run
 from twin.hil.calibration import trace_rmse
 from twin.hil.calibration_verdict import held_out_improved, judged

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from twin.cli import main as vrscroll
-from twin.commands.options import select_profile
 from twin.device.spec import load_spec
+from twin.formats.profile import select_profile
 from twin.hil.holding import Release, fit_backdrive, sag_after_cut, twin_release
 from twin.link import protocol as P
 from twin.link.drawn_plant import drawn_plant

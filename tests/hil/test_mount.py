@@ -12,8 +12,8 @@ import pytest
 from controllers.pid import PidGains
 from twin.cli import main as vrscroll
 from twin.commands import emulate
-from twin.commands.options import select_profile
 from twin.device.mount import table_height
+from twin.formats.profile import select_profile
 from twin.formats.scenario import read_scenario, scenario_of_steps, write_scenario
 from twin.formats.trace import read_trace
 from twin.hil.mirror import TIME_SLACK

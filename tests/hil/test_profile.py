@@ -11,10 +11,9 @@ from controllers.pid import PidGains
 from twin.cli import main as vrscroll
 from twin.device.profile import profiles_dir
 from twin.formats.gains import write_gains
-from twin.commands.options import select_profile
 from twin.device.variation import corners, scaled
 from twin.live.morph import TwinMorpher
-from twin.formats.profile import read_profile, spec_defaults, updated, write_profile
+from twin.formats.profile import read_profile, select_profile, spec_defaults, updated, write_profile
 from twin.records.calibration import Calibration, Estimate
 from twin.records.gains import Gains
 from twin.records.profile import Holding

@@ -9,24 +9,17 @@ confirmed as zero; then a first gated move of every hinge and back."""
 
 from __future__ import annotations
 
-import numpy as np
-
 from twin.commands.options import (
     add_device_option,
     add_serial,
     add_tolerance_deg,
-    device_session,
-    profile_line,
-    profile_of,
 )
 from twin.errors import UserError
-from twin.formats.profile import write_profile_wiring
-from twin.hil.bringup import bring_up, hand_by_prompt
-from twin.hil.mirror import mirror
+from twin.formats.profile import chosen_profile, profile_line, write_profile_wiring
+from twin.hil.bringup import bring_up, first_move, hand_by_prompt
+from twin.hil.device_gains import device_session
 from twin.link.serial_link import LinkError
 from twin.sim.gate import GateRefused
-
-FIRST_MOVE_DEG = 10.0  # the first gated move: every hinge this far, then back to flat
 
 
 def add_arguments(p) -> None:
@@ -42,11 +35,11 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    profile = profile_of(args)
+    profile = chosen_profile(args.device)
     spec = profile.spec
     print(profile_line(profile))
     try:
-        with device_session(args, spec) as (link, spec):
+        with device_session(args.serial, spec, args.log) as (link, spec):
             checks = bring_up(link, spec, hand_by_prompt(link) if args.hand else None)
             wiring = link.get_wiring()
             found = [c.note for c in checks if c.note]
@@ -66,13 +59,7 @@ def run(args) -> int:
                   ("" if args.hand else " (the device must lie flat now: `vrscroll zero` again if it did not)"))
             if args.no_move:
                 return 0
-            for deg in (FIRST_MOVE_DEG, 0.0):
-                # lying flat for the zero, as it still is: the twin holds it on its table too
-                result = mirror(link, spec, np.radians([deg] * spec.n_hinges), args.tolerance_deg, mount="flat")
-                print(f"move     every hinge to {deg:g} deg: {result.outcome}"
-                      + (f" (hinge {result.hinge})" if result.hinge is not None else ""))
-                if result.outcome != "settled":
-                    raise UserError(f"the first gated move did not settle ({result.outcome}); check the hinge named")
+            first_move(link, spec, args.tolerance_deg)
     except GateRefused as exc:
         raise UserError(str(exc)) from None
     except LinkError as exc:

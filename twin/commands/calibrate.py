@@ -15,15 +15,15 @@ from twin.commands.options import (
     add_refused,
     add_serial,
     add_threads,
-    device_session,
     json_to_stdout,
     output_file,
-    profile_or_new,
     within,
     write_json,
 )
 from twin.errors import UserError
+from twin.formats.profile import profile_or_new
 from twin.hil.calibration_report import calibrate_runs, check_lying_flat, identify
+from twin.hil.device_gains import device_session
 
 MAX_GENERATIONS = 100  # cross-entropy generations: the search settles in under ten
 MAX_POPULATION = 1000  # twin replays per generation
@@ -64,7 +64,7 @@ def run(args) -> int:
             raise UserError("--serial identifies the device itself: give no runs, --holdout or --per-hinge with it")
         if not new:
             check_lying_flat(profile)
-        report = identify(device_session(args, profile.spec), profile, name, prior, say)
+        report = identify(device_session(args.serial, profile.spec, args.log), profile, name, prior, say)
     else:
         if not args.runs:
             raise UserError("give the HIL run folders to fit to (`vrscroll scenario FILE` writes the scenario to record)")

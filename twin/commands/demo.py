@@ -8,11 +8,12 @@ a refusal), report all, write a picture. The path: twin.evaluation.demo_morph; i
 from __future__ import annotations
 
 from twin.commands.approximate import target_and_start
-from twin.commands.options import (add_device_option, add_json, add_mount, add_rerun, add_target, output_file,
-                                   profile_line, profile_of, profile_twin, write_json)
+from twin.commands.options import add_device_option, add_json, add_mount, add_rerun, add_target, output_file, write_json
 from twin.evaluation.demo_morph import demo_morph
+from twin.formats.profile import chosen_profile, profile_line
 from twin.morphpatch.approximation import VARIANTS
 from twin.morphpatch.shapes import shape_names
+from twin.sim.twin import profile_twin
 from viz.demo_pictures import demo_pictures
 
 
@@ -39,7 +40,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    profile = profile_of(args)
+    profile = chosen_profile(args.device, args.mount)
     print(profile_line(profile), flush=True)
     if not args.mesh and not args.shape:
         args.shape = "cylinder"

@@ -3,9 +3,9 @@
 
 from __future__ import annotations
 
-from twin.commands.options import add_mount, select_profile
+from twin.commands.options import add_mount
 from twin.device.profile import default_name, profile_names, profiles_dir, set_default
-from twin.formats.profile import create_profile, profile_lines
+from twin.formats.profile import create_profile, profile_lines, select_profile
 from twin.records.profile import NO_PROFILE
 
 

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import sys
 
-from twin.commands.options import (add_device_option, add_mount, add_rerun, add_serial, add_tolerance_deg,
-                                   device_session, opened, within)
+from twin.commands.options import add_device_option, add_mount, add_rerun, add_serial, add_tolerance_deg, opened, within
 from twin.formats.gains import read_gains
 from twin.formats.scenario import read_scenario
 from twin.hil.compare import metrics_text, not_followed
+from twin.hil.device_gains import device_session
 from twin.hil.hil_run import record_hil, run_folder
 from viz.hil_report import write_report
 
@@ -37,7 +37,7 @@ def run(args) -> int:
         profile.gains if profile.gains_from != "spec" else None
     out = run_folder(scenario, args.out, args.overwrite)
     log = args.log or str(out / "session.jsonl")
-    spec, run_, rows = record_hil(device_session(args, spec, log), profile, scenario, args.scenario, out, gains,
+    spec, run_, rows = record_hil(device_session(args.serial, spec, log), profile, scenario, args.scenario, out, gains,
                                   args.gains or profile.gains_from, log, args.telemetry_hz, args.tolerance_deg,
                                   lambda line: print(line, flush=True))
     report = write_report(spec, out, rows)

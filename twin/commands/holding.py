@@ -7,8 +7,9 @@ device does in the seconds after its drive is cut, and an unpowered one (a pack 
 from __future__ import annotations
 
 from twin.commands.options import (add_device_option, add_json, add_mount, add_serial, add_tolerance_deg,
-                                   device_session, json_to_stdout, link_errors, opened, within, write_json)
+                                   json_to_stdout, opened, within, write_json)
 from twin.errors import UserError
+from twin.hil.device_gains import device_session, link_errors
 from twin.hil.holding import RELEASE_S, measure_holding
 from twin.hil.mirror import DeviceNotReady
 from twin.sim.gate import GateRefused
@@ -41,7 +42,7 @@ def run(args) -> int:
                   + " ".join(f"{d:.1f}" for d in release.angle_deg[-1] - release.angle_deg[0]) + " deg", flush=True)
 
     try:
-        with link_errors(), device_session(args, spec) as (link, spec):
+        with link_errors(), device_session(args.serial, spec, args.log) as (link, spec):
             got = measure_holding(link, spec, profile, args.releases, args.release_s, args.tolerance_deg, progress)
     except (GateRefused, DeviceNotReady) as exc:
         raise UserError(str(exc)) from None

@@ -3,8 +3,8 @@
 
 from __future__ import annotations
 
-from twin.commands.options import (add_device_option, add_mount, add_rerun, add_serial, add_tolerance_deg,
-                                   device_session, opened, within)
+from twin.commands.options import add_device_option, add_mount, add_rerun, add_serial, add_tolerance_deg, opened, within
+from twin.hil.device_gains import device_session
 from twin.hil.mirror_run import mirror_on_device, mirror_targets
 
 
@@ -27,9 +27,9 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     profile, spec = opened(args)
     targets = mirror_targets(spec, args.target, args.angles)
-    spec, result, lines = mirror_on_device(device_session(args, spec), profile, targets, args.tolerance_deg,
-                                           args.settle_limit_s, args.override, args.telemetry_hz, args.log,
-                                           lambda line: print(line, flush=True))
+    spec, result, lines = mirror_on_device(device_session(args.serial, spec, args.log), profile, targets,
+                                           args.tolerance_deg, args.settle_limit_s, args.override, args.telemetry_hz,
+                                           args.log, lambda line: print(line, flush=True))
     print("\n".join(lines))
     if args.rerun:
         from viz.rerun_log import RerunRecording, add_move

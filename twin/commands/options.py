@@ -9,27 +9,26 @@
   held, recorded in that profile (the twin is held the same way);
 - `--shape S | --mesh FILE` and `--start X,Y,Z,ROLL,PITCH,YAW`: the target and the anchor's start.
 
+What the options open lives below the commands, where tests and other layers reach it too: the profile
+(twin.formats.profile.chosen_profile, its line profile_line), its twin (twin.sim.twin.profile_twin), the device
+(twin.hil.device_gains.device_session, a link failure as one line with link_errors); `opened` here reads --device
+and --mount and prints the profile's line.
+
 An old spelling (`--port`, `--tolerance`, `--json` without a file) is refused with a message naming the new.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import re
 import sys
 from pathlib import Path
 
-from twin.device.profile import default_name, profile_dir, profiles_dir, set_default
 from twin.device.mount import MOUNTS
-from twin.formats.profile import read_profile, spec_defaults, updated, write_profile
-from twin.hil.device_gains import device_spec
-from twin.errors import UserError
-from twin.link.serial_link import Link, LinkError
+from twin.formats.profile import chosen_profile, profile_line
 from twin.paths import replacing
-from twin.records.profile import Profile
 
 # old spelling -> new, refused wherever the new one is an option of the command
 RENAMED = {"--port": "--serial", "--tolerance": "--tolerance-pct", "--max-time": "--max-time-s",
@@ -222,93 +221,11 @@ def add_mount(p) -> None:
                         "twin the same way (default: the profile's, else hanging)")
 
 
-def select_profile(name: str | None = None) -> Profile:
-    """The profile called name, or the selected one (twin.device.profile.default_name), or the spec's defaults.
-
-    ValueError (one line) for a profile that is not there or is damaged, naming it and where it was looked for.
-    """
-    chosen = name or default_name()
-    if chosen is None:
-        return spec_defaults()
-    folder = profile_dir(chosen)
-    if not folder.is_dir():
-        how = "given with --device" if name else f"selected in {profiles_dir() / 'default'}"
-        raise ValueError(f"device profile {chosen!r} ({how}) is not in {profiles_dir()}: `vrscroll device list` "
-                         f"shows those there are; `vrscroll calibrate RUN --device {chosen}` makes one")
-    return read_profile(folder)
-
-
-def profile_or_new(name: str | None) -> tuple[Profile, bool]:
-    """(the profile called name, or the selected one (select_profile), False), or for a name not there yet (a
-    profile a command makes) (the spec's defaults, True)."""
-    if name and not profile_dir(name).is_dir():
-        return spec_defaults(), True
-    return select_profile(name), False
-
-
-def profile_of(args) -> Profile:
-    """The profile args.device names (then remembered as the default), or the selected one, or the spec's
-    defaults; held as args.mount where the command has --mount and it was given (recorded in the profile, when
-    there is one). ValueError (one line) for a profile that is not there or is damaged."""
-    profile = select_profile(args.device)
-    if args.device:
-        set_default(args.device)
-    mount = getattr(args, "mount", None)
-    if mount and mount != profile.mount:
-        profile = updated(profile, mount=mount)
-        if profile.name:
-            write_profile(profile)
-    return profile
-
-
-def profile_twin(profile: Profile, **options):
-    """The twin (twin.sim.twin.Twin) of a device: its profile's spec and gains, each hinge's own plant where it
-    was calibrated per hinge (Profile.hinges), held as the profile says (Profile.mount). options: Twin's (root,
-    model, stall_detection)."""
-    from twin.sim.twin import Twin  # here, not above: MuJoCo and the compiled loops load in 0.5 s, not for --help
-
-    return Twin(profile.spec, profile.gains, hinges=profile.hinges, mount=profile.mount, **options)
-
-
-def said_by_device(spec, link):
-    """The spec with the device's own configuration from its HELLO (twin.hil.device_gains.device_spec), each
-    difference said on a line of its own."""
-    spec, notes = device_spec(spec, link.info)
-    for note in notes:
-        print(f"note: {note}")
-    return spec
-
-
-@contextlib.contextmanager
-def device_session(args, spec, log=None):
-    """(link, spec): the device on --serial, opened (closed, e-stopped on an interrupt, when the block ends),
-    and the spec with the device's own configuration from its HELLO (said_by_device). log: the session log
-    (default --log)."""
-    with Link(args.serial, log_path=log or args.log, hinges=spec.n_hinges) as link:
-        yield link, said_by_device(spec, link)
-
-
 def opened(args, say: bool = True):
-    """Every command's opening: (the profile args choose (profile_of), its spec), the profile's line printed
-    first, unless the JSON takes standard output (--json -) or say is False (a command that prints it later).
-    ValueError (one line) for a profile that is not there or is damaged."""
-    profile = profile_of(args)
+    """A command's opening: (the profile --device and --mount choose (twin.formats.profile.chosen_profile), its
+    spec), the profile's line printed first, unless the JSON takes standard output (--json -) or say is False (a
+    command that prints it later). ValueError (one line) for a profile that is not there or is damaged."""
+    profile = chosen_profile(args.device, getattr(args, "mount", None))
     if say and not json_to_stdout(args):
         print(profile_line(profile), flush=True)
     return profile, profile.spec
-
-
-@contextlib.contextmanager
-def link_errors(note: str = ""):
-    """A LinkError in the block (the device's port, its replies, a refusal) as one line, UserError
-    "link: ..." + note (e.g. where the session log is)."""
-    try:
-        yield
-    except LinkError as exc:
-        raise UserError(f"link: {exc}{note}") from None
-
-
-def profile_line(profile: Profile) -> str:
-    """The line every report starts with."""
-    where = f" ({profile.folder})" if profile.folder else " (models/vrscroll/spec.toml)"
-    return f"device profile: {profile.label}{where}; mount: {profile.mount}"

@@ -5,13 +5,13 @@ spread about the spec), to record with `vrscroll hil` and fit with `vrscroll cal
 
 from __future__ import annotations
 
-from twin.commands.options import add_device_option, add_mount, add_serial, link_errors, opened, within
+from twin.commands.options import add_device_option, add_mount, add_serial, opened, within
+from twin.device.variation import corners, prior_ranges
 from twin.errors import UserError
 from twin.formats.gains import read_gains
 from twin.formats.scenario import write_scenario
-from twin.device.variation import corners, prior_ranges
 from twin.hil.calibration_scenario import calibration_scenario
-from twin.hil.device_gains import device_gains
+from twin.hil.device_gains import device_gains, link_errors
 from twin.link.serial_link import Link
 
 

@@ -13,9 +13,9 @@ import os
 import secrets
 
 from twin.commands.interrupts import stop_signals_call
-from twin.commands.options import (add_device_option, add_mount, add_rerun, add_serial, add_target, add_tolerance_deg,
-                                   profile_line, profile_of)
+from twin.commands.options import add_device_option, add_mount, add_rerun, add_serial, add_target, add_tolerance_deg
 from twin.errors import UserError
+from twin.formats.profile import chosen_profile, profile_line
 from twin.live.messages import DEFAULT_LISTEN_PORT
 from twin.live.service import LOOPBACK
 from twin.live.serving import live_service, serve_until_stopped
@@ -44,7 +44,7 @@ def add_arguments(p) -> None:
 def run(args) -> int:
     if not 0 <= args.listen <= 65535:
         raise UserError(f"--listen {args.listen}: a port number, 0 (any free one) to 65535")
-    profile = profile_of(args)
+    profile = chosen_profile(args.device, args.mount)
     print(profile_line(profile), flush=True)
     token = args.token
     if args.allow_remote and not token and args.host not in LOOPBACK:

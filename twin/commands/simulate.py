@@ -8,9 +8,11 @@ import math
 import sys
 
 from twin.commands.options import (add_device_option, add_json, add_mount, add_rerun, json_to_stdout, output_file,
-                                   profile_line, profile_of, profile_twin, within, write_json)
+                                   within, write_json)
 from twin.evaluation.twin_move import move_lines, move_targets, simulate_move
+from twin.formats.profile import chosen_profile, profile_line
 from twin.formats.trace import write_trace
+from twin.sim.twin import profile_twin
 from viz.traces import hinge_figure
 from viz.viewer import show_move
 
@@ -39,7 +41,7 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    profile = profile_of(args)
+    profile = chosen_profile(args.device, args.mount)
     spec = profile.spec
     targets, start, approx = move_targets(spec, args.targets, args.start)
     move = simulate_move(profile_twin(profile), profile.gains, start, targets, args.max_time_s, args.hold, approx,

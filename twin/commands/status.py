@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from twin.commands.options import (add_device_option, add_serial, comma_list, device_session, link_errors, opened,
-                                   profile_line, within)
+from twin.commands.options import add_device_option, add_serial, comma_list, opened, within
+from twin.formats.profile import profile_line
+from twin.hil.device_gains import device_session, link_errors
 from twin.hil.device_status import device_status, watch
 
 
@@ -27,7 +28,7 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     profile, spec = opened(args, say=False)  # said with what the device says
-    with link_errors(), device_session(args, spec) as (link, spec):
+    with link_errors(), device_session(args.serial, spec, args.log) as (link, spec):
         lines = device_status(link, spec, profile, args.estop, args.clear_fault, args.disable_hinges,
                               args.enable_hinges)
         print("\n".join([profile_line(profile), *lines]), flush=True)

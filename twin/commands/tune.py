@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import contextlib
 
-from twin.commands.options import (add_device_option, add_json, add_mount, add_serial, add_threads, device_session,
-                                   json_to_stdout, opened, output_file, within, write_json)
+from twin.commands.options import (add_device_option, add_json, add_mount, add_serial, add_threads, json_to_stdout,
+                                   opened, output_file, within, write_json)
 from twin.errors import UserError
 from twin.evaluation.backends import BACKENDS, WORKERS_PER_CORE, make_backend
 from twin.hil.confirm import confirmed
+from twin.hil.device_gains import device_session
 from twin.hil.identification import narrowing
 from twin.tuning.tuned_gains import goal_of, ranges_line, tune_profile
 
@@ -66,8 +67,8 @@ def run(args) -> int:
                         f"(printed above), {worst}: narrow those intervals (`calibrate --serial` lying flat) or "
                         "loosen the goal")
     if args.serial:
-        rows, lines = confirmed(device_session(args, spec), tuned.gains.hinges, goal.step, args.duration_s,
-                                lambda: tuned.keep_in(profile), profile.hinges, profile.mount, args.log)
+        rows, lines = confirmed(device_session(args.serial, spec, args.log), tuned.gains.hinges, goal.step,
+                                args.duration_s, lambda: tuned.keep_in(profile), profile.hinges, profile.mount, args.log)
         tuned.report.doc["device"] = rows
         if say:
             print("\n".join(lines))

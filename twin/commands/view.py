@@ -6,7 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from twin.commands.options import add_device_option, add_rerun, opened, output_file, profile_line
+from twin.commands.options import add_device_option, add_rerun, opened, output_file
+from twin.formats.profile import profile_line
 from twin.formats.run import read_run
 from viz.viewer import show_run
 

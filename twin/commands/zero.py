@@ -10,8 +10,10 @@ from __future__ import annotations
 import numpy as np
 
 from controllers.encoder import angle_from_counts
-from twin.commands.options import add_device_option, add_serial, device_session, link_errors, opened, profile_line
+from twin.commands.options import add_device_option, add_serial, opened
 from twin.errors import UserError
+from twin.formats.profile import profile_line
+from twin.hil.device_gains import device_session, link_errors
 from twin.link import protocol as P
 
 
@@ -23,7 +25,7 @@ def add_arguments(p) -> None:
 
 def run(args) -> int:
     profile, spec = opened(args, say=False)  # said after the device answers, above what it said
-    with link_errors(), device_session(args, spec) as (link, spec):
+    with link_errors(), device_session(args.serial, spec, args.log) as (link, spec):
         before = link.get_state()
         if before.state == P.State.FAULT and before.faults == P.Fault.WATCHDOG:
             link.clear_fault()  # the last session's hold ran out: nothing went wrong

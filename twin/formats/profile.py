@@ -15,12 +15,13 @@ calibration of before they were kept has none) is the twin's values that reprodu
 bounded parameters at the profile's values, which `vrscroll tune` tunes over (low..high without them).
 "hinges" (optional, `vrscroll calibrate --per-hinge`): per hinge, its own values of the
 parameters a hinge's motor and gearbox change, each about the shared value (its "prior"): the twin of
-the profile (twin.commands.options.profile_twin) gives each hinge its own.
+the profile (twin.sim.twin.profile_twin) gives each hinge its own.
 "mount" (written by `--mount` with `--device`, or `vrscroll device create NAME --mount M`): how the device is
 held, one of twin.device.mount.MOUNTS ("hanging", "flat", "stand"); a profile without it (older ones) hangs.
 "holding" (written by `vrscroll holding --device`): {"port", "releases": count, "parameters":
 {"backdrive_efficiency": {...}}}, the value also in spec.toml (twin.hil.holding).
-Where the folders live is twin.device.profile's; which one a command uses, twin.commands.options'.
+Where the folders live is twin.device.profile's; which one a command uses is `chosen_profile` here (the one
+named, else the selected one, else the spec's defaults), and the line every report starts with `profile_line`.
 
 Read and written whole as the record twin.records.profile.Profile (its Calibration and Holding records):
 `read_profile` gives it, a command makes the changed record with `updated` and `write_profile` writes it, so no
@@ -37,7 +38,7 @@ from pathlib import Path
 from controllers.pid import PidGains
 from twin.checks import json_object, known_keys, number, required_keys
 from twin.device.mount import DEFAULT_MOUNT, check_mount
-from twin.device.profile import profile_dir, profiles_dir
+from twin.device.profile import default_name, profile_dir, profiles_dir, set_default
 from twin.device.spec import SPEC_PATH, DeviceSpec, load_spec, spec_sources
 from twin.device.spec_toml import shown, shown_range, spec_units, write_spec_toml
 from twin.device.variation import PLANT_FIELDS, scaled
@@ -285,6 +286,50 @@ def create_profile(name: str, mount: str | None = None) -> Path:
     (folder / SPEC).write_text(Path(SPEC_PATH).read_text())
     _write_meta(folder, {"mount": mount} if mount else {})
     return folder
+
+
+def select_profile(name: str | None = None) -> Profile:
+    """The profile called name, or the selected one (twin.device.profile.default_name), or the spec's defaults.
+
+    ValueError (one line) for a profile that is not there or is damaged, naming it and where it was looked for.
+    """
+    chosen = name or default_name()
+    if chosen is None:
+        return spec_defaults()
+    folder = profile_dir(chosen)
+    if not folder.is_dir():
+        how = "given with --device" if name else f"selected in {profiles_dir() / 'default'}"
+        raise ValueError(f"device profile {chosen!r} ({how}) is not in {profiles_dir()}: `vrscroll device list` "
+                         f"shows those there are; `vrscroll calibrate RUN --device {chosen}` makes one")
+    return read_profile(folder)
+
+
+def profile_or_new(name: str | None) -> tuple[Profile, bool]:
+    """(the profile called name, or the selected one (select_profile), False), or for a name not there yet (a
+    profile a command makes) (the spec's defaults, True)."""
+    if name and not profile_dir(name).is_dir():
+        return spec_defaults(), True
+    return select_profile(name), False
+
+
+def chosen_profile(name: str | None, mount: str | None = None) -> Profile:
+    """What a command opens (`--device NAME`, `--mount M`): the profile called name (then remembered as the
+    default), or the selected one, or the spec's defaults; held as `mount` where given (recorded in the profile,
+    when there is one). ValueError (one line) for a profile that is not there or is damaged."""
+    profile = select_profile(name)
+    if name:
+        set_default(name)
+    if mount and mount != profile.mount:
+        profile = updated(profile, mount=mount)
+        if profile.name:
+            write_profile(profile)
+    return profile
+
+
+def profile_line(profile: Profile) -> str:
+    """The line every report starts with."""
+    where = f" ({profile.folder})" if profile.folder else " (models/vrscroll/spec.toml)"
+    return f"device profile: {profile.label}{where}; mount: {profile.mount}"
 
 
 def profile_lines(profile: Profile) -> list[str]:

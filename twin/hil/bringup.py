@@ -34,6 +34,7 @@ from controllers.sketch import wiring as board_wiring
 from twin.device.spec import DeviceSpec
 from twin.errors import UserError
 from twin.link import protocol as P
+from twin.hil.mirror import mirror
 from twin.link.serial_link import Link
 
 # (duty, s) of the bring-up pulses, each tried only where none before moved the hinge's own encoder input most
@@ -459,6 +460,22 @@ def bring_up(link: Link, spec: DeviceSpec, hand=None, say=print) -> list[HingeCh
     if (list(wiring.encoder), list(wiring.flags), list(wiring.bridge)) != (inputs, flags, bridges):
         raise BringupError(f"the device holds wiring {wiring}, not what was sent")
     return checks
+
+
+FIRST_MOVE_DEG = 10.0  # the first gated move: every hinge this far, then back to flat
+
+
+def first_move(link: Link, spec: DeviceSpec, tolerance_deg: float, say=print) -> None:
+    """Bring-up's first gated move once the zero is confirmed: every hinge to FIRST_MOVE_DEG and back to flat,
+    each leg said as it ends; tolerance_deg: the e-stop's bound on device against twin (twin.hil.mirror).
+    UserError naming the outcome for a leg that does not settle; GateRefused for one the gate refuses."""
+    for deg in (FIRST_MOVE_DEG, 0.0):
+        # lying flat for the zero, as it still is: the twin holds it on its table too
+        result = mirror(link, spec, np.radians([deg] * spec.n_hinges), tolerance_deg, mount="flat")
+        say(f"move     every hinge to {deg:g} deg: {result.outcome}"
+            + (f" (hinge {result.hinge})" if result.hinge is not None else ""))
+        if result.outcome != "settled":
+            raise UserError(f"the first gated move did not settle ({result.outcome}); check the hinge named")
 
 
 def hand_by_prompt(link: Link, wait_s: float = 30.0, ask=input):

@@ -1,5 +1,6 @@
-"""What the device itself says it runs: its configuration from HELLO over the profile's spec, and its PID
-gains (reading them, and pushing a new set so that it is all or nothing).
+"""What the device itself says it runs: the device opened with its configuration from HELLO over the profile's
+spec (`device_session`; a link failure as one line, `link_errors`), and its PID gains (reading them, and pushing a
+new set so that it is all or nothing).
 
 Every hinge's gains are checked against the bounds the firmware takes before any is sent; if the
 device refuses one anyway, the hinges already changed get their previous gains back.
@@ -7,10 +8,12 @@ device refuses one anyway, the hinges already changed get their previous gains b
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 from controllers.pid import PidGains
 from twin.device.spec import DeviceSpec
+from twin.errors import UserError
 from twin.formats.gains import check_gains
 from twin.link.protocol import HelloReply
 from twin.link.serial_link import Link, LinkError
@@ -31,6 +34,28 @@ def device_spec(spec: DeviceSpec, info: HelloReply) -> tuple[DeviceSpec, list[st
             notes.append(f"the device's {what} is {theirs:g} {unit}, the profile's spec says {ours / si:g} {unit}: "
                          "the device's is used")
     return (spec.replace(**changes) if changes else spec), notes
+
+
+@contextlib.contextmanager
+def device_session(port: str, spec: DeviceSpec, log=None, say=print):
+    """(link, spec): the device on `port`, opened (closed, e-stopped on an interrupt, when the block ends; `log`
+    the session log, JSON lines), and the spec with the device's own configuration from its HELLO (device_spec),
+    each difference said through `say` as a "note: ..." line."""
+    with Link(port, log_path=log, hinges=spec.n_hinges) as link:
+        spec, notes = device_spec(spec, link.info)
+        for note in notes:
+            say(f"note: {note}")
+        yield link, spec
+
+
+@contextlib.contextmanager
+def link_errors(note: str = ""):
+    """A LinkError in the block (the device's port, its replies, a refusal) as one line, UserError
+    "link: ..." + note (e.g. where the session log is)."""
+    try:
+        yield
+    except LinkError as exc:
+        raise UserError(f"link: {exc}{note}") from None
 
 
 def device_gains(link: Link, n: int) -> list[PidGains]:

@@ -30,6 +30,7 @@ from controllers.program import ProgramEnd, ProgramRun, end_name
 from twin.device.mjcf import load_model, motor_attributes
 from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec, load_spec
+from twin.records.profile import Profile
 from twin.records.trace import Trace
 from twin.sim.drive import drive_params
 from twin.sim.hinges import Hinges, contact_free_spreads, physics_substeps, place_hinges
@@ -209,3 +210,9 @@ class Twin:
             torque=torque, wall_time=wall,
         )
 
+
+
+def profile_twin(profile: Profile, **options) -> Twin:
+    """The twin of a device: its profile's spec and gains, each hinge's own plant where it was calibrated per hinge
+    (Profile.hinges), held as the profile says (Profile.mount). options: Twin's (root, model, stall_detection)."""
+    return Twin(profile.spec, profile.gains, hinges=profile.hinges, mount=profile.mount, **options)
