@@ -3,23 +3,23 @@ target, the step response per hinge, and where asked a Rerun recording and the m
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from twin.device.kinematics import flap_frames
 from twin.evaluation.demo_morph import DemoMorph
 from viz.render import target_view
 from viz.scene import render_approximation
-from viz.traces import hinge_figure
+from viz.traces import step_figure
 from viz.viewer import show_angles
 
 
 def demo_pictures(spec, demo: DemoMorph, name: str, mesh, start: list, pose: np.ndarray, png: str, plot: str,
-                  rerun: str | None = None, view_out: str | None = None, say=print) -> dict:
+                  rerun: str | None = None, view_out: str | None = None, slowmo: float | None = None,
+                  say=print) -> dict:
     """Write the demo's pictures (png: the device on the target; plot: the step response, where the morph ran;
-    rerun: a Rerun recording; view_out: the morph played, None: not) and say where each went; the --json
-    document's entries for them ({"png", "step_png"})."""
+    rerun: a Rerun recording; view_out: the morph played, None: not, slowmo times slower than real time (None:
+    viz.viewer.slowmo_for)) and say where each went; the --json document's entries for them ({"png",
+    "step_png"})."""
     approx, outcome = demo.approx, demo.outcome
     trace, end, end_angles = outcome.gate.prediction, outcome.end, outcome.reached
     frames = flap_frames(spec, end_angles, approx.root_pose, approx.widths)
@@ -32,8 +32,7 @@ def demo_pictures(spec, demo: DemoMorph, name: str, mesh, start: list, pose: np.
                                f"HD {end.hd * 1e3:.2f} mm", failed=demo.failed)
     say(f"[5/5] picture: {png}")
     if trace is not None:
-        hinge_figure(plot, f"demo: {name} morph on the twin", [("twin", trace)], range(spec.n_hinges),
-                     math.degrees(spec.settle_band * spec.rad_per_count), settle={"twin": outcome.report.settle_time})
+        step_figure(plot, f"demo: {name} morph on the twin", spec, trace, outcome.report.settle_time)
         say(f"      step response: {plot}")
         if rerun:
             from viz.rerun_log import log_move
@@ -42,8 +41,8 @@ def demo_pictures(spec, demo: DemoMorph, name: str, mesh, start: list, pose: np.
     if view_out:
         target = target_view(spec, mesh, approx.root_pose, end_angles, approx.widths)
         if trace is None:  # the gate refused the move before simulating it: the device stays flat (shown for 1 s)
-            t, angles = np.array([0.0, 1.0]), np.tile(end_angles, (2, 1))
+            t, angles, slowmo = np.array([0.0, 1.0]), np.tile(end_angles, (2, 1)), 1.0
         else:
             t, angles = trace.time, trace.true_angle
-        say("      " + show_angles(spec, t, angles, view_out, target=target, failed=demo.failed))
+        say("      " + show_angles(spec, t, angles, view_out, target=target, failed=demo.failed, slowmo=slowmo))
     return {"png": png, "step_png": plot if trace is not None else None}

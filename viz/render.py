@@ -30,6 +30,7 @@ FPS = 30  # frames per second of a video, and of the run's time sampled into it
 SIZE = (480, 640)  # one panel's (height, width), px: even, as H.264's 4:2:0 needs
 TWIN_RGBA = (0.3, 0.6, 1.0, 1.0)  # the twin's flaps, beside the device's grey
 SHEET_TILES = 8  # moments on a contact sheet
+PROGRESS_LINES = 10  # lines of progress while a video's frames are rendered
 CAMERA = {"azimuth": 90.0, "elevation": -28.0, "distance": 0.3}  # deg, deg, m: along the hinge axes (+y)
 TARGET_DISTANCE = 0.45  # m: the camera's distance where the target is shown beside the device
 TARGET_RGBA = (0.7, 0.7, 0.7, 0.45)  # the target, translucent grey
@@ -155,7 +156,7 @@ class DeviceCamera:
         self.renderer.close()
 
 
-def frame_times(t0: float, t1: float, fps: int = FPS) -> np.ndarray:
+def frame_times(t0: float, t1: float, fps: float = FPS) -> np.ndarray:
     """Frame times (s) covering [t0, t1] at fps: round((t1 - t0) * fps) + 1 frames."""
     return t0 + np.arange(int(round((t1 - t0) * fps)) + 1) / fps
 
@@ -167,14 +168,21 @@ def resample(t, rows, times) -> np.ndarray:
 
 
 def render_panels(spec: DeviceSpec, panels: list[np.ndarray], size=SIZE,
-                  target: TargetView | None = None) -> np.ndarray:
+                  target: TargetView | None = None, say=None) -> np.ndarray:
     """Frames (frames, height, width * len(panels), 3) uint8: each panel's hinge angles (frames, n) rad,
     the first in the device's grey, the others in the twin's blue, side by side; each with the target where
-    given."""
+    given. say: where given, told "rendered K/N frames" PROGRESS_LINES times as the frames are rendered (a run
+    of seconds takes a minute on a software renderer)."""
     cams = [DeviceCamera(spec, size, None if i == 0 else TWIN_RGBA, target) for i in range(len(panels))]
+    total = len(panels[0])
+    every = max(1, math.ceil(total / PROGRESS_LINES))
+    frames = []
     try:
-        return np.stack([np.concatenate([c.render(p[f]) for c, p in zip(cams, panels)], axis=1)
-                         for f in range(len(panels[0]))])
+        for f in range(total):
+            frames.append(np.concatenate([c.render(p[f]) for c, p in zip(cams, panels)], axis=1))
+            if say is not None and ((f + 1) % every == 0 or f + 1 == total):
+                say(f"rendered {f + 1}/{total} frames")
+        return np.stack(frames)
     finally:
         for c in cams:
             c.close()
@@ -235,15 +243,18 @@ def write_contact_sheet(path, frames: np.ndarray, times, title: str, angles_deg=
 
 
 def write_views(spec: DeviceSpec, t, panels: list[np.ndarray], out_stem, title: str,
-                target: TargetView | None = None, failed: str | None = None) -> tuple[Path, Path]:
+                target: TargetView | None = None, failed: str | None = None, slowmo: float = 1.0,
+                say=None) -> tuple[Path, Path]:
     """Video (out_stem.mp4) and contact sheet (out_stem.png) of hinge angles (samples, n) rad at times t (s),
-    one panel per array (device first, then the twin), resampled to FPS frames over the record; the target
-    beside the device where given; where `failed` says what refused the move, "FAILED: ..." across every frame
-    (`with_banner`) and in red as the sheet's title."""
+    one panel per array (device first, then the twin), resampled to FPS frames per second of the video over the
+    record; slowmo: the video's seconds per second of the record (a morph of a quarter second slowed to be seen;
+    the sheet's times stay the record's); the target beside the device where given; where `failed` says what
+    refused the move, "FAILED: ..." across every frame (`with_banner`) and in red as the sheet's title. say: told
+    the rendering's progress (`render_panels`)."""
     t = np.asarray(t, float)
-    times = frame_times(t[0], t[-1])
+    times = frame_times(t[0], t[-1], FPS * slowmo)
     rows = [resample(t, p, times) for p in panels]
-    frames = render_panels(spec, rows, target=target)
+    frames = render_panels(spec, rows, target=target, say=say)
     if failed:
         frames = with_banner(frames, f"FAILED: {failed}")
         title = f"FAILED: {failed}\n{title}"

@@ -2,7 +2,7 @@
 
 One function serves the HIL report (device and twin, the error device - twin), `compare` (several runs)
 and the step responses of `simulate` and `demo` (the twin alone, the error target - angle against the
-settle band). Series are traces (twin.records.trace.Trace), a twin's or a device's: their angle is the
+settle band: `step_figure`, the one both draw). Series are traces (twin.records.trace.Trace), a twin's or a device's: their angle is the
 encoder's, the one the settle band is about and the one both have, so device and twin compare like with like.
 """
 
@@ -74,6 +74,14 @@ def hinge_figure(path, title: str, series: list[tuple[str, object]], hinges, ban
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def step_figure(path, title: str, spec, trace, settle_time) -> Path:
+    """The twin's step response as `simulate` and `demo` draw it (`hinge_figure` of the twin alone): every hinge's
+    angle and target, target - angle against the spec's settle band (deg), duty and current; settle_time: per
+    hinge, s (NaN: not settled), dotted on the angle row."""
+    return hinge_figure(path, title, [("twin", trace)], range(spec.n_hinges),
+                        math.degrees(spec.settle_band * spec.rad_per_count), settle={"twin": settle_time})
 
 
 def runs_figure(path, runs: list[tuple[str, object]], table: dict[str, list[dict]], n_hinges: int) -> Path:

@@ -25,6 +25,7 @@ from viz.render import TargetView, add_target, device_mjspec, hinge_qadr, offscr
 TWIN_ALPHA = 0.3  # opacity of the twin's flaps beside the device's
 TWIN_PREFIX = "twin/"
 FRAME_PERIOD = 1.0 / 60.0  # s between viewer updates
+MIN_PLAYED_S = 2.0  # a twin's move shorter than this is played slowed down to last this long (`slowmo_for`)
 
 
 def display_missing() -> str | None:
@@ -60,11 +61,19 @@ def run_frames(run: Run, spec: DeviceSpec) -> tuple[np.ndarray, np.ndarray]:
     return t, np.concatenate([device, twin], axis=1)
 
 
+def slowmo_for(duration: float, slowmo: float | None = None) -> float:
+    """How many times slower than real time a move of `duration` s is played: `slowmo` where given, else as slow
+    as makes it last MIN_PLAYED_S, never faster than real time (a 0.27 s morph made a 9-frame video)."""
+    if slowmo is not None:
+        return slowmo
+    return max(1.0, MIN_PLAYED_S / duration) if duration > 0 else 1.0
+
+
 def play(model: mujoco.MjModel, qadr: np.ndarray, t: np.ndarray, rows: np.ndarray, title: str,
-         failed: str | None = None) -> str:
-    """Show rows (frames, m) of hinge angles at their times t (s) in real time, each row at the qpos
-    addresses qadr (r, m), then hold the last until the window is closed; where `failed` says what refused
-    the move, "FAILED: ..." over the view. A one-line message for where no window can open."""
+         failed: str | None = None, slowmo: float = 1.0) -> str:
+    """Show rows (frames, m) of hinge angles at their times t (s), slowmo times slower than real time, each row
+    at the qpos addresses qadr (r, m), then hold the last until the window is closed; where `failed` says what
+    refused the move, "FAILED: ..." over the view. A one-line message for where no window can open."""
     missing = display_missing()
     if missing:
         return missing
@@ -74,7 +83,7 @@ def play(model: mujoco.MjModel, qadr: np.ndarray, t: np.ndarray, rows: np.ndarra
             viewer.set_texts((mujoco.mjtFontScale.mjFONTSCALE_200, mujoco.mjtGridPos.mjGRID_TOPLEFT, "FAILED", failed))
         start = time.monotonic()
         while viewer.is_running():
-            i = min(int(np.searchsorted(t, time.monotonic() - start)), len(t) - 1)
+            i = min(int(np.searchsorted(t, (time.monotonic() - start) / slowmo)), len(t) - 1)
             data.qpos[qadr] = rows[i][None]
             mujoco.mj_forward(model, data)
             viewer.sync()
@@ -100,45 +109,51 @@ def move_model(spec: DeviceSpec, target: TargetView | None = None) -> mujoco.MjM
     return s.compile()
 
 
-def play_angles(spec: DeviceSpec, t, angles, target: TargetView | None = None, failed: str | None = None) -> str:
-    """Hinge angles (samples, n) rad at times t (s) in real time, beside a target where given."""
+def play_angles(spec: DeviceSpec, t, angles, target: TargetView | None = None, failed: str | None = None,
+                slowmo: float = 1.0) -> str:
+    """Hinge angles (samples, n) rad at times t (s), slowmo times slower than real time, beside a target where
+    given."""
     model = move_model(spec, target)
-    return play(model, hinge_qadr(model, spec.n_hinges), np.asarray(t) - t[0], angles, "the twin's move", failed)
+    return play(model, hinge_qadr(model, spec.n_hinges), np.asarray(t) - t[0], angles, "the twin's move", failed,
+                slowmo)
 
 
-def _files(spec: DeviceSpec, t, panels, out_stem, title: str, target=None, failed=None) -> str:
+def _files(spec: DeviceSpec, t, panels, out_stem, title: str, target=None, failed=None, slowmo: float = 1.0,
+           say=None) -> str:
     missing = offscreen_missing()
     if missing:
         raise UserError(missing)
-    video, sheet = write_views(spec, t, panels, out_stem, title, target, failed)
+    video, sheet = write_views(spec, t, panels, out_stem, title, target, failed, slowmo, say)
     return f"video {video}, contact sheet {sheet} ({title}" + (f"; FAILED: {failed})" if failed else ")")
 
 
 def show_move(spec: DeviceSpec, trace, out_stem, files: bool = False, target: TargetView | None = None,
-              failed: str | None = None) -> str:
+              failed: str | None = None, slowmo: float | None = None) -> str:
     """A twin's move (twin.records.trace.Trace, its true angles): `show_angles`."""
-    return show_angles(spec, trace.time, trace.true_angle, out_stem, files, target, failed)
+    return show_angles(spec, trace.time, trace.true_angle, out_stem, files, target, failed, slowmo)
 
 
 def show_angles(spec: DeviceSpec, t, angles, out_stem, files: bool = False, target: TargetView | None = None,
-                failed: str | None = None) -> str:
+                failed: str | None = None, slowmo: float | None = None) -> str:
     """Hinge angles (samples, n) rad at times t (s): MuJoCo's viewer where there is a display and files is False,
     else out_stem.mp4 and out_stem.png rendered off-screen; beside the target where given (the part the touch
-    surface lies inside red), and FAILED with `failed` (what refused the move) where given. A line saying what
-    was shown or written."""
-    title = "the twin's move (true hinge angles)" + ("" if target is None else "; the target grey, red where the "
-                                                      "touch surface lies inside it")
+    surface lies inside red), and FAILED with `failed` (what refused the move) where given; slowmo times slower
+    than real time (None: `slowmo_for` the move's duration). A line saying what was shown or written."""
+    slowmo = slowmo_for(float(t[-1] - t[0]), slowmo)
+    title = ("the twin's move (true hinge angles" + ("" if slowmo == 1 else f"; slow motion x{slowmo:.3g}") + ")"
+             + ("" if target is None else "; the target grey, red where the touch surface lies inside it"))
     if files or display_missing():
-        return _files(spec, t, [angles], out_stem, title, target, failed)
-    return play_angles(spec, t, angles, target, failed)
+        return _files(spec, t, [angles], out_stem, title, target, failed, slowmo)
+    return play_angles(spec, t, angles, target, failed, slowmo)
 
 
-def show_run(run: Run, spec: DeviceSpec, out_stem, files: bool = False) -> str:
+def show_run(run: Run, spec: DeviceSpec, out_stem, files: bool = False, say=None) -> str:
     """A recorded run: the viewer (device solid, twin translucent) where there is a display and files is False;
-    else out_stem.mp4 and .png, the device (grey, left) and the twin (blue, right) side by side."""
+    else out_stem.mp4 and .png, the device (grey, left) and the twin (blue, right) side by side, the rendering's
+    progress told to `say` where given."""
     if files or display_missing():
         t, rows = run_frames(run, spec)
         n = spec.n_hinges
         return _files(spec, t, [rows[:, :n], rows[:, n:]], out_stem,
-                      f"{run.scenario}: device (grey, left; encoder angles) and twin (blue, right)")
+                      f"{run.scenario}: device (grey, left; encoder angles) and twin (blue, right)", say=say)
     return view_run(run, spec)

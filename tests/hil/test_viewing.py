@@ -5,6 +5,7 @@ time for one move whoever reports it."""
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 
@@ -29,8 +30,8 @@ from twin.link.serial_link import Link
 from twin.live.morph import TwinMorpher
 from twin.sim.gate import check_move
 from twin.sim.response import move_settle_time, settle_time
-from viz.render import FPS, SIZE, DeviceCamera
-from viz.viewer import TWIN_ALPHA, pair_model, run_frames
+from viz.render import FPS, SIZE, DeviceCamera, frame_times
+from viz.viewer import MIN_PLAYED_S, TWIN_ALPHA, pair_model, run_frames, slowmo_for
 
 TWO_STEPS = scenario_of_steps("two", [(0.0, [20, 10, 5, 5, 10, 20]), (0.6, [-15, 30, -20, 15, 0, -25])], 1.2)
 
@@ -105,9 +106,14 @@ def test_a_recorded_run_as_a_video_and_a_contact_sheet_without_a_display(runs, s
     _no_display(monkeypatch)
     a, _ = runs
     assert vrscroll(["view", str(a)]) == 0
-    assert f"video {a / 'view.mp4'}" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert f"video {a / 'view.mp4'}" in out
     run = read_run(a, spec)
     t, rows = run_frames(run, spec)
+    # progress while the frames render (a run of seconds took a minute, silent): each line counts up to the last
+    done = [int(m) for m in re.findall(r"rendered (\d+)/(?:\d+) frames", out)]
+    total = int(round((t[-1] - t[0]) * FPS)) + 1
+    assert len(done) >= 5 and done == sorted(done) and done[-1] == total and f"/{total} frames" in out
     with av.open(str(a / "view.mp4")) as video:
         stream = video.streams.video[0]
         assert stream.average_rate == FPS
@@ -198,16 +204,36 @@ def _no_warning(stderr: str) -> bool:
 def test_drawing_commands_print_no_warning_without_a_display(tmp_path):
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "MUJOCO_GL",
                                                             "VTK_DEFAULT_OPENGL_WINDOW")}
+    # a 10 deg move settles in a tenth of a second: --slowmo 3 plays it three times slower (by default it would
+    # last MIN_PLAYED_S, 60 frames to render: the default is checked below without rendering)
     sim = subprocess.run([sys.executable, "-m", "twin.cli", "simulate", "10", "0", "0", "0", "0", "0", "--view",
-                          "--view-out", str(tmp_path / "v"), "--plot", str(tmp_path / "s.png")],
+                          "--view-out", str(tmp_path / "v"), "--plot", str(tmp_path / "s.png"), "--slowmo", "3",
+                          "--json", str(tmp_path / "s.json")],
                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
     assert sim.returncode == 0 and _no_warning(sim.stderr), sim.stderr
     assert (tmp_path / "v.mp4").is_file() and (tmp_path / "s.png").is_file()
+    assert "slow motion x3)" in sim.stdout
+    moved_s = json.loads((tmp_path / "s.json").read_text())["simulated_s"]  # ms rounded: the frames within one
+    with av.open(str(tmp_path / "v.mp4")) as video:
+        assert video.streams.video[0].average_rate == FPS
+        frames = sum(1 for _ in video.decode(video=0))
+    assert abs(frames - (moved_s * 3 * FPS + 1)) <= 1.5, (frames, moved_s)
     approx = subprocess.run([sys.executable, "-m", "twin.cli", "approximate", "--shape", "cylinder", "--png",
                              str(tmp_path / "a.png")], capture_output=True, text=True, env=env, cwd=tmp_path,
                             timeout=300)
     assert approx.returncode == 0 and _no_warning(approx.stderr), approx.stderr
     assert (tmp_path / "a.png").stat().st_size > 20_000
+
+
+@pytest.mark.parametrize("seconds", [0.05, 0.27, 1.0, 5.0])
+def test_a_short_move_is_slowed_to_last_the_least_a_person_sees(seconds):
+    """A 0.27 s morph made a 9-frame video (issue 39): by default a move shorter than MIN_PLAYED_S is played
+    slowed to last that long, a longer one in real time; --slowmo FACTOR says how slow."""
+    slowmo = slowmo_for(seconds)
+    frames = frame_times(0.0, seconds, FPS * slowmo)
+    assert len(frames) == int(round(max(seconds, MIN_PLAYED_S) * FPS)) + 1
+    assert frames[-1] == pytest.approx(seconds, abs=0.5 / (FPS * slowmo))  # the move's own times, to its end
+    assert slowmo_for(seconds, 4.0) == 4.0
 
 
 def test_no_off_screen_context_is_one_line_naming_what_to_install(tmp_path):

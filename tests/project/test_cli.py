@@ -161,6 +161,7 @@ def test_a_negative_list_needs_no_equals_sign():
 def test_help_shows_json_taking_a_file():
     out = vrscroll("simulate", "--help")
     assert "--json FILE" in out.stdout and "[FILE]" not in out.stdout
+    assert "--from=" not in out.stdout  # a negative list needs no equals sign (above): the help says none
 
 
 @pytest.mark.parametrize("argv, written", [(("sweep", "--example"), "sweep.toml"),

@@ -8,13 +8,15 @@ a refusal), report all, write a picture. The path: twin.evaluation.demo_morph; i
 from __future__ import annotations
 
 from twin.commands.approximate import target_and_start
-from twin.commands.options import add_device_option, add_json, add_mount, add_rerun, add_target, output_file, write_json
+from twin.commands.options import (add_device_option, add_json, add_mount, add_rerun, add_slowmo, add_target,
+                                   output_file, write_json)
 from twin.evaluation.demo_morph import demo_morph
 from twin.formats.profile import chosen_profile, profile_line
 from twin.morphpatch.approximation import VARIANTS
 from twin.morphpatch.shapes import shape_names
 from twin.sim.twin import profile_twin
 from viz.demo_pictures import demo_pictures
+from viz.viewer import MIN_PLAYED_S
 
 
 def add_arguments(p) -> None:
@@ -34,6 +36,7 @@ def add_arguments(p) -> None:
                         "it; FAILED where the gate refused); without a display, write --view-out.mp4 and .png")
     p.add_argument("--view-out", metavar="STEM", type=output_file, default="demo_view",
                    help="video and contact sheet of --view without a display (default demo_view)")
+    add_slowmo(p, MIN_PLAYED_S)
     add_rerun(p)
     add_device_option(p)
     add_mount(p)
@@ -48,6 +51,6 @@ def run(args) -> int:
     say = (lambda line: print(line, flush=True))
     demo = demo_morph(profile, profile_twin(profile), name, mesh, start, pose, args.variant, args.strict, say)
     pictures = demo_pictures(profile.spec, demo, name, mesh, start, pose, args.png, args.plot, args.rerun,
-                             args.view_out if args.view else None, say)
+                             args.view_out if args.view else None, args.slowmo, say)
     write_json(args.json, {**demo.doc, **pictures})
     return 0 if demo.outcome.gate.passed else 1

@@ -10,8 +10,7 @@ from twin.hil.mirror_run import mirror_on_device, mirror_targets
 
 def add_arguments(p) -> None:
     p.add_argument("target", nargs="?", help='JSON file with {"angles_deg": [one per hinge]}')
-    p.add_argument("--angles", help="hinge targets in degrees, comma-separated, instead of TARGET.json "
-                   "(write --angles=-30,0,... when the first is negative)")
+    p.add_argument("--angles", help="hinge targets in degrees, comma-separated, instead of TARGET.json")
     add_serial(p, required=True)
     add_tolerance_deg(p)
     p.add_argument("--settle-limit-s", type=within(0.1, 60, "s"), default=2.0, help="s the move may take (default %(default)s)")

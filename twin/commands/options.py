@@ -134,6 +134,14 @@ def add_threads(p) -> None:
                    help="simulation threads (default: all cores)")
 
 
+def add_slowmo(p, min_played_s: float) -> None:
+    """--slowmo FACTOR: `--view`'s move played (or its video) FACTOR times slower than real time; by default one
+    shorter than min_played_s (viz.viewer.MIN_PLAYED_S) is slowed to last that long."""
+    p.add_argument("--slowmo", metavar="FACTOR", type=within(1, 1000),
+                   help=f"with --view: play the move FACTOR times slower than real time (default: a move shorter "
+                        f"than {min_played_s:g} s slowed to last that long; 1: real time)")
+
+
 def add_rerun(p) -> None:
     """--rerun FILE.rrd: a Rerun recording of what the command ran (viz.rerun_log; the `rerun` extra)."""
     p.add_argument("--rerun", metavar="FILE.rrd", type=output_file,

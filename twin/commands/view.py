@@ -30,5 +30,6 @@ def run(args) -> int:
         print(log_run(args.rerun, spec, recorded))
     if args.rerun and not args.out:
         return 0
-    print(show_run(recorded, spec, args.out or Path(args.run) / "view", files=bool(args.out)))
+    print(show_run(recorded, spec, args.out or Path(args.run) / "view", files=bool(args.out),
+                   say=lambda line: print(line, flush=True)))
     return 0
