@@ -20,7 +20,7 @@ from twin.commands.options import add_json, comma_list, within, write_json
 from twin.device.spec import load_spec
 from twin.errors import UserError
 from twin.link.emulator_process import EmulatorProcess
-from twin.live.player import play
+from twin.live.player import all_played, play, session_line
 from twin.live.process import ServiceProcess
 from twin.morphpatch.approximation import VARIANTS
 from twin.morphpatch.shapes import shape_names
@@ -38,18 +38,6 @@ def add_arguments(p) -> None:
     add_json(p, "every session's record")
 
 
-def _line(r: dict) -> str:
-    tries = ", ".join(a["outcome"] for a in r["attempts"])
-    if not r["morphed"]:
-        return f"{r['shape']:<14} not morphed ({tries}): {r['attempts'][-1]['message'] if r['attempts'] else ''}"
-    pen, red = r["pen"], r["redirection"]
-    settle = r["attempts"][-1]["settle_time_s"]
-    settle = "not settled" if settle is None else f"{settle:5.3f} s"
-    return (f"{r['shape']:<14} {tries:<28} settle time {settle}  pen {pen['redirected']}/"
-            f"{pen['sent']} redirected, p99 {pen['latency_p99_ms']} ms, {pen['within_share']:.0%} within; surface "
-            f"{red['share_within']:.0%} within; approximation p99 {r['approximation_latency_p99_ms']} ms")
-
-
 def _play(args, spec, shapes) -> list[dict]:
     """Start the emulator and the service unless --url, then play every shape; the records."""
     with contextlib.ExitStack() as stack:
@@ -65,7 +53,7 @@ def _play(args, spec, shapes) -> list[dict]:
             url = service.url
             print(service.banner.strip(), flush=True)
         return asyncio.run(play(url, spec, shapes, args.token, args.attempts, args.seed,
-                                on_record=lambda r: print(_line(r), flush=True)))
+                                on_record=lambda r: print(session_line(r), flush=True)))
 
 
 def run(args) -> int:
@@ -75,7 +63,7 @@ def run(args) -> int:
     except (RuntimeError, OSError, WebSocketException) as exc:  # LiveError, a process that did not start, a bad URL
         raise UserError(str(exc)) from None
     write_json(args.json, records)
-    ok = all(r["morphed"] and r["pen"]["redirected"] == r["pen"]["sent"] for r in records)
+    ok = all_played(records)
     print(f"{sum(r['morphed'] for r in records)}/{len(records)} shapes morphed; "
           + ("every pen sample redirected" if ok else "NOT every shape morphed with every pen sample redirected"))
     return 0 if ok else 1

@@ -158,3 +158,23 @@ async def play(url: str, spec: DeviceSpec, shapes, token: str | None = None, att
             if on_record:
                 on_record(record)
     return records
+
+
+def session_line(record: dict) -> str:
+    """One shape's session (play_shape's record) on a line: its attempts' outcomes, then the settle time, the pen
+    samples redirected, their latency and share within the thresholds, or why it did not morph."""
+    r = record
+    tries = ", ".join(a["outcome"] for a in r["attempts"])
+    if not r["morphed"]:
+        return f"{r['shape']:<14} not morphed ({tries}): {r['attempts'][-1]['message'] if r['attempts'] else ''}"
+    pen, red = r["pen"], r["redirection"]
+    settle = r["attempts"][-1]["settle_time_s"]
+    settle = "not settled" if settle is None else f"{settle:5.3f} s"
+    return (f"{r['shape']:<14} {tries:<28} settle time {settle}  pen {pen['redirected']}/"
+            f"{pen['sent']} redirected, p99 {pen['latency_p99_ms']} ms, {pen['within_share']:.0%} within; surface "
+            f"{red['share_within']:.0%} within; approximation p99 {r['approximation_latency_p99_ms']} ms")
+
+
+def all_played(records: list[dict]) -> bool:
+    """The sessions' verdict: every shape morphed and every pen sample it sent redirected."""
+    return all(r["morphed"] and r["pen"]["redirected"] == r["pen"]["sent"] for r in records)
