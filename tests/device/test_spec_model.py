@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from twin.cli import main
+from twin.device.design import design_spec
 from twin.device.kinematics import flap_frames
 from twin.device.mjcf import MJCF_PATH, SCENE_PATH, load_model, mjcf, scene_mjcf
 from twin.device.spec import SPEC_PATH, load_spec, spec_sources
@@ -55,6 +56,15 @@ def test_derived_values(spec):
 
 def test_committed_mjcf_is_generated_from_spec():
     assert MJCF_PATH.read_text() == mjcf(), "run `vrscroll model --write`"
+
+
+def test_the_mjcfs_comments_follow_a_design(spec):
+    """The generated MJCF's comments once fixed "seven flaps" and "100.37:1" though sweeps change both (issue 39):
+    a design's own flap count, ratio and voltage are in its comments, the base's nowhere."""
+    design = design_spec(spec, {"n_flaps": 5, "gear_ratio": 150.58, "rated_voltage": 12.0})
+    comments = " ".join(re.findall(r"<!--(.*?)-->", mjcf(design), flags=re.S))
+    assert "5 hinged flaps" in comments and "150.58:1" in comments and "12 V micro metal gearmotor" in comments
+    assert f"{spec.n_flaps} hinged flaps" not in comments and f"{spec.gear_ratio:g}:1" not in comments
 
 
 def test_compiled_model_matches_spec(spec):
