@@ -142,3 +142,12 @@ def test_a_newer_devices_states_and_faults_are_named_by_number_not_a_traceback()
     assert P.enum_name(P.State, P.State.HOLDING) == "HOLDING" and P.enum_name(P.State, 9) == "9"
     assert faults_text(P.Fault.WATCHDOG | P.Fault.HARDWARE | 0x8000) == "WATCHDOG|HARDWARE|0x8000"
     assert faults_text(0) == "none"
+
+
+@pytest.mark.parametrize("since_us, now_us, seconds", [(1_000, 251_000, 0.25),
+                                                        (0xFFFF_FF00, 0x100, 512e-6),  # across the u32 wrap
+                                                        (5_000, 4_000, (2**32 - 1_000) / 1e6)])  # before: ~71 min
+def test_the_devices_clock_is_read_across_its_wrap(since_us, now_us, seconds):
+    """One reading of the device's u32 microsecond clock for telemetry, ACKs and bring-up's waits (issue 39: the
+    unwrap was written out four times)."""
+    assert P.elapsed_s(since_us, now_us) == pytest.approx(seconds, abs=1e-9)

@@ -142,7 +142,7 @@ def _device_wait(link: Link, since_us: int, seconds: float) -> P.StateMsg:
     lying flat motors on each other's bridges were named as a dead encoder 2 runs in 25 under load."""
     while True:
         state = link.get_state()
-        left = seconds - ((state.time_us - since_us) & 0xFFFFFFFF) / 1e6
+        left = seconds - P.elapsed_s(since_us, state.time_us)
         if left <= 0:
             return state
         time.sleep(left)
@@ -196,7 +196,7 @@ def _still(link: Link) -> bool:
         now = _device_wait(link, last.time_us, STILL_S)
         if np.abs(np.asarray(now.counts) - np.asarray(last.counts)).max() <= STILL_COUNTS:
             return True
-        if ((now.time_us - first.time_us) & 0xFFFFFFFF) / 1e6 > STILL_WAIT_S:
+        if P.elapsed_s(first.time_us, now.time_us) > STILL_WAIT_S:
             return False
         last = now
 

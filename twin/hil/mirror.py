@@ -84,7 +84,7 @@ class FrameTimes:
 
     def since(self, fr: P.Telemetry) -> float | None:
         """s from t = 0 to the frame; None for a frame from before it."""
-        since = ((fr.time_us - self.t0) & 0xFFFFFFFF) / 1e6
+        since = P.elapsed_s(self.t0, fr.time_us)
         now = time.monotonic()
         if since <= 3600:  # after t = 0 (a frame before it wraps to ~71 min)
             self.last_use = now

@@ -102,7 +102,6 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
     stride = max(1, int(round(spec.loop_rate / telemetry_hz)))
     changes: list[tuple[float, np.ndarray]] = []
     twin_ticks = 0
-    mask = 0xFFFFFFFF
     end_tick = int(math.floor(scenario.duration / dt + 1e-9))
     predicted = np.zeros((end_tick + 1, n))  # the twin's encoder angles per tick, rad, as far as it has played
     slack = int(round(TIME_SLACK / dt))
@@ -144,7 +143,7 @@ def run_hil(link, spec: DeviceSpec, scenario: Scenario, out_dir, telemetry_hz: i
         while latest < scenario.duration:
             if nxt < len(scenario.times) and time.monotonic() - host0 >= scenario.times[nxt]:
                 ack = link.set_targets(target_counts(spec, scenario.targets[nxt]))
-                tc = ((ack.time_us - t0) & mask) / 1e6
+                tc = P.elapsed_s(t0, ack.time_us)
                 changes.append((tc, scenario.targets[nxt]))
                 meta["changes"].append({"t_s": round(tc, 6),
                                         "angles_deg": np.degrees(scenario.targets[nxt]).round(4).tolist()})

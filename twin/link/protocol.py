@@ -164,6 +164,12 @@ class VersionError(ProtocolError):
         super().__init__(f"protocol version {version}, expected {PROTOCOL_VERSION}")
 
 
+def elapsed_s(since_us: int, now_us: int) -> float:
+    """s from `since_us` to `now_us` on the device's clock (time_us: u32 microseconds, wrapping after 71 min); a
+    time before since_us wraps to about 71 min."""
+    return ((now_us - since_us) & 0xFFFFFFFF) / 1e6
+
+
 # ---- checksum and framing -----------------------------------------------------------
 
 def crc16(data: bytes) -> int:
