@@ -1,6 +1,7 @@
 """The layers the README draws are the code's: import-linter's contract (pyproject.toml) holds on the tree,
 and breaks when a lower layer imports an upper one."""
 
+import ast
 import shutil
 import subprocess
 import sys
@@ -46,3 +47,21 @@ def test_siblings_of_one_layer_stay_apart(tmp_path):
     target.write_text(target.read_text() + "\n\ndef _sideways():\n    from twin.link import protocol  # noqa: F401\n")
     r = lint_imports(tree)
     assert r.returncode != 0 and "twin.morphpatch.sampling -> twin.link.protocol" in r.stdout, r.stdout
+
+
+COMMAND_LINES = 80  # issue 39: a command parses its options, calls its concern's function and prints, in ~80 lines
+
+
+def test_a_command_parses_calls_and_prints():
+    """Every command module within COMMAND_LINES (what a command once did by hand lives in its concern's package,
+    where the layers check it), and the shared options module declares options only: what they open (the profile's
+    folders, the device's link and session) lives below the commands (twin.formats.profile.chosen_profile,
+    twin.hil.device_gains.device_session), not in it."""
+    shared = ("__init__.py", "options.py", "interrupts.py")
+    long = {p.name: n for p in (ROOT / "twin/commands").glob("*.py")
+            if p.name not in shared and (n := len(p.read_text().splitlines())) > COMMAND_LINES}
+    assert not long, f"command modules over {COMMAND_LINES} lines: {long}"
+    tree = ast.parse((ROOT / "twin/commands/options.py").read_text())
+    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+    opening = sorted(m for m in imported if m.startswith(("twin.link", "twin.hil", "twin.sim", "twin.device.profile")))
+    assert not opening, f"twin/commands/options.py opens what belongs below the commands: {opening}"
