@@ -56,10 +56,10 @@ def test_a_jammed_hinge_is_not_fitted_and_the_note_says_how_its_programs_ended(s
 
 @pytest.mark.slow
 def test_calibrate_serial_fits_the_hinges_that_turn_and_names_the_jammed_one(emulator, capsys):
-    """`vrscroll calibrate --serial PORT --device NAME --json -` on a drawn plant lying flat whose hinge 2 jams at
-    its first drive: exit 0, the profile written, hinge 2 not fitted (its prior kept, not identifiable, the note
-    pointing at bring-up), every other hinge fitted."""
-    emu = emulator("--lying-flat", *emulator_args(6), "--jam-hinge", "2")
+    """`vrscroll calibrate --serial PORT --device NAME --json -` on a drawn plant lying flat whose hinge 2's encoder
+    is dead (its count never changes): exit 0, the profile written, hinge 2 not fitted (its prior kept, not
+    identifiable, the note pointing at bring-up), every other hinge fitted."""
+    emu = emulator("--lying-flat", *emulator_args(6), "--wiring-fault", "encoder-dead:2")
     assert vrscroll(["calibrate", "--serial", emu.port, "--device", "jam6", "--json", "-"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["written"]
