@@ -17,16 +17,17 @@ import numpy as np
 from twin.device.profile import profile_dir, set_default
 from twin.device.spec import SPEC_PATH
 from twin.device.spec_toml import shown, shown_range, spec_units, write_spec_toml
+from twin.device.variation import SPREAD
 from twin.errors import UserError
 from twin.formats.profile import updated, write_profile
 from twin.formats.run import read_run
-from twin.hil.calibration import (MAX_HALFWIDTH, calibrate, calibrate_hinges, compared_lines, compared_rows, floor_deg,
-                                  trace_rmse, unexplained)
+from twin.hil.calibration import (HINGE_RANGE, MAX_HALFWIDTH, calibrate, calibrate_hinges, compared_lines,
+                                  compared_rows, floor_deg, trace_rmse, unexplained)
 from twin.hil.compare import not_followed
-from twin.hil.identification import PROFILED, estimates, experiments, fit_hinge, shared_estimates
+from twin.hil.identification import PROFILED, Move, estimates, experiments, fit_hinge, shared_estimates
 from twin.hil.identification_holdout import HOLDOUT_FOLDER, holdout_lines, holdout_report, record_holdout
 from twin.link.serial_link import LinkError, NackError
-from twin.records.calibration import Calibration
+from twin.records.calibration import Calibration, Estimate
 from twin.records.profile import Profile
 from twin.records.report import Report
 from twin.sim.gate import NOT_FLAT_DEPTH, below_table
@@ -242,12 +243,19 @@ def identify(session, profile: Profile, name: str | None, prior: str, say=None) 
                     say(f"device profile: {name or profile.label} (prior: {prior}); identifying each hinge, the "
                         "device lying flat")
                 check_lying_there(spec, link.get_state().counts)
-                moves, device_s = experiments(link.run_program, spec, progress=say)
+                ends: dict = {}  # hinge -> how each of its programs ended
+
+                def run_program(hinge, *args):
+                    run = link.run_program(hinge, *args)
+                    ends.setdefault(hinge, []).append(run.end)
+                    return run
+
+                moves, device_s = experiments(run_program, spec, progress=say)
                 port = link.url
                 if say:
                     say("the held-out run: a closed-loop scenario no fit sees, from flat")
                 held, not_recorded = record_holdout(link, spec, held_dir, name or "")
-            fits = [fit_hinge(m, spec, say) for m in moves.values()]
+            fits = {k: fit_hinge(m, spec, say) for k, m in moves.items() if moved(m)}
         except NackError as exc:
             raise UserError(f"the device refused an experiment ({exc}): it runs them IDLE with its zero confirmed, "
                             "lying flat (`vrscroll zero --serial PORT`)") from None
@@ -256,7 +264,11 @@ def identify(session, profile: Profile, name: str | None, prior: str, say=None) 
         except ValueError as exc:
             raise UserError(f"identification: {exc}") from None
         wall = time.monotonic() - start
-        per_hinge = [estimates(f, spec, MAX_HALFWIDTH) for f in fits]
+        unfitted = {k: not_moved_note(ends.get(k, [])) for k in moves if k not in fits}
+        if not fits:
+            raise UserError(f"no hinge moved in its identification experiments: hinge 0 {unfitted[0]}")
+        per_hinge = [estimates(fits[k], spec, MAX_HALFWIDTH) if k in fits else prior_estimates(spec, unfitted[k])
+                     for k in sorted(moves)]
         shared = shared_estimates([{p: e[p] for p in PROFILED} for e in per_hinge])
         calibration = Calibration([f"{port}: identification experiments"], shared,
                                   [{p: e[p] for p in PROFILED} for e in per_hinge])
@@ -275,24 +287,61 @@ def identify(session, profile: Profile, name: str | None, prior: str, say=None) 
                 holdout["run"] = str(shutil.copytree(held_dir, kept))
     doc = {"device_profile": name or profile.label, "prior": prior, "written": written, "port": port,
             "parameters": {p: e.to_json() for p, e in shared.items()},
-            "hinges": [{"hinge": f.hinge, "parameters": {p: e.to_json() for p, e in est.items()},
-                        "held": {p: {"value": v, "low": lo, "high": hi} for p, (v, lo, hi) in f.held.items()},
-                        "rms_speed_rad_s": round(f.rms_speed, 4), "windows": f.windows, "replays": f.replays}
-                       for f, est in zip(fits, per_hinge)],
+            "hinges": [_hinge_doc(k, fits.get(k), est) for k, est in zip(sorted(moves), per_hinge)],
             "holdout": holdout, "device_time_s": round(device_s, 2), "wall_time_s": round(wall, 1)}
-    return Report(doc, _identification_lines(doc, fits, wall, device_s) + holdout_lines(holdout))
+    return Report(doc, _identification_lines(doc, wall, device_s) + holdout_lines(holdout))
 
 
-def _identification_lines(doc: dict, fits, wall: float, device_s: float) -> list[str]:
-    """identify's report in lines (the spec file's units): doc, with the fits and the times (s) it rounds."""
+MIN_TRAVEL = 10  # counts (3 deg at the output): a program that turned its hinge less did not move it
+
+
+def moved(moves: list[Move]) -> bool:
+    """Whether any of a hinge's moves turned it at least MIN_TRAVEL counts: else there is nothing to fit (a jammed
+    hinge, a dead encoder, a motor that does not turn)."""
+    return any(np.nanmax(m.counts) - np.nanmin(m.counts) >= MIN_TRAVEL for m in moves)
+
+
+def not_moved_note(ends: list[str]) -> str:
+    """Why a hinge has no fit, in words, from how its programs ended (controllers.program's end names)."""
+    return (f"not fitted: none of its {len(ends)} programs turned it {MIN_TRAVEL} counts (they ended: "
+            f"{', '.join(ends) or 'none ran'}); a jammed hinge, a dead encoder or a motor that does not turn "
+            "(`vrscroll bringup --serial PORT` checks each); the prior kept, its interval the prior's range")
+
+
+def prior_estimates(spec, note: str) -> dict:
+    """A hinge the experiments could not fit: each PROFILED value the prior's, its interval what is known of an
+    uncalibrated device's hinge (twin.device.variation.SPREAD about the spec, and HINGE_RANGE about that), not
+    identifiable, with the note."""
+    out = {}
+    for p in PROFILED:
+        v = float(getattr(spec, p))
+        lo, hi = SPREAD[p][0] * HINGE_RANGE[0], SPREAD[p][1] * HINGE_RANGE[1]
+        out[p] = Estimate(v, v, v * lo, v * hi, False, note)
+    return out
+
+
+def _hinge_doc(k: int, fit, est: dict) -> dict:
+    """One hinge's row of identify's JSON: its estimates and, where it was fitted, what the fit held and how it met
+    the device."""
+    row = {"hinge": k, "parameters": {p: e.to_json() for p, e in est.items()}}
+    if fit is None:
+        return row | {"fitted": False}
+    return row | {"fitted": True,
+                  "held": {p: {"value": v, "low": lo, "high": hi} for p, (v, lo, hi) in fit.held.items()},
+                  "rms_speed_rad_s": round(fit.rms_speed, 4), "windows": fit.windows, "replays": fit.replays}
+
+
+def _identification_lines(doc: dict, wall: float, device_s: float) -> list[str]:
+    """identify's report in lines (the spec file's units): doc, with the times (s) it rounds."""
     units = spec_units(SPEC_PATH)
     lines = [f"identified in {wall:.0f} s ({device_s:.1f} s of experiments on the device); "
              "per hinge each value in the spec file's unit, its 95 % interval, and both as multiples of the prior:"]
-    for h, f in zip(doc["hinges"], fits):
-        lines.append(f"  hinge {f.hinge} (speed residual {f.rms_speed:.2f} rad/s over {f.windows} windows):")
+    for h in doc["hinges"]:
+        lines.append(f"  hinge {h['hinge']} (speed residual {h['rms_speed_rad_s']:.2f} rad/s over {h['windows']} "
+                     "windows):" if h["fitted"] else f"  hinge {h['hinge']}: NOT FITTED")
         lines += [f"    {_estimate_line(p, e, units.get(p, ''), note=not e['identifiable'])}"  # why not, where not
                   for p, e in h["parameters"].items()]
-    held = doc["hinges"][0]["held"]
+    held = next(h["held"] for h in doc["hinges"] if h["fitted"])
     lines.append("held, not shown by the experiments (each anywhere in its range widens the intervals above): "
                  + ", ".join(f"{p} {shown(v['value'], units.get(p, ''))} (x{v['low'] / v['value']:.2g} .. "
                              f"x{v['high'] / v['value']:.2g})" for p, v in held.items()))
