@@ -23,12 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from controllers.pid import PidGains
+from controllers.program import COAST
 from twin.device.spec import MAX_HINGES, DeviceSpec
 from twin.errors import UserError
 from twin.paths import cache_dir
 
 FIRMWARE_DIR = Path(__file__).resolve().parent / "firmware"
-FIRMWARE_VERSION = (0, 3, 0)  # major, minor, patch: reported in HELLO_REPLY and STATE
+FIRMWARE_VERSION = (0, 4, 0)  # major, minor, patch: reported in HELLO_REPLY and STATE
 WARNINGS = ("-std=c99", "-Wall", "-Wextra", "-Werror")
 LIBRARY_FLAGS = (*WARNINGS, "-O2", "-shared", "-fPIC")
 TX_CHUNK = 4096  # VRS_TX_CAP: everything queued fits in one read
@@ -76,11 +77,12 @@ PROGRAM_MAX_SEGMENTS = _program_max_segments()
 
 
 class ProgramSpec(ctypes.Structure):
-    """vrs_program_spec (vrs_core.h): an open-loop program on one hinge (duty in [-1, 1], ms, window in counts)."""
+    """vrs_program_spec (vrs_core.h): an open-loop program on one hinge (duty in [-1, 1], ms, window in counts; coast:
+    bit i, segment i coasts)."""
 
     _fields_ = [("hinge", ctypes.c_uint8), ("n_segments", ctypes.c_uint8), ("timeout_ms", ctypes.c_uint16),
                 ("low", ctypes.c_int32), ("high", ctypes.c_int32), ("duty", ctypes.c_float * PROGRAM_MAX_SEGMENTS),
-                ("ms", ctypes.c_uint16 * PROGRAM_MAX_SEGMENTS)]
+                ("ms", ctypes.c_uint16 * PROGRAM_MAX_SEGMENTS), ("coast", ctypes.c_uint16)]
 
 
 class ProgramStatus(ctypes.Structure):
@@ -111,8 +113,9 @@ def layout_checks(mirrored: dict | None = None) -> str:
 
 
 def program_spec(hinge: int, segments, window_counts, timeout_s: float | None = None) -> ProgramSpec:
-    """The core's program for (duty, duration_s) segments, a (low, high) counts window and a timeout (s; default
-    the segments' sum); ValueError for more segments than the core holds (the core checks every other bound)."""
+    """The core's program for (duty, duration_s) segments (duty controllers.program.COAST: it coasts), a (low,
+    high) counts window and a timeout (s; default the segments' sum); ValueError for more segments than the core
+    holds (the core checks every other bound)."""
     segments = list(segments)
     if not 1 <= len(segments) <= PROGRAM_MAX_SEGMENTS:
         raise ValueError(f"a program has 1 to {PROGRAM_MAX_SEGMENTS} segments, not {len(segments)}")
@@ -121,7 +124,8 @@ def program_spec(hinge: int, segments, window_counts, timeout_s: float | None = 
     p = ProgramSpec(hinge=hinge, n_segments=len(segments), timeout_ms=min(max(timeout, 0), 0xFFFF),
                     low=int(window_counts[0]), high=int(window_counts[1]))
     for i, ((d, _), m) in enumerate(zip(segments, ms)):
-        p.duty[i], p.ms[i] = float(d), m
+        p.duty[i], p.ms[i] = 0.0 if d == COAST else float(d), m
+        p.coast |= (d == COAST) << i
     return p
 
 

@@ -2,7 +2,8 @@
 of one segment), and what a run of one gives back, on the device (twin.link.serial_link.Link.run_program) and
 on the twin (twin.sim.twin.Twin.run_program, twin.sim.batch.TwinBatch.run_program) alike.
 
-A program is a few segments, each a signed duty held for a duration, on one hinge, the other hinges braked;
+A program is a few segments, each a signed duty held for a duration (or COAST), on one hinge, the other hinges
+braked;
 the core bounds it whatever the host sends (docs/protocol.md, "PROGRAM"; docs/firmware.md, "Open-loop motion")
 and ends it itself: at the end of its segments, at its angle window's edge, on a stall, on its timeout, when
 the host goes quiet, on any change of state.
@@ -14,6 +15,8 @@ import enum
 from typing import NamedTuple
 
 import numpy as np
+
+COAST = "coast"  # a segment's duty that coasts: the hinge's windings open (no current, no back-EMF braking) for it
 
 
 class ProgramEnd(enum.IntEnum):
@@ -36,7 +39,8 @@ class ProgramRun(NamedTuple):
     (after the core's I2t derating, -1..1, 1 = the drive cap's voltage); counts: the hinge's encoder counts
     per sample (int64); battery_mV: the pack voltage the device read at the end (None: not sensed); end:
     ProgramEnd's name in lower case ("done", "window", "stall", "timeout", "host_quiet", "state");
-    samples_lost: ticks whose sample never reached the host (their times are missing from time_s).
+    samples_lost: ticks whose sample never reached the host (their times are missing from time_s); coasting:
+    per sample, whether the hinge coasted from it (its duty 0, its windings open; None: an empty run's).
     """
 
     hinge: int
@@ -46,6 +50,7 @@ class ProgramRun(NamedTuple):
     battery_mV: float | None
     end: str
     samples_lost: int = 0
+    coasting: np.ndarray | None = None
 
 
 def end_name(code: int) -> str:

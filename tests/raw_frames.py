@@ -3,7 +3,7 @@ encoder: the bytes a check that does not trust this project's code would write, 
 
 import struct
 
-VERSION = 6  # docs/protocol.md, "Version"
+VERSION = 7  # docs/protocol.md, "Version"
 
 
 def crc16(data: bytes) -> int:

@@ -257,9 +257,13 @@ static int program_start(vrs_core *c, const vrs_program_spec *p, float max_duty,
         return VRS_NACK_BAD_VALUE;
     if (disabled(c, p->hinge))
         return VRS_NACK_HINGE_DISABLED;
+    if (p->coast >> p->n_segments)  /* a coasting segment past the last */
+        return VRS_NACK_BAD_VALUE;
     for (i = 0; i < p->n_segments; i++) {
         int16_t d;
         if (!(p->duty[i] >= -1.0f && p->duty[i] <= 1.0f) || p->ms[i] == 0)  /* NaN too */
+            return VRS_NACK_BAD_VALUE;
+        if ((p->coast >> i & 1u) && p->duty[i] != 0.0f)  /* a coasting segment drives nothing */
             return VRS_NACK_BAD_VALUE;
         d = duty_to_wire(p->duty[i]);
         if (d > most || d < -most)
@@ -360,11 +364,18 @@ static void program_tick(vrs_core *c, uint32_t now_us)
             r->segment++;
 }
 
-/* the program's duty for hinge k this tick (0: braked) */
+/* the program's duty for hinge k this tick (0: braked, or coasting: program_coasts) */
 static float program_duty(const vrs_core *c, uint8_t k)
 {
     const vrs_program_run *r = &c->program;
     return r->status.end == VRS_PROGRAM_END_RUNNING && k == r->spec.hinge ? r->spec.duty[r->segment] : 0.0f;
+}
+
+/* whether the program coasts hinge k this tick (its segment's windings open); an ended program never does */
+static int program_coasts(const vrs_core *c, uint8_t k)
+{
+    const vrs_program_run *r = &c->program;
+    return r->status.end == VRS_PROGRAM_END_RUNNING && k == r->spec.hinge && (r->spec.coast >> r->segment & 1u);
 }
 
 /* the end of a tick: its sample (counts read, duty applied) as a PROGRAM_SAMPLE, seq its index */
@@ -376,7 +387,8 @@ static void program_sample(vrs_core *c)
     if (r->status.end != VRS_PROGRAM_END_RUNNING)
         return;
     v[0] = (uint32_t)c->counts[r->spec.hinge];
-    v[1] = (uint32_t)(int32_t)duty_to_wire(c->duty[r->spec.hinge]);
+    v[1] = (uint32_t)(int32_t)(program_coasts(c, r->spec.hinge) ? VRS_PROGRAM_COAST
+                                                                  : duty_to_wire(c->duty[r->spec.hinge]));
     len = vrs_encode(VRS_MSG_PROGRAM_SAMPLE, (uint16_t)r->status.ticks, v, 0, frame_bytes, sizeof frame_bytes);
     if (!queue(c, frame_bytes, len, VRS_TX_REPLY_RESERVE))
         r->status.dropped++;
@@ -647,7 +659,10 @@ static void execute(vrs_core *c, uint8_t id, uint16_t seq, uint16_t crc, const u
         p.timeout_ms = (uint16_t)v[3];
         p.n_segments = (uint8_t)v[4];
         for (k = 0; k < VRS_PROGRAM_MAX_SEGMENTS; k++) {
-            p.duty[k] = (float)(int32_t)v[5 + k] / (float)VRS_DUTY_SCALE;
+            if ((int32_t)v[5 + k] == VRS_PROGRAM_COAST)  /* outside +-VRS_DUTY_SCALE: no duty, the segment coasts */
+                p.coast = (uint16_t)(p.coast | 1u << k);
+            else
+                p.duty[k] = (float)(int32_t)v[5 + k] / (float)VRS_DUTY_SCALE;
             p.ms[k] = (uint16_t)v[5 + VRS_PROGRAM_MAX_SEGMENTS + k];
         }
         r = program_start(c, &p, VRS_PROGRAM_MAX_DUTY, 1, &detail);
@@ -918,8 +933,9 @@ void vrs_tick(vrs_core *c, uint32_t now_us, const int32_t *counts, const int16_t
                                                                                    : c->duty[k];
         /* brake (slow decay) in every state, IDLE too: duty proportional to voltage while driving, and
          * at zero duty the flaps hold where they stopped (a coasting device held by its root flap folds
-         * within 0.5 s: docs/firmware.md) */
-        decay_out[k] = VRS_DECAY_BRAKE;
+         * within 0.5 s: docs/firmware.md); only a program's coasting segment opens the windings, and its
+         * every end (window, timeout, quiet host, state change) brakes again */
+        decay_out[c->wiring.bridge[k]] = program_coasts(c, k) ? VRS_DECAY_COAST : VRS_DECAY_BRAKE;
     }
     program_sample(c);
     if (c->telemetry_every && c->ticks % c->telemetry_every == 0)

@@ -95,6 +95,7 @@ typedef struct {
     int32_t low, high;          /* the window, counts */
     float duty[VRS_PROGRAM_MAX_SEGMENTS];
     uint16_t ms[VRS_PROGRAM_MAX_SEGMENTS];
+    uint16_t coast;             /* bit i: segment i coasts (windings open, its duty 0; VRS_PROGRAM_COAST on the wire) */
 } vrs_program_spec;
 
 /* the last program: how it stands */
@@ -210,8 +211,9 @@ int vrs_clear_fault(vrs_core *c);  /* 0, or VRS_NACK_FAULT_PERSISTS while a HARD
 /* Start an open-loop program (PROGRAM does this): 0, or the NACK reason (VRS_NACK_*); nothing changes on a
  * refusal. IDLE, zero confirmed, no program running; hinge < n; 1..VRS_PROGRAM_MAX_SEGMENTS segments of 1 ms or
  * more, VRS_PROGRAM_MAX_MS in all; |duty| <= VRS_PROGRAM_MAX_DUTY (compared in wire units: duty is rounded to
- * duty * VRS_DUTY_SCALE first); timeout 1..VRS_PROGRAM_MAX_MS; -limit_counts <= low < high <= limit_counts with
- * the hinge's counts inside. Its samples stream as PROGRAM_SAMPLE frames. */
+ * duty * VRS_DUTY_SCALE first); a coasting segment's (p->coast) duty 0, no coast bit past the last segment;
+ * timeout 1..VRS_PROGRAM_MAX_MS; -limit_counts <= low < high <= limit_counts with the hinge's counts inside. Its
+ * samples stream as PROGRAM_SAMPLE frames. */
 int vrs_program(vrs_core *c, const vrs_program_spec *p);
 void vrs_get_program(const vrs_core *c, vrs_program_status *out);
 

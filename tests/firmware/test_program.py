@@ -9,12 +9,13 @@ import pytest
 
 from controllers import core
 from controllers.pid import PidGains
-from controllers.program import ProgramEnd
+from controllers.program import COAST, ProgramEnd
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions, drawn_options
 from twin.link.faults import FaultOptions
 from twin.link.serial_link import Link, NackError, program_message
 from twin.sim.batch import TwinBatch
+from twin.sim.drive import DECAY_COAST
 from twin.sim.plant import PlantRanges, as_twin
 from twin.sim.twin import Twin
 
@@ -33,8 +34,9 @@ def make(spec, zeroed: bool = True, **config) -> core.Core:
 
 
 def raw_program(hinge=2, low=-300, high=300, timeout_ms=100, duty=(0.5,), ms=(100,), n=None) -> P.Program:
-    """A PROGRAM frame's message as any host may send it: duty in [-1, 1] (to wire units), nothing checked."""
-    wire = tuple(round(d * P.DUTY_SCALE) for d in duty)
+    """A PROGRAM frame's message as any host may send it: duty in [-1, 1] (to wire units) or COAST, nothing
+    checked."""
+    wire = tuple(P.PROGRAM_COAST if d == COAST else round(d * P.DUTY_SCALE) for d in duty)
     return P.Program(hinge, low, high, timeout_ms, len(duty) if n is None else n,
                      wire + (0,) * (PAD - len(wire)), tuple(ms) + (0,) * (PAD - len(ms)))
 
@@ -45,15 +47,18 @@ def frames(c) -> list:
 
 class FirstOrderHinge:
     """A hinge for the bare core: speed follows duty * top_speed with time constant tau_s (braked to rest as
-    fast at duty 0), counts the rounded position; `jammed` holds it still."""
+    fast at duty 0), counts the rounded position; coasting (its windings open) it keeps its speed; `jammed`
+    holds it still. `coasted`: per tick, whether its bridge coasted it."""
 
     def __init__(self, top_speed=6000.0, tau_s=0.02, dt=0.001, jammed=False):
         self.top, self.a, self.dt, self.jammed = top_speed, dt / tau_s, dt, jammed
         self.pos = self.speed = 0.0
+        self.coasted = []
 
-    def step(self, duty: float) -> int:
+    def step(self, duty: float, coasting: bool = False) -> int:
+        self.coasted.append(coasting)
         if not self.jammed:
-            self.speed += (duty * self.top - self.speed) * self.a
+            self.speed += 0.0 if coasting else (duty * self.top - self.speed) * self.a
             self.pos += self.speed * self.dt
         return round(self.pos)
 
@@ -69,15 +74,15 @@ def run(c, msg, ticks, hinge_model=None, hinge=2, heartbeat_ms=50, events=()):
     c.rx(P.encode(msg, 1), 0)
     (reply,) = [m for _, m in frames(c)]
     duties, seen, out = [], [], []
-    duty = np.zeros(c.n)
+    duty, decay = np.zeros(c.n), np.ones(c.n)
     events = dict(events)
     for i in range(1, ticks + 1):
-        counts[hinge] = h.step(float(duty[hinge]))
+        counts[hinge] = h.step(float(duty[hinge]), bool(decay[hinge] == DECAY_COAST))
         if heartbeat_ms and i % heartbeat_ms == 0:
             c.rx(P.encode(P.Heartbeat(), 100 + i), i * 1000)
         if i in events:
             c.rx(events[i], i * 1000)
-        duty, _ = c.tick(i * 1000, counts)
+        duty, decay = c.tick(i * 1000, counts)
         duties.append(duty)
         seen.append(counts[hinge])
         out += frames(c)
@@ -185,6 +190,68 @@ def test_a_new_zero_or_wiring_ends_the_program(spec, change):
     _, duties, _, _, st = run(c, raw_program(2, timeout_ms=300, duty=(0.2,), ms=(300,)), 200,
                               events={50: P.encode(msg, 7)})
     assert st.end == ProgramEnd.STATE and st.ticks == 49 and not duties[49:].any() and c.state == P.State.IDLE
+
+
+def test_a_coasting_segment_opens_the_hinges_bridge_and_its_samples_say_so(spec):
+    """Driven, coasting, driven: the coasting ticks' bridge is open and its duty 0, their samples say
+    PROGRAM_COAST; the hinge keeps turning through them; every other tick and bridge brakes. Wired to another
+    bridge, the hinge's own coasts."""
+    c = make(spec)
+    h = FirstOrderHinge()
+    msg = raw_program(2, -300, 300, 60, duty=(0.3, COAST, -0.3), ms=(20, 25, 15))
+    reply, duties, counts, samples, st = run(c, msg, 80, h)
+    assert reply == P.Ack(P.MsgId.PROGRAM, 0) and (st.end, st.ticks) == (ProgramEnd.DONE, 60)
+    want = [False] * 20 + [True] * 25 + [False] * 35
+    assert h.coasted[1:] == want[:-1]  # the plant sees a tick's decay from the next
+    assert not duties[20:45].any()
+    assert [m.duty for _, m in samples[20:45]] == [P.PROGRAM_COAST] * 25
+    assert [m.duty for _, m in samples[:20]] == [round(0.3 * P.DUTY_SCALE)] * 20
+    assert counts[44] - counts[21] > 0.9 * (counts[20] - counts[0]) * 23 / 20  # it kept its speed, undriven
+    assert (c.tick(81_000, [0] * 6)[1] == 1).all()
+    c = make(spec)
+    c.rx(P.encode(P.SetWiring(tuple(range(6)), (0,) * 6, (0, 1, 3, 2, 4, 5)), 1), 0)  # hinge 2 on bridge 3
+    assert [m for _, m in frames(c)] == [P.Ack(P.MsgId.SET_WIRING, 0)]
+    c.mark_zero_confirmed()
+    assert c.program(core.program_spec(2, [(COAST, 0.05)], (-300, 300))) == 0
+    assert list(c.tick(1000, [0] * 6)[1]) == [1, 1, 1, DECAY_COAST, 1, 1]
+
+
+def coasting(spec, ticks, events=(), heartbeat_ms=50, high=370, timeout_ms=1000):
+    """A program driven 20 ms and coasting on (FirstOrderHinge keeps its speed), run `ticks`: (status, whether
+    the hinge coasted per tick, counts per tick)."""
+    h = FirstOrderHinge()
+    *_, counts, _, st = run(make(spec), raw_program(2, -300, high, timeout_ms, duty=(0.3, COAST), ms=(20, 980)), ticks,
+                            h, heartbeat_ms=heartbeat_ms, events=events)
+    return st, np.array(h.coasted[1:]), counts
+
+
+def test_the_cores_guards_end_a_coasting_program_and_brake(spec):
+    """Whatever ends a program while it coasts brakes the hinge from the next tick: the window's edge (the
+    coasting hinge heading for it), its timeout, a host gone quiet, a state change (ESTOP)."""
+    st, coasted, counts = coasting(spec, 400, high=250)
+    assert st.end == ProgramEnd.WINDOW and 20 < st.ticks < 400 and coasted[20:st.ticks].all()
+    assert not coasted[st.ticks:].any() and counts.max() <= 250
+    st, coasted, _ = coasting(spec, 300, timeout_ms=150)
+    assert (st.end, st.ticks) == (ProgramEnd.TIMEOUT, 150) and coasted[20:150].all() and not coasted[150:].any()
+    watchdog = core.config_from_spec(spec).watchdog_ms
+    st, coasted, _ = coasting(spec, 400, heartbeat_ms=0)
+    assert st.end == ProgramEnd.HOST_QUIET and watchdog <= st.ticks <= watchdog + 2
+    assert coasted[20:st.ticks].all() and not coasted[st.ticks:].any()
+    st, coasted, _ = coasting(spec, 300, events={100: P.encode(P.EStop(), 7)})
+    assert (st.end, st.ticks) == (ProgramEnd.STATE, 99) and coasted[20:99].all() and not coasted[99:].any()
+
+
+def test_a_coast_is_no_duty_the_core_takes_otherwise(spec):
+    """PROGRAM_COAST is a segment's whole duty: the core refuses a coast bit past the last segment or beside a
+    duty (its own API), and a core reads no coast from the duty just above it (-DUTY_SCALE: full reverse)."""
+    for bits, duty in ((0b10, 0.0), (0b1, 0.2)):
+        p = core.program_spec(2, [(duty, 0.05)], (-300, 300))
+        p.coast = bits
+        assert make(spec).program(p) == P.Nack.BAD_VALUE
+    assert core.program_spec(2, [(0.2, 0.05), (COAST, 0.05)], (-300, 300)).coast == 0b10
+    assert program_message(2, [(COAST, 0.05)], (-300, 300)).duty[0] == P.PROGRAM_COAST == -P.DUTY_SCALE - 1
+    _, duties, _, samples, _ = run(make(spec), raw_program(2, timeout_ms=10, duty=(-0.8,), ms=(10,)), 5)
+    assert duties[0, 2] < 0 and all(m.duty != P.PROGRAM_COAST for _, m in samples)
 
 
 def refused_programs(spec):
@@ -319,7 +386,7 @@ def test_programs_at_full_duty_stop_inside_their_window_on_drawn_plants(spec):
 
 # ---- one program everywhere --------------------------------------------------------------------
 
-SEGMENTS = [(0.3, 0.08), (0.0, 0.05), (-0.5, 0.1), (0.6, 0.1)]
+SEGMENTS = [(0.3, 0.08), (COAST, 0.05), (-0.5, 0.1), (0.6, 0.1)]
 WINDOW = (-200, 200)
 
 
@@ -352,10 +419,14 @@ def test_the_twin_the_batch_twin_and_the_emulator_run_a_program_alike_to_the_cou
         assert run_.end == single.end
         np.testing.assert_array_equal(run_.counts, single.counts)
         np.testing.assert_allclose(run_.duty, single.duty, atol=1e-6)
+        np.testing.assert_array_equal(run_.coasting, single.coasting)
     assert P.ProgramEnd(status.end).name.lower() == single.end and status.ticks == len(single.counts)
     np.testing.assert_array_equal([m.counts for _, m in samples], single.counts)
-    np.testing.assert_allclose(np.array([m.duty for _, m in samples]) / P.DUTY_SCALE, single.duty, atol=1e-4)
+    wire = np.array([m.duty for _, m in samples])
+    np.testing.assert_array_equal(wire == P.PROGRAM_COAST, single.coasting)
+    np.testing.assert_allclose(np.where(single.coasting, 0, wire) / P.DUTY_SCALE, single.duty, atol=1e-4)
     np.testing.assert_allclose(single.duty[:80], 0.3, atol=1e-4)
+    assert single.coasting[80:130].all() and single.coasting.sum() == 50 and not single.duty[80:130].any()
 
 
 def test_the_sketch_in_the_loop_ends_programs_itself(spec):
@@ -391,6 +462,32 @@ def test_the_sketch_in_the_loop_ends_programs_itself(spec):
     _, status, _ = emulated_program(spec, base, [(0.05, 1.0)], (-370, 370), 400, heartbeat_every=0)
     watchdog = core.config_from_spec(spec).watchdog_ms
     assert status.end == ProgramEnd.HOST_QUIET and watchdog <= status.ticks <= watchdog + 5, status
+
+
+def test_the_sketch_in_the_loop_coasts_and_brakes_where_the_core_ends_it(spec):
+    """The whole ESP32-S3 sketch: a raise, then a coast (the plant's motor with its windings open: the flap
+    rises on, turns and falls under its weight) that its window's edge, its timeout or a host gone quiet ends;
+    from each end the bridge brakes."""
+    base = EmulatorOptions(plant=as_twin(spec), faults=FaultOptions(latency_ms=0.0), zeroed=True, sketch=True)
+    cases = [((-370, 100), None, 50, ProgramEnd.WINDOW), ((-370, 370), 0.15, 50, ProgramEnd.TIMEOUT),
+             ((-370, 370), None, 0, ProgramEnd.HOST_QUIET)]
+    for window, timeout_s, heartbeat_ms, end in cases:
+        emu = Emulator(spec, base)
+        emu.receive(P.encode(program_message(2, [(0.4, 0.06), (COAST, 1.0)], window, timeout_s), 1))
+        coasted, out = [], bytearray()
+        for i in range(400):
+            if heartbeat_ms and i % heartbeat_ms == 0:
+                emu.receive(P.encode(P.Heartbeat(), 2 + i))
+            emu.step()
+            coasted.append(emu.plant.decay[2] == DECAY_COAST)
+            out += emu.take_output()
+        emu.receive(P.encode(P.GetProgram(), 9999))
+        for _ in range(3):
+            emu.step()
+        (st,) = [m for _, m in P.Decoder().feed(bytes(out) + emu.take_output()) if isinstance(m, P.ProgramStatus)]
+        coasted = np.array(coasted)
+        assert st.end == end and 100 < st.ticks < 400, (end, st)
+        assert coasted[65:st.ticks - 2].all() and not coasted[:55].any() and not coasted[st.ticks + 3:].any(), end
 
 
 # ---- over a real pty -------------------------------------------------------------------------------

@@ -15,13 +15,11 @@ from __future__ import annotations
 import dataclasses
 import random
 
-import numpy as np
-
-from controllers.program import ProgramEnd, ProgramRun, end_name
+from controllers.program import ProgramEnd, ProgramRun
 from twin.link import protocol as P
 from twin.link.emulator import Emulator, EmulatorOptions
 from twin.link.faults import FaultOptions
-from twin.link.serial_link import program_message
+from twin.link.serial_link import program_message, program_run
 from twin.sim.plant import PlantRanges, draw_plant
 
 # the stated ranges (the emulator's documented defaults), as its options: x the spec's value, or deg and ms
@@ -85,7 +83,4 @@ class EmulatedDevice:
                     raise ValueError(f"the emulator refused the program: {m}")
                 elif isinstance(m, P.ProgramStatus) and m.end != ProgramEnd.RUNNING and tick > 2:
                     status = m
-        index = np.array(sorted(i for i in samples if i < status.ticks), np.int64)
-        return ProgramRun(hinge, index * emu.dt, np.array([samples[i].duty for i in index], float) / P.DUTY_SCALE,
-                          np.array([samples[i].counts for i in index], np.int64),
-                          float(status.battery_mv) or None, end_name(status.end), int(status.ticks - len(index)))
+        return program_run(hinge, samples, status, emu.dt)

@@ -153,7 +153,7 @@ class Emulator:
         inputs = self.wiring.encoder_inputs(self.plant.sense(), self._first_counts)
         pwm, decay = self.firmware.run_tick(now_us, inputs, sensed, round(self.plant.bus * 1000))
         self._log_faults()
-        self.plant.actuate(self.wiring.plant_drive(pwm), decay)
+        self.plant.actuate(*self.wiring.plant_drive(pwm, decay))
         if self.hand is not None:
             self.plant.hold_hinge(*self.hand)
         driving = self.firmware.state == P.State.ACTIVE or bool(np.any(pwm))  # under targets, or a program

@@ -109,14 +109,15 @@ class Miswiring:
         out[dead] = c0[dead]
         return out
 
-    def plant_drive(self, pwm) -> np.ndarray:
-        """The plant's motors' PWM from the board's bridges': a bridge with an open input brakes the way that input
-        drives; each motor takes its bridge's, times its sign."""
+    def plant_drive(self, pwm, decay) -> tuple[np.ndarray, np.ndarray]:
+        """The plant's motors' PWM and decay from the board's bridges': a bridge with an open input brakes the way
+        that input drives; each motor takes its bridge's PWM, times its sign, and its decay (a coasting bridge
+        leaves its motor's windings open)."""
         p = np.asarray(pwm, np.float32).copy()
         blocked = np.asarray(self.open or [0] * len(p))
         p[(blocked != 0) & (np.sign(p) == blocked)] = 0.0
         bridge = list(self.bridge or range(len(p)))
-        return p[bridge] * np.asarray(self.motor_sign, np.float32)
+        return p[bridge] * np.asarray(self.motor_sign, np.float32), np.asarray(decay, np.uint8)[bridge]
 
 
     def bridge_current(self, motor_current) -> np.ndarray:

@@ -47,6 +47,7 @@ def header(spec: DeviceSpec | None = None) -> str:
            f"#define VRS_PROGRAM_MAX_MS {P.PROGRAM_MAX_MS}",
            f"#define VRS_PROGRAM_LOOKAHEAD_MS {P.PROGRAM_LOOKAHEAD_MS}",
            f"#define VRS_PROGRAM_RATE_TICKS {P.PROGRAM_RATE_TICKS}",
+           f"#define VRS_PROGRAM_COAST ({P.PROGRAM_COAST})",
            f"#define VRS_WIRING_ENCODER_REVERSED 0x{P.WIRING_ENCODER_REVERSED:02X}",
            f"#define VRS_WIRING_MOTOR_REVERSED 0x{P.WIRING_MOTOR_REVERSED:02X}",
            f"#define VRS_WIRING_DISABLED 0x{P.WIRING_DISABLED:02X}", "",

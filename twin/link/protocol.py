@@ -23,10 +23,11 @@ import struct
 from controllers.pid import PidGains
 from controllers.program import ProgramEnd  # noqa: F401  (the end reasons' one home; the header writes them)
 
-PROTOCOL_VERSION = 6  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING;
+PROTOCOL_VERSION = 7  # 2: the reset reason, the failed set-up step and the zero's state; CONFIRM_ZERO; HOLDING;
 # 3: STATE carries each hinge's PID integral; 4: PROGRAM, GET_PROGRAM, PROGRAM_STATUS, PROGRAM_SAMPLE (PULSE is a
 # program of one segment: the range and a stall end it); 5: SET_WIRING and WIRING carry each hinge's bridge;
-# 6: SET_WIRING's WIRING_DISABLED flag, HELLO_REPLY and STATE carry the disabled hinges, NACK HINGE_DISABLED
+# 6: SET_WIRING's WIRING_DISABLED flag, HELLO_REPLY and STATE carry the disabled hinges, NACK HINGE_DISABLED;
+# 7: a PROGRAM segment may coast (PROGRAM_COAST), and a PROGRAM_SAMPLE says a coasting tick so
 MAX_FRAME = 512  # bytes of decoded payload (header + body + crc); longer is garbage
 DUTY_SCALE = 32767  # duty [-1, 1] on the wire as int16 duty * 32767
 GAIN_SCALE = 10_000_000  # kp, ki, kd on the wire as int32 gain * 1e7
@@ -39,6 +40,9 @@ PROGRAM_MAX_DUTY = 0.8  # |duty| a PROGRAM segment may ask for
 PROGRAM_MAX_MS = 10_000  # ms a PROGRAM may last: its segments' sum and its timeout each (sample seqs stay < 2**16)
 PROGRAM_LOOKAHEAD_MS = 40  # the window ends a program where the hinge would be this long ahead at its present speed
 PROGRAM_RATE_TICKS = 8  # ticks over which the core measures that speed
+PROGRAM_COAST = -32768  # a PROGRAM segment's duty (and a PROGRAM_SAMPLE's) that coasts: the windings open, no
+# current, no back-EMF braking (the int16 below -DUTY_SCALE: no duty means it, and a core before version 7 refuses
+# it as a duty past -1 rather than drive)
 WIRING_ENCODER_REVERSED = 0x01  # SET_WIRING flags: the hinge's encoder counts the other way (A and B swapped)
 WIRING_MOTOR_REVERSED = 0x02  # ... its motor turns the other way (its two leads swapped)
 WIRING_DISABLED = 0x04  # ... the hinge is disabled: braked, never driven (a dead wire, or the user's choice); kept
@@ -325,9 +329,10 @@ class Pulse:
 class Program:
     """Host -> device, for identification: an open-loop duty program on one hinge, the others braked. Segments
     0..n_segments-1 of `duty` (int16 duty * 32767, each at most PROGRAM_MAX_DUTY) and `duration_ms` run in
-    order (the rest are zeros); the core ends it itself at the window [low, high] (counts, within the hinge's
-    range, the hinge inside it now), on a stall, after timeout_ms, when the host goes quiet, on any state
-    change. IDLE with the zero confirmed only; PROGRAM_SAMPLE streams its ticks, GET_PROGRAM tells its end."""
+    order (the rest are zeros); a segment whose duty is PROGRAM_COAST coasts (its windings open). The core ends
+    it itself at the window [low, high] (counts, within the hinge's range, the hinge inside it now), on a stall,
+    after timeout_ms, when the host goes quiet, on any state change, braking the hinge. IDLE with the zero
+    confirmed only; PROGRAM_SAMPLE streams its ticks, GET_PROGRAM tells its end."""
 
     MSG = MsgId.PROGRAM
     hinge: int
@@ -364,7 +369,8 @@ class ProgramStatus:
 @dataclasses.dataclass(frozen=True)
 class ProgramSample:
     """Device -> host, streamed while a program runs: one tick, its index from the program's start in the
-    header's seq: the hinge's counts read in it and the duty applied from it (int16 duty * 32767)."""
+    header's seq: the hinge's counts read in it and the duty applied from it (int16 duty * 32767; PROGRAM_COAST:
+    the hinge coasts from it)."""
 
     MSG = MsgId.PROGRAM_SAMPLE
     counts: int

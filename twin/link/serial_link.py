@@ -28,7 +28,7 @@ import numpy as np
 import serial
 
 from controllers.core import MAX_HINGES
-from controllers.program import ProgramEnd, ProgramRun, end_name
+from controllers.program import COAST, ProgramEnd, ProgramRun, end_name
 from twin.device.spec import LOOP_RATE_RANGE
 from twin.formats.gains import check_gains
 from twin.link import protocol as P
@@ -113,17 +113,19 @@ MAX_LOOP_RATE_KHZ = 2  # program samples kept per ms of PROGRAM_MAX_MS: bounded,
 
 
 def program_message(hinge: int, segments, window_counts, timeout_s: float | None = None) -> P.Program:
-    """The PROGRAM message for segments ((duty, duration_s) pairs), a window (low, high counts) and a timeout
-    (s; default the segments' sum); ValueError naming the bound for a program the device would refuse on
-    its face (the hinge's range and its present counts the device checks)."""
-    segments = [(float(d), float(s)) for d, s in segments]
+    """The PROGRAM message for segments ((duty, duration_s) pairs; duty controllers.program.COAST: the hinge
+    coasts), a window (low, high counts) and a timeout (s; default the segments' sum); ValueError naming the
+    bound for a program the device would refuse on its face (the hinge's range and its present counts the
+    device checks)."""
+    segments = [(d if d == COAST else float(d), float(s)) for d, s in segments]
     low, high = (int(w) for w in window_counts)
     ms = [round(s * 1000) for _, s in segments]
     total = sum(ms)
     timeout_ms = total if timeout_s is None else round(timeout_s * 1000)
     if not 1 <= len(segments) <= P.PROGRAM_MAX_SEGMENTS:
         raise ValueError(f"a program has 1 to {P.PROGRAM_MAX_SEGMENTS} segments, not {len(segments)}")
-    if any(not abs(round(d * P.DUTY_SCALE)) <= round(P.PROGRAM_MAX_DUTY * P.DUTY_SCALE) for d, _ in segments):
+    if any(d != COAST and not abs(round(d * P.DUTY_SCALE)) <= round(P.PROGRAM_MAX_DUTY * P.DUTY_SCALE)
+           for d, _ in segments):
         raise ValueError(f"a program's |duty| is at most {P.PROGRAM_MAX_DUTY}: {[d for d, _ in segments]}")
     if any(m < 1 for m in ms) or total > P.PROGRAM_MAX_MS or not 1 <= timeout_ms <= P.PROGRAM_MAX_MS:
         raise ValueError(f"a program's segments last 1 ms or more, {P.PROGRAM_MAX_MS} ms in all, and its timeout "
@@ -132,7 +134,20 @@ def program_message(hinge: int, segments, window_counts, timeout_s: float | None
         raise ValueError(f"a program's window is low < high counts, not [{low}, {high}]")
     pad = P.PROGRAM_MAX_SEGMENTS - len(segments)
     return P.Program(hinge, low, high, timeout_ms, len(segments),
-                     tuple(round(d * P.DUTY_SCALE) for d, _ in segments) + (0,) * pad, tuple(ms) + (0,) * pad)
+                     tuple(P.PROGRAM_COAST if d == COAST else round(d * P.DUTY_SCALE) for d, _ in segments)
+                     + (0,) * pad, tuple(ms) + (0,) * pad)
+
+
+def program_run(hinge: int, samples: dict, status: P.ProgramStatus, tick_s: float) -> ProgramRun:
+    """A program's run from its PROGRAM_SAMPLEs ({seq: ProgramSample}, those lost absent) and the status that
+    ended it: a sample per tick received, a coasting tick's duty 0 with its `coasting` set."""
+    index = np.array(sorted(i for i in samples if i < status.ticks), np.int64)
+    wire = np.array([samples[i].duty for i in index], np.int64)
+    coasting = wire == P.PROGRAM_COAST
+    return ProgramRun(hinge=hinge, time_s=index * tick_s, duty=np.where(coasting, 0, wire) / P.DUTY_SCALE,
+                      counts=np.array([samples[i].counts for i in index], np.int64),
+                      battery_mV=float(status.battery_mv) if status.battery_mv else None,
+                      end=end_name(status.end), samples_lost=int(status.ticks - len(index)), coasting=coasting)
 
 
 def on_pty(url: str) -> bool:
@@ -492,7 +507,7 @@ class Link:
         """Run an open-loop duty program on one hinge (the device IDLE, its zero confirmed) and return its samples.
 
         segments: (duty, duration_s) pairs, at most PROGRAM_MAX_SEGMENTS, |duty| <= PROGRAM_MAX_DUTY, in all at
-        most PROGRAM_MAX_MS; a duty of 0 brakes. window_counts: (low, high), counts within the hinge's range, the
+        most PROGRAM_MAX_MS; a duty of 0 brakes, COAST coasts. window_counts: (low, high), counts within the hinge's range, the
         hinge inside it now. timeout_s: when the core ends it at the latest (default: the segments' sum). The
         device ends it itself (docs/protocol.md, "PROGRAM"); this waits for that, polling GET_PROGRAM every
         poll_s, and gives one sample per firmware tick (PROGRAM_SAMPLE), those lost on the way counted.
@@ -513,14 +528,10 @@ class Link:
             raise
         with self._pending_lock:  # every sample was queued before the status that says the program ended
             samples, self._samples = self._samples, {}
-        index = np.array(sorted(i for i in samples if i < status.ticks), np.int64)
-        self.log("program_end", hinge=hinge, end=end_name(status.end), ticks=status.ticks, received=len(index),
+        run = program_run(hinge, samples, status, dt)
+        self.log("program_end", hinge=hinge, end=run.end, ticks=status.ticks, received=len(run.time_s),
                  dropped=status.dropped)
-        return ProgramRun(hinge=hinge, time_s=index * dt,
-                          duty=np.array([samples[i].duty for i in index], float) / P.DUTY_SCALE,
-                          counts=np.array([samples[i].counts for i in index], np.int64),
-                          battery_mV=float(status.battery_mv) if status.battery_mv else None,
-                          end=end_name(status.end), samples_lost=int(status.ticks - len(index)))
+        return run
 
     def get_program(self) -> P.ProgramStatus:
         """How the last program (or PULSE) stands: its hinge, end reason (ProgramEnd), ticks run."""

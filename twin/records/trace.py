@@ -23,6 +23,7 @@ class Trace:
     true_angle: np.ndarray | None = None  # rad, the flap's true angle (a twin's)
     target_counts: np.ndarray | None = None  # the target in counts (a twin's)
     torque: np.ndarray | None = None  # N*m at the output shaft (a twin's)
+    decay: np.ndarray | None = None  # the decay the drive applied, 0 coast, 1 brake (a twin's)
     wall_time: float = float("nan")  # s the simulation took (a twin's)
 
     @property

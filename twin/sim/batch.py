@@ -19,7 +19,7 @@ from controllers.program import ProgramEnd, ProgramRun, end_name
 from twin.device.mjcf import load_model, motor_attributes
 from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec, load_spec
-from twin.sim.drive import V_PACK, drive_params
+from twin.sim.drive import DECAY_COAST, V_PACK, drive_params
 from twin.sim.hinges import Hinges, physics_substeps, place_hinges
 from twin.sim.targets import TargetError, check_targets
 
@@ -143,13 +143,15 @@ class TwinBatch:
         ticks = round(max(spec.timeout_ms, sum(spec.ms[:spec.n_segments])) / 1000 / s.firmware_dt) + 1
         rec = {k: np.zeros((ticks, self.nsim, n)) for k in ("angle", "duty", "current")}
         rec["counts"] = np.zeros((ticks, self.nsim, n), np.int64)
+        rec["decay"] = np.zeros((ticks, self.nsim, n), np.uint8)
         status = [ProgramStatus() for _ in range(self.nsim)]
         vel_stage = mujoco.mjtStage.mjSTAGE_VEL.value
         for i in range(ticks):
             kernels.batch_tick(i, base, size, self._now_us, self.sensordata, self.qpos, self.qvel, self.ctrl,
                                self.qfrc_applied, self.hinges.enc, self.hinges.qadr, self.hinges.gear_dof,
                                float(s.counts_per_motor_rev), self._params, self._bus, self._counts, self._duty,
-                               self._decay, self._pwm, rec["angle"], rec["counts"], rec["duty"], rec["current"])
+                               self._decay, self._pwm, rec["angle"], rec["counts"], rec["duty"], rec["current"],
+                               rec["decay"])
             self._now_us = (self._now_us + tick_us(s)) & 0xFFFFFFFF
             for j in range(self.nsim):
                 lib.vrs_get_program(base + j * size, ctypes.addressof(status[j]))
@@ -159,14 +161,15 @@ class TwinBatch:
         return [ProgramRun(hinge=hinge, time_s=np.arange(st.ticks) * s.firmware_dt,
                            duty=rec["duty"][:st.ticks, j, hinge].copy(),
                            counts=rec["counts"][:st.ticks, j, hinge].copy(),
-                           battery_mV=float(st.battery_mv) or None, end=end_name(st.end))
+                           battery_mV=float(st.battery_mv) or None, end=end_name(st.end),
+                           coasting=rec["decay"][:st.ticks, j, hinge] == DECAY_COAST)
                 for j, st in enumerate(status)]
 
     def run(self, targets, duration: float) -> dict:
         """Run every simulation to its targets (rad, (nsim, n_hinges)) for `duration` s.
 
         Returns arrays (ticks, nsim, n_hinges): 'angle' (rad), 'counts', 'duty',
-        'current' (A); 'time' (s), 'wall_time' (s). TargetError if a firmware refuses its targets.
+        'current' (A), 'decay' (0 coast, 1 brake); 'time' (s), 'wall_time' (s). TargetError if a firmware refuses its targets.
         """
         from twin.sim import kernels  # compiled on first use, not on import
 
@@ -184,6 +187,7 @@ class TwinBatch:
         ticks = int(round(duration / s.firmware_dt))
         out = {k: np.zeros((ticks, self.nsim, n)) for k in ("angle", "duty", "current")}
         out["counts"] = np.zeros((ticks, self.nsim, n), np.int64)
+        out["decay"] = np.zeros((ticks, self.nsim, n), np.uint8)
         vel_stage = mujoco.mjtStage.mjSTAGE_VEL.value
         dt_us = tick_us(s)
         start = time.perf_counter()
@@ -191,7 +195,8 @@ class TwinBatch:
             kernels.batch_tick(i, base, size, self._now_us, self.sensordata, self.qpos, self.qvel, self.ctrl,
                                self.qfrc_applied, self.hinges.enc, self.hinges.qadr, self.hinges.gear_dof,
                                float(s.counts_per_motor_rev), self._params, self._bus, self._counts, self._duty,
-                               self._decay, self._pwm, out["angle"], out["counts"], out["duty"], out["current"])
+                               self._decay, self._pwm, out["angle"], out["counts"], out["duty"], out["current"],
+                               out["decay"])
             self.batch.step(nstep=self.substeps, stage=vel_stage)
             self._now_us = (self._now_us + dt_us) & 0xFFFFFFFF
         out["wall_time"] = time.perf_counter() - start

@@ -10,8 +10,8 @@ and what the device's sensors would read:
 - each driver in slow decay (brake: the winding shorted in the PWM's off-time) is the average
   voltage pwm * V_bus behind its FETs' on-resistance, in series with the winding:
   I = (pwm * V_bus - K*N*w) / (R + R_on);
-- coast at zero PWM opens the winding: no current, no back-EMF braking (the core never chooses it:
-  docs/firmware.md);
+- coast at zero PWM opens the winding: no current, no back-EMF braking (the core chooses it only for an
+  open-loop program's coasting segment: docs/firmware.md);
 - the driver's analog current limit clamps |I| at driver_current_limit;
 - the gearbox passes the motor's torque N*K*I with efficiency eta driving (power from the motor to
   the flap) and 1 / eta_back back-driven (the flap drives the motor: the load must supply more

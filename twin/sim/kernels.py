@@ -53,7 +53,7 @@ def step_model(m, m_free, spreads, qpos, qadr, angles):
 def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata, qpos, qvel, ctrl, qfrc,
                    qfrc_applied, enc_adr, qadr, gear_dof, cpr_motor, params, bus, target, counts, duty, decay, pwm,
                    max_ticks, settle_band, hold_ticks, stop_when_settled, unpowered, rec_angle, rec_counts, rec_duty,
-                   rec_current, rec_torque):
+                   rec_current, rec_torque, rec_decay):
     """Run firmware ticks until settled (if asked: hold_ticks ticks in a row in the band, twin.sim.settle) or
     max_ticks; returns the ticks run. unpowered: the drive
     without power (a pack pulled): zero PWM and the windings open on every hinge, whatever the core commands.
@@ -61,7 +61,8 @@ def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata
     m_free: the model with contacts disabled, stepped where `apart(spreads, hinge angles)` (no spreads: never);
     fw: the core's address; now_us: device time of the first tick (us), dt_us per tick; counts (int32),
     duty and pwm (float32) and decay (uint8) are the core's input and output buffers; params the drive
-    model's (twin.sim.drive), bus[0] the bus voltage (V) the core reads, carried from tick to tick.
+    model's (twin.sim.drive), bus[0] the bus voltage (V) the core reads, carried from tick to tick; rec_*: per
+    tick and hinge, what it recorded (the decay the drive applied: 0 coast, 1 brake).
     """
     n = target.shape[0]
     current = np.zeros(n)
@@ -82,6 +83,7 @@ def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata
             rec_counts[i, h] = counts[h]
             rec_duty[i, h] = duty[h]
             rec_current[i, h] = current[h]
+            rec_decay[i, h] = decay[h]
         mj_step2(mi, d)
         for h in range(n):
             rec_torque[i, h] = qfrc[gear_dof[h]] + qfrc_applied[gear_dof[h]]
@@ -94,8 +96,10 @@ def firmware_loop(m, m_free, spreads, d, substeps, fw, now_us, dt_us, sensordata
 
 @numba.njit(cache=False)
 def batch_tick(i, cores, core_size, now_us, sensordata, qpos, qvel, ctrl, qfrc_applied, enc_adr, qadr, gear_dof,
-                cpr_motor, params, bus, counts, duty, decay, pwm, rec_angle, rec_counts, rec_duty, rec_current):
-    """Tick i of every simulation: its encoders, its core (at cores + sim * core_size), its drive."""
+                cpr_motor, params, bus, counts, duty, decay, pwm, rec_angle, rec_counts, rec_duty, rec_current,
+                rec_decay):
+    """Tick i of every simulation: its encoders, its core (at cores + sim * core_size), its drive; rec_* (tick,
+    sim, hinge) what it recorded (the decay: 0 coast, 1 brake)."""
     nsim, n = counts.shape
     current = np.zeros(n)
     for s in range(nsim):
@@ -107,4 +111,5 @@ def batch_tick(i, cores, core_size, now_us, sensordata, qpos, qvel, ctrl, qfrc_a
             rec_counts[i, s, h] = counts[s, h]
             rec_duty[i, s, h] = duty[s, h]
             rec_current[i, s, h] = current[h]
+            rec_decay[i, s, h] = decay[s, h]
 

@@ -216,6 +216,7 @@ class Plant:
         mujoco.mj_forward(self.model, self.data)
         self.bus = self.spec.supply_voltage  # V, the battery voltage the firmware reads
         self.current = np.zeros(n)  # A, winding current of the last tick
+        self.decay = np.ones(n, np.uint8)  # each motor's decay the last tick (0 coast: its windings open; 1 brake)
         scratch = mujoco.MjData(self.model)  # the drive model compiled (or loaded) now, so the first tick is on time
         drive(self.params, np.zeros(n, np.float32), np.zeros(n, np.uint8), scratch.qvel, self.hinges.gear_dof,
               scratch.ctrl, scratch.qfrc_applied, np.zeros(n))
@@ -244,8 +245,9 @@ class Plant:
     def actuate(self, pwm, decay) -> None:
         """Finish the tick: the drive (the core's PWM and decay per hinge) held over the tick's physics steps."""
         d = self.data
-        self.bus = drive(self.params, np.asarray(pwm, np.float32), np.asarray(decay, np.uint8), d.qvel,
-                         self.hinges.gear_dof, d.ctrl, d.qfrc_applied, self.current)
+        self.decay = np.asarray(decay, np.uint8)
+        self.bus = drive(self.params, np.asarray(pwm, np.float32), self.decay, d.qvel, self.hinges.gear_dof, d.ctrl,
+                         d.qfrc_applied, self.current)
         for k, (amplitude, phase) in enumerate(self._ripple):  # friction opposes the motion, rippling with the mesh
             g = self.hinges.gear_dof[k]
             theta = d.qpos[self.hinges.gear_qadr[k]]

@@ -32,7 +32,7 @@ from twin.device.mount import DEFAULT_MOUNT
 from twin.device.spec import DeviceSpec, load_spec
 from twin.records.profile import Profile
 from twin.records.trace import Trace
-from twin.sim.drive import drive_params
+from twin.sim.drive import DECAY_COAST, drive_params
 from twin.sim.hinges import Hinges, contact_free_spreads, physics_substeps, place_hinges
 from twin.sim.settle import hold_samples
 from twin.sim.targets import TargetError, check_targets
@@ -169,11 +169,11 @@ class Twin:
         while self.firmware.program_status().end == ProgramEnd.RUNNING and len(traces) * chunk_s < most:
             traces.append(self._run(np.zeros(self.spec.n_hinges), chunk_s, False))
         status = self.firmware.program_status()
-        counts = np.concatenate([t.counts[:, hinge] for t in traces])[:status.ticks]
-        duty = np.concatenate([t.duty[:, hinge] for t in traces])[:status.ticks]
+        counts, duty, decay = (np.concatenate([getattr(t, c)[:, hinge] for t in traces])[:status.ticks]
+                               for c in ("counts", "duty", "decay"))
         return ProgramRun(hinge=hinge, time_s=np.arange(status.ticks) * self.spec.firmware_dt, duty=duty,
                           counts=counts.astype(np.int64), battery_mV=float(status.battery_mv) or None,
-                          end=end_name(status.end))
+                          end=end_name(status.end), coasting=decay == DECAY_COAST)
 
     def unpowered(self, duration: float) -> Trace:
         """`duration` seconds with the drive unpowered (a pack pulled): zero PWM, every winding open, whatever
@@ -186,7 +186,8 @@ class Twin:
         s, m, d, h = self.spec, self.model, self.data, self.hinges
         ticks = int(round(max_time / s.firmware_dt))
         n = s.n_hinges
-        rec = [np.zeros((ticks, n)), np.zeros((ticks, n), np.int64)] + [np.zeros((ticks, n)) for _ in range(3)]
+        rec = ([np.zeros((ticks, n)), np.zeros((ticks, n), np.int64)] + [np.zeros((ticks, n)) for _ in range(3)]
+               + [np.zeros((ticks, n), np.uint8)])
         t0 = d.time
         start = time.perf_counter()
         spreads = contact_free_spreads(s, m)
@@ -201,13 +202,13 @@ class Twin:
             stop_when_settled, unpowered, *rec)
         wall = time.perf_counter() - start
         self._now_us = (self._now_us + done * tick_us(s)) & 0xFFFFFFFF
-        angle, counts, duty, current, torque = (r[:done] for r in rec)
+        angle, counts, duty, current, torque, decay = (r[:done] for r in rec)
         return Trace(
             time=t0 + np.arange(done) * s.firmware_dt,
             target=np.tile(targets, (done, 1)),
             target_counts=np.tile(self._target, (done, 1)).astype(np.int64),
             angle=angle_from_counts(s, counts), counts=counts, duty=duty, current=current, true_angle=angle,
-            torque=torque, wall_time=wall,
+            torque=torque, decay=decay, wall_time=wall,
         )
 
 
