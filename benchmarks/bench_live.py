@@ -35,10 +35,10 @@ CPU: per phase, each process's CPU time (schedstat) per sample sent; the worker'
 pen process's per pen sample (an older service's own: pens at 360 Hz, poses at 90 Hz beside) are pooled per side
 (the median of the rounds) with --against.
 
---fifo PRIORITY: the processes on the samples' way (this client, the service, its worker and pen process; the C# client
-with `chrt`) run under SCHED_FIFO at that priority while they are measured (Linux; needs CAP_SYS_NICE): a
-wake-up then takes a core from any ordinary process at once, which on a shared machine is what a core of
-their own would give. Each of them sleeps between samples (no busy wait), so together they take what they
+--fifo PRIORITY: the processes on the samples' way (this client, the service, its worker and pen process; the C#
+client with `chrt`) run under SCHED_FIFO at that priority (the worker one below) while they are measured (Linux;
+needs CAP_SYS_NICE): a wake-up then takes a core from any ordinary process at once, which on a shared machine is
+what a core of their own would give. Each of them sleeps between samples (no busy wait), so together they take what they
 took before, ~10-30 % of a core.
 
 --csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs;
@@ -178,7 +178,10 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         await client.set_target(shape=shape)
         processes = pids()
         # under SCHED_FIFO from the settling on: the service's per-stage figures (its last 2,000 samples) are all so
-        prioritise([pid for name, pid in processes.items() if name != "emulator"], fifo)  # not on the way
+        # the worker one step below the rest: a pen wakes its process and preempts an approximation (at one priority
+        # SCHED_FIFO never preempts, and the worker's 1-2 ms held a core from the pens: docs/live.md, "Measured")
+        prioritise([pid for name, pid in processes.items() if name not in ("emulator", "worker")], fifo)
+        prioritise([processes["worker"]], max(fifo - 1, 1) if fifo else 0)
         for k in range(45):  # settle: half a second of poses, not measured
             client.send_pose(*hover(start, k / POSE_HZ))
             await asyncio.sleep(1 / POSE_HZ)

@@ -2,7 +2,8 @@
 
 Every stamp of a path is `time.perf_counter()` (s). On Linux that is CLOCK_MONOTONIC, one clock for every
 process on the machine, so the worker's stamps and the service's can be subtracted. A pose's CPU is stamped
-too (`time.thread_time()`, ~2 us a call: three per pose, two per frame estimates, none per pen, whose whole work is ~15 us).
+too (`time.thread_time()`, ~2 us a call: three per pose, two per frame estimates, none per pen, whose whole work is
+~15 us).
 """
 
 from __future__ import annotations
@@ -24,8 +25,8 @@ POSE_CPU_STAGES = ("approximate", "send", "total")
 the pose's matrix and the approximation, the reply built and sent. (Its frame estimates' CPU: `estimates_cpu_ms`.)"""
 PEN_STAGES = ("socket", "check", "redirect", "send", "total")
 """A pen sample's path, all in the pen process (twin/live/pens.py): in the service's socket (the kernel's arrival
-stamp -> taken off it: the pen process's wake-up, or it busy with the pens before), checked (the datagram, the session, the sequence
-number), redirected and its reply encoded (with the thresholds' verdict), sent."""
+stamp -> taken off it: the pen process's wake-up, or it busy with the pens before), checked (the datagram, the session,
+the sequence number), redirected and its reply encoded (with the thresholds' verdict), sent."""
 
 
 class StageTimes:
