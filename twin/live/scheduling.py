@@ -10,8 +10,9 @@ kernel takes (0.1 ms) as they start (twin/live/pens.py, twin/live/worker.py); th
 inherit it.
 
 Measured (docs/live.md, "Measured"): pens at 360 Hz with poses at 90 Hz on one service, short slices on (pen
-process, worker, client) and off alternating every 5.5 s, load ~8.7 on 2 cores: the pen's wait for a core per
-wake-up 400-650 -> 74-192 us, its end-to-end p99 15.6-17.7 -> 4.1-10.2 ms, the pose's p99 26-31 -> 18-19 ms.
+process, worker, client) and off alternating every 5.5 s, load ~8.7 on 2 cores: the pen process's wait for a core
+per wake-up 400-650 -> 74-192 us, the pen's end-to-end p99 15.6-17.7 -> 4.1-10.2 ms, the pose's 26-31 -> 18-19 ms;
+on the pen process and the worker alone (as the service does it), load ~9: 94-193 -> 33-48 us per wake-up.
 
 Elsewhere (another OS, an older kernel, a process under a real-time policy, which needs no slice) nothing is
 changed.
