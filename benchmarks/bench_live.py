@@ -138,12 +138,14 @@ def waits(before: dict, after: dict, seconds: float, samples: int) -> tuple[str,
     return "; ".join(parts), cpu
 
 
-def hover(start: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
-    """Position mm and quaternion of the hovering device at time t s."""
+def hover(start: np.ndarray, quat: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Position mm and quaternion of the device hovering over `start` (4x4; quat: its rotation's, w first, made once:
+    scipy's conversion is ~60 us on a warm core, which this client spent after every fourth pen it timed) at time t
+    s."""
     rot = start[:3, :3]
     p = start[:3, 3] + HOVER * math.sin(2 * math.pi * HOVER_HZ * t) * rot[:, 0] \
         + TREMOR * (math.sin(2 * math.pi * 5 * t) * rot[:, 1] + math.sin(2 * math.pi * 7 * t) * rot[:, 2])
-    return p * 1e3, Rotation.from_matrix(rot).as_quat(scalar_first=True)
+    return p * 1e3, quat
 
 
 def stats(name: str, values, sent: int, goal_ms: float | None = None) -> str:
@@ -173,6 +175,7 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
     and poses}}.
     fifo: the SCHED_FIFO priority of those processes while measured (0: none)."""
     start = pose_from_mm_deg(shape_table()[shape]["start"])
+    quat = Rotation.from_matrix(start[:3, :3]).as_quat(scalar_first=True)
     out = {"sent": {}, "status": None, "waits": {}, "cpu_us": {}}
     async with LiveClient(url, protocol=protocol) as client:
         await client.set_target(shape=shape)
@@ -183,7 +186,7 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         prioritise([pid for name, pid in processes.items() if name not in ("emulator", "worker")], fifo)
         prioritise([processes["worker"]], max(fifo - 1, 1) if fifo else 0)
         for k in range(45):  # settle: half a second of poses, not measured
-            client.send_pose(*hover(start, k / POSE_HZ))
+            client.send_pose(*hover(start, quat, k / POSE_HZ))
             await asyncio.sleep(1 / POSE_HZ)
         await asyncio.sleep(0.1)
         client.drain("approximation")
@@ -194,7 +197,7 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         sent, t0 = 0, time.perf_counter()
         while (t := time.perf_counter() - t0) < seconds:
             collect_if_due()
-            client.send_pose(*hover(start, t))
+            client.send_pose(*hover(start, quat, t))
             sent += 1
             await asyncio.sleep(max(0.0, t0 + sent / POSE_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
@@ -226,7 +229,7 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
             client.send_pen(points[k] * 1e3, quats[k])
             pens += 1
             if pens % round(PEN_HZ / POSE_HZ) == 0:
-                client.send_pose(*hover(start, t))
+                client.send_pose(*hover(start, quat, t))
                 poses += 1
             await asyncio.sleep(max(0.0, t0 + pens / PEN_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
