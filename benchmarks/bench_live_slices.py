@@ -1,11 +1,11 @@
 """The live service's short scheduler slices (twin/live/scheduling.py) on and off, alternating on one service.
 
-    .venv/bin/python benchmarks/bench_live_slices.py [--phases 6] [--seconds 5.5] [--client]
+    .venv/bin/python benchmarks/bench_live_slices.py [--phases 6] [--seconds 5.5] [--worker] [--client]
 
 One emulator, one `vrscroll serve --serial` on it, one client (benchmarks/bench_live.py's): a lock, then phases of
-pens at 360 Hz with poses at 90 Hz beside, the pen process and the worker on the kernel's default slice in the
-even phases and on its shortest (they ask for it as they start; this sets it back and forth from outside) in the
-odd ones; --client: this client too. Alternating phases of one service under the same load are the fairest
+pens at 360 Hz with poses at 90 Hz beside, the pen process on the kernel's default slice in the even phases and on
+its shortest (it asks for it as it starts; this sets it back and forth from outside) in the odd ones; --worker: the
+worker too (it keeps the default: the cost shows in the pose), --client: this client too. Alternating phases of one service under the same load are the fairest
 comparison this shared machine allows: before-and-after runs of two services differ by the load between them more
 than by the change. Per phase: the pen's and the pose's round trips (p50 / p99 ms), the pen process's own path,
 and each process's wait for a core per wake-up (schedstat).
@@ -94,6 +94,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--phases", type=int, default=6, help="phases, default then short slices in turn (default 6)")
     p.add_argument("--seconds", type=float, default=5.5, help="length of each phase (default 5.5)")
+    p.add_argument("--worker", action="store_true", help="the worker on short slices too in the odd phases")
     p.add_argument("--client", action="store_true", help="this client on short slices too in the odd phases")
     args = p.parse_args()
     if args.phases < 2 or args.seconds <= 0:
@@ -102,7 +103,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed") as emu, \
             ServiceProcess("--serial", emu.port, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err") as service:
-        shaped = ["pens", "worker"] + (["client"] if args.client else [])
+        shaped = ["pens"] + (["worker"] if args.worker else []) + (["client"] if args.client else [])
         asyncio.run(alternate(service.url, lambda: processes(service, emu.proc.pid), args.phases, args.seconds, shaped))
     print(load())
 

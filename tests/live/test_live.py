@@ -598,7 +598,8 @@ def test_a_worker_that_dies_is_restarted_and_the_client_served(tmp_path):
 
 
 def test_pens_are_served_by_a_process_of_their_own_that_is_restarted_with_its_field(tmp_path):
-    """The pens' own process (nothing else in it: twin/live/pens.py) redirects the pens after a lock; killed, it is
+    """The pens' own process (nothing else in it, on a short scheduler slice: twin/live/pens.py) redirects the pens
+    after a lock; killed, it is
     started again with the controller's session and the lock's field, and the next pens are redirected as before,
     in order, to the same virtual points; a new lock stops the redirection until its own morph is done."""
     with ServiceProcess("--shape", "cylinder", stderr_path=tmp_path / "serve.err") as service:
@@ -637,11 +638,15 @@ def test_pens_are_served_by_a_process_of_their_own_that_is_restarted_with_its_fi
                 return before, after, status, stopped, restarted, slices
 
         before, after, status, stopped, restarted, slices = run(session())
-    # both ask the kernel for its shortest slice (twin/live/scheduling.py), where it takes such a request
+    # the pen process asks the kernel for its shortest slice (twin/live/scheduling.py), where it takes such a
+    # request; the worker keeps the default (its approximation is not cut into pieces)
     probe = subprocess.run([sys.executable, "-c", "from twin.live.scheduling import ask_short_slice, slice_s; "
                             "print(ask_short_slice() and slice_s())"], capture_output=True, text=True, env=cli_env())
     assert probe.returncode == 0, probe.stderr
-    assert slices == [SLICE_S] * 2 if probe.stdout.strip() == str(SLICE_S) else slices[0] == slices[1]
+    if probe.stdout.strip() == str(SLICE_S):
+        assert slices[0] == SLICE_S and slices[1] > SLICE_S
+    else:
+        assert slices[0] == slices[1]
     assert len(restarted) == 1
     assert status["counts"]["pen_process_restarts"] == 1
     assert after == before and len(before) > 10

@@ -5,14 +5,15 @@ A process woken by a datagram waits for a core while another runs out its slice:
 the emulator and everything else running here take theirs. A task may ask for a shorter slice for itself
 (`sched_setattr`, `sched_runtime` under SCHED_OTHER: no privilege needed); the kernel then gives it an earlier
 deadline, and once woken it preempts a task running a longer slice (the scheduler's PREEMPT_SHORT), while over a
-second it still gets only its fair share. The pen process and the approximation worker ask for the shortest the
-kernel takes (0.1 ms) as they start (twin/live/pens.py, twin/live/worker.py); the threads and processes they start
-inherit it.
+second it still gets only its fair share. The pen process asks for the shortest the kernel takes (0.1 ms) as it
+starts (twin/live/pens.py): its work per pen is ~15 us, it is woken 360 times a second, and every wake-up is on a
+pen's way. The approximation worker does not: on a short slice its 1-2 ms approximation was cut into 0.1 ms pieces
+between which the client's and the emulator's threads ran, and the C# client's pose p99 rose from 2.3-2.6 to
+4.2-5.2 ms (pens short in both, the worker's alternating, load ~2).
 
-Measured (docs/live.md, "Measured"): pens at 360 Hz with poses at 90 Hz on one service, short slices on (pen
-process, worker, client) and off alternating every 5.5 s, load ~8.7 on 2 cores: the pen process's wait for a core
-per wake-up 400-650 -> 74-192 us, the pen's end-to-end p99 15.6-17.7 -> 4.1-10.2 ms, the pose's 26-31 -> 18-19 ms;
-on the pen process and the worker alone (as the service does it), load ~9: 94-193 -> 33-48 us per wake-up.
+Measured (docs/live.md, "Measured"): one service, pens at 360 Hz and poses at 90 Hz, short slices on and off in turn
+every 5.5 s (benchmarks/bench_live_slices.py), load 1.1-1.3: the pen process's wait for a core per wake-up 52-65 ->
+3-8 us, its own path's p99 0.59-0.79 -> 0.29-0.39 ms, the pen's end-to-end p99 1.54-2.16 -> 0.61-1.23 ms.
 
 Elsewhere (another OS, an older kernel, a process under a real-time policy, which needs no slice) nothing is
 changed.

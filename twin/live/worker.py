@@ -50,7 +50,6 @@ from twin.live.child import ChildProcess, WorkerError, name_process, take_socket
 from twin.live.collection import collect_if_due, hold_collection
 from twin.live.messages import ESTIMATES_RATE_HZ, ApproximationReply, estimates_datagram
 from twin.live.poses import PoseIntake
-from twin.live.scheduling import ask_short_slice
 from twin.live.stages import LATENCY_WINDOW, POSE_CPU_STAGES, POSE_STAGES, StageTimes, percentiles_ms
 from twin.morphpatch.approximation import approximate
 from twin.morphpatch.fields import build_fields
@@ -183,7 +182,6 @@ def _request(request: bytes, conn, state: dict, poses: _Poses, selector) -> byte
 def _serve(conn, spec: DeviceSpec, variant: str) -> None:
     """The child's loop: requests from the pipe, poses from their socket, until the pipe closes."""
     name_process("vrscroll-worker")
-    ask_short_slice()  # woken by a datagram, it preempts a task running a longer slice (twin/live/scheduling.py)
     poses = _Poses(spec, variant)
     state = {"udp": None, "poses": None, "mesh": None, "fields": None}
     selector = selectors.DefaultSelector()
