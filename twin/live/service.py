@@ -11,9 +11,9 @@
   the device link's threads.
 - The worker process takes the poses off its own socket (the service binds it and hands it over;
   no pose wakes the service), approximates the newest at most APPROXIMATION_RATE_HZ times a
-  second and sends the reply datagram itself, from the service's socket, then the frame estimates
-  in a datagram of their own (twin/live/worker.py, twin/live/poses.py). A pose never moves the
-  device.
+  second and sends the reply datagram itself, from the service's socket; the newest one's frame
+  estimates follow in a datagram of their own when no pose waits, at most ESTIMATES_RATE_HZ a second
+  (twin/live/worker.py, twin/live/poses.py). A pose never moves the device.
 - Each pose's and pen sample's path is stamped stage by stage (twin/live/stages.py); `status`
   reports where the time went.
 - Lock: the newest approximation's hinge angles go through the morpher (gate, then the device or

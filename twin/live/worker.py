@@ -9,8 +9,10 @@ Poses come to the worker straight from the client, on a datagram socket of its o
 dies): a pose wakes this one process on its way in and nothing is handed over per pose
 (twin/live/poses.py decides which pose goes next). The answer goes straight back to the client from
 the service's own datagram socket (handed over the same way), so the client sees every reply come
-from the port it sends its pens to: the `approximation` datagram first, then its frame estimates'
-`estimates` datagram (~0.3 ms later, off the pose's path). The service is woken by no pose: it asks
+from the port it sends its pens to: the `approximation` datagram; then, when no pose waits and at most
+ESTIMATES_RATE_HZ times a second, the newest approximation's frame estimates in an `estimates` datagram (off the
+pose's path: a readout of the fit's quality needs no estimate of every approximation, and each took ~0.5 ms of
+the worker's CPU, a third of a pose's). The service is woken by no pose: it asks
 for the newest approximation when it locks, and for the counts and stage times when it reports
 `status`.
 
@@ -23,7 +25,8 @@ requests are answered in order, one at a time:
     b"p" + pickle(("session", the controller's secret or None))  -> b"p" + pickle(None)
     b"p" + pickle(("latest",))  -> b"p" + pickle((seq, approximation doubles) or None): the newest approximation
         sent to the present controller for the present target
-    b"p" + pickle(("stats",))  -> b"p" + pickle({"counts", "pose_path_ms", "pose_cpu_ms", "estimates_ms"})
+    b"p" + pickle(("stats",))  -> b"p" + pickle({"counts", "pose_path_ms", "pose_cpu_ms", "estimates_ms",
+        "estimates_cpu_ms"})
     b"p" + pickle(("field", root pose 4x4, angles rad, widths m))  -> b"p" + pickle((RedirectionField, summary))
 
 Errors come back as b"e" + one line, and the worker carries on. Unasked, between replies, the
