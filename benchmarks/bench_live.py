@@ -13,6 +13,9 @@ client (twin/live/client.py):
    still at 90 Hz, so approximations run meanwhile: pen -> redirected pen round trip, p50 and
    p99 (goal p99 <= 0.5 ms), and the approximations' round trip again.
 
+The last lines before the closing load say both goals at once ("GOALS ...": each p99, met or NOT met, the
+scheduler and the load; with --against one line per side, pooled over the rounds; the C# client's worst round).
+
 Round trips are measured by the client (its clock in t_s, echoed by the service). Counted:
 samples that got no reply (dropped by the network or superseded by a newer pose: the newest
 wins), and the service's own counts of stale, superseded and missing samples. Where the time
@@ -29,13 +32,13 @@ each side's protocol version): the before and after under the same load. Pooled 
 side, and per round.
 
 CPU: per phase, each process's CPU time (schedstat) per sample sent; the worker's per pose (poses alone) and the
-service's per pen sample (pens at 360 Hz, poses at 90 Hz beside: the service handles only the pens) are pooled
-per side (the median of the rounds) with --against.
+pen process's per pen sample (an older service's own: pens at 360 Hz, poses at 90 Hz beside) are pooled per side
+(the median of the rounds) with --against.
 
---fifo PRIORITY: the processes on the samples' way (this client, the service and its worker; the C# client
-with `chrt`) run under SCHED_FIFO at that priority while they are measured (Linux; needs CAP_SYS_NICE): a
-wake-up then takes a core from any ordinary process at once, which on a shared machine is what a core of
-their own would give. Each of them sleeps between samples (no busy wait), so together they take what they
+--fifo PRIORITY: the processes on the samples' way (this client, the service, its worker and pen process; the C#
+client with `chrt`) run under SCHED_FIFO at that priority (the worker one below) while they are measured (Linux;
+needs CAP_SYS_NICE): a wake-up then takes a core from any ordinary process at once, which on a shared machine is
+what a core of their own would give. Each of them sleeps between samples (no busy wait), so together they take what they
 took before, ~10-30 % of a core.
 
 --csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs;
@@ -97,12 +100,18 @@ def schedstat(pid: int) -> np.ndarray:
 
 
 def processes(service: ServiceProcess, emulator_pid: int) -> dict:
-    """{name: pid} of the processes on a sample's way: this client, the service, its worker, the emulator."""
-    workers = [int(p) for p in Path(f"/proc/{service.pid}/task/{service.pid}/children").read_text().split()
-               if b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()
-               and b"resource_tracker" not in Path(f"/proc/{p}/cmdline").read_bytes()]
-    return {"client": os.getpid(), "service": service.pid, **{"worker": w for w in workers[:1]},
-            "emulator": emulator_pid}
+    """{name: pid} of the processes on a sample's way: this client, the service, its worker, its pen process (a
+    service that has one), the emulator. The service's children are told apart by their names (twin/live/child.py);
+    an older service's one unnamed child is its worker."""
+    found = {}
+    for pid in Path(f"/proc/{service.pid}/task/{service.pid}/children").read_text().split():
+        name = {"vrscroll-worker": "worker", "vrscroll-pens": "pens"}.get(Path(f"/proc/{pid}/comm").read_text().strip())
+        cmdline = Path(f"/proc/{pid}/cmdline").read_bytes()
+        if name is None and b"spawn_main" in cmdline and b"resource_tracker" not in cmdline:
+            name = "worker"
+        if name:
+            found.setdefault(name, int(pid))
+    return {"client": os.getpid(), "service": service.pid, **found, "emulator": emulator_pid}
 
 
 def prioritise(pids, priority: int) -> None:
@@ -129,12 +138,14 @@ def waits(before: dict, after: dict, seconds: float, samples: int) -> tuple[str,
     return "; ".join(parts), cpu
 
 
-def hover(start: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
-    """Position mm and quaternion of the hovering device at time t s."""
+def hover(start: np.ndarray, quat: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+    """Position mm and quaternion of the device hovering over `start` (4x4; quat: its rotation's, w first, made once:
+    scipy's conversion is ~60 us on a warm core, which this client spent after every fourth pen it timed) at time t
+    s."""
     rot = start[:3, :3]
     p = start[:3, 3] + HOVER * math.sin(2 * math.pi * HOVER_HZ * t) * rot[:, 0] \
         + TREMOR * (math.sin(2 * math.pi * 5 * t) * rot[:, 1] + math.sin(2 * math.pi * 7 * t) * rot[:, 2])
-    return p * 1e3, Rotation.from_matrix(rot).as_quat(scalar_first=True)
+    return p * 1e3, quat
 
 
 def stats(name: str, values, sent: int, goal_ms: float | None = None) -> str:
@@ -159,18 +170,23 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
     """One session (saying `protocol` in hello: an older service's): {"pose", "estimates", "worker", "pen",
     "pose_with_pens", "client_send", "client_receive": [s], "sent": {phase: samples sent}, "status": the
     service's status at the end (None if the lock failed), "waits": {phase: `waits` of the processes pids()},
-    "cpu_us": {"worker per pose": its CPU per pose, poses alone; "service per pen": its CPU per pen sample, pens
+    "cpu_us": {"worker per pose": its CPU per pose, poses alone; "pens per pen": the CPU per pen sample of the
+    process that serves the pens (the pen process; an older service itself), pens
     and poses}}.
     fifo: the SCHED_FIFO priority of those processes while measured (0: none)."""
     start = pose_from_mm_deg(shape_table()[shape]["start"])
+    quat = Rotation.from_matrix(start[:3, :3]).as_quat(scalar_first=True)
     out = {"sent": {}, "status": None, "waits": {}, "cpu_us": {}}
     async with LiveClient(url, protocol=protocol) as client:
         await client.set_target(shape=shape)
         processes = pids()
         # under SCHED_FIFO from the settling on: the service's per-stage figures (its last 2,000 samples) are all so
-        prioritise([pid for name, pid in processes.items() if name != "emulator"], fifo)  # not on the way
+        # the worker one step below the rest: a pen wakes its process and preempts an approximation (at one priority
+        # SCHED_FIFO never preempts, and the worker's 1-2 ms held a core from the pens: docs/live.md, "Measured")
+        prioritise([pid for name, pid in processes.items() if name not in ("emulator", "worker")], fifo)
+        prioritise([processes["worker"]], max(fifo - 1, 1) if fifo else 0)
         for k in range(45):  # settle: half a second of poses, not measured
-            client.send_pose(*hover(start, k / POSE_HZ))
+            client.send_pose(*hover(start, quat, k / POSE_HZ))
             await asyncio.sleep(1 / POSE_HZ)
         await asyncio.sleep(0.1)
         client.drain("approximation")
@@ -181,7 +197,7 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
         sent, t0 = 0, time.perf_counter()
         while (t := time.perf_counter() - t0) < seconds:
             collect_if_due()
-            client.send_pose(*hover(start, t))
+            client.send_pose(*hover(start, quat, t))
             sent += 1
             await asyncio.sleep(max(0.0, t0 + sent / POSE_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
@@ -213,14 +229,14 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
             client.send_pen(points[k] * 1e3, quats[k])
             pens += 1
             if pens % round(PEN_HZ / POSE_HZ) == 0:
-                client.send_pose(*hover(start, t))
+                client.send_pose(*hover(start, quat, t))
                 poses += 1
             await asyncio.sleep(max(0.0, t0 + pens / PEN_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
         release_collection()
         out["waits"]["pens and poses"], cpu = waits(ran, {name: schedstat(pid) for name, pid in processes.items()},
                                                     time.perf_counter() - t0, pens)
-        out["cpu_us"]["service per pen"] = cpu.get("service")
+        out["cpu_us"]["pens per pen"] = cpu.get("pens", cpu.get("service"))
         out["pen"] = [latency(r) for r in client.drain("pen_redirected")]
         out["pose_with_pens"] = [latency(a) for a in client.drain("approximation")]
         out["sent"].update(pen=pens, pose_with_pens=poses)
@@ -249,8 +265,9 @@ def report(m: dict) -> None:
           f"pen {status['pen_latency_ms']} ms")
     print(breakdown("where a pose's time went in the service", status.get("pose_path_ms")))
     print(breakdown("a pose's CPU in the worker", status.get("pose_cpu_ms")))
-    print(f"then, off the pose's path: its frame estimates {status.get('estimates_ms')} ms after the "
-          "approximation's datagram")
+    print(f"then, off the pose's path: frame estimates {status.get('estimates_ms')} ms after their "
+          f"approximation's datagram, {counts.get('estimates', 'one per approximation')} of them, CPU "
+          f"{status.get('estimates_cpu_ms')} ms each")
     print(breakdown("where a pen sample's time went in the service", status.get("pen_path_ms")))
     print(stats("client: encoding and sending a sample", m["client_send"], len(m["client_send"])))
     print(stats("client: parsing and queueing a reply", m["client_receive"], len(m["client_receive"])))
@@ -323,6 +340,37 @@ def build_csharp(folder: Path, code: Path | None = None) -> Path:
     return exe
 
 
+def goals_line(label: str, m: dict, fifo: int, load_text: str) -> str:
+    """Both goals in one line: the pooled p99s of m's "pose", "pose_with_pens", "pen" (s) and the C# client's per
+    session ([p50, p99, replies] ms lists under "csharp_pose_ms", "csharp_pen_ms"; the worst p99 of them), each
+    met or NOT met."""
+    def verdict(values_ms, goal) -> str:
+        if not len(values_ms):
+            return "none"
+        worst = max(values_ms)
+        return f"{worst:.2f} ms ({'met' if worst <= goal else 'NOT met'})"
+
+    def p99(key):
+        return [np.percentile(np.asarray(m[key]) * 1e3, 99)] if m.get(key) else []
+
+    text = (f"GOALS {label} ({'--fifo ' + str(fifo) if fifo else 'ordinary scheduler'}, {load_text}): "
+            f"pose -> approximation p99 {verdict(p99('pose'), POSE_GOAL_MS)} [goal {POSE_GOAL_MS} ms; "
+            f"with pens running {verdict(p99('pose_with_pens'), POSE_GOAL_MS)}]; pen -> redirected p99 "
+            f"{verdict(p99('pen'), PEN_GOAL_MS)} [goal {PEN_GOAL_MS} ms]")
+    if m.get("csharp_pose_ms") is not None:
+        text += (f"; C# client (worst round) pose p99 {verdict([c[1] for c in m['csharp_pose_ms']], POSE_GOAL_MS)}, "
+                 f"pen p99 {verdict([c[1] for c in m['csharp_pen_ms']], PEN_GOAL_MS)}")
+    return text
+
+
+def csharp_rounds(ms: list[dict]) -> dict:
+    """The C# client's [p50, p99, replies] per session of those that ran it, for goals_line."""
+    ran = [m["csharp"] for m in ms if m.get("csharp") and not m["csharp"]["error"]]
+    if not any(m.get("csharp") for m in ms):
+        return {}
+    return {"csharp_pose_ms": [c["pose_ms"] for c in ran], "csharp_pen_ms": [c["pen_ms"] for c in ran]}
+
+
 def p50_p99(values) -> str:
     v = np.asarray(values) * 1e3
     return f"{np.percentile(v, 50):.3f} / {np.percentile(v, 99):.3f}" if len(v) else "-"
@@ -331,8 +379,10 @@ def p50_p99(values) -> str:
 def compare(args) -> None:
     """Alternate this code's service and the one in args.against, round by round; pooled and per-round figures."""
     sides = {"before": args.against, "after": None}
-    pooled = {side: {"pose": [], "pose_with_pens": [], "pen": [], "worker": [], "cpu": []} for side in sides}
+    pooled = {side: {"pose": [], "pose_with_pens": [], "pen": [], "worker": [], "cpu": [], "sessions": []}
+              for side in sides}
     rows = []
+    first_load = os.getloadavg()[0]
     for r in range(args.rounds):
         for side in (("before", "after") if r % 2 == 0 else ("after", "before")):
             before = os.getloadavg()[0]
@@ -341,6 +391,7 @@ def compare(args) -> None:
             for key in ("pose", "pose_with_pens", "pen", "worker"):
                 pooled[side][key] += m.get(key, [])
             pooled[side]["cpu"].append(m["cpu_us"])
+            pooled[side]["sessions"].append(m)
             rows.append((r + 1, side, load_1min, m))
             print(f"round {r + 1} {side}: load {load_1min}; pose {p50_p99(m['pose'])} ms, "
                   f"pen {p50_p99(m.get('pen', []))} ms, lock {m['lock']}; CPU "
@@ -357,12 +408,15 @@ def compare(args) -> None:
                 print("  " + stats("client send", m["client_send"], len(m["client_send"])))
                 print("  " + stats("client receive", m["client_receive"], len(m["client_receive"])))
     print("\n| side | pose -> approximation p50 / p99 ms | with pens running | of which the worker | "
-          "pen -> redirected p50 / p99 ms | worker CPU per pose, us | service CPU per pen, us |")
+          "pen -> redirected p50 / p99 ms | worker CPU per pose, us | pens' CPU per pen, us |")
     print("|---|---|---|---|---|---|---|")
     for side, v in pooled.items():
-        cpu = {key: [c[key] for c in v["cpu"] if c.get(key) is not None] for key in ("worker per pose", "service per pen")}
+        cpu = {key: [c[key] for c in v["cpu"] if c.get(key) is not None] for key in ("worker per pose", "pens per pen")}
         print(f"| {side} | {p50_p99(v['pose'])} | {p50_p99(v['pose_with_pens'])} | {p50_p99(v['worker'])} | "
               f"{p50_p99(v['pen'])} | " + " | ".join(f"{np.median(c):.0f}" if c else "-" for c in cpu.values()) + " |")
+    load_text = f"load {first_load:.2f} -> {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores, {args.rounds} rounds"
+    for side, v in pooled.items():
+        print(goals_line(side, {**v, **csharp_rounds(v["sessions"])}, args.fifo, load_text))
 
 
 def main() -> None:
@@ -392,7 +446,11 @@ def main() -> None:
         if args.against is not None:
             compare(args)
         else:
-            report(session(args))
+            first_load = os.getloadavg()[0]
+            m = session(args)
+            report(m)
+            print(goals_line("this code", {**m, **csharp_rounds([m])}, args.fifo,
+                             f"load {first_load:.2f} -> {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores"))
         print(load())
 
 

@@ -4,9 +4,12 @@ is needed. The C# client's test is tests/live/test_live_unity.py.
 """
 
 import asyncio
+import collections
 import json
 import os
 import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,12 +19,14 @@ import trimesh
 from websockets.asyncio.client import connect
 
 from twin.cli import main as vrscroll
+from twin.paths import cli_env
 from twin.live.client import LiveClient, LiveError
 from twin.live.morph import TwinMorpher
-from twin.live.messages import (ERROR_INTERVAL, MAX_CONTROL_BYTES, MAX_DATAGRAM_BYTES, PROTOCOL_VERSION,
-                                ProtocolError, encode_sample, parse_control, parse_sample)
+from twin.live.messages import (ERROR_INTERVAL, ESTIMATES_RATE_HZ, MAX_CONTROL_BYTES, MAX_DATAGRAM_BYTES,
+                                PROTOCOL_VERSION, ProtocolError, encode_sample, parse_control, parse_sample)
 from twin.live.player import stroke
 from twin.live.process import ServiceProcess
+from twin.live.scheduling import SLICE_S, slice_s
 from twin.live.stages import PEN_STAGES, POSE_CPU_STAGES, POSE_STAGES
 from twin.device.spec import load_spec
 from twin.formats.target import message_approximation
@@ -278,10 +283,11 @@ def test_a_mesh_sent_as_the_target_is_approximated_and_an_open_one_refused(twin_
     assert estimates["msd_estimate_mm"] < 0.5 and estimates["share_within_estimate"] == 1.0
 
 
-def test_each_approximation_comes_first_and_its_frame_estimates_follow(twin_service, spec):
-    """Poses at 90 Hz sliding over the cylinder: every approximation comes back in order, and the frame estimates
-    of each follow it in a datagram of their own (off the pose's path), with the values the estimates give for
-    that approximation as it was sent."""
+def test_each_approximation_comes_first_and_frame_estimates_follow_for_the_newest(twin_service, spec):
+    """Poses at 90 Hz sliding over the cylinder: every approximation comes back in order; frame estimates follow in
+    datagrams of their own (off the pose's path), each for an approximation already sent (the newest when the worker
+    had no pose waiting), in order, at most ESTIMATES_RATE_HZ (so not for every approximation at 90 Hz), with the
+    values the estimates give for that approximation as it was sent."""
     async def session():
         async with LiveClient(twin_service.url) as client:
             await client.set_target(shape="cylinder")
@@ -289,16 +295,21 @@ def test_each_approximation_comes_first_and_its_frame_estimates_follow(twin_serv
                 client.send_pose([10 + 20 * np.sin(k / 9), 0, 190], [1, 0, 0, 0])
                 await asyncio.sleep(1 / 90)
             await asyncio.sleep(0.5)
-            return client.drain("approximation"), client.drain("estimates")
+            return client.welcome, client.drain("approximation"), client.drain("estimates")
 
-    approximations, estimates = run(session())
+    welcome, approximations, estimates = run(session())
+    assert welcome["estimates_rate_hz"] == ESTIMATES_RATE_HZ
     seqs = [a["seq"] for a in approximations]
     assert len(seqs) >= 30 and seqs == sorted(set(seqs))
-    assert [e["seq"] for e in estimates] == seqs
+    estimated = [e["seq"] for e in estimates]
+    assert estimated == sorted(set(estimated)) and set(estimated) <= set(seqs)
+    assert 5 <= len(estimates) < len(approximations)
     fields, thresholds = build_fields(load_shape("cylinder")), load_thresholds()
     slid = [a["root_position_mm"][0] for a in approximations]
     assert max(slid) - min(slid) > 10  # they answer different poses
-    for a, e in zip(approximations, estimates):
+    by_seq = {a["seq"]: a for a in approximations}
+    for e in estimates:
+        a = by_seq[e["seq"]]
         assert e["received_s"] >= a["received_s"] and e["t_s"] == a["t_s"]
         approx = message_approximation(a, spec, "approximation")
         msd, share = frame_estimates(spec, fields, thresholds, approx.root_pose, approx.angles, approx.widths)
@@ -548,18 +559,18 @@ def test_serve_uses_the_device_profile_and_names_it(tmp_path, capsys):
         assert run(welcome(s.url))["device_profile"] == "spec defaults"
 
 
-def _workers(pid: int) -> list[int]:
-    """The approximation workers of the service pid: its children started by multiprocessing's spawn (not
-    multiprocessing's resource tracker), from /proc."""
-    out = []
+def _children(pid: int) -> dict[str, list[int]]:
+    """The service pid's children by name (/proc/PID/comm: `vrscroll-worker`, `vrscroll-pens`; multiprocessing's
+    resource tracker, when one runs, is a plain `python`)."""
+    out = collections.defaultdict(list)
     for proc in Path("/proc").glob("[0-9]*"):
         try:
             parent = int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            cmdline = (proc / "cmdline").read_bytes()
+            name = (proc / "comm").read_text().strip()
         except (OSError, IndexError, ValueError):
             continue
-        if parent == pid and b"spawn_main" in cmdline:
-            out.append(int(proc.name))
+        if parent == pid:
+            out[name].append(int(proc.name))
     return out
 
 
@@ -570,11 +581,12 @@ def test_a_worker_that_dies_is_restarted_and_the_client_served(tmp_path):
         async def session():
             async with LiveClient(service.url) as client:
                 await first_approximation(client)
-                workers = _workers(service.pid)
+                workers = _children(service.pid)["vrscroll-worker"]
                 assert len(workers) == 1
                 os.kill(workers[0], signal.SIGKILL)
                 await asyncio.sleep(0.5)
                 client.drain("estimates")
+                client.drain("approximation")  # any the killed worker sent before it died: the next is the new one's
                 await first_approximation(client, timeout=60)
                 again = await client.datagram("estimates")
                 assert again["msd_estimate_mm"] < 5.0  # on the cylinder again: the restarted worker has its target
@@ -583,6 +595,63 @@ def test_a_worker_that_dies_is_restarted_and_the_client_served(tmp_path):
 
         run(session())
         assert "approximation worker died" in (tmp_path / "serve.err").read_text()
+
+
+def test_pens_are_served_by_a_process_of_their_own_that_is_restarted_with_its_field(tmp_path):
+    """The pens' own process (nothing else in it, on a short scheduler slice: twin/live/pens.py) redirects the pens
+    after a lock; killed, it is
+    started again with the controller's session and the lock's field, and the next pens are redirected as before,
+    in order, to the same virtual points; a new lock stops the redirection until its own morph is done."""
+    with ServiceProcess("--shape", "cylinder", stderr_path=tmp_path / "serve.err") as service:
+        async def session():
+            async with LiveClient(service.url) as client:
+                await first_approximation(client)
+                children = _children(service.pid)
+                assert len(children["vrscroll-pens"]) == 1 and len(children["vrscroll-worker"]) == 1
+                slices = [slice_s(children[name][0]) for name in ("vrscroll-pens", "vrscroll-worker")]
+                locked = await client.lock()
+                done = await client.expect("done", timeout=10)
+                approx = message_approximation(locked, load_spec(), "locked")
+                points, quats = stroke(load_spec(), approx.root_pose, np.radians(done["angles_deg"]), approx.widths,
+                                       duration=0.05)
+
+                async def pens():
+                    seqs = [client.send_pen(p * 1e3, q) for p, q in zip(points, quats)]
+                    replies = [await client.datagram("pen_redirected", timeout=5) for _ in points]
+                    assert [r["seq"] for r in replies] == seqs
+                    return [r["position_mm"] for r in replies]
+
+                before = await pens()
+                os.kill(children["vrscroll-pens"][0], signal.SIGKILL)
+                for _ in range(100):  # until the new one runs (it imports numpy and the compiled code first)
+                    await asyncio.sleep(0.2)
+                    restarted = _children(service.pid)["vrscroll-pens"]
+                    if restarted and restarted != children["vrscroll-pens"]:
+                        break
+                status = await client.status()  # answered once the new one has its session and its field
+                after = await pens()
+                await client.lock()  # a new lock: the old field no longer redirects
+                client.send_pen(points[0] * 1e3, quats[0])
+                await asyncio.sleep(0.3)
+                stopped = client.drain("pen_redirected")
+                await client.expect("done", "refused", "stopped", timeout=10)
+                return before, after, status, stopped, restarted, slices
+
+        before, after, status, stopped, restarted, slices = run(session())
+    # the pen process asks the kernel for its shortest slice (twin/live/scheduling.py), where it takes such a
+    # request; the worker keeps the default (its approximation is not cut into pieces)
+    probe = subprocess.run([sys.executable, "-c", "from twin.live.scheduling import ask_short_slice, slice_s; "
+                            "print(ask_short_slice() and slice_s())"], capture_output=True, text=True, env=cli_env())
+    assert probe.returncode == 0, probe.stderr
+    if probe.stdout.strip() == str(SLICE_S):
+        assert slices[0] == SLICE_S and slices[1] > SLICE_S
+    else:
+        assert slices[0] == slices[1]
+    assert len(restarted) == 1
+    assert status["counts"]["pen_process_restarts"] == 1
+    assert after == before and len(before) > 10
+    assert stopped == []
+    assert "pen process died" in (tmp_path / "serve.err").read_text()
 
 
 def test_connections_are_bounded_and_a_silent_one_is_closed(twin_service):

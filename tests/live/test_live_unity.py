@@ -45,8 +45,8 @@ def test_the_csharp_transport_plays_a_session_against_the_service(scripted_sessi
     seen = json.loads(run.stdout.strip().splitlines()[-1])
     assert seen["malformed_error"] == "malformed" and seen["out_of_order_error"] == "out_of_order"
     assert seen["target"] == "cylinder" and seen["approximations"] >= 20
-    # each approximation's frame estimates follow it in their own datagram (protocol 2), for a pose it sent to the
-    # worker's own port (protocol 3)
+    # frame estimates follow the approximations in their own datagram (protocol 2; at most ESTIMATES_RATE_HZ, for
+    # the newest), for a pose it sent to the worker's own port (protocol 3)
     assert seen["estimates"] >= 10 and seen["estimates_answer_an_approximation"] and seen["msd_estimate_mm"] < 5.0
     assert seen["gate_passed"] is True and seen["progress_source"] == "device" and seen["outcome"] == "done"
     assert seen["pens_redirected"] == seen["pens_sent"] == 40

@@ -7,9 +7,13 @@ of its path (twin/live/stages.py) for the poses (the worker's socket) and the pe
 
 from __future__ import annotations
 
+import collections
+import math
 import socket
 import struct
 import time
+
+from twin.live.messages import ERROR_INTERVAL
 
 DRAIN_MAX = 256  # datagrams taken off a socket in one go: a flood cannot keep the process's other work waiting
 # Linux's socket options (asm-generic/socket.h; Python names neither), each in a datagram's ancillary data:
@@ -68,3 +72,21 @@ def drain(sock: socket.socket, into: memoryview, counts: dict, dropped: str, han
         if drops is not None:
             counts[dropped] = drops
         handle(n, addr, arrived, taken)
+
+
+class ErrorReports:
+    """A datagram stream's errors, let through at most once per ERROR_INTERVAL per code, with the count since the
+    last one let through: a flood cannot make the service send more messages than it receives."""
+
+    def __init__(self):
+        self._reported: dict[str, float] = {}
+        self._unreported: collections.Counter = collections.Counter()
+
+    def due(self, code: str, count: int = 1) -> int:
+        """count more errors of `code`; how many to report now (0: none yet)."""
+        self._unreported[code] += count
+        now = time.monotonic()
+        if now - self._reported.get(code, -math.inf) < ERROR_INTERVAL:
+            return 0
+        self._reported[code] = now
+        return self._unreported.pop(code)

@@ -30,6 +30,8 @@ MAX_CONTROL_BYTES = 1 << 20  # a control message above this gets "oversized" (th
 MAX_FRAME_BYTES = 4 << 20  # the WebSocket layer closes (1009) above this, before the message is read
 MAX_DATAGRAM_BYTES = 1200  # fits one Ethernet frame with room to spare
 APPROXIMATION_RATE_HZ = 90.0  # VR frame rate: at most this many approximations per second
+ESTIMATES_RATE_HZ = 30.0  # frame estimates per second at most, each for the newest approximation, sent when no pose
+# waits: a readout of the fit's quality, not what bends the model (docs/live.md, "The pose's path")
 PROGRESS_HZ = 30.0  # morph progress events per second
 ERROR_INTERVAL = 0.1  # s: the same datagram error is reported at most this often (with a count)
 POSITION_LIMIT_MM = REACH_M * 1e3  # a pose or pen farther from the target's origin is refused

@@ -22,14 +22,13 @@ from __future__ import annotations
 
 import collections
 import hmac
-import math
 import socket
 import time
 
 import numpy as np
 
-from twin.live.datagrams import drain
-from twin.live.messages import APPROXIMATION_RATE_HZ, ERROR_INTERVAL, VALUES, SampleBuffer, sample_error
+from twin.live.datagrams import ErrorReports, drain
+from twin.live.messages import APPROXIMATION_RATE_HZ, VALUES, SampleBuffer, sample_error
 
 RATE_BURST = 2.0  # approximations the rate limit lets through back to back (poses at 90 Hz jitter)
 
@@ -48,8 +47,7 @@ class PoseIntake:
         self.tokens, self.filled = burst, time.perf_counter()
         self.counts: collections.Counter = collections.Counter()
         self.reports: list[tuple] = []  # (session, code, message, count) for the service, taken by the worker
-        self._reported: dict[str, float] = {}
-        self._unreported: collections.Counter = collections.Counter()
+        self._due = ErrorReports()
 
     def set_session(self, session: str | None) -> None:
         """A new controller (its secret), or none: the stream starts again."""
@@ -118,9 +116,6 @@ class PoseIntake:
 
     def report(self, code: str, message: str) -> None:
         """An error for the controlling client, rate-limited per code; the count says how many since the last."""
-        self._unreported[code] += 1
-        now = time.monotonic()
-        if now - self._reported.get(code, -math.inf) >= ERROR_INTERVAL:
-            self._reported[code] = now
-            session = None if self.session is None else self.session.hex()
-            self.reports.append((session, code, message, self._unreported.pop(code)))
+        count = self._due.due(code)
+        if count:
+            self.reports.append((None if self.session is None else self.session.hex(), code, message, count))

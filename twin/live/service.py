@@ -6,17 +6,20 @@
   poses on the worker's (`pose_port`). Each stream keeps only its newest sample: an older
   sequence number is dropped as stale, a pose that arrives before the previous one was
   approximated replaces it. Memory per stream is one sample.
+- The pen process (twin/live/pens.py) takes the pens off the service's socket, which the service binds and hands
+  over, and redirects and answers each there: no pen wakes the service, and none waits behind its event loop or
+  the device link's threads.
 - The worker process takes the poses off its own socket (the service binds it and hands it over;
   no pose wakes the service), approximates the newest at most APPROXIMATION_RATE_HZ times a
-  second and sends the reply datagram itself, from the service's socket, then the frame estimates
-  in a datagram of their own (twin/live/worker.py, twin/live/poses.py). A pose never moves the
-  device.
+  second and sends the reply datagram itself, from the service's socket; the newest one's frame
+  estimates follow in a datagram of their own when no pose waits, at most ESTIMATES_RATE_HZ a second
+  (twin/live/worker.py, twin/live/poses.py). A pose never moves the device.
 - Each pose's and pen sample's path is stamped stage by stage (twin/live/stages.py); `status`
   reports where the time went.
 - Lock: the newest approximation's hinge angles go through the morpher (gate, then the device or
   the twin) in a thread; once done, the redirection field of the reached shape is built by the
-  worker and pen samples are redirected here, as they arrive (twin/live/pens.py: binary in and
-  out, on state allocated once).
+  worker and handed to the pen process, which redirects the pen samples from then on, as they
+  arrive (binary in and out, on state allocated once).
 
 Errors in a client's messages are answered with an "error" event; the connection stays open.
 Datagram errors are reported at most every ERROR_INTERVAL s per kind, with a count.
@@ -32,7 +35,6 @@ import json
 import math
 import resource
 import secrets
-import time
 
 import numpy as np
 from websockets.asyncio.server import ServerConnection, serve
@@ -44,7 +46,7 @@ from twin.formats.target import approximation_json
 from twin.live.messages import (
     APPROXIMATION_RATE_HZ,
     DEFAULT_LISTEN_PORT,
-    ERROR_INTERVAL,
+    ESTIMATES_RATE_HZ,
     MAX_CONTROL_BYTES,
     MAX_DATAGRAM_BYTES,
     MAX_FRAME_BYTES,
@@ -53,15 +55,13 @@ from twin.live.messages import (
     error,
     mesh_arrays,
     parse_control,
-    sample_error,
 )
-from twin.live.datagrams import drain, stamped_socket
+from twin.live.datagrams import ErrorReports, stamped_socket
 from twin.live.morph import MorphOutcome
-from twin.live.pens import PenRedirection
-from twin.live.stages import LATENCY_WINDOW, PEN_STAGES, StageTimes, percentiles_ms
+from twin.live.pens import PenProcess
+from twin.live.stages import PEN_STAGES
 from twin.live.worker import Worker, WorkerError
 from twin.morphpatch.shapes import shape_names
-from twin.perception.thresholds import load_thresholds
 
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 EVENT_QUEUE = 256  # events waiting for one slow client; beyond this they are dropped and counted
@@ -115,12 +115,9 @@ class _Client:
         self.role = None
         self.session = None  # 32 hex digits (the welcome's), and as the 16 bytes a sample carries
         self.secret = None
-        self.udp_addr = None
-        self.last_seq = -1  # the pen stream's newest
         self.events: asyncio.Queue = asyncio.Queue(EVENT_QUEUE)
         self.dropped_events = 0
-        self._reported: dict[str, float] = {}
-        self._unreported: collections.Counter = collections.Counter()
+        self._due = ErrorReports()
 
     def send(self, event: dict) -> None:
         try:
@@ -130,11 +127,9 @@ class _Client:
 
     def report(self, code: str, message: str, count: int = 1) -> None:
         """A datagram error (count of them), rate-limited per code; the count says how many since the last report."""
-        self._unreported[code] += count
-        now = time.monotonic()
-        if now - self._reported.get(code, -math.inf) >= ERROR_INTERVAL:
-            self._reported[code] = now
-            self.send(error(code, message, "datagram", self._unreported.pop(code)))
+        due = self._due.due(code, count)
+        if due:
+            self.send(error(code, message, "datagram", due))
 
     async def pump(self) -> None:
         try:
@@ -181,16 +176,14 @@ class LiveService:
         self.config = config
         self.spec = config.spec
         self.morpher = config.morpher
-        self.worker = Worker(config.spec, config.variant, self._worker_report, self._worker_died)
-        self.thresholds = load_thresholds()
+        self.worker = Worker(config.spec, config.variant, self._child_report, self._worker_died)
+        self.pens = PenProcess(self._child_report, self._pens_died)  # the pens' stream, redirected once locked
         self.port = None
         self.controller: _Client | None = None
         self.observers: set[_Client] = set()
         self.target = None  # info of the target the worker holds
         self.state = "idle"  # "idle", "morphing" or "locked" (pen samples redirected)
-        self.pens = PenRedirection(self.thresholds)  # the field pens are redirected with, once locked
-        self.counts: collections.Counter = collections.Counter()  # the pose stream's are the worker's (status)
-        self.pen_times = StageTimes(PEN_STAGES, LATENCY_WINDOW)  # s per stage, pen arrival -> redirected sent
+        self.counts: collections.Counter = collections.Counter()  # the streams' are the worker's and the pens' (status)
         self._udp = None  # the pens' socket (udp_port), which every reply is sent from
         self._poses = None  # the worker's pose socket: bound here, so that it outlives a worker that dies
         self._stop = None
@@ -199,11 +192,12 @@ class LiveService:
 
     # ---- running ------------------------------------------------------------------------
     async def run(self, ready=None) -> None:
-        """Start the worker, the initial target, the morpher and both sockets; ready(port) once serving."""
-        loop = asyncio.get_running_loop()
+        """Start the worker, the pen process, the initial target, the morpher and both sockets; ready(port) once
+        serving."""
         self._stop = asyncio.Event()
         self._poses = stamped_socket(self.config.host)  # before any client can be welcomed with its port
         self.worker.start()
+        self.pens.start()
         try:
             if self.config.shape or self.config.mesh:
                 vertices, faces = self.config.mesh or (None, None)
@@ -215,7 +209,7 @@ class LiveService:
                              backlog=ACCEPT_BACKLOG) as server:
                 self.port = server.sockets[0].getsockname()[1]
                 self._udp = stamped_socket(self.config.host, self.port)
-                loop.add_reader(self._udp.fileno(), self._pens_readable)
+                self.pens.share_socket(self._udp)
                 self.worker.share_sockets(self._udp, self._poses)
                 if ready:
                     ready(self.port)
@@ -223,8 +217,8 @@ class LiveService:
         finally:
             for task in self._tasks:
                 task.cancel()
+            self.pens.stop()
             if self._udp is not None:
-                loop.remove_reader(self._udp.fileno())
                 self._udp.close()
             self.worker.stop()
             if self._poses is not None:
@@ -288,6 +282,7 @@ class LiveService:
         if client is self.controller:
             self.controller = None
             self.worker.tell("session", None)
+            self.pens.tell("session", None)
             self._broadcast({"type": "controller_left", "state": self.state})
 
     async def _dispatch(self, client: _Client, msg: dict) -> None:
@@ -337,6 +332,7 @@ class LiveService:
             client.secret = secrets.token_bytes(16)
             client.session = client.secret.hex()
             self.worker.tell("session", client.session)  # before the welcome: the worker admits its first pose
+            self.pens.tell("session", client.session)
         else:
             self.observers.add(client)
         client.role = msg["role"]
@@ -344,11 +340,12 @@ class LiveService:
                      "udp_port": self.port, "pose_port": self._poses.getsockname()[1], "variant": self.config.variant, "device": self.morpher.name,
                      "device_profile": self.config.profile,
                      "target": self.target, "state": self.state, "approximation_rate_hz": APPROXIMATION_RATE_HZ,
+                     "estimates_rate_hz": ESTIMATES_RATE_HZ,
                      "max_control_bytes": MAX_CONTROL_BYTES, "max_datagram_bytes": MAX_DATAGRAM_BYTES})
 
     async def _load_target(self, shape, vertices, faces) -> None:
         self.target, self.state = None, "idle"
-        self.pens.set_field(None)
+        await self.pens.call("field", None)
         self.target = await self.worker.call("target", shape, vertices, faces)
         self._broadcast({"type": "target_ready", "target": self.target})
 
@@ -357,19 +354,25 @@ class LiveService:
         try:
             poses = await self.worker.call("stats")
         except WorkerError:  # restarting: its counts start again
-            poses = {"counts": {}, "pose_path_ms": None, "pose_cpu_ms": None, "estimates_ms": None}
-        counts = self.counts + collections.Counter(poses["counts"])
+            poses = {"counts": {}, "pose_path_ms": None, "pose_cpu_ms": None, "estimates_ms": None,
+                     "estimates_cpu_ms": None}
+        try:
+            pens = await self.pens.call("stats")
+        except WorkerError:
+            pens = {"counts": {}, "pen_path_ms": dict.fromkeys(PEN_STAGES)}
+        counts = self.counts + collections.Counter(poses["counts"]) + collections.Counter(pens["counts"])
         pose_path = poses["pose_path_ms"]
         return {"type": "status", "state": self.state, "target": self.target, "variant": self.config.variant,
                 "controller": self.controller is not None, "observers": len(self.observers), **device,
                 "counts": dict(counts),
                 "approximation_latency_ms": pose_path and pose_path["total"],
-                "pen_latency_ms": percentiles_ms(self.pen_times.total()),
-                "pose_path_ms": pose_path, "pose_cpu_ms": poses["pose_cpu_ms"], "pen_path_ms": self.pen_times.summary(),
-                "estimates_ms": poses["estimates_ms"]}
+                "pen_latency_ms": pens["pen_path_ms"]["total"],
+                "pose_path_ms": pose_path, "pose_cpu_ms": poses["pose_cpu_ms"], "pen_path_ms": pens["pen_path_ms"],
+                "estimates_ms": poses["estimates_ms"], "estimates_cpu_ms": poses["estimates_cpu_ms"]}
 
-    def _worker_report(self, session: str | None, code: str, message: str, count: int) -> None:
-        """The worker's report of errors in the pose stream of the controller holding `session`."""
+    def _child_report(self, session: str | None, code: str, message: str, count: int) -> None:
+        """The worker's or the pen process's report of errors in the pose or pen stream of the controller holding
+        `session`."""
         if self.controller is not None and self.controller.session == session:
             self.controller.report(code, message, count)
 
@@ -380,9 +383,17 @@ class LiveService:
             self.controller.report("approximation_failed", "the approximation worker died on a pose; it is "
                                                            "restarted with the target for the next")
 
+    def _pens_died(self) -> None:
+        """The pen process died: the pen it was answering gets no reply; it is restarted with the field."""
+        self.counts["pen_process_restarts"] += 1
+
     async def _lock(self, seq: int, values: tuple) -> None:
         loop = asyncio.get_running_loop()
         approx = self.worker.approximation(values)
+        try:
+            await self.pens.call("field", None)  # the last lock's field: no pen is redirected with it from now on
+        except WorkerError:
+            pass  # restarting: it starts without a field
         self._broadcast({"type": "locked", "seq": seq, **approximation_json(approx)})
 
         def emit(event):
@@ -399,59 +410,13 @@ class LiveService:
             return
         try:
             field, summary = await self.worker.call("field", approx.root_pose, outcome.final, approx.widths)
+            await self.pens.call("field", field)  # before `done`: the pens that follow it are redirected
         except WorkerError as exc:
             self.state = "idle"
             self._broadcast({"type": "stopped", "message": f"redirection field: {exc}", "angles_deg": None})
             return
-        self.pens.set_field(field)
         self.state = "locked"
         settle = outcome.settle_time
         self._broadcast({"type": "done", "message": outcome.message, "seq": seq,
                          "settle_time_s": round(settle, 4) if math.isfinite(settle) else None,
                          "angles_deg": np.degrees(outcome.final).round(3).tolist(), "redirection": summary})
-
-    # ---- datagrams ------------------------------------------------------------------------
-    def _pens_readable(self) -> None:
-        """What waits on the pens' socket, at most DRAIN_MAX datagrams (the event loop's other work between)."""
-        drain(self._udp, self.pens.buffer.view, self.counts, "pen_dropped", self.on_pen)
-
-    def on_pen(self, n: int, addr, arrived: float, taken: float) -> None:
-        """The n bytes in the pens' buffer from addr, that reached the socket at `arrived` and were taken off it at
-        `taken` (perf_counter s)."""
-        self.counts["datagrams"] += 1
-        client = self.controller
-        known = client is not None and client.udp_addr == addr
-        code = self.pens.buffer.check(n, "pen")
-        if code:
-            exc = sample_error(code, n)
-            self.counts[exc.code] += 1
-            if known:
-                client.report(exc.code, str(exc))
-            return
-        if client is None or not hmac.compare_digest(self.pens.buffer.session, client.secret):
-            self.counts["unknown_session"] += 1
-            return
-        client.udp_addr = addr
-        seq, last = int(self.pens.buffer.values[0]), client.last_seq
-        if seq <= last:
-            self.counts["stale"] += 1
-            client.report("stale", f"pen seq {seq} after {last}: dropped (the newest wins)")
-            return
-        if last >= 0:
-            self.counts["missing"] += seq - last - 1
-        client.last_seq = seq
-        self.counts["pen"] += 1
-        if self.state != "locked":
-            self.counts["pen_not_locked"] += 1
-            client.report("out_of_order", "pen sample before a lock's morph is done: not redirected")
-            return
-        checked = time.perf_counter()
-        self.pens.redirect()
-        redirected = time.perf_counter()
-        try:
-            self._udp.sendto(self.pens.reply, addr)
-        except OSError:  # the socket's send buffer full (a flood of replies): this one is lost, as on the network
-            self.counts["reply_not_sent"] += 1
-            return
-        self.counts["pen_redirected"] += 1
-        self.pen_times.record((arrived, taken, checked, redirected, time.perf_counter()))

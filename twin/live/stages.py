@@ -2,7 +2,8 @@
 
 Every stamp of a path is `time.perf_counter()` (s). On Linux that is CLOCK_MONOTONIC, one clock for every
 process on the machine, so the worker's stamps and the service's can be subtracted. A pose's CPU is stamped
-too (`time.thread_time()`, ~2 us a call: four per pose, none per pen, whose whole work is ~15 us).
+too (`time.thread_time()`, ~2 us a call: three per pose, two per frame estimates, none per pen, whose whole work is
+~15 us).
 """
 
 from __future__ import annotations
@@ -12,18 +13,20 @@ import collections
 import numpy as np
 
 LATENCY_WINDOW = 2000  # samples kept per stage for `status` (the most recent)
-POSE_STAGES = ("socket", "parse", "wait", "approximate", "send", "total")
+POSE_STAGES = ("socket", "parse", "wait", "approximate", "encode", "send", "total")
 """A pose's path, all in the worker (twin/live/poses.py): in the worker's socket (the kernel's arrival stamp ->
 taken off it: the worker busy, or waiting for a core), parsed and checked, waiting for the rate limit or the pose
-before it, the approximation, the reply datagram built and sent. (Its frame estimates follow, off this path: the
+before it, the approximation, the reply datagram built, sent (the `sendto` call: on loopback it delivers the
+datagram and wakes the client, which often runs before the worker gets its core back, so this stage's tail is
+mostly after the client has its reply: docs/live.md, "Measured"). (Its frame estimates follow, off this path: the
 service's `estimates_ms`.)"""
-POSE_CPU_STAGES = ("approximate", "send", "estimates", "total")
+POSE_CPU_STAGES = ("approximate", "send", "total")
 """A pose's CPU time in the worker (time.thread_time: on a core, not waiting for one), from the start of its answer:
-the pose's matrix and the approximation, the reply built and sent, its frame estimates computed and sent."""
+the pose's matrix and the approximation, the reply built and sent. (Its frame estimates' CPU: `estimates_cpu_ms`.)"""
 PEN_STAGES = ("socket", "check", "redirect", "send", "total")
-"""A pen sample's path, all in the service (twin/live/pens.py): in the service's socket (the kernel's arrival stamp ->
-taken off it: the service's wake-up, or its event loop busy), checked (the datagram, the session, the sequence
-number), redirected and its reply encoded (with the thresholds' verdict), sent."""
+"""A pen sample's path, all in the pen process (twin/live/pens.py): in the service's socket (the kernel's arrival
+stamp -> taken off it: the pen process's wake-up, or it busy with the pens before), checked (the datagram, the session,
+the sequence number), redirected and its reply encoded (with the thresholds' verdict), sent."""
 
 
 class StageTimes:

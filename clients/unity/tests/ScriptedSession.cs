@@ -91,7 +91,7 @@ static class ScriptedSession
             var level = new[] { 1.0, 0.0, 0.0, 0.0 };
             var start = DateTime.UtcNow;
             long lastPose = -1;
-            while (client.ApproximationsReceived < 20 && (DateTime.UtcNow - start).TotalSeconds < 10)
+            while ((client.ApproximationsReceived < 20 || client.EstimatesReceived < 10) && (DateTime.UtcNow - start).TotalSeconds < 10)
             {
                 lastPose = client.SendPose(position, level);
                 await Task.Delay(11);
