@@ -225,12 +225,14 @@ def _search(grid, device, local, fine, root_pose, angles, widths, centre, radius
             r0, a0, g0, c0 = rot0, anchor0, angles0, centre
         r, a, g, _ = _descend(grid, device, local, r0, a0.copy(), g0.copy(), widths, c0.copy(), radius, half,
                               INSIDE_LIMIT, 0, False)
+        if not _path_clear(grid, centre, a, CHORD_DEPTH):  # searched about a lifted centre, its end off the side
+            continue  # the device came from in a straight line from the snapped anchor (seed 0's cup_1, issue 37)
         fit = _cost(grid, device, local, r, a, g, widths, np.inf)[2]
         if fit < best_fit:
             best_fit, best = fit, (r, a, g)
     if best_fit == np.inf:  # no lift of either pose, curled or flat, rests on the target from outside:
         return _pose(best[0], best[1]), best[2], False  # the pipeline's pose, unrolled (its anchor's path is clear)
-    return _pose(best[0], _settled(grid, device, fine, best[0], best[1], best[2], widths, half)), best[2], True
+    return _pose(best[0], _settled(grid, device, fine, best[0], best[1], best[2], widths, half, centre)), best[2], True
 
 
 @numba.njit(cache=True)
@@ -332,11 +334,12 @@ def _lifted(grid, device, local, rot, anchor, angles, widths, inside_limit, boun
 
 
 @numba.njit(cache=True)
-def _settled(grid, device, fine, rot, anchor, angles, widths, half):
+def _settled(grid, device, fine, rot, anchor, angles, widths, half, centre):
     """The anchor (3,) m of a search's end lifted along the root's normal until no sample of `fine` (the touch
     surface every 2 mm, the resting bar's samples) is deeper in the target than INSIDE_LIMIT on the grid (by the
     excess, at most LIFT_STEPS times; only a lift that makes the deepest shallower, not one whose path crosses the
-    target or that puts a flap through it). The search holds its 5 mm samples to the limit: a sharp edge (the
+    target, nor one the snapped anchor `centre` (3,) m does not reach in a straight line to CHORD_DEPTH, nor one that
+    puts a flap through it). The search holds its 5 mm samples to the limit: a sharp edge (the
     stairs' noses) can poke between them, 0.7 mm deeper on curved_stairs start 37 of the fresh-start test (seed 13),
     which with the grid's rounding of that edge (0.9 mm) put the exact deepest point 3.07 mm inside, over the 3 mm
     bar."""
@@ -348,6 +351,7 @@ def _settled(grid, device, fine, rot, anchor, angles, widths, half):
         lifted = anchor + (deepest - INSIDE_LIMIT) * normal
         lower = _cost(grid, device, fine, rot, lifted, angles, widths, np.inf)[1]
         if lower >= deepest or not _path_clear(grid, anchor, lifted) or \
+                not _path_clear(grid, centre, lifted, CHORD_DEPTH) or \
                 _through_at(grid, device, angles, widths, _pose(rot, lifted), half) > 0:
             break  # a lift that brings another sample deeper (a face the normal points into), or crosses: not taken
         anchor, deepest = lifted, lower
