@@ -66,7 +66,7 @@ from twin.checks import REACH_M
 from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_flap, pose_matrix
 from twin.device.spec import DeviceSpec, load_spec
 from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate, _path_clear
-from twin.morphpatch.refinement import grid_msd, objective, refine, uncurled
+from twin.morphpatch.refinement import grid_msd, refine
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
 from twin.morphpatch.surface_metrics import match
 from twin.records.approximation import Approximation
@@ -81,14 +81,13 @@ HINGE_PASSES = 3  # passes per hinge
 HINGE_TOLERANCE = 1e-3  # rad: a hinge pass that changes the angle less than this ends the hinge
 PRINCIPAL_MIN = 0.2  # the in-plane gradients' anisotropy (0..1) below which step 4 does nothing
 PRINCIPAL_MIN_TILT = math.radians(3)  # ... or their RMS tilt from the normal below which it does nothing
-# ours also refines from the pipeline's pose with the root turned by TURN (rad) about its normal, where the
-# objective there is at most TURN_TRIED times the objective where the first refinement ended (`_refined`): the
+# ours also refines from the pipeline's pose with the root turned by TURN (rad) about its normal (`_refined`): the
 # local search keeps the direction step 4 gave the row, which on a cup or a plate's edge can lie along the side
-# the row cannot curl round (docs/approximation.md, "Turned starts")
-# (TURN_TRIED was 1 before the inside tail became steep (issue 37): a turned pipeline pose that curls a little
-# too far into a can costs up to twice its refined result, and at 1 the turned start a can needs was not tried)
+# the row cannot curl round (docs/approximation.md, "Turned starts"). Always, since issue 37's sixth session: it was
+# tried only where the objective at the turned start was at most 3 times the first refinement's end, but the start's
+# objective does not tell where its search ends (plate_0: turned starts 16-60 times the first end's, ending at 1.7 mm
+# where the first ended at 3.3)
 TURN = math.pi / 2
-TURN_TRIED = 3.0
 WIDTH_RANGE = (0.5, 1.5)  # flap widths stay within these multiples of the pitch
 
 
@@ -211,21 +210,17 @@ def _hinges_and_widths(fields: Fields, spec: DeviceSpec, lay: _Layouts, pose, hc
 
 
 def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angles):
-    """Ours: the refinement (twin.morphpatch.refinement) from the pipeline's pose and, where the objective at
-    that pose with the root turned by TURN about its normal (step 6 redone there) is at most TURN_TRIED
-    times the objective where the first refinement ended, from that turned pose too; of the results that rest
+    """Ours: the refinement (twin.morphpatch.refinement) from the pipeline's pose and from that pose with the root
+    turned by TURN about its normal (step 6 redone there); of the results that rest
     on the target from outside the one whose samples lie nearer the target on the grid (mean |S|, what the MSD
     measures: twin.morphpatch.refinement.grid_msd): (root pose 4x4, hinge angles rad, whether it rests). Flaps at
     the pitch: ours is a pose the device takes, judged as the device is built."""
     widths = np.full(spec.n_flaps, spec.flap_pitch)
     local = lay.flap.local(widths)
     p, a, rests = refine(fields, spec, local, pose, angles, widths, centre)
-    cost = objective(fields, spec, local, p, a, widths) if rests else np.inf
     turned = pose.copy()
     turned[:3, :3] = pose[:3, :3] @ _rot(2, TURN)
     turned_angles, _ = _hinges_and_widths(fields, spec, lay, turned, hcevf=False)
-    if rests and objective(fields, spec, local, turned, uncurled(spec, turned_angles), widths) > TURN_TRIED * cost:
-        return p, a, True
     tp, ta, turned_rests = refine(fields, spec, local, turned, turned_angles, widths, centre)
     if not turned_rests or (rests and grid_msd(fields, spec, local, tp, ta, widths)
                             >= grid_msd(fields, spec, local, p, a, widths)):

@@ -156,7 +156,7 @@ def _costs(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose, angle
     return tuple(float(v) for v in _cost(fields.grid, _device(spec), np.ascontiguousarray(local, dtype=float),
                                          np.ascontiguousarray(root_pose[:3, :3], dtype=float),
                                          np.array(root_pose[:3, 3], float), np.asarray(angles, float),
-                                         np.asarray(widths, float)))
+                                         np.asarray(widths, float), np.inf))
 
 
 def flaps_through(fields: Fields, spec: DeviceSpec, root_pose, angles, widths) -> int:
@@ -218,19 +218,21 @@ def _search(grid, device, local, fine, root_pose, angles, widths, centre, radius
                 continue
             r0, a0, g0, c0 = rot, lifted[k], scaled[k], centres[k]
         else:  # the pipeline's pose only where it rests as it is
-            if _cost(grid, device, local, rot0, anchor0, angles0, widths)[1] > INSIDE_LIMIT or \
+            if _cost(grid, device, local, rot0, anchor0, angles0, widths, np.inf)[1] > INSIDE_LIMIT or \
                     _through_at(grid, device, angles0, widths, _pose(rot0, anchor0), half) > 0 or \
                     not _path_clear(grid, centre, anchor0, CHORD_DEPTH):
                 continue
             r0, a0, g0, c0 = rot0, anchor0, angles0, centre
         r, a, g, _ = _descend(grid, device, local, r0, a0.copy(), g0.copy(), widths, c0.copy(), radius, half,
                               INSIDE_LIMIT, 0, False)
-        fit = _cost(grid, device, local, r, a, g, widths)[2]
+        if not _path_clear(grid, centre, a, CHORD_DEPTH):  # searched about a lifted centre, its end off the side
+            continue  # the device came from in a straight line from the snapped anchor (seed 0's cup_1, issue 37)
+        fit = _cost(grid, device, local, r, a, g, widths, np.inf)[2]
         if fit < best_fit:
             best_fit, best = fit, (r, a, g)
     if best_fit == np.inf:  # no lift of either pose, curled or flat, rests on the target from outside:
         return _pose(best[0], best[1]), best[2], False  # the pipeline's pose, unrolled (its anchor's path is clear)
-    return _pose(best[0], _settled(grid, device, fine, best[0], best[1], best[2], widths, half)), best[2], True
+    return _pose(best[0], _settled(grid, device, fine, best[0], best[1], best[2], widths, half, centre)), best[2], True
 
 
 @numba.njit(cache=True)
@@ -277,7 +279,7 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
             damping *= 4.0
             continue
         new_anchor, new_cost, deepest = _lifted(grid, device, local, new_rot, new_anchor, new_angles, widths,
-                                                inside_limit)
+                                                inside_limit, cost if inside_limit == np.inf else np.inf)
         if deepest > inside_limit or not _path_clear(grid, anchor, new_anchor) or \
                 _distance(new_anchor, centre) > radius:  # deeper than allowed, or lifted out of the ball: refused
             damping *= 4.0
@@ -310,43 +312,46 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
 
 
 @numba.njit(cache=True)
-def _lifted(grid, device, local, rot, anchor, angles, widths, inside_limit):
+def _lifted(grid, device, local, rot, anchor, angles, widths, inside_limit, bound):
     """A trial state projected back onto the bound on depth: where a sample lies deeper in the target than
     inside_limit (m), the anchor lifted along the root's normal by the excess (and half the limit), at most
     LIFT_TRIES times, and no more once a lift leaves more than half the excess it met (a step that curls a flap
     into the target, which no lift of the root mends: the step is refused; 14 % fewer sums in the bounded searches,
     the same results on eight corpus shapes: docs/approximation.md, "How far the bounds allow"). (anchor (3,) m, the sum of r(S)^2 m^2 there, the
-    deepest sample's depth m.)"""
+    deepest sample's depth m.) Without a bound on depth (inside_limit inf: nothing is lifted) the sum stops once it
+    exceeds `bound`, the sum the trial must beat (`_cost`): the same steps kept, a refused trial's scan cut short."""
     normal = rot[:, 2].copy()
-    cost, deepest, _ = _cost(grid, device, local, rot, anchor, angles, widths)
+    cost, deepest, _ = _cost(grid, device, local, rot, anchor, angles, widths, bound)
     for _ in range(LIFT_TRIES):
         if deepest <= inside_limit:
             break
         excess = deepest - inside_limit
         anchor = anchor + (deepest - 0.5 * inside_limit) * normal
-        cost, deepest, _ = _cost(grid, device, local, rot, anchor, angles, widths)
+        cost, deepest, _ = _cost(grid, device, local, rot, anchor, angles, widths, np.inf)
         if deepest - inside_limit > 0.5 * excess:
             break
     return anchor, cost, deepest
 
 
 @numba.njit(cache=True)
-def _settled(grid, device, fine, rot, anchor, angles, widths, half):
+def _settled(grid, device, fine, rot, anchor, angles, widths, half, centre):
     """The anchor (3,) m of a search's end lifted along the root's normal until no sample of `fine` (the touch
     surface every 2 mm, the resting bar's samples) is deeper in the target than INSIDE_LIMIT on the grid (by the
     excess, at most LIFT_STEPS times; only a lift that makes the deepest shallower, not one whose path crosses the
-    target or that puts a flap through it). The search holds its 5 mm samples to the limit: a sharp edge (the
+    target, nor one the snapped anchor `centre` (3,) m does not reach in a straight line to CHORD_DEPTH, nor one that
+    puts a flap through it). The search holds its 5 mm samples to the limit: a sharp edge (the
     stairs' noses) can poke between them, 0.7 mm deeper on curved_stairs start 37 of the fresh-start test (seed 13),
     which with the grid's rounding of that edge (0.9 mm) put the exact deepest point 3.07 mm inside, over the 3 mm
     bar."""
     normal = rot[:, 2].copy()
-    deepest = _cost(grid, device, fine, rot, anchor, angles, widths)[1]
+    deepest = _cost(grid, device, fine, rot, anchor, angles, widths, np.inf)[1]
     for _ in range(LIFT_STEPS):  # (a sample on a flap turned from the root's plane rises by less than the lift)
         if deepest <= INSIDE_LIMIT:
             break
         lifted = anchor + (deepest - INSIDE_LIMIT) * normal
-        lower = _cost(grid, device, fine, rot, lifted, angles, widths)[1]
+        lower = _cost(grid, device, fine, rot, lifted, angles, widths, np.inf)[1]
         if lower >= deepest or not _path_clear(grid, anchor, lifted) or \
+                not _path_clear(grid, centre, lifted, CHORD_DEPTH) or \
                 _through_at(grid, device, angles, widths, _pose(rot, lifted), half) > 0:
             break  # a lift that brings another sample deeper (a face the normal points into), or crosses: not taken
         anchor, deepest = lifted, lower
@@ -374,7 +379,7 @@ def _feasible(grid, device, local, rot, anchor, angles, widths, half, centre, ra
             p = anchor + lift * normal
             if lift > LIFT_REACH or not _path_clear(grid, anchor, p) or not _path_clear(grid, centre, p, CHORD_DEPTH):
                 break  # too far, through the target, or off the side the device came from
-            deepest = _cost(grid, device, local, rot, p, trial, widths)[1]
+            deepest = _cost(grid, device, local, rot, p, trial, widths, np.inf)[1]
             if deepest <= INSIDE_LIMIT and _through_at(grid, device, trial, widths, _pose(rot, p), half) == 0:
                 out = _distance(p, centre) > radius
                 lifted_centre = centre + ((p - centre) @ normal) * normal if out else centre
@@ -610,10 +615,11 @@ def _evaluate(grid, device, local, rot, anchor, angles, widths):
 
 
 @numba.njit(cache=True)
-def _cost(grid, device, local, rot, anchor, angles, widths):
+def _cost(grid, device, local, rot, anchor, angles, widths, bound):
     """(The sum of r(S)^2 m^2, the deepest sample's depth in the target m, 0 if none is inside, the mean |S| m) at
     one state, without derivatives: what a trial step is judged by (the sum), and a search's ends (the mean |S|:
-    `_search`)."""
+    `_search`). The sum grows flap by flap: once it exceeds `bound` (m^2) the scan stops, the sum returned above
+    `bound` and the rest partial (a trial of the first phase that cannot lower the sum it must beat)."""
     _, hinges, root_flap, _ = device
     frames = _chain(hinges[1] * angles, widths, root_flap, _pose(rot, anchor))
     cost, lowest, total = 0.0, 0.0, 0.0
@@ -625,6 +631,8 @@ def _cost(grid, device, local, rot, anchor, angles, widths):
             total += abs(r)
             t = min(r, 0.0) / TAIL
             cost += r * r * (1.0 + t * t)
+        if cost > bound:
+            break
     return cost, -lowest, total / (local.shape[0] * local.shape[1])
 
 
