@@ -76,7 +76,7 @@ from twin.cli import main as vrscroll  # noqa: E402
 from twin.device.spec import load_spec  # noqa: E402
 from twin.formats.run import read_run  # noqa: E402
 from twin.hil.calibration import HINGE_PARAMS, MAX_HALFWIDTH, calibrate, calibrate_hinges, trace_rmse  # noqa: E402
-from twin.hil.calibration_verdict import held_out_improved, judged  # noqa: E402
+from twin.hil.calibration_verdict import MAX_WIDTH, WITHIN, held_out_improved, judged, tallied, tally_line  # noqa: E402
 from twin.hil.identification import PROFILED, estimates, experiments, fit_hinge, turned  # noqa: E402
 from twin.hil.mirror import mirror  # noqa: E402
 from twin.hil.shared_plant import ALIKE, SHARED_PLANT, record_soft, shared_truth  # noqa: E402
@@ -270,8 +270,6 @@ def one(seed: int, folder: Path) -> dict:
     return tally
 
 
-TARGETS = {"no_load_speed": 0.10, "gear_friction": 0.15, "rotor_inertia": 0.20}  # issue 36: within this of the truth
-MAX_WIDTH = 1.5  # issue 36: an identifiable value's 95 % interval no wider than this (high / low)
 
 
 def identify(seeds) -> None:
@@ -297,14 +295,8 @@ def identify(seeds) -> None:
         walls.append(time.perf_counter() - t0)
         device.append(device_s)
     print(f"over {len(seeds)} plants x {spec.n_hinges} hinges (error: fitted / drawn - 1):")
-    for p, target in TARGETS.items():
-        mine = [r for r in rows if r["p"] == p]
-        err = np.abs([r["err"] for r in mine])
-        met = sum(abs(r["err"]) <= target and r["identifiable"] and r["width"] <= MAX_WIDTH for r in mine)
-        print(f"  {p}: median error {np.median(err):.1%}, worst {err.max():.1%}; median interval width "
-              f"x{np.median([r['width'] for r in mine]):.3f}; intervals holding the drawn value "
-              f"{sum(r['hold'] for r in mine)}/{len(mine)}; identifiable {sum(r['identifiable'] for r in mine)}; "
-              f"within {target:.0%}, identifiable and no wider than x{MAX_WIDTH}: {met}/{len(mine)}")
+    for p in WITHIN:
+        print("  " + tally_line(rows, p))
     print(f"fit wall time per plant (6 hinges, this machine): median {np.median(walls):.0f} s; experiments' device "
           f"time per plant: median {np.median(device):.1f} s")
 
@@ -348,29 +340,29 @@ def cached(path: Path, make):
 
 
 def identified(seed: int, spec) -> dict:
-    """The identification form on seed's drawn plant lying flat: {"truth": each hinge's drawn TARGETS, "rows",
+    """The identification form on seed's drawn plant lying flat: {"truth": each hinge's drawn WITHIN, "rows",
     "wall_s": the fit's wall time, "device_s": the experiments' device time}."""
     dev = EmulatedDevice(spec, seed)
     moves, device_s = experiments(dev.run_program, spec)
     t0 = time.perf_counter()
     rows, truth = [], []
     for k in range(spec.n_hinges):
-        truth.append({p: getattr(dev.truth[k], p) for p in TARGETS})
+        truth.append({p: getattr(dev.truth[k], p) for p in WITHIN})
         try:
             est = estimates(fit_hinge(moves.get(k, []), spec), spec, MAX_HALFWIDTH)
         except ValueError as exc:  # no move to fit (seed 24): no value, counted as a miss
             print(f"seed {seed} hinge {k}: {exc}", flush=True)
             rows += [{**row(p, FORMS[1], k, 1.0, 1.0, 1.0, 1.0, False), "err": None, "hold": False,
-                      "width": None} for p in TARGETS]
+                      "width": None} for p in WITHIN]
             continue
         rows += [row(p, FORMS[1], k, truth[k][p], est[p].value, est[p].low, est[p].high, est[p].identifiable)
-                 for p in TARGETS]
+                 for p in WITHIN]
     return {"truth": truth, "rows": rows, "wall_s": time.perf_counter() - t0, "device_s": device_s}
 
 
 def recorded_form(seed: int, folder: Path, scenarios: Path, tries: int = 20, pause_s: float = 45.0) -> dict | None:
     """Today's recorded-runs form on seed's drawn plant lying flat (see --compare): {"truth": each hinge's drawn
-    TARGETS from the emulator's log, "rows" (each hinge's own values where the profile keeps them, else the
+    WITHIN from the emulator's log, "rows" (each hinge's own values where the profile keeps them, else the
     shared ones), "wall_s": recording and calibrating, "held": the held-out figures}. A recording the machine's
     load spoiled (the real-time emulator fell behind and `hil` stopped, or the link stopped trusting its clock)
     is recorded again after pause_s, up to `tries` times; None if none was whole."""
@@ -393,9 +385,9 @@ def recorded_form(seed: int, folder: Path, scenarios: Path, tries: int = 20, pau
                            "--out", str(folder / "cal.toml"), "--json", "-"))
     fit = cal["per_hinge_fit"]
     own = {h["hinge"]: h["parameters"] for h in fit["hinges"]} if fit["kept"] else {}
-    truth = [{p: h[p] for p in TARGETS} for h in _drawn(folder)["hinges"]]
+    truth = [{p: h[p] for p in WITHIN} for h in _drawn(folder)["hinges"]]
     rows = [row(p, FORMS[0], k, truth[k][p], e["value"], e["low"], e["high"], e["identifiable"])
-            for k in range(len(truth)) for p in TARGETS for e in [own.get(k, {}).get(p, cal["parameters"][p])]]
+            for k in range(len(truth)) for p in WITHIN for e in [own.get(k, {}).get(p, cal["parameters"][p])]]
     return {"truth": truth, "rows": rows, "wall_s": time.perf_counter() - t0,
             "held": {**cal["holdout"], "per_hinge_kept": fit["kept"]}}
 
@@ -432,8 +424,8 @@ def compare(seeds, base: Path) -> None:
         if old is None:
             print(f"seed {seed}: no whole recording, left out of the table", flush=True)
             continue
-        assert np.allclose([[h[p] for p in TARGETS] for h in new["truth"]],  # the same plant: the log's draw is
-                           [[h[p] for p in TARGETS] for h in old["truth"]], rtol=1e-9)  # EmulatedDevice's
+        assert np.allclose([[h[p] for p in WITHIN] for h in new["truth"]],  # the same plant: the log's draw is
+                           [[h[p] for p in WITHIN] for h in old["truth"]], rtol=1e-9)  # EmulatedDevice's
         done.append(seed)
         rows += old["rows"] + new["rows"]
         walls[FORMS[0]].append(old["wall_s"])
@@ -451,23 +443,18 @@ def compare(seeds, base: Path) -> None:
           f"fitted / drawn - 1; width: high / low of the 95 % interval)")
     print(f"{'parameter':<14} {'form':<15} {'median err':>10} {'worst err':>10} {'median width':>13} "
           f"{'holding':>8} {'identifiable':>12} {'meets issue':>11}")
-    for p, target in TARGETS.items():
+    for p in WITHIN:
         for form in FORMS:
-            mine = [r for r in rows if r["p"] == p and r["form"] == form]
-            fitted = [r for r in mine if r["err"] is not None]  # a hinge with no value: a miss, not an error
-            err = np.abs([r["err"] for r in fitted])
-            met = sum(abs(r["err"]) <= target and r["identifiable"] and r["width"] <= MAX_WIDTH for r in fitted)
-            print(f"{p:<14} {form:<15} {np.median(err):>10.1%} {err.max():>10.1%} "
-                  f"{'x%.3f' % np.median([r['width'] for r in fitted]):>13} "
-                  f"{sum(r['hold'] for r in mine):>4}/{len(mine):<3} "
-                  f"{sum(r['identifiable'] for r in mine):>8}/{len(mine):<3} "
-                  f"{met:>7}/{len(mine):<3}")
+            t = tallied([r for r in rows if r["form"] == form], p)
+            print(f"{p:<14} {form:<15} {t['median_err']:>10.1%} {t['worst_err']:>10.1%} "
+                  f"{'x%.3f' % t['median_width']:>13} {t['hold']:>4}/{t['n']:<3} {t['identifiable']:>8}/{t['n']:<3} "
+                  f"{t['met']:>7}/{t['n']:<3}")
     for form in FORMS:
-        unfitted = sum(r["form"] == form and r["err"] is None for r in rows) // len(TARGETS)
+        unfitted = sum(r["form"] == form and r["err"] is None for r in rows) // len(WITHIN)
         if unfitted:
             print(f"{form}: {unfitted} hinge(s) with no value (no move to fit), counted as misses, left out of "
                   "the errors and widths")
-    print(f"(meets issue: within {', '.join(f'{p} {t:.0%}' for p, t in TARGETS.items())} of the drawn value, "
+    print(f"(meets issue: within {', '.join(f'{p} {t:.0%}' for p, t in WITHIN.items())} of the drawn value, "
           f"called identifiable, interval no wider than x{MAX_WIDTH})")
     print("wall time per plant, this machine (2 shared cores): " + "; ".join(
         f"{form} median {np.median(w):.0f} s" for form, w in walls.items())

@@ -31,10 +31,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from twin.hil.calibration_verdict import WITHIN, tally_line  # noqa: E402
 from twin.link.drawn_plant import emulator_args  # noqa: E402
 
-PARAMETERS = {"no_load_speed": 0.10, "gear_friction": 0.15, "rotor_inertia": 0.20}  # issue 36: within this of truth
-MAX_WIDTH = 1.5  # issue 36: an identifiable value's interval at most this wide (high / low)
 SETTLE_WITHIN = 0.15  # issue 36: a pushed hinge settles within this of the twin's prediction
 
 
@@ -80,7 +79,7 @@ def flow(seed: int, folder: Path) -> dict:
     cal = json.loads((folder / "cal.json").read_text())
     row["device_s"] = cal["device_time_s"]
     for h in cal["hinges"]:
-        for p in PARAMETERS:
+        for p in WITHIN:
             e, t = h["parameters"][p], truth[h["hinge"]][p]
             row["values"].append({"p": p, "hinge": h["hinge"], "err": e["value"] / t - 1,
                                   "hold": e["low"] <= t <= e["high"], "width": e["high"] / e["low"],
@@ -104,23 +103,16 @@ def report(rows: list[dict]) -> None:
         else:
             cells.append(" ".join(r.get("why", [])))
         print("; ".join(cells))
-        for p in PARAMETERS:
+        for p in WITHIN:
             print(f"  {p:14s} " + " ".join(f"{v['err']:+.3f}{'' if v['hold'] else '!'}{'*' if v['identifiable'] else ''}"
                                              for v in r["values"] if v["p"] == p))
         if r["settle"]:
             print("  settle s device/twin: " + " ".join(f"{s['device_s']:.3f}/{s['twin_s']:.3f}" for s in r["settle"]))
     print("(error: fitted / drawn - 1; ! the 95 % interval misses the drawn value; * called identifiable)")
     values = [v for r in rows for v in r["values"]]
-    for p, target in PARAMETERS.items():
-        mine = [v for v in values if v["p"] == p]
-        if not mine:
-            continue
-        err = np.abs([v["err"] for v in mine])
-        met = sum(abs(v["err"]) <= target and v["identifiable"] and v["width"] <= MAX_WIDTH for v in mine)
-        print(f"{p}: median error {np.median(err):.1%}, worst {err.max():.1%}; median width "
-              f"x{np.median([v['width'] for v in mine]):.3f}; holding {sum(v['hold'] for v in mine)}/{len(mine)}; "
-              f"identifiable {sum(v['identifiable'] for v in mine)}/{len(mine)}; within {target:.0%}, identifiable and "
-              f"no wider than x{MAX_WIDTH}: {met}/{len(mine)}")
+    if values:
+        for p in WITHIN:
+            print(tally_line(values, p))
     settles = [s for r in rows for s in r["settle"]]
     within = sum(abs(s["device_s"] / s["twin_s"] - 1) <= SETTLE_WITHIN for s in settles if s["twin_s"] > 0)
     print(f"tune pushed on {sum(r['pushed'] for r in rows)}/{len(rows)} plants; pushed hinges settling within "

@@ -8,7 +8,13 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from twin.hil.calibration import MAX_HALFWIDTH
+
+WITHIN = {"no_load_speed": 0.10, "gear_friction": 0.15, "rotor_inertia": 0.20}  # issue 36: each hinge's value within
+# this share of the drawn one ...
+MAX_WIDTH = 1.5  # ... called identifiable, its 95 % interval no wider than this (high / low)
 
 
 def judged(cal: dict, hinges: list[dict], truth: dict) -> dict:
@@ -47,3 +53,24 @@ def held_out_improved(holdout: dict, floor_deg: float, spec) -> bool:
     (about 0.01-0.02 deg), so halving it cannot be told from chance."""
     before, after = holdout["overall_before_deg"], holdout["overall_after_deg"]
     return after <= max(before - 0.5 * max(before - floor_deg, 0.0), floor_deg + 0.1 * math.degrees(spec.rad_per_count))
+
+
+def tallied(rows: list[dict], p: str) -> dict:
+    """Issue 36's tally of parameter p over rows ({"p", "err": fitted / drawn - 1 or None where the hinge has no
+    value, "hold", "width": high / low, "identifiable"}): {"n", "median_err", "worst_err", "median_width" (over the
+    rows with a value), "hold", "identifiable", "met": within WITHIN[p], identifiable and no wider than MAX_WIDTH}."""
+    mine = [r for r in rows if r["p"] == p]
+    valued = [r for r in mine if r["err"] is not None]
+    err = np.abs([r["err"] for r in valued])
+    return {"n": len(mine), "median_err": float(np.median(err)), "worst_err": float(err.max()),
+            "median_width": float(np.median([r["width"] for r in valued])),
+            "hold": sum(bool(r["hold"]) for r in mine), "identifiable": sum(bool(r["identifiable"]) for r in mine),
+            "met": sum(abs(r["err"]) <= WITHIN[p] and r["identifiable"] and r["width"] <= MAX_WIDTH for r in valued)}
+
+
+def tally_line(rows: list[dict], p: str) -> str:
+    """`tallied` in words."""
+    t = tallied(rows, p)
+    return (f"{p}: median error {t['median_err']:.1%}, worst {t['worst_err']:.1%}; median width x{t['median_width']:.3f}; "
+            f"holding {t['hold']}/{t['n']}; identifiable {t['identifiable']}/{t['n']}; within {WITHIN[p]:.0%}, "
+            f"identifiable and no wider than x{MAX_WIDTH}: {t['met']}/{t['n']}")
