@@ -286,10 +286,12 @@ def protocol_of(code: Path | None) -> int:
 
 
 def session(args, code=None) -> dict:
-    """One emulator, one service (this code's, or the checkout `code`'s), one measured session; with
+    """One emulator and one service (this code's, or the checkout `code`'s: each version with its own device, whose
+    protocol it speaks), one measured session; with
     args.csharp ({checkout or None: its compiled C# session}), then the C# client's too: m["csharp"]
     {"pose_ms", "pen_ms": [p50, p99, replies]}."""
-    with tempfile.TemporaryDirectory() as tmp, EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed") as emu, \
+    with tempfile.TemporaryDirectory() as tmp, \
+            EmulatorProcess(Path(tmp) / "emulator.jsonl", "--zeroed", code=code) as emu, \
             ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err", code=code) as service:
         m = asyncio.run(measure(service.url, args.shape, args.seconds, protocol_of(code),

@@ -80,10 +80,13 @@ def cli_command(*args: str) -> list[str]:
     return [sys.executable, "-m", "twin.cli", *args]
 
 
-def cli_env(env: dict | None = None) -> dict:
+def cli_env(env: dict | None = None, code=None) -> dict:
     """The environment for `cli_command`: the caller's (or `env`), with the folder that holds this `twin`
-    package first on PYTHONPATH, so the subprocess runs the same code as its parent from any working folder."""
+    package first on PYTHONPATH, so the subprocess runs the same code as its parent from any working folder;
+    code: a folder holding another `twin` package (another version, to compare against), put before it (run the
+    subprocess with that folder as its working folder too: `python -m` puts that before the path)."""
     out = dict(os.environ if env is None else env)
     here = str(Path(__file__).resolve().parents[1])
-    out["PYTHONPATH"] = os.pathsep.join(p for p in (here, out.get("PYTHONPATH", "")) if p)
+    first = () if code is None else (str(Path(code).resolve()),)
+    out["PYTHONPATH"] = os.pathsep.join(p for p in (*first, here, out.get("PYTHONPATH", "")) if p)
     return out

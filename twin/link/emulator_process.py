@@ -11,13 +11,14 @@ from twin.paths import cli_command, cli_env
 
 
 class EmulatorProcess:
-    """`vrscroll emulate --log LOG ARGS` in a subprocess; `port` is its pty, `log` its JSON-lines command log."""
+    """`vrscroll emulate --log LOG ARGS` in a subprocess; `port` is its pty, `log` its JSON-lines command log.
+    code: a folder holding another `twin` package to emulate with (another version, to compare against)."""
 
-    def __init__(self, log, *args: str):
+    def __init__(self, log, *args: str, code=None):
         self.log = Path(log)
         self._stderr = open(self.log.with_suffix(".stderr"), "w")
-        self.proc = subprocess.Popen(cli_command("emulate", "--log", str(self.log), *args),
-                                     stdout=subprocess.PIPE, stderr=self._stderr, text=True, env=cli_env())
+        self.proc = subprocess.Popen(cli_command("emulate", "--log", str(self.log), *args), cwd=code,
+                                     stdout=subprocess.PIPE, stderr=self._stderr, text=True, env=cli_env(code=code))
         line = self.proc.stdout.readline().strip()  # the pty path, printed once the device is running
         if not line.startswith("/dev/"):
             self.stop()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import re
 import signal
 import subprocess
@@ -19,12 +18,8 @@ class ServiceProcess:
         default this one."""
         self.stderr_path = Path(stderr_path) if stderr_path else None
         self._stderr = open(self.stderr_path, "w") if self.stderr_path else subprocess.DEVNULL
-        env = cli_env()
-        if code is not None:  # first on the path, and the working folder: `python -m` puts that before the path
-            code = str(Path(code).resolve())
-            env["PYTHONPATH"] = os.pathsep.join((code, env["PYTHONPATH"]))
         self.proc = subprocess.Popen(cli_command("serve", "--listen", "0", *args), cwd=code,
-                                     stdout=subprocess.PIPE, stderr=self._stderr, text=True, env=env)
+                                     stdout=subprocess.PIPE, stderr=self._stderr, text=True, env=cli_env(code=code))
         self.banner = ""
         for line in self.proc.stdout:  # a token line may come first; the banner names the URL
             self.banner += line
