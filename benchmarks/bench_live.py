@@ -72,6 +72,7 @@ from twin.live.collection import collect_if_due, hold_collection, release_collec
 from twin.live.messages import PROTOCOL_VERSION  # noqa: E402
 from twin.live.player import POSE_HZ, PEN_HZ, TREMOR, stroke  # noqa: E402
 from twin.live.process import ServiceProcess  # noqa: E402
+from twin.live.scheduling import ask_thread_slice, slice_s  # noqa: E402
 from twin.formats.target import message_approximation  # noqa: E402
 from twin.morphpatch.approximation import pose_from_mm_deg  # noqa: E402
 from twin.morphpatch.shapes import shape_table  # noqa: E402
@@ -166,18 +167,32 @@ def breakdown(name: str, stages: dict | None) -> str:
 
 
 async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL_VERSION,
-                  pids=lambda: {}, fifo: int = 0) -> dict:
+                  pids=lambda: {}, fifo: int = 0, spin_s: float = 0.0, short_slice: bool = False) -> dict:
     """One session (saying `protocol` in hello: an older service's): {"pose", "estimates", "worker", "pen",
     "pose_with_pens", "client_send", "client_receive": [s], "sent": {phase: samples sent}, "status": the
     service's status at the end (None if the lock failed), "waits": {phase: `waits` of the processes pids()},
     "cpu_us": {"worker per pose": its CPU per pose, poses alone; "pens per pen": the CPU per pen sample of the
     process that serves the pens (the pen process; an older service itself), pens
     and poses}}.
-    fifo: the SCHED_FIFO priority of those processes while measured (0: none)."""
+    fifo: the SCHED_FIFO priority of those processes while measured (0: none); spin_s: after each sample sent, the
+    client polls its socket for the reply for at most this long (LiveClient.spin; 0: it waits in its event loop);
+    short_slice: this client's thread on the kernel's shortest slice while measured (LiveClient's short_slice).
+    "pen_to_socket", "pen_wake": per pen reply, s from its t_s to the reply's arrival in the client's socket (the
+    client's send, the pen process's wake-up and work, the reply's way back) and from there to the client taking it
+    (the client's wake-up)."""
+    out = {"sent": {}, "status": None, "waits": {}, "cpu_us": {}}
+    default_slice = slice_s()
+    try:
+        return await _measure(url, shape, seconds, protocol, pids, fifo, spin_s, short_slice, out)
+    finally:
+        if short_slice and default_slice:
+            ask_thread_slice(default_slice)  # the other side's session on the kernel's default again
+
+
+async def _measure(url, shape, seconds, protocol, pids, fifo, spin_s, short_slice, out) -> dict:
     start = pose_from_mm_deg(shape_table()[shape]["start"])
     quat = Rotation.from_matrix(start[:3, :3]).as_quat(scalar_first=True)
-    out = {"sent": {}, "status": None, "waits": {}, "cpu_us": {}}
-    async with LiveClient(url, protocol=protocol) as client:
+    async with LiveClient(url, protocol=protocol, short_slice=short_slice) as client:
         await client.set_target(shape=shape)
         processes = pids()
         # under SCHED_FIFO from the settling on: the service's per-stage figures (its last 2,000 samples) are all so
@@ -231,13 +246,20 @@ async def measure(url: str, shape: str, seconds: float, protocol: int = PROTOCOL
             if pens % round(PEN_HZ / POSE_HZ) == 0:
                 client.send_pose(*hover(start, quat, t))
                 poses += 1
+            if spin_s:
+                client.spin("pen_redirected", spin_s)
             await asyncio.sleep(max(0.0, t0 + pens / PEN_HZ - time.perf_counter()))
         await asyncio.sleep(0.2)
         release_collection()
         out["waits"]["pens and poses"], cpu = waits(ran, {name: schedstat(pid) for name, pid in processes.items()},
                                                     time.perf_counter() - t0, pens)
         out["cpu_us"]["pens per pen"] = cpu.get("pens", cpu.get("service"))
-        out["pen"] = [latency(r) for r in client.drain("pen_redirected")]
+        pen_replies = client.drain("pen_redirected")
+        out["pen"] = [latency(r) for r in pen_replies]
+        out["pen_to_socket"] = [r["arrived_s"] - r["t_s"] for r in pen_replies]
+        out["pen_wake"] = [r["received_s"] - r["arrived_s"] for r in pen_replies]
+        per_pose = round(PEN_HZ / POSE_HZ)  # the pens with seq per_pose - 1, 2 per_pose - 1, ... have a pose after them
+        out["pen_before_pose"] = [latency(r) for r in pen_replies if r["seq"] % per_pose == per_pose - 1]
         out["pose_with_pens"] = [latency(a) for a in client.drain("approximation")]
         out["sent"].update(pen=pens, pose_with_pens=poses)
         out["client_send"], out["client_receive"] = list(client.send_s), list(client.receive_s)
@@ -269,6 +291,7 @@ def report(m: dict) -> None:
           f"approximation's datagram, {counts.get('estimates', 'one per approximation')} of them, CPU "
           f"{status.get('estimates_cpu_ms')} ms each")
     print(breakdown("where a pen sample's time went in the service", status.get("pen_path_ms")))
+    print(pen_split(m))
     print(stats("client: encoding and sending a sample", m["client_send"], len(m["client_send"])))
     print(stats("client: parsing and queueing a reply", m["client_receive"], len(m["client_receive"])))
     for phase, line in m["waits"].items():
@@ -276,6 +299,22 @@ def report(m: dict) -> None:
     print("CPU: " + ", ".join(f"{k} {v:.0f} us" for k, v in m["cpu_us"].items() if v is not None))
     if "csharp" in m:
         print(csharp_line(m))
+
+
+def pen_split(m: dict) -> str:
+    """Where a pen's round trip went, p50 / p99 ms: to the reply's arrival in the client's socket, then the client's
+    wake-up, beside the client's own send and the pen's way through the pen process (its status)."""
+    path = (m["status"] or {}).get("pen_path_ms") or {}
+    inside = path.get("total")
+    return (f"pen split (p50 / p99 ms): t_s -> reply in the client's socket {p50_p99(m.get('pen_to_socket', []))} "
+            f"[of which the client's send {p50_p99(m.get('client_send', []))}, the pen process's wake-up "
+            f"{p50_p99_ms(path.get('socket'))}, its path {p50_p99_ms(inside)}]; the client's wake-up "
+            f"{p50_p99(m.get('pen_wake', []))}; the pens with a pose sent right after them "
+            f"{p50_p99(m.get('pen_before_pose', []))}")
+
+
+def p50_p99_ms(stage: dict | None) -> str:
+    return f"{stage['p50']:.3f} / {stage['p99']:.3f}" if stage else "-"
 
 
 def protocol_of(code: Path | None) -> int:
@@ -295,7 +334,8 @@ def session(args, code=None) -> dict:
             ServiceProcess("--serial", emu.port, "--variant", args.variant, "--log", str(Path(tmp) / "session.jsonl"),
                            stderr_path=Path(tmp) / "serve.err", code=code) as service:
         m = asyncio.run(measure(service.url, args.shape, args.seconds, protocol_of(code),
-                                lambda: processes(service, emu.proc.pid), args.fifo))
+                                lambda: processes(service, emu.proc.pid), args.fifo,
+                                args.spin_us * 1e-6 if code is None else 0.0, code is None and not args.default_slice))
         prioritise([os.getpid()], 0)  # this client back to the ordinary scheduler before it starts anything
         if args.csharp:
             fifo = ["chrt", "-f", str(args.fifo)] if args.fifo else []
@@ -406,6 +446,8 @@ def compare(args) -> None:
                 print("  " + breakdown("pose path", m["status"]["pose_path_ms"]))
                 print("  " + breakdown("pose CPU", m["status"].get("pose_cpu_ms")))
                 print("  " + breakdown("pen path", m["status"]["pen_path_ms"]))
+            if m["status"]:
+                print("  " + pen_split(m))
             if side == "after" and m["status"]:
                 print("  " + stats("client send", m["client_send"], len(m["client_send"])))
                 print("  " + stats("client receive", m["client_receive"], len(m["client_receive"])))
@@ -432,6 +474,12 @@ def main() -> None:
     p.add_argument("--csharp", action="store_true", help="measure with the C# client too (needs Mono's mcs, mono)")
     p.add_argument("--fifo", type=int, default=0, metavar="PRIORITY",
                    help="run the measured processes under SCHED_FIFO at this priority, 1-99 (default 0: not)")
+    p.add_argument("--spin-us", type=float, default=0.0, metavar="US",
+                   help="this code's side: after each sample the client polls its socket for the reply for at most "
+                        "this long, us, before it waits in its event loop (default 0: it does not poll)")
+    p.add_argument("--default-slice", action="store_true",
+                   help="this code's side: the client on the kernel's default scheduler slice, as the other side's "
+                        "(default: on its shortest, as LiveClient(short_slice=True) asks; Linux 6.12 or later)")
     args = p.parse_args()
     if args.against is not None and not (args.against / "twin" / "live" / "service.py").is_file():
         p.error(f"--against {args.against}: no twin/live/service.py there")

@@ -10,6 +10,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ from twin.live.messages import (ERROR_INTERVAL, ESTIMATES_RATE_HZ, MAX_CONTROL_B
                                 PROTOCOL_VERSION, ProtocolError, encode_sample, parse_control, parse_sample)
 from twin.live.player import stroke
 from twin.live.process import ServiceProcess
-from twin.live.scheduling import SLICE_S, slice_s
+from twin.live.scheduling import SLICE_S, ask_thread_slice, slice_s
 from twin.live.stages import PEN_STAGES, POSE_CPU_STAGES, POSE_STAGES
 from twin.device.spec import load_spec
 from twin.formats.target import message_approximation
@@ -418,9 +419,19 @@ def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twi
             for p, q in zip(points, quats):
                 client.send_pen(p * 1e3, q)
             replies = [await client.datagram("pen_redirected") for _ in points]
-            return gate, progress, done, points, replies, await client.status()
+            # the same pens again, each reply taken by polling the socket (LiveClient.spin), not by the event loop
+            spun = []
+            for p, q in zip(points, quats):
+                seq = client.send_pen(p * 1e3, q)
+                assert client.spin("pen_redirected", 1.0)
+                spun += client.drain("pen_redirected")
+                assert spun[-1]["seq"] == seq
+            return gate, progress, done, points, replies, spun, await client.status()
 
-    gate, progress, done, points, replies, status = run(session())
+    gate, progress, done, points, replies, spun, status = run(session())
+    # a reply polled for is the one the event loop took, stamped in the kernel before this process took it
+    assert [r["position_mm"] for r in spun] == [r["position_mm"] for r in replies]
+    assert all(r["t_s"] <= r["arrived_s"] <= r["received_s"] for r in replies + spun)
     # where the time went, per stage of each path (twin/live/stages.py), each stage within its path's total
     for path, stages in (("pose_path_ms", POSE_STAGES), ("pen_path_ms", PEN_STAGES)):
         assert tuple(status[path]) == stages
@@ -443,6 +454,32 @@ def test_lock_on_the_twin_morphs_and_redirects_touching_pens_onto_the_target(twi
     on_target = np.abs(point_distances(mesh, virtual))
     # the device is within a few mm of the cylinder; the redirected pen lands on it (the blur leaves < 1 mm)
     assert on_device.max() > 1e-3 and on_target.max() < 1e-3, (on_device.max(), on_target.max())
+
+
+def test_a_client_asking_for_a_short_slice_gets_it_on_its_own_thread_alone(twin_service):
+    """LiveClient(short_slice=True): the thread that connects (its event loop takes the replies) on Linux's shortest
+    scheduler slice wherever this kernel grants a thread one; the process's other threads as they were."""
+    seen = {}
+
+    def client_thread():
+        async def session():
+            async with LiveClient(twin_service.url, short_slice=True) as client:
+                seen["welcome"] = client.welcome
+        asyncio.run(session())
+        seen["slice"] = slice_s(threading.get_native_id())
+
+    def probe():  # what the kernel grants a thread here, asked in a thread of its own
+        seen["granted"] = ask_thread_slice()
+
+    before = slice_s(threading.get_native_id())
+    for target in (client_thread, probe):
+        thread = threading.Thread(target=target)
+        thread.start()
+        thread.join()
+    assert seen["welcome"]["role"] == "control"
+    assert slice_s(threading.get_native_id()) == before
+    if seen["granted"]:
+        assert seen["slice"] == SLICE_S != before
 
 
 def test_serve_records_every_morph_for_rerun(tmp_path):

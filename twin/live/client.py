@@ -13,9 +13,10 @@
 Events from the control channel and datagrams from the service are queued as they come
 (bounded: the oldest go first when a queue is full); every event is also kept in `history`.
 Times put in `t_s` are this process's `time.perf_counter()`, and each datagram reply is
-stamped `received_s` on arrival (before it is parsed), so `latency(reply)` is the round trip of
-the sample it answers. The client's own part is kept too (`send_s`: encoding and sending a sample,
-from its `t_s` on; `receive_s`: parsing and queueing a reply; the last QUEUE of each, s).
+stamped `received_s` when this process takes it off its socket (before it is parsed), so `latency(reply)` is the
+round trip of the sample it answers, and `arrived_s` with the kernel's stamp of its arrival in the socket, so
+`received_s - arrived_s` is this client's wake-up. The client's own part is kept too (`send_s`: encoding and sending
+a sample, from its `t_s` on; `receive_s`: parsing and queueing a reply; the last QUEUE of each, s).
 """
 
 from __future__ import annotations
@@ -29,7 +30,9 @@ from urllib.parse import urlparse
 
 from websockets.asyncio.client import connect
 
-from twin.live.messages import MAX_FRAME_BYTES, PROTOCOL_VERSION, decode_reply, encode_sample
+from twin.live.datagrams import drain, stamped_socket
+from twin.live.messages import MAX_DATAGRAM_BYTES, MAX_FRAME_BYTES, PROTOCOL_VERSION, decode_reply, encode_sample
+from twin.live.scheduling import ask_thread_slice
 
 QUEUE = 4096  # datagram replies kept per kind before the oldest are dropped
 
@@ -44,39 +47,27 @@ def _put(queue: asyncio.Queue, item) -> None:
     queue.put_nowait(item)
 
 
-class _Replies(asyncio.DatagramProtocol):
-    def __init__(self, client: "LiveClient", service):
-        self.client = client
-        self.service = service  # (host, port) every reply comes from
-
-    def datagram_received(self, data, addr) -> None:
-        received = time.perf_counter()
-        if addr[:2] != self.service:
-            return
-        try:
-            obj = decode_reply(data)
-        except ValueError:
-            return
-        obj["received_s"] = received
-        self.client.received[obj["type"]] += 1
-        _put(self.client._datagram_queues[obj["type"]], obj)
-        self.client.receive_s.append(time.perf_counter() - received)
-
-
 class LiveClient:
     """One connection: `role` "control" (streams and locks) or "observer" (events only)."""
 
-    def __init__(self, url: str, role: str = "control", token: str | None = None, protocol: int = PROTOCOL_VERSION):
+    def __init__(self, url: str, role: str = "control", token: str | None = None, protocol: int = PROTOCOL_VERSION,
+                 short_slice: bool = False):
         """protocol: the version said in hello (an older one only to measure an older service, with JSON samples:
-        benchmarks/bench_live.py)."""
+        benchmarks/bench_live.py); short_slice: the thread that connects (whose event loop takes the replies) asks
+        Linux for its shortest scheduler slice (twin/live/scheduling.py): woken by a reply, it preempts a task running
+        a longer one. It stays so after the client closes."""
         self.url, self.role, self.token, self.protocol = url, role, token, protocol
+        self.short_slice = short_slice
         self.ws = None
         self.welcome = None
         self.history: list[dict] = []
         self.received: collections.Counter = collections.Counter()  # datagrams received, by type
         self._events: asyncio.Queue = asyncio.Queue()
         self._datagram_queues = collections.defaultdict(lambda: asyncio.Queue(QUEUE))
-        self._udp = None
+        self._udp: socket.socket | None = None  # the datagram socket (non-blocking), read by the event loop
+        self._service = None  # (host, port) every reply comes from
+        self._buffer = memoryview(bytearray(MAX_DATAGRAM_BYTES + 1))
+        self._drops: collections.Counter = collections.Counter()
         self._ports = {}  # "pen", "pose": the service's address each is sent to
         self._reader = None
         self._seq = {"pose": 0, "pen": 0}
@@ -105,11 +96,16 @@ class LiveClient:
             family, *_, service = (await loop.getaddrinfo(host, self.welcome["udp_port"], type=socket.SOCK_DGRAM))[0]
             # a service older than protocol 3 takes its poses on udp_port too (benchmarks/bench_live.py --against)
             self._ports = {"pen": service, "pose": (service[0], self.welcome.get("pose_port", service[1]))}
-            self._udp, _ = await loop.create_datagram_endpoint(lambda: _Replies(self, service[:2]), family=family)
+            self._service = service[:2]
+            self._udp = stamped_socket("::" if family == socket.AF_INET6 else "0.0.0.0")
+            loop.add_reader(self._udp, self._take_replies)
+            if self.short_slice:
+                ask_thread_slice()
         return self.welcome
 
     async def close(self) -> None:
         if self._udp is not None:
+            asyncio.get_running_loop().remove_reader(self._udp)
             self._udp.close()
         if self.ws is not None:
             await self.ws.close()
@@ -180,6 +176,31 @@ class LiveClient:
         """A pen sample (tip, mm; orientation w first), optionally with the device pose it was tracked with."""
         return self._send_sample("pen", position_mm, quat_wxyz, device_position_mm=device_position_mm,
                                  device_quat_wxyz=device_quat_wxyz)
+
+    def _take_replies(self) -> None:
+        """Every reply waiting on the socket, queued by kind (what the event loop calls when the socket is ready)."""
+        drain(self._udp, self._buffer, self._drops, "dropped", self._on_reply)
+
+    def _on_reply(self, n: int, addr, arrived: float, received: float) -> None:
+        if addr[:2] != self._service:
+            return
+        try:
+            obj = decode_reply(bytes(self._buffer[:n]))
+        except ValueError:
+            return
+        obj["received_s"], obj["arrived_s"] = received, arrived
+        self.received[obj["type"]] += 1
+        _put(self._datagram_queues[obj["type"]], obj)
+        self.receive_s.append(time.perf_counter() - received)
+
+    def spin(self, kind: str, limit_s: float) -> bool:
+        """Wait for a `kind` datagram by polling the socket, on this core, for at most limit_s s (a VR frame's
+        reply taken the moment it arrives, with no wake-up; the CPU it costs is the wait); whether one came. What
+        comes meanwhile is queued as the event loop would (read with `datagram` or `drain`)."""
+        before, deadline = self.received[kind], time.perf_counter() + limit_s
+        while self.received[kind] == before and time.perf_counter() < deadline:
+            self._take_replies()
+        return self.received[kind] != before
 
     def send_raw_datagram(self, data: bytes, to: str = "pen") -> None:
         """Any bytes, to the port pens ("pen") or poses ("pose") go to."""

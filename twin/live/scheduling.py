@@ -15,6 +15,11 @@ Measured (docs/live.md, "Measured"): one service, pens at 360 Hz and poses at 90
 every 5.5 s (benchmarks/bench_live_slices.py), load 1.1-1.3: the pen process's wait for a core per wake-up 52-65 ->
 3-8 us, its own path's p99 0.59-0.79 -> 0.29-0.39 ms, the pen's end-to-end p99 1.54-2.16 -> 0.61-1.23 ms.
 
+A client may ask the same for the thread that takes its replies (`LiveClient(short_slice=True)`; the C# client's
+receiving thread asks on Linux): a reply wakes it, and it then preempts a task running a longer slice, where on the
+default slice it waited behind the approximation, the emulator or another engineer's test (docs/live.md, "The
+clients' waits").
+
 Elsewhere (another OS, an older kernel, a process under a real-time policy, which needs no slice) nothing is
 changed.
 """
@@ -25,6 +30,7 @@ import ctypes
 import os
 import platform
 import struct
+import threading
 from pathlib import Path
 
 SLICE_S = 1e-4  # the shortest slice Linux takes (its range is 0.1-100 ms)
@@ -39,21 +45,27 @@ def ask_short_slice(slice_s: float = SLICE_S, pid: int = 0) -> bool:
     under a real-time policy)."""
     if _SCHED_SETATTR is None or not Path("/proc/self/task").is_dir():
         return False
-    libc = ctypes.CDLL(None, use_errno=True)
     taken = True
     for task in Path(f"/proc/{pid or 'self'}/task").iterdir():
-        tid = int(task.name)
-        try:
-            policy, nice = os.sched_getscheduler(tid), os.getpriority(os.PRIO_PROCESS, tid)
-        except OSError:  # a thread that has ended
-            continue
-        if policy not in _FAIR:
-            taken = False
-            continue
-        attr = ctypes.create_string_buffer(_SCHED_ATTR.pack(_SCHED_ATTR.size, policy, 0, nice, 0,
-                                                            round(slice_s * 1e9), 0, 0))
-        taken &= libc.syscall(_SCHED_SETATTR, tid, attr, 0) == 0
+        taken &= ask_thread_slice(slice_s, int(task.name)) is not False
     return taken
+
+
+def ask_thread_slice(slice_s: float = SLICE_S, tid: int | None = None) -> bool | None:
+    """Thread tid (None: the calling one) asks for a scheduler slice of slice_s under its present policy and nice;
+    whether it took it (None: a thread that has ended)."""
+    if _SCHED_SETATTR is None or not Path("/proc/self/task").is_dir():
+        return False
+    tid = threading.get_native_id() if tid is None else tid
+    try:
+        policy, nice = os.sched_getscheduler(tid), os.getpriority(os.PRIO_PROCESS, tid)
+    except OSError:
+        return None
+    if policy not in _FAIR:
+        return False
+    attr = ctypes.create_string_buffer(_SCHED_ATTR.pack(_SCHED_ATTR.size, policy, 0, nice, 0, round(slice_s * 1e9),
+                                                        0, 0))
+    return ctypes.CDLL(None, use_errno=True).syscall(_SCHED_SETATTR, tid, attr, 0) == 0
 
 
 def slice_s(pid: int = 0) -> float | None:

@@ -36,16 +36,17 @@ namespace VRScroll.Live
             return b;
         }
 
-        /// A reply (pen_redirected, approximation, estimates) as the fields docs/live.md names (numbers double, arrays
-        /// List<object>, as Json gives them); FormatException if it is not one of this protocol's.
-        public static Dictionary<string, object> DecodeReply(byte[] b)
+        /// The reply in the first `length` bytes of b (a receive buffer: pen_redirected, approximation, estimates) as the
+        /// fields docs/live.md names (numbers double, arrays List<object>, as Json gives them); FormatException if it is
+        /// not one of this protocol's.
+        public static Dictionary<string, object> DecodeReply(byte[] b, int length)
         {
-            if (b.Length < 24 || b[0] != 'V' || b[1] != 'S' || b[2] != LiveClient.ProtocolVersion)
-                throw new FormatException("a reply of " + b.Length + " bytes that is not one of this protocol's");
+            if (length < 24 || b[0] != 'V' || b[1] != 'S' || b[2] != LiveClient.ProtocolVersion)
+                throw new FormatException("a reply of " + length + " bytes that is not one of this protocol's");
             int flags = b[4];
             var reply = new Dictionary<string, object> {
                 { "seq", (double)GetLong(b, 8) }, { "t_s", (flags & HasT) != 0 ? (object)GetDouble(b, 16) : null } };
-            if (b[3] == PenRedirected && b.Length == PenReplyBytes)
+            if (b[3] == PenRedirected && length == PenReplyBytes)
             {
                 reply["type"] = "pen_redirected";
                 reply["position_mm"] = Doubles(b, 24, 3);
@@ -56,7 +57,7 @@ namespace VRScroll.Live
                 reply["flap"] = (double)b[5];
                 reply["within_thresholds"] = (flags & Within) != 0;
             }
-            else if (b[3] == Approximation && b.Length == 24 + 8 * (8 + b[5] + b[6]))
+            else if (b[3] == Approximation && length == 24 + 8 * (8 + b[5] + b[6]))
             {
                 int hinges = b[5], flaps = b[6];
                 reply["type"] = "approximation";
@@ -66,13 +67,13 @@ namespace VRScroll.Live
                 reply["widths_mm"] = Doubles(b, 80 + 8 * hinges, flaps);
                 reply["time_ms"] = GetDouble(b, 80 + 8 * (hinges + flaps));
             }
-            else if (b[3] == Estimates && b.Length == EstimatesBytes)
+            else if (b[3] == Estimates && length == EstimatesBytes)
             {
                 reply["type"] = "estimates";
                 reply["msd_estimate_mm"] = GetDouble(b, 24);
                 reply["share_within_estimate"] = GetDouble(b, 32);
             }
-            else throw new FormatException("a reply of " + b.Length + " bytes, kind " + b[3] + ": not one of this protocol's");
+            else throw new FormatException("a reply of " + length + " bytes, kind " + b[3] + ": not one of this protocol's");
             return reply;
         }
 

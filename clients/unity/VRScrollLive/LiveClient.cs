@@ -5,7 +5,7 @@
 // quaternions w first, in the service's right-handed frame (z up); converting from Unity's frame is the
 // caller's (see VRScrollLiveDriver.cs).
 //
-// Threading: receiving runs on background tasks; events and datagram replies are queued and read with
+// Threading: the control channel is received on a background task, the datagrams on a thread of their own; events and datagram replies are queued and read with
 // TryGetEvent / TryGetPen, and the newest approximation is kept in LatestApproximation (the newest wins),
 // its frame estimates (MSD, share within the thresholds; they follow it in their own datagram) in
 // LatestEstimates, so a MonoBehaviour reads them from Update() without blocking.
@@ -16,6 +16,7 @@ using System.Diagnostics;
 using System.Net;
 using System.Net.Sockets;
 using System.Net.WebSockets;
+using System.Runtime.InteropServices;
 using System.Text;
 using System.Threading;
 using System.Threading.Tasks;
@@ -44,7 +45,8 @@ namespace VRScroll.Live
         UdpClient udp;
         IPEndPoint poseEndPoint;  // the worker's port (protocol 3): poses go there, pens to udp_port
         byte[] sessionBytes;  // the welcome's session, as samples carry it
-        Task controlReceiver, datagramReceiver;
+        Task controlReceiver;
+        Thread datagramReceiver;
         long poseSeq, penSeq;
         volatile Dictionary<string, object> latestApproximation;
         volatile Dictionary<string, object> latestEstimates;
@@ -53,6 +55,9 @@ namespace VRScroll.Live
         public string Session { get { return Welcome == null ? null : Welcome["session"] as string; } }
         public Dictionary<string, object> LatestApproximation { get { return latestApproximation; } }
         public Dictionary<string, object> LatestEstimates { get { return latestEstimates; } }
+        /// Whether the thread that receives the datagrams got Linux's shortest scheduler slice (ShortSlice); false
+        /// elsewhere, and until that thread has started.
+        public volatile bool ReceiverShortSlice;
         public int ApproximationsReceived;
         public int EstimatesReceived;
         public int PensReceived;
@@ -83,7 +88,8 @@ namespace VRScroll.Live
                 // every reply comes from udp_port (the connected address); poses are sent past it, to pose_port
                 var service = (IPEndPoint)udp.Client.RemoteEndPoint;
                 poseEndPoint = new IPEndPoint(service.Address, Convert.ToInt32(Welcome["pose_port"]));
-                datagramReceiver = ReceiveDatagrams();
+                datagramReceiver = new Thread(ReceiveDatagrams) { IsBackground = true, Name = "VRScrollLive replies" };
+                datagramReceiver.Start();
             }
             return Welcome;
         }
@@ -203,18 +209,24 @@ namespace VRScroll.Live
             return pens.TryDequeue(out reply);
         }
 
-        async Task ReceiveDatagrams()
+        // The replies are read by a thread of their own, blocked in the socket's receive: a reply wakes it and nothing
+        // else. Awaiting UdpClient.ReceiveAsync instead (until this change) woke Mono's socket-polling thread, which
+        // handed the reply to a thread-pool thread, which ran the rest: two or three wake-ups per reply, each a wait for
+        // a core on a busy machine (docs/live.md, "The C# client's pose").
+        void ReceiveDatagrams()
         {
+            ReceiverShortSlice = ShortSlice.Ask();
+            var buffer = new byte[1 << 16];  // the largest datagram
             try
             {
                 while (!stop.IsCancellationRequested)
                 {
-                    var result = await udp.ReceiveAsync();
+                    int n = udp.Client.Receive(buffer);
                     double received = Now;  // stamped before parsing: the round trip is the transport's and the service's
                     Dictionary<string, object> reply;
                     try
                     {
-                        reply = Datagrams.DecodeReply(result.Buffer);
+                        reply = Datagrams.DecodeReply(buffer, n);
                     }
                     catch (FormatException)
                     {
@@ -259,7 +271,7 @@ namespace VRScroll.Live
                 await ws.CloseOutputAsync(WebSocketCloseStatus.NormalClosure, "bye", CancellationToken.None);
             if (controlReceiver != null) await controlReceiver;
             Dispose();
-            if (datagramReceiver != null) await datagramReceiver;
+            if (datagramReceiver != null) datagramReceiver.Join();
         }
 
         public void Dispose()
@@ -267,6 +279,49 @@ namespace VRScroll.Live
             stop.Cancel();
             if (udp != null) udp.Close();
             ws.Dispose();
+        }
+    }
+
+    /// Linux's shortest scheduler slice (0.1 ms) for the calling thread, under its present policy and nice
+    /// (sched_setattr's sched_runtime under SCHED_OTHER: no privilege needed; Linux 6.12 and later): a thread woken by a
+    /// datagram then preempts a task running a longer slice, where on the default one (1.4 ms on 2 cores) it waited
+    /// for that slice to end (docs/live.md, "The clients' waits"; the service's pen process asks the same:
+    /// twin/live/scheduling.py).
+    public static class ShortSlice
+    {
+        const ulong SliceNs = 100000;
+        const int AttrBytes = 48;  // struct sched_attr, its first version: size, policy, flags, nice, priority, runtime...
+
+        [DllImport("libc", EntryPoint = "syscall", SetLastError = true)]
+        static extern long GetAttr(long number, int tid, byte[] attr, uint size, uint flags);
+
+        [DllImport("libc", EntryPoint = "syscall", SetLastError = true)]
+        static extern long SetAttr(long number, int tid, byte[] attr, uint flags);
+
+        /// Whether the calling thread took the slice (false on another OS or architecture, an older kernel, or a
+        /// thread under a real-time policy: nothing changed).
+        public static bool Ask()
+        {
+            if (!RuntimeInformation.IsOSPlatform(OSPlatform.Linux)) return false;
+            long get, set;  // the syscalls' numbers
+            if (RuntimeInformation.ProcessArchitecture == Architecture.X64) { get = 315; set = 314; }
+            else if (RuntimeInformation.ProcessArchitecture == Architecture.Arm64) { get = 275; set = 274; }
+            else return false;
+            try
+            {
+                var attr = new byte[AttrBytes];
+                if (GetAttr(get, 0, attr, AttrBytes, 0) != 0) return false;
+                uint policy = BitConverter.ToUInt32(attr, 4);
+                if (policy != 0 && policy != 3) return false;  // SCHED_OTHER, SCHED_BATCH: the fair policies
+                Array.Copy(BitConverter.GetBytes((uint)AttrBytes), 0, attr, 0, 4);
+                Array.Copy(BitConverter.GetBytes(0UL), 0, attr, 8, 8);  // flags
+                Array.Copy(BitConverter.GetBytes(SliceNs), 0, attr, 24, 8);  // sched_runtime: the slice, ns
+                return SetAttr(set, 0, attr, 0) == 0;
+            }
+            catch (Exception e) when (e is DllNotFoundException || e is EntryPointNotFoundException)
+            {
+                return false;
+            }
         }
     }
 }
