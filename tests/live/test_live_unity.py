@@ -11,13 +11,11 @@ import json
 import os
 import shutil
 import subprocess
-import threading
 from pathlib import Path
 
 import pytest
 
 from twin.live.process import ServiceProcess
-from twin.live.scheduling import ask_thread_slice
 
 ROOT = Path(__file__).resolve().parents[2]
 SOURCES = ["clients/unity/VRScrollLive/Json.cs", "clients/unity/VRScrollLive/Datagrams.cs",
@@ -54,12 +52,6 @@ def test_the_csharp_transport_plays_a_session_against_the_service(scripted_sessi
     assert seen["pens_redirected"] == seen["pens_sent"] == 40
     assert seen["largest_offset_mm"] < 5.0  # pens on the root flap, which the approximation put on the cylinder
     assert seen["status_state"] == "locked"
-    # its receiving thread on Linux's shortest scheduler slice wherever this kernel grants one to a thread here
-    granted = []
-    probe = threading.Thread(target=lambda: granted.append(ask_thread_slice()))
-    probe.start()
-    probe.join()
-    assert seen["receiver_short_slice"] is granted[0]
     assert [e for e in emu.events("rx") if e["msg"] == "SET_TARGETS"]  # the device did move, on the lock
 
 

@@ -15,10 +15,9 @@ Measured (docs/live.md, "Measured"): one service, pens at 360 Hz and poses at 90
 every 5.5 s (benchmarks/bench_live_slices.py), load 1.1-1.3: the pen process's wait for a core per wake-up 52-65 ->
 3-8 us, its own path's p99 0.59-0.79 -> 0.29-0.39 ms, the pen's end-to-end p99 1.54-2.16 -> 0.61-1.23 ms.
 
-A client may ask the same for the thread that takes its replies (`LiveClient(short_slice=True)`; the C# client's
-receiving thread asks on Linux): a reply wakes it, and it then preempts a task running a longer slice, where on the
-default slice it waited behind the approximation, the emulator or another engineer's test (docs/live.md, "The
-clients' waits").
+The Python client may ask the same for the thread that takes its replies (`LiveClient(short_slice=True)`): a reply
+wakes it, and it then preempts a task running a longer slice, where on the default slice it waited behind the
+approximation, the emulator or another engineer's test (docs/live.md, "The clients' waits").
 
 Elsewhere (another OS, an older kernel, a process under a real-time policy, which needs no slice) nothing is
 changed.

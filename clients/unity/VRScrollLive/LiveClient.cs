@@ -16,7 +16,6 @@ using System.Diagnostics;
 using System.Net;
 using System.Net.Sockets;
 using System.Net.WebSockets;
-using System.Runtime.InteropServices;
 using System.Text;
 using System.Threading;
 using System.Threading.Tasks;
@@ -55,9 +54,6 @@ namespace VRScroll.Live
         public string Session { get { return Welcome == null ? null : Welcome["session"] as string; } }
         public Dictionary<string, object> LatestApproximation { get { return latestApproximation; } }
         public Dictionary<string, object> LatestEstimates { get { return latestEstimates; } }
-        /// Whether the thread that receives the datagrams got Linux's shortest scheduler slice (ShortSlice); false
-        /// elsewhere, and until that thread has started.
-        public volatile bool ReceiverShortSlice;
         public int ApproximationsReceived;
         public int EstimatesReceived;
         public int PensReceived;
@@ -215,7 +211,6 @@ namespace VRScroll.Live
         // a core on a busy machine (docs/live.md, "The C# client's pose").
         void ReceiveDatagrams()
         {
-            ReceiverShortSlice = ShortSlice.Ask();
             var buffer = new byte[1 << 16];  // the largest datagram
             try
             {
@@ -279,49 +274,6 @@ namespace VRScroll.Live
             stop.Cancel();
             if (udp != null) udp.Close();
             ws.Dispose();
-        }
-    }
-
-    /// Linux's shortest scheduler slice (0.1 ms) for the calling thread, under its present policy and nice
-    /// (sched_setattr's sched_runtime under SCHED_OTHER: no privilege needed; Linux 6.12 and later): a thread woken by a
-    /// datagram then preempts a task running a longer slice, where on the default one (1.4 ms on 2 cores) it waited
-    /// for that slice to end (docs/live.md, "The clients' waits"; the service's pen process asks the same:
-    /// twin/live/scheduling.py).
-    public static class ShortSlice
-    {
-        const ulong SliceNs = 100000;
-        const int AttrBytes = 48;  // struct sched_attr, its first version: size, policy, flags, nice, priority, runtime...
-
-        [DllImport("libc", EntryPoint = "syscall", SetLastError = true)]
-        static extern long GetAttr(long number, int tid, byte[] attr, uint size, uint flags);
-
-        [DllImport("libc", EntryPoint = "syscall", SetLastError = true)]
-        static extern long SetAttr(long number, int tid, byte[] attr, uint flags);
-
-        /// Whether the calling thread took the slice (false on another OS or architecture, an older kernel, or a
-        /// thread under a real-time policy: nothing changed).
-        public static bool Ask()
-        {
-            if (!RuntimeInformation.IsOSPlatform(OSPlatform.Linux)) return false;
-            long get, set;  // the syscalls' numbers
-            if (RuntimeInformation.ProcessArchitecture == Architecture.X64) { get = 315; set = 314; }
-            else if (RuntimeInformation.ProcessArchitecture == Architecture.Arm64) { get = 275; set = 274; }
-            else return false;
-            try
-            {
-                var attr = new byte[AttrBytes];
-                if (GetAttr(get, 0, attr, AttrBytes, 0) != 0) return false;
-                uint policy = BitConverter.ToUInt32(attr, 4);
-                if (policy != 0 && policy != 3) return false;  // SCHED_OTHER, SCHED_BATCH: the fair policies
-                Array.Copy(BitConverter.GetBytes((uint)AttrBytes), 0, attr, 0, 4);
-                Array.Copy(BitConverter.GetBytes(0UL), 0, attr, 8, 8);  // flags
-                Array.Copy(BitConverter.GetBytes(SliceNs), 0, attr, 24, 8);  // sched_runtime: the slice, ns
-                return SetAttr(set, 0, attr, 0) == 0;
-            }
-            catch (Exception e) when (e is DllNotFoundException || e is EntryPointNotFoundException)
-            {
-                return false;
-            }
         }
     }
 }

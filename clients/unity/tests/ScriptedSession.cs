@@ -145,7 +145,6 @@ static class ScriptedSession
 
             await client.RequestStatusAsync();
             seen["status_state"] = (await client.ExpectAsync(5, "status"))["state"];
-            seen["receiver_short_slice"] = client.ReceiverShortSlice;
             await client.CloseAsync();
         }
         return seen;
