@@ -41,6 +41,13 @@ needs CAP_SYS_NICE): a wake-up then takes a core from any ordinary process at on
 what a core of their own would give. Each of them sleeps between samples (no busy wait), so together they take what they
 took before, ~10-30 % of a core.
 
+Where a pen's round trip went (the `pen split` line): to the reply's arrival in the client's socket (the kernel's
+stamp: the client's send, the pen process's wake-up and path, the reply's way back), then the client's wake-up, and
+the round trips of the pens that had a pose sent right after them. --spin-us and --client-slice change this code's
+side's client only (the other side's waits as main's bench did): it polls its socket for each reply for at most that
+long (LiveClient.spin) / its thread asks for the kernel's shortest slice (LiveClient(short_slice=True)); docs/live.md,
+"The clients' waits", says what each did.
+
 --csharp: after the Python client, the C# client (clients/unity, compiled here with Mono's mcs;
 with --against, each side's own, as each speaks its own protocol version) plays a session on the
 same service and streams pens at ~360 Hz with poses for --seconds, measuring the round trips on its
@@ -335,7 +342,7 @@ def session(args, code=None) -> dict:
                            stderr_path=Path(tmp) / "serve.err", code=code) as service:
         m = asyncio.run(measure(service.url, args.shape, args.seconds, protocol_of(code),
                                 lambda: processes(service, emu.proc.pid), args.fifo,
-                                args.spin_us * 1e-6 if code is None else 0.0, code is None and not args.default_slice))
+                                args.spin_us * 1e-6 if code is None else 0.0, code is None and args.client_slice))
         prioritise([os.getpid()], 0)  # this client back to the ordinary scheduler before it starts anything
         if args.csharp:
             fifo = ["chrt", "-f", str(args.fifo)] if args.fifo else []
@@ -477,9 +484,9 @@ def main() -> None:
     p.add_argument("--spin-us", type=float, default=0.0, metavar="US",
                    help="this code's side: after each sample the client polls its socket for the reply for at most "
                         "this long, us, before it waits in its event loop (default 0: it does not poll)")
-    p.add_argument("--default-slice", action="store_true",
-                   help="this code's side: the client on the kernel's default scheduler slice, as the other side's "
-                        "(default: on its shortest, as LiveClient(short_slice=True) asks; Linux 6.12 or later)")
+    p.add_argument("--client-slice", action="store_true",
+                   help="this code's side: the client's thread on the kernel's shortest scheduler slice "
+                        "(LiveClient(short_slice=True); Linux 6.12 or later)")
     args = p.parse_args()
     if args.against is not None and not (args.against / "twin" / "live" / "service.py").is_file():
         p.error(f"--against {args.against}: no twin/live/service.py there")
