@@ -31,7 +31,7 @@ from urllib.parse import urlparse
 from websockets.asyncio.client import connect
 
 from twin.live.datagrams import drain, stamped_socket
-from twin.live.messages import MAX_DATAGRAM_BYTES, MAX_FRAME_BYTES, PROTOCOL_VERSION, decode_reply, encode_sample
+from twin.live.messages import MAX_FRAME_BYTES, PROTOCOL_VERSION, decode_reply, encode_sample
 from twin.live.scheduling import ask_thread_slice
 
 QUEUE = 4096  # datagram replies kept per kind before the oldest are dropped
@@ -66,7 +66,7 @@ class LiveClient:
         self._datagram_queues = collections.defaultdict(lambda: asyncio.Queue(QUEUE))
         self._udp: socket.socket | None = None  # the datagram socket (non-blocking), read by the event loop
         self._service = None  # (host, port) every reply comes from
-        self._buffer = memoryview(bytearray(MAX_DATAGRAM_BYTES + 1))
+        self._buffer = memoryview(bytearray(1 << 16))  # the largest datagram (an older service's JSON replies too)
         self._drops: collections.Counter = collections.Counter()
         self._ports = {}  # "pen", "pose": the service's address each is sent to
         self._reader = None

@@ -5,10 +5,10 @@
 // quaternions w first, in the service's right-handed frame (z up); converting from Unity's frame is the
 // caller's (see VRScrollLiveDriver.cs).
 //
-// Threading: the control channel is received on a background task, the datagrams on a thread of their own; events and datagram replies are queued and read with
-// TryGetEvent / TryGetPen, and the newest approximation is kept in LatestApproximation (the newest wins),
-// its frame estimates (MSD, share within the thresholds; they follow it in their own datagram) in
-// LatestEstimates, so a MonoBehaviour reads them from Update() without blocking.
+// Threading: the control channel is received on a background task, the datagrams on a thread of their own; events
+// and datagram replies are queued and read with TryGetEvent / TryGetPen, and the newest approximation is kept in
+// LatestApproximation (the newest wins), its frame estimates (MSD, share within the thresholds; they follow it in
+// their own datagram) in LatestEstimates, so a MonoBehaviour reads them from Update() without blocking.
 using System;
 using System.Collections.Concurrent;
 using System.Collections.Generic;
@@ -208,7 +208,7 @@ namespace VRScroll.Live
         // The replies are read by a thread of their own, blocked in the socket's receive: a reply wakes it and nothing
         // else. Awaiting UdpClient.ReceiveAsync instead (until this change) woke Mono's socket-polling thread, which
         // handed the reply to a thread-pool thread, which ran the rest: two or three wake-ups per reply, each a wait for
-        // a core on a busy machine (docs/live.md, "The C# client's pose").
+        // a core on a busy machine (docs/live.md, "The clients' waits").
         void ReceiveDatagrams()
         {
             var buffer = new byte[1 << 16];  // the largest datagram
