@@ -199,11 +199,11 @@ def _search(grid, device, local, fine, root_pose, angles, widths, centre, radius
     resting starts (curled as the first phase ended, halved, flat: each, also where the first phase's end rests as
     it is, which had left the plates' flat pose untried: plate_0 6.9 -> 3.3 mm on two starts of bench_reachable's),
     and from the pipeline's own pose (OWN_SCALES) flat, and curled where it rests as it is, or lifted until it rests
-    where the first phase's end curled as it ended rests at no lift (seed 0's height_field_3 start 1: the first phase curled the flaps under the
-    slab, which no lift along the root's normal frees, and the halved and flat ends stand on its side wall, 13.7 mm;
-    the pipeline's curl lifted, 4.7 mm; lifted always, a search more on most starts for the same fits elsewhere),
-    the one whose samples lie nearest the target on the grid (mean |S|, what the MSD measures) kept; its anchor
-    settled (`_settled`). (One start, the
+    where the first phase's end curled as it ended rests at no lift (seed 0's height_field_3 start 1: the first
+    phase curled the flaps under the slab, which no lift along the root's normal frees, and the halved and flat
+    ends stand on its side wall, 13.7 mm; the pipeline's curl lifted, 4.7 mm; lifted always, a search more on most
+    starts for the same fits elsewhere), the one whose samples lie nearest the target on the grid (mean |S|, what
+    the MSD measures) kept; its anchor settled (`_settled`). (One start, the
     best by the objective before searching, left ours 11.0 % above the best pose within its bounds (median over
     ten corpus shapes), 24.7 % worst; all of the first phase's, 9.1 % and 17.4 %: docs/approximation.md, "How
     far the bounds allow". The pipeline's pose too: where it rests already, the first phase can dive into the
@@ -377,9 +377,9 @@ def _feasible(grid, device, local, rot, anchor, angles, widths, half, centre, ra
     (never through the target, nor where the snapped anchor does not reach it in a straight line, at most
     LIFT_REACH) until it rests (by the excess depth each time, at least LIFT_MIN, at most LIFT_STEPS times:
     `_rest_lift`); a scale that rests at no lift where the next flatter one does is eased towards it, the most curl
-    that rests taken (CURL_STEPS bisections); only those within the anchor's ball about `centre` where any is. Where one left the ball, its ball's centre
-    goes up with it along the normal: the search goes on about the point above the snapped one the device was
-    lifted to. Per scale (anchor (3,) m, hinge angles rad, the
+    that rests taken (CURL_STEPS bisections); only those within the anchor's ball about `centre` where any is.
+    Where one left the ball, its ball's centre goes up with it along the normal: the search goes on about the point
+    above the snapped one the device was lifted to. Per scale (anchor (3,) m, hinge angles rad, the
     ball's centre (3,) m), and which of them rest (bool): the bounded search runs from each (`_search`)."""
     n = len(scales)
     anchors, scaled, centres = np.empty((n, 3)), np.empty((n, len(angles))), np.empty((n, 3))
