@@ -29,7 +29,7 @@ target from outside (issue 37; docs/approximation.md, "Resting from outside"):
   each lifted along its normal until it rests, by at most LIFT_REACH; where no lift within the anchor's ball
   rests, the ball goes up with the lift, and a curl that rests nowhere eased towards the next flatter scale; and
   the pipeline's own pose flat, and curled where it rests as it is, or lifted until it rests where the first
-  phase's end, curled as it ended, does not), searched from each, the one whose samples
+  phase's end, curled (as it ended or eased), does not), searched from each, the one whose samples
   lie nearest the target on the grid kept (mean |S|: `grid_msd`), or, where none rests, returns saying so;
 - the anchor stays (nearly) out of the target, at most ANCHOR_DEPTH in: where a step
   would take it deeper, it is moved back along grad S, and while it is at that depth
@@ -98,7 +98,8 @@ SCALES = (1.0, 0.5, 0.0)  # the pipeline's hinge angles times these, each lifted
 # 1, 0.9, 0.8, 0.65, 0.5, 0.25, 0, left a can's wrap 16.4 mm MSD where these leave 14.2)
 OWN_SCALES = (1.0, 0.0)  # the pipeline's own pose is searched curled (`_search`: where the first phase's curled end
 # rests at no lift, or it rests as it is) and flat (plate_0: flat on the plate's face from the pipeline's root, where
-# the first phase's end curled over its edges; 44 -> 6 % above the best pose within the bounds)
+# the first phase's end curled over its edges; 44 -> 6 % above the best pose within the bounds); "curled end" is the
+# first phase's curl as it ended or eased (CURL_STEPS)
 CURL_STEPS = 3  # a curl that rests at no lift is eased towards the next flatter scale that rests, the most curl
 # that rests kept, by this many bisections (`_feasible`; torus_0: the first phase's curl round the tube rests nowhere,
 # halved it stands off it, 20.6 -> 14.7 mm)
@@ -199,10 +200,10 @@ def _search(grid, device, local, fine, root_pose, angles, widths, centre, radius
     resting starts (curled as the first phase ended, halved, flat: each, also where the first phase's end rests as
     it is, which had left the plates' flat pose untried: plate_0 6.9 -> 3.3 mm on two starts of bench_reachable's),
     and from the pipeline's own pose (OWN_SCALES) flat, and curled where it rests as it is, or lifted until it rests
-    where the first phase's end curled as it ended rests at no lift (seed 0's height_field_3 start 1: the first
-    phase curled the flaps under the slab, which no lift along the root's normal frees, and the halved and flat
-    ends stand on its side wall, 13.7 mm; the pipeline's curl lifted, 4.7 mm; lifted always, a search more on most
-    starts for the same fits elsewhere), the one whose samples lie nearest the target on the grid (mean |S|, what
+    where the first phase's end curled (as it ended or eased) rests nowhere (seed 0's height_field_3 start 1: the
+    first phase curled the flaps under the slab, which no lift along the root's normal frees, and the halved and
+    flat ends stand on its side wall, 13.7 mm; the pipeline's curl lifted, 4.7 mm; lifted always, a search more on
+    most starts for the same fits elsewhere), the one whose samples lie nearest the target on the grid (mean |S|, what
     the MSD measures) kept; its anchor settled (`_settled`). (One start, the
     best by the objective before searching, left ours 11.0 % above the best pose within its bounds (median over
     ten corpus shapes), 24.7 % worst; all of the first phase's, 9.1 % and 17.4 %: docs/approximation.md, "How
