@@ -259,3 +259,13 @@ def test_only_a_pseudo_terminal_is_taken_for_an_emulator_on_this_host(tmp_path):
         os.close(slave)
     (tmp_path / "file").write_text("")
     assert not any(on_pty(p) for p in (str(tmp_path / "file"), "/dev/null", "/dev/ttyUSB9", "socket://x:1"))
+
+
+def test_a_blamed_hinge_before_hello_is_judged_by_the_frames_own_count():
+    """A session's first frames may come before HELLO has said how many hinges there are (an e-stopped device's
+    telemetry blaming the jammed hinge, still streaming): a blamed hinge within the frame's own counts is
+    plausible, one past them is not. (The jam test of tests/hil/test_mount.py met the first as DeviceUntrusted.)"""
+    link = Link("/dev/null")  # never opened: only its judgement of frames
+    frame = P.Telemetry(0, P.State.ESTOP, 0, 2, (0,) * 6, (0,) * 6, (0,) * 6, (0,) * 6)
+    assert link._implausible(1, frame) is None
+    assert "blames hinge 6, of 6" in link._implausible(2, dataclasses.replace(frame, fault_hinge=6, time_us=10))
