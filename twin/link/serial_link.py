@@ -672,10 +672,10 @@ class Link:
                 return f"{name} says fault bits 0x{msg.faults:04X}, of which 0x{msg.faults & ~sum(P.Fault):04X} no fault"
             if n is not None and len(msg.counts) != n:
                 return f"{name} has {len(msg.counts)} hinges, the device {n}"
-            if msg.fault_hinge != 0xFF and msg.fault_hinge >= (len(msg.counts) if n is None else n):
-                # (before HELLO says how many, its own counts do: a session's first frames may be an e-stopped
-                # device's telemetry still blaming the hinge it stopped on; an unknown count had refused every one)
-                return f"{name} blames hinge {msg.fault_hinge}, of {len(msg.counts) if n is None else n}"
+            hinges = len(msg.counts) if n is None else n  # before HELLO says how many, the frame's own count: a
+            # session's first frames may be an e-stopped device's telemetry still blaming the hinge it stopped on
+            if msg.fault_hinge != 0xFF and msg.fault_hinge >= hinges:
+                return f"{name} blames hinge {msg.fault_hinge}, of {hinges}"
         if isinstance(msg, P.StateMsg) and n is not None and msg.disabled >> n:
             return f"STATE says hinges {hinge_list(msg.disabled)} are disabled, of {n}"
         if isinstance(msg, P.GainsReply) and n is not None and msg.hinge >= n:
