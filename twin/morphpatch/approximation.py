@@ -65,7 +65,7 @@ from scipy.spatial.transform import Rotation
 from twin.checks import REACH_M
 from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_flap, pose_matrix
 from twin.device.spec import DeviceSpec, load_spec
-from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate, _path_clear
+from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate, _path_clear, _value
 from twin.morphpatch.refinement import grid_msd, refine
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
 from twin.morphpatch.surface_metrics import match
@@ -281,7 +281,7 @@ def _snap(grid, pose):
     values = np.empty(len(s))
     for k in range(len(s)):
         p = anchor + s[k] * down
-        values[k] = _interpolate(grid, p[0], p[1], p[2])[0]
+        values[k] = _value(grid, p[0], p[1], p[2])
     mid = len(s) // 2  # s[mid] == 0
     a = -1
     if values[mid] > 0.0:  # outside: first entry ahead

@@ -84,7 +84,8 @@ import numpy as np
 from twin.device.flap_collision import flap_boxes
 from twin.device.kinematics import _chain, hinge_axis_sign, outer_flap
 from twin.device.spec import DeviceSpec
-from twin.morphpatch.fields import CHORD_DEPTH, PATH_DEPTH, PATH_STEP, Fields, _interpolate, _path_clear, _path_dip
+from twin.morphpatch.fields import (CHORD_DEPTH, LIPSCHITZ, PATH_DEPTH, PATH_STEP, Fields, _interpolate, _path_clear,
+                                    _path_dip, _value)
 from twin.morphpatch.sampling import METRIC_SPACING, grid_layout
 
 FLAP_APART = 3.5e-3  # m: refined poses keep flaps two or more apart this far apart (issue 37 asks 3 mm; 0.5 mm spare)
@@ -447,27 +448,34 @@ def _through_at(grid, device, angles, widths, root_pose, half):
 def _flaps_through(grid, frames, half):
     """How many flaps pass through the target (module docstring): each flap's centre line, y from -+half (m)
     to 0 in its frame, walked from either end, going into the target (deeper than PATH_DEPTH) and out of it
-    (S above 0) where the normal it leaves by opposes the one it came in by."""
+    (S above 0) where the normal it leaves by opposes the one it came in by. The walk's samples are every
+    PATH_STEP or so; where S is far from what would change the walk's state (going in, or coming out), the samples
+    S cannot reach it by are skipped (`LIPSCHITZ`): the same state at every sample walked, the same count."""
     count = 0
     n = int(half / PATH_STEP)
+    step = half / n
     for f in range(frames.shape[0]):
         through = False
         for end in (-1.0, 1.0):
             inside = False
             gin = np.zeros(3)
-            for k in range(n + 1):
+            k = 0
+            while k <= n and not through:
                 y = end * half * (1.0 - k / n)
                 x, yy, z = frames[f, 0, 3] + frames[f, 0, 1] * y, frames[f, 1, 3] + frames[f, 1, 1] * y, \
                     frames[f, 2, 3] + frames[f, 2, 1] * y
-                v, gx, gy, gz = _interpolate(grid, x, yy, z)
+                v = _value(grid, x, yy, z)  # the gradient only where the line goes in or out
                 if not inside and v < -PATH_DEPTH:
                     inside = True
-                    gin[0], gin[1], gin[2] = gx, gy, gz
+                    _, gin[0], gin[1], gin[2] = _interpolate(grid, x, yy, z)
                 elif inside and v > 0.0:
                     inside = False
+                    _, gx, gy, gz = _interpolate(grid, x, yy, z)
                     if gin[0] * gx + gin[1] * gy + gin[2] * gz < THROUGH_COS * math.sqrt(
                             (gin[0] ** 2 + gin[1] ** 2 + gin[2] ** 2) * (gx * gx + gy * gy + gz * gz)):
                         through = True
+                room = -v if inside else v + PATH_DEPTH  # how far S is from changing the state
+                k += max(1, int(room / (LIPSCHITZ * step)))
         count += through
     return count
 
@@ -659,7 +667,7 @@ def _cost(grid, device, local, rot, anchor, angles, widths, bound):
     for f in range(local.shape[0]):
         for p in range(local.shape[1]):
             x, y, z = _placed(frames[f], local[f, p])
-            r = _interpolate(grid, x, y, z)[0]
+            r = _value(grid, x, y, z)
             lowest = min(lowest, r)
             total += abs(r)
             t = min(r, 0.0) / TAIL
