@@ -165,7 +165,7 @@ def _costs(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose, angle
     return tuple(float(v) for v in _cost(fields.grid, _device(spec), np.ascontiguousarray(local, dtype=float),
                                          np.ascontiguousarray(root_pose[:3, :3], dtype=float),
                                          np.array(root_pose[:3, 3], float), np.asarray(angles, float),
-                                         np.asarray(widths, float), np.inf))
+                                         np.asarray(widths, float), np.inf, np.empty((0, 0))))
 
 
 def flaps_through(fields: Fields, spec: DeviceSpec, root_pose, angles, widths) -> int:
@@ -241,7 +241,7 @@ def _search(grid, device, local, fine, root_pose, angles, widths, centre, radius
                               INSIDE_LIMIT, 0, False)
         if not _path_clear(grid, centre, a, CHORD_DEPTH):  # searched about a lifted centre, its end off the side
             continue  # the device came from in a straight line from the snapped anchor (seed 0's cup_1, issue 37)
-        fit = _cost(grid, device, local, r, a, g, widths, np.inf)[2]
+        fit = _cost(grid, device, local, r, a, g, widths, np.inf, np.empty((0, 0)))[2]
         if fit < best_fit:
             best_fit, best = fit, (r, a, g)
     if best_fit == np.inf:  # no lift of either pose, curled or flat, rests on the target from outside:
@@ -331,17 +331,23 @@ def _lifted(grid, device, local, rot, anchor, angles, widths, inside_limit, boun
     inside_limit (m), the anchor lifted along the root's normal by the excess (and half the limit), at most
     LIFT_TRIES times, and no more once a lift leaves more than half the excess it met (a step that curls a flap
     into the target, which no lift of the root mends: the step is refused; 14 % fewer sums in the bounded searches,
-    the same results on eight corpus shapes: docs/approximation.md, "How far the bounds allow"). (anchor (3,) m, the sum of r(S)^2 m^2 there, the
-    deepest sample's depth m.) Without a bound on depth (inside_limit inf: nothing is lifted) the sum stops once it
+    the same results on eight corpus shapes: docs/approximation.md, "How far the bounds allow"). (anchor (3,) m, the
+    sum of r(S)^2 m^2 there, inf where a lift leaves it deeper than the limit, the deepest sample's depth m: after a
+    lift by `_deepest`, which need not place every sample.) Without a bound on depth (inside_limit inf: nothing is lifted) the sum stops once it
     exceeds `bound`, the sum the trial must beat (`_cost`): the same steps kept, a refused trial's scan cut short."""
     normal = rot[:, 2].copy()
-    cost, deepest, _ = _cost(grid, device, local, rot, anchor, angles, widths, bound)
+    lifting = inside_limit < np.inf
+    values = np.empty((local.shape[0] if lifting else 0, local.shape[1] if lifting else 0))
+    cost, deepest, _ = _cost(grid, device, local, rot, anchor, angles, widths, bound, values)
     for _ in range(LIFT_TRIES):
         if deepest <= inside_limit:
             break
         excess = deepest - inside_limit
-        anchor = anchor + (deepest - 0.5 * inside_limit) * normal
-        cost, deepest, _ = _cost(grid, device, local, rot, anchor, angles, widths, np.inf)
+        lift = deepest - 0.5 * inside_limit
+        anchor = anchor + lift * normal
+        deepest = _deepest(grid, device, local, rot, anchor, angles, widths, values, lift)
+        cost = _cost(grid, device, local, rot, anchor, angles, widths, np.inf, np.empty((0, 0)))[0] \
+            if deepest <= inside_limit else np.inf  # (the sum only where the lift rests: one still too deep is refused)
         if deepest - inside_limit > 0.5 * excess:
             break
     return anchor, cost, deepest
@@ -358,12 +364,13 @@ def _settled(grid, device, fine, rot, anchor, angles, widths, half, centre):
     which with the grid's rounding of that edge (0.9 mm) put the exact deepest point 3.07 mm inside, over the 3 mm
     bar."""
     normal = rot[:, 2].copy()
-    deepest = _cost(grid, device, fine, rot, anchor, angles, widths, np.inf)[1]
+    values = np.empty((fine.shape[0], fine.shape[1]))
+    deepest = _cost(grid, device, fine, rot, anchor, angles, widths, np.inf, values)[1]
     for _ in range(LIFT_STEPS):  # (a sample on a flap turned from the root's plane rises by less than the lift)
         if deepest <= INSIDE_LIMIT:
             break
         lifted = anchor + (deepest - INSIDE_LIMIT) * normal
-        lower = _cost(grid, device, fine, rot, lifted, angles, widths, np.inf)[1]
+        lower = _deepest(grid, device, fine, rot, lifted, angles, widths, values, deepest - INSIDE_LIMIT)
         if lower >= deepest or not _path_clear(grid, anchor, lifted) or \
                 not _path_clear(grid, centre, lifted, CHORD_DEPTH) or \
                 _through_at(grid, device, angles, widths, _pose(rot, lifted), half) > 0:
@@ -412,19 +419,24 @@ def _rest_lift(grid, device, local, rot, anchor, angles, widths, half, centre, r
     whether that left the anchor's ball about `centre`, the lifted anchor (3,) m, the ball's centre (3,) m, lifted
     with it where it left the ball)."""
     normal = rot[:, 2].copy()
-    lift = 0.0
-    for _ in range(LIFT_STEPS):
+    lift = step = 0.0
+    values = np.empty((local.shape[0], local.shape[1]))
+    for k in range(LIFT_STEPS):
         p = anchor + lift * normal
         if lift > LIFT_REACH or not _path_clear(grid, anchor, p) or not _path_clear(grid, centre, p, CHORD_DEPTH):
             break  # too far, through the target, or off the side the device came from
-        deepest = _cost(grid, device, local, rot, p, angles, widths, np.inf)[1]
+        if k == 0:
+            deepest = _cost(grid, device, local, rot, p, angles, widths, np.inf, values)[1]
+        else:  # moved by the last lift's step since
+            deepest = _deepest(grid, device, local, rot, p, angles, widths, values, step)
         if deepest <= INSIDE_LIMIT and _through_at(grid, device, angles, widths, _pose(rot, p), half) == 0:
             out = _distance(p, centre) > radius
             lifted_centre = centre + ((p - centre) @ normal) * normal if out else centre
             if out and not _path_clear(grid, centre, lifted_centre, CHORD_DEPTH):
                 break  # the ball's centre lifted with it would be off the side the device came from
             return True, out, p, lifted_centre
-        lift += max(deepest - 0.5 * INSIDE_LIMIT, LIFT_MIN)
+        step = max(deepest - 0.5 * INSIDE_LIMIT, LIFT_MIN)
+        lift += step
     return False, False, anchor.copy(), centre.copy()
 
 
@@ -656,18 +668,23 @@ def _evaluate(grid, device, local, rot, anchor, angles, widths):
 
 
 @numba.njit(cache=True)
-def _cost(grid, device, local, rot, anchor, angles, widths, bound):
+def _cost(grid, device, local, rot, anchor, angles, widths, bound, values):
     """(The sum of r(S)^2 m^2, the deepest sample's depth in the target m, 0 if none is inside, the mean |S| m) at
     one state, without derivatives: what a trial step is judged by (the sum), and a search's ends (the mean |S|:
     `_search`). The sum grows flap by flap: once it exceeds `bound` (m^2) the scan stops, the sum returned above
-    `bound` and the rest partial (a trial of the first phase that cannot lower the sum it must beat)."""
+    `bound` and the rest partial (a trial of the first phase that cannot lower the sum it must beat). values
+    (n_flaps, M): where it has the samples' shape, each sample's S (m) is written into it (where a lift starts
+    from: `_deepest`); an empty one: nothing is."""
     _, hinges, root_flap, _ = device
     frames = _chain(hinges[1] * angles, widths, root_flap, _pose(rot, anchor))
+    store = values.shape[0] == local.shape[0] and values.shape[1] == local.shape[1]
     cost, lowest, total = 0.0, 0.0, 0.0
     for f in range(local.shape[0]):
         for p in range(local.shape[1]):
             x, y, z = _placed(frames[f], local[f, p])
             r = _value(grid, x, y, z)
+            if store:
+                values[f, p] = r
             lowest = min(lowest, r)
             total += abs(r)
             t = min(r, 0.0) / TAIL
@@ -675,6 +692,32 @@ def _cost(grid, device, local, rot, anchor, angles, widths, bound):
         if cost > bound:
             break
     return cost, -lowest, total / (local.shape[0] * local.shape[1])
+
+
+@numba.njit(cache=True)
+def _deepest(grid, device, local, rot, anchor, angles, widths, bounds, moved):
+    """`_cost`'s deepest sample's depth in the target (m, 0 if none is inside) at a state the last one scanned was
+    moved from, by a translation of at most `moved` (m; a lift: the same turn and hinge angles), without placing
+    every sample. bounds (n_flaps, M): S at each sample there (`_cost`'s values), or a lower bound of it; S moves by
+    at most LIPSCHITZ times the distance (twin.morphpatch.fields), so a sample whose bound less that cannot be deeper
+    than the deepest found is skipped: the same depth as `_cost`'s, its S the same number where it is placed. The
+    bounds are brought to this state (the samples placed: their S)."""
+    _, hinges, root_flap, _ = device
+    frames = _chain(hinges[1] * angles, widths, root_flap, _pose(rot, anchor))
+    bounds -= LIPSCHITZ * moved
+    first = np.argmin(bounds)  # the one deepest before first: the deepest found soon skips the rest
+    f0, p0 = first // bounds.shape[1], first % bounds.shape[1]
+    x, y, z = _placed(frames[f0], local[f0, p0])
+    bounds[f0, p0] = _value(grid, x, y, z)
+    lowest = min(0.0, bounds[f0, p0])
+    for f in range(local.shape[0]):
+        for p in range(local.shape[1]):
+            if bounds[f, p] < lowest:
+                x, y, z = _placed(frames[f], local[f, p])
+                r = _value(grid, x, y, z)
+                bounds[f, p] = r
+                lowest = min(lowest, r)
+    return -lowest
 
 
 @numba.njit(cache=True)
