@@ -333,8 +333,9 @@ def _lifted(grid, device, local, rot, anchor, angles, widths, inside_limit, boun
     into the target, which no lift of the root mends: the step is refused; 14 % fewer sums in the bounded searches,
     the same results on eight corpus shapes: docs/approximation.md, "How far the bounds allow"). (anchor (3,) m, the
     sum of r(S)^2 m^2 there, inf where a lift leaves it deeper than the limit, the deepest sample's depth m: after a
-    lift by `_deepest`, which need not place every sample.) Without a bound on depth (inside_limit inf: nothing is lifted) the sum stops once it
-    exceeds `bound`, the sum the trial must beat (`_cost`): the same steps kept, a refused trial's scan cut short."""
+    lift by `_deepest`, which need not place every sample.) Without a bound on depth (inside_limit inf: nothing is
+    lifted) the sum stops once it exceeds `bound`, the sum the trial must beat (`_cost`): the same steps kept, a
+    refused trial's scan cut short."""
     normal = rot[:, 2].copy()
     lifting = inside_limit < np.inf
     values = np.empty((local.shape[0] if lifting else 0, local.shape[1] if lifting else 0))
