@@ -20,8 +20,8 @@ import pytest
 from twin.cli import main as vrscroll
 from twin.formats.profile import select_profile
 from twin.hil.identification import (FITTED, HELD, PROFILED, SETTLE_S, SPEEDS, TOP_DEG, VALLEY_COST, VALLEY_GAIN,
-                                     WHY, HingeFit, _valley, estimates, experiments, fit_hinge, program, residual,
-                                     turned)
+                                     WHY, HingeFit, _valley, estimates, experiments, fit_hinge, outboard_first, program,
+                                     residual, turned)
 from twin.link.drawn_plant import EmulatedDevice, drawn_hinges, emulator_args
 from twin.link.serial_link import program_message
 
@@ -73,6 +73,16 @@ def test_each_hinge_is_identified_on_a_drawn_plant(spec, seed, hinges):
         assert fit.high["no_load_speed"] / fit.low["no_load_speed"] <= SPEED_WIDTH
         assert abs(fit.values["no_load_speed"] / truth - 1) <= SPEED_ERROR
     assert 1.0 < device_s < 15.0  # a hinge's experiments: seconds of device time
+
+
+def test_the_experiments_run_each_side_from_its_outermost_hinge_in(spec):
+    """Every hinge between the one run and the root flap is run after it: each hinge's experiments start with the
+    flaps inboard of it flat on the table, none left raised (and sinking) by an earlier hinge's programs."""
+    order = outboard_first(spec)
+    assert sorted(order) == list(range(spec.n_hinges))
+    for i, k in enumerate(order):
+        inboard = range(k + 1, spec.root_flap) if k < spec.root_flap else range(spec.root_flap, k)
+        assert all(order.index(j) > i for j in inboard), (k, order)
 
 
 def test_a_hinge_whose_searches_end_apart_at_as_good_a_fit_carries_their_spread_and_says_so(spec):

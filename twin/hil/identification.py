@@ -461,20 +461,30 @@ def speed_scale(spec: DeviceSpec, moves: list[Move]) -> float:
     return math.exp(found.x)
 
 
+def outboard_first(spec: DeviceSpec) -> list[int]:
+    """The hinges in the order their experiments run: on each side of the root flap from the outermost in, so that
+    every hinge inboard of the one run still lies flat on the table. A hinge run before leaves its flap where its
+    last program ended (8-15 deg up), and that flap, braked, sinks under the flaps beyond it meanwhile: run 0-5 in
+    turn, hinge 4 moved from a flap hinge 3 left at 13 deg, and seed 15's hinge 4 fitted its no-load speed x1.29 and
+    its friction x3.5 of the drawn (x1.015 and x1.43 run outboard-first; docs/tuning-hil-calibration.md)."""
+    n, root = spec.n_hinges, spec.root_flap
+    return list(range(root)) + list(range(n - 1, root - 1, -1))
+
+
 def experiments(run_program, spec: DeviceSpec, hinges=None, progress=None) -> tuple[dict, float]:
     """Run each hinge's experiments (`program` at each of SPEEDS, each planned from where the last left the
-    hinge, the first from the table, with the no-load speed the moves so far show: `speed_scale`) with
-    run_program(hinge, segments, window_counts, timeout_s) -> ProgramRun (Link.run_program on the device), back
-    to back; after a program that left the hinge moving, braked programs of SETTLE_S until it rests (at most
-    REST_TRIES). hinges: which (default all). progress(message). Returns {hinge: [Move]} (a program whose hinge
-    was not at rest when it began left out; each with where the hinges run before it were left: the replays
-    place them there, since a flap left raised moves the weight and inertia a hinge inboard of it turns; seed 1's
-    hinge 2, run after hinges 0 and 1: friction x0.25 of the drawn with them flat in its replays) and the
-    programs' device time, s."""
+    hinge, the first from the table, with the no-load speed the moves so far show: `speed_scale`; the hinges in
+    the order `outboard_first`) with run_program(hinge, segments, window_counts, timeout_s) -> ProgramRun
+    (Link.run_program on the device), back to back; after a program that left the hinge moving, braked programs
+    of SETTLE_S until it rests (at most REST_TRIES). hinges: which, in that order (default all). progress(message).
+    Returns {hinge: [Move]} by hinge number (a program whose hinge was not at rest when it began left out; each
+    with where the hinges run before it were left: the replays place them there, since a flap left raised moves
+    the weight and inertia a hinge inboard of it turns; seed 1's hinge 2, run after hinges 0 and 1: friction x0.25
+    of the drawn with them flat in its replays) and the programs' device time, s."""
     moves, device_s = {}, 0.0
     edge = int(round(spec.hinge_limit / spec.rad_per_count))
     stood = np.zeros(spec.n_hinges)  # rad: where each hinge was left (the device lies flat, zeroed, at the start)
-    for k in (range(spec.n_hinges) if hinges is None else hinges):
+    for k in (outboard_first(spec) if hinges is None else hinges):
         moves[k], at, scale = [], 0, None
         for i, speed in enumerate(SPEEDS):
             others = tuple(float(a) for a in stood)
@@ -497,7 +507,7 @@ def experiments(run_program, spec: DeviceSpec, hinges=None, progress=None) -> tu
             if move is not None and len(move.duty) > 2 * SPEED_TICKS:
                 moves[k].append(move)
                 scale = speed_scale(spec, moves[k])
-    return moves, device_s
+    return dict(sorted(moves.items())), device_s
 
 
 PROFILED = FITTED[:3]  # what the profile keeps per hinge (the resistance is the winding's now: it warms and
