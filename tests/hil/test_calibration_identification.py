@@ -127,7 +127,8 @@ def test_the_replays_place_the_hinges_run_before_where_the_device_left_them(spec
 @pytest.mark.slow
 def test_calibrate_serial_writes_each_hinges_values_into_the_profile_and_tune_reads_them(emulator, capsys):
     """`vrscroll calibrate --serial PORT --device NAME --json -` on a drawn plant lying flat over a real pty:
-    per hinge value, low, high and identifiable for each profiled parameter (SI), the profile keeping them, and
+    per hinge value, low, high and identifiable for each profiled parameter (SI), each hinge's no-load speed within
+    the issue's 10 % of the drawn value and at least 5 of the 6 intervals holding it, the profile keeping them, and
     `vrscroll tune --device NAME` tuning over each hinge's intervals (pushing nothing where no gains keep the
     limit over them: then naming the limit and the interval that drives the worst case)."""
     emu = emulator("--lying-flat", *emulator_args(4))
@@ -135,12 +136,16 @@ def test_calibrate_serial_writes_each_hinges_values_into_the_profile_and_tune_re
     assert vrscroll(["calibrate", "--serial", emu.port, "--device", "flat4", "--json", "-"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert [h["hinge"] for h in out["hinges"]] == list(range(6))
+    holding = 0
     for h in out["hinges"]:
         for p in PROFILED:
             e = h["parameters"][p]
             assert isinstance(e["identifiable"], bool) and 0 < e["low"] <= e["value"] <= e["high"]
         e, truth = h["parameters"]["no_load_speed"], hinges[h["hinge"]]["no_load_speed"]
-        assert e["low"] <= truth <= e["high"]
+        assert abs(e["value"] / truth - 1) <= SPEED_ERROR
+        holding += e["low"] <= truth <= e["high"]
+    # 95 % intervals: all six hold on only 74 % of plants; 4 or fewer of 6 happen on 3 % of them
+    assert holding >= 5, f"{holding} of 6 no-load speed intervals hold the drawn value"
     held = out["holdout"]  # the closed-loop run after the experiments, which no fit saw, kept in the profile
     assert [r["hinge"] for r in held["hinges"]] == list(range(6)) and Path(held["run"], "run.json").exists()
     assert all(0 < r["floor_deg"] <= r["rmse_identified_deg"] + 0.05 for r in held["hinges"]), held
@@ -165,10 +170,11 @@ def test_calibrate_serial_refuses_a_profile_that_says_the_device_is_not_lying_fl
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="not met: on these 20 plants x 6 hinges (round 4's eighth session) 118/120 "
-                   "no-load speeds within 10 % (seed 15's hinge 4 x1.29, seed 20's hinge 2 x1.10) and, with "
-                   "DISCREPANCY calibrated on seeds 1-10, 56 of the held-out 60 intervals (seeds 11-20) holding the "
-                   "drawn value, x1.15 wide (median) (benchmarks/bench_calibration.py --identify's fits)")
+@pytest.mark.xfail(strict=True, reason="not met: on these 20 plants x 6 hinges (round 4's ninth session, the "
+                   "experiments outboard first) 119/120 no-load speeds within 10 % (seed 20's hinge 2 x1.102) and "
+                   "119/120 intervals no wider than x1.5 (seed 17's hinge 4, x1.7); with DISCREPANCY calibrated on "
+                   "seeds 1-10, 113 of 120 intervals holding the drawn value (56 of the held-out 60), x1.14 wide "
+                   "(median) (benchmarks/bench_calibration.py --identify's fits)")
 def test_twenty_drawn_plants_every_hinges_no_load_speed(spec):
     """The issue's criteria on 20 drawn plants x 6 hinges, for the value the experiments pin down: the no-load
     speed within 10 % of the drawn value and its 95 % interval no wider than x1.5 on every hinge, the intervals
