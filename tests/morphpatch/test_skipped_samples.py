@@ -153,8 +153,7 @@ def test_a_lifts_deepest_sample_is_the_full_scans(target, spec):
             deep += deepest > 0.01
             for lift in rng.uniform(0.0, 0.01, 6):
                 anchor = anchor + lift * rot[:, 2]
-                full = refinement._cost(fields.grid, device, local, rot, anchor, angles, widths, np.inf,
-                                        np.empty((0, 0)))[1]
+                full = refinement._cost(fields.grid, device, local, rot, anchor, angles, widths)[1]
                 assert refinement._deepest(fields.grid, device, local, rot, anchor, angles, widths, values,
                                            lift) == full
         assert deep > 3  # poses deep in the target were lifted

@@ -66,7 +66,7 @@ from twin.checks import REACH_M
 from twin.device.kinematics import _chain, flap_frames, hinge_axis_sign, outer_flap, pose_matrix
 from twin.device.spec import DeviceSpec, load_spec
 from twin.morphpatch.fields import Fields, _gradient_sum, _hcevf_at, _interpolate, _path_clear, _value
-from twin.morphpatch.refinement import ANCHOR_RADIUS, grid_msd, refine
+from twin.morphpatch.refinement import refine_best
 from twin.morphpatch.sampling import SAMPLE_SPACING, edge_layout, grid_layout, world_points
 from twin.morphpatch.surface_metrics import match
 from twin.records.approximation import Approximation
@@ -219,28 +219,21 @@ def _hinges_and_widths(fields: Fields, spec: DeviceSpec, lay: _Layouts, pose, hc
 
 
 def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angles):
-    """Ours: the refinement (twin.morphpatch.refinement) from the pipeline's pose, from that pose with the root
-    turned by TURN about its normal and from it tilted by +-TILT about its hinge axis (step 6 redone at each); of the
-    results that rest on the target from outside the one whose samples lie nearer the target on the grid (mean |S|,
-    what the MSD measures: twin.morphpatch.refinement.grid_msd; the earlier on ties), a tilted one only with its anchor
-    within ANCHOR_RADIUS of the snapped anchor `centre` (3,) m: (root pose 4x4, hinge angles rad, whether it
-    rests). Flaps at the pitch: ours is a pose the device takes, judged as the device is built."""
+    """Ours: the refinement (twin.morphpatch.refinement.refine_best) from the pipeline's pose, from that pose with the
+    root turned by TURN about its normal and from it tilted by +-TILT about its hinge axis (step 6 redone at each),
+    their bounded searches screened together; of the ends that rest on the target from outside the one whose samples
+    lie nearer the target on the grid (mean |S|, what the MSD measures; the earlier on ties), a tilted one only with
+    its anchor within ANCHOR_RADIUS of the snapped anchor `centre` (3,) m: (root pose 4x4, hinge angles rad, whether
+    it rests). Flaps at the pitch: ours is a pose the device takes, judged as the device is built."""
     widths = np.full(spec.n_flaps, spec.flap_pitch)
-    local = lay.flap.local(widths)
-    p, a, rests = refine(fields, spec, local, pose, angles, widths, centre)
-    best = (p, a, grid_msd(fields, spec, local, p, a, widths)) if rests else None
+    poses, hinge_angles = [pose], [angles]
     for axis, angle in ((2, TURN), (1, TILT), (1, -TILT)):
         turned = pose.copy()
         turned[:3, :3] = pose[:3, :3] @ _rot(axis, angle)
-        turned_angles, _ = _hinges_and_widths(fields, spec, lay, turned, hcevf=False)
-        tp, ta, turned_rests = refine(fields, spec, local, turned, turned_angles, widths, centre)
-        if turned_rests and (axis == 2 or np.linalg.norm(tp[:3, 3] - centre) <= ANCHOR_RADIUS):
-            fit = grid_msd(fields, spec, local, tp, ta, widths)
-            if best is None or fit < best[2]:
-                best = (tp, ta, fit)
-    if best is None:
-        return p, a, rests
-    return best[0], best[1], True
+        poses.append(turned)
+        hinge_angles.append(_hinges_and_widths(fields, spec, lay, turned, hcevf=False)[0])
+    return refine_best(fields, spec, lay.flap.local(widths), np.array(poses), np.array(hinge_angles),
+                       np.array([False, False, True, True]), widths, centre)
 
 
 def root_pose(fields: Fields, start, spec: DeviceSpec) -> np.ndarray:

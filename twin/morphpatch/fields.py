@@ -174,21 +174,15 @@ def _interpolate(grid, x, y, z):
     """(S, dS/dx, dS/dy, dS/dz) at (x, y, z), m, trilinear on `Fields.grid`. Summed in scalars: stored
     through an array the compiler must assume may alias the grid, every partial sum went to memory and
     back (73 us for 1568 points where this takes 50)."""
-    value_grad, origin, spacing, shape, strides, _ = grid
-    i, fx, ox = _cell(x, origin[0], spacing, shape[0])
-    j, fy, oy = _cell(y, origin[1], spacing, shape[1])
-    k, fz, oz = _cell(z, origin[2], spacing, shape[2])
-    base = i * strides[0] + j * strides[1] + k * strides[2]
+    value_grad, _, spacing, _, strides, _ = grid
+    base, fx, fy, fz, outside2 = _located(grid, x, y, z)
     v = gx = gy = gz = 0.0
     for corner in range(8):
-        a, b, e = (corner >> 2) & 1, (corner >> 1) & 1, corner & 1
-        w = (fx if a else 1.0 - fx) * (fy if b else 1.0 - fy) * (fz if e else 1.0 - fz)
-        idx = base + a * strides[0] + b * strides[1] + e * strides[2]
+        w, idx = _corner(base, strides, fx, fy, fz, corner)
         v += w * value_grad[idx, 0]
         gx += w * value_grad[idx, 1]
         gy += w * value_grad[idx, 2]
         gz += w * value_grad[idx, 3]
-    outside2 = ox + oy + oz
     if outside2 > 0.0:
         v += np.sqrt(outside2) * spacing
     return v, gx, gy, gz
@@ -200,20 +194,34 @@ def _value(grid, x, y, z):
     from the S array alone. A sum over the refinement's 1568 samples is bound by the cells it reads, not by its
     arithmetic: the S and gradient array of a corpus shape (78 MB) does not stay in the cache between trials, S alone
     (20 MB) does."""
-    _, origin, spacing, shape, strides, values = grid
-    i, fx, ox = _cell(x, origin[0], spacing, shape[0])
-    j, fy, oy = _cell(y, origin[1], spacing, shape[1])
-    k, fz, oz = _cell(z, origin[2], spacing, shape[2])
-    base = i * strides[0] + j * strides[1] + k * strides[2]
+    _, _, spacing, _, strides, values = grid
+    base, fx, fy, fz, outside2 = _located(grid, x, y, z)
     v = 0.0
     for corner in range(8):
-        a, b, e = (corner >> 2) & 1, (corner >> 1) & 1, corner & 1
-        w = (fx if a else 1.0 - fx) * (fy if b else 1.0 - fy) * (fz if e else 1.0 - fz)
-        v += w * values[base + a * strides[0] + b * strides[1] + e * strides[2]]
-    outside2 = ox + oy + oz
+        w, idx = _corner(base, strides, fx, fy, fz, corner)
+        v += w * values[idx]
     if outside2 > 0.0:
         v += np.sqrt(outside2) * spacing
     return v
+
+
+@numba.njit(cache=True, inline="always")
+def _located(grid, x, y, z):
+    """Where (x, y, z) (m) lies on `Fields.grid`: (its cell's first point's index in the flat arrays, the fractions
+    within the cell along x, y, z, the squared distance outside the grid in grid units)."""
+    _, origin, spacing, shape, strides, _ = grid
+    i, fx, ox = _cell(x, origin[0], spacing, shape[0])
+    j, fy, oy = _cell(y, origin[1], spacing, shape[1])
+    k, fz, oz = _cell(z, origin[2], spacing, shape[2])
+    return i * strides[0] + j * strides[1] + k * strides[2], fx, fy, fz, ox + oy + oz
+
+
+@numba.njit(cache=True, inline="always")
+def _corner(base, strides, fx, fy, fz, corner):
+    """The trilinear weight of a cell's corner (0-7: bits x, y, z) and its index in the flat arrays."""
+    a, b, e = (corner >> 2) & 1, (corner >> 1) & 1, corner & 1
+    w = (fx if a else 1.0 - fx) * (fy if b else 1.0 - fy) * (fz if e else 1.0 - fz)
+    return w, base + a * strides[0] + b * strides[1] + e * strides[2]
 
 
 @numba.njit(cache=True)

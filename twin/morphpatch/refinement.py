@@ -107,6 +107,11 @@ CURL_STEPS = 3  # a curl that rests at no lift is eased towards the next flatter
 LIFT_TRIES = 3  # a search step that goes deeper is lifted back along the normal at most this many times (`_lifted`)
 ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
 MAX_STEPS = 40  # Levenberg-Marquardt trials
+SCREEN_STEPS = 12  # `refine_best`: every bounded search of ours' four starts is tried for this many trials, then
+FINISHED = 3  # ... only this many of them, those whose ends lie nearest the target, searched on to MAX_STEPS and only
+# the nearest of those settled (issue 37's ninth session: 40 corpus shapes x 3 starts, CPU median 38 -> 30 ms, mean
+# MSD 9.136 -> 9.068 mm; 4 trials and 2 finished took 26 ms for 9.385 mm: a short search's end does not tell well
+# where it ends, docs/approximation.md)
 DAMPING = 1e-3  # initial damping, relative to the normal matrix's diagonal
 # a step expected to lower the sum by less than this fraction, or two kept steps in a row that did, end the
 # search (with the tail objective and the two-step end, 3e-3 took 1 ms more in the benchmark's median for
@@ -137,6 +142,21 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
                    float(spec.depth))
 
 
+def refine_best(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_poses: np.ndarray, angles: np.ndarray,
+                near: np.ndarray, widths: np.ndarray, centre: np.ndarray,
+                radius: float = ANCHOR_RADIUS) -> tuple[np.ndarray, np.ndarray, bool]:
+    """`refine` from several of the pipeline's poses at once (root poses (n, 4, 4), hinge angles (n, n_hinges) rad),
+    screened (`_search_screened`): every bounded search of every pose is tried for SCREEN_STEPS trials, and only the
+    FINISHED whose ends lie nearest the target on the grid are searched on and settled; of those the nearest kept.
+    An end of a pose marked `near` (n,) is taken only with its anchor within `radius` of `centre` (3,) m. Where no
+    start rests, the first pose's as `refine` returns it, and False."""
+    widths = np.asarray(widths, float)
+    return _search_screened(fields.grid, _device(spec), np.ascontiguousarray(local, dtype=float), _fine(spec, widths),
+                            np.ascontiguousarray(root_poses, dtype=float), np.ascontiguousarray(angles, dtype=float),
+                            np.asarray(near, np.bool_), widths, np.asarray(centre, float), float(radius),
+                            float(spec.depth), SCREEN_STEPS, FINISHED)
+
+
 def _fine(spec: DeviceSpec, widths: np.ndarray) -> np.ndarray:
     """The touch surface's samples (n_flaps, M, 3) in each flap's frame at these widths (m) every METRIC_SPACING, as
     the resting bar samples it (twin.morphpatch.resting): where the search's end is settled (`_settled`)."""
@@ -161,11 +181,12 @@ def grid_msd(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose, ang
 
 
 def _costs(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose, angles, widths) -> tuple:
-    """`_cost` of a pose."""
+    """`_cost` of a pose. (Every argument passed: called from Python with its defaults left out, numba's dispatch
+    took 260 us a call where this takes 30.)"""
     return tuple(float(v) for v in _cost(fields.grid, _device(spec), np.ascontiguousarray(local, dtype=float),
                                          np.ascontiguousarray(root_pose[:3, :3], dtype=float),
                                          np.array(root_pose[:3, 3], float), np.asarray(angles, float),
-                                         np.asarray(widths, float), np.inf, np.empty((0, 0))))
+                                         np.asarray(widths, float), np.inf, None))
 
 
 def flaps_through(fields: Fields, spec: DeviceSpec, root_pose, angles, widths) -> int:
@@ -213,6 +234,89 @@ def _search(grid, device, local, fine, root_pose, angles, widths, centre, radius
     pipeline's pose rested at 7.15 mm.) (Root pose 4x4, hinge angles, whether the pose
     rests on the target from outside.) Starting the bounded search from the pipeline's pose lifted alone left a
     can's wrap 7 mm above it (MSD 14 mm, where the first phase ends on it at 2.6 mm)."""
+    rot0, anchor0, angles0, rots, anchors, scaled, centres = _starts(grid, device, local, root_pose, angles, widths,
+                                                                     centre, radius, depth)
+    half = 0.5 * depth
+    best_fit, best = np.inf, (rot0, root_pose[:3, 3].copy(), angles0)  # where none rests: the pipeline's, unrolled
+    for k in range(len(rots)):
+        r, a, g, _ = _descend(grid, device, local, rots[k], anchors[k].copy(), scaled[k].copy(), widths,
+                              centres[k].copy(), radius, half, INSIDE_LIMIT, 0, False,
+                              max(PATH_DEPTH, _path_dip(grid, centres[k], anchors[k])), MAX_STEPS)
+        if not _path_clear(grid, centre, a, CHORD_DEPTH):  # searched about a lifted centre, its end off the side
+            continue  # the device came from in a straight line from the snapped anchor (seed 0's cup_1, issue 37)
+        fit = _cost(grid, device, local, r, a, g, widths)[2]
+        if fit < best_fit:
+            best_fit, best = fit, (r, a, g)
+    if best_fit == np.inf:  # no lift of either pose, curled or flat, rests on the target from outside:
+        return _pose(best[0], best[1]), best[2], False  # the pipeline's pose, unrolled (its anchor's path is clear)
+    return _pose(best[0], _settled(grid, device, fine, best[0], best[1], best[2], widths, half, centre)), best[2], True
+
+
+@numba.njit(cache=True)
+def _search_screened(grid, device, local, fine, root_poses, angles, near, widths, centre, radius, depth, screen,
+                     finish):
+    """`refine_best`: `_search`'s bounded searches from every pose's starts (`_starts`), each tried for `screen`
+    trials; in the order of their ends' mean |S| on the grid, searched on for the rest of MAX_STEPS and settled until
+    `finish` of them are taken (an end the snapped anchor does not reach in a straight line is not, nor a `near`
+    pose's end outside the anchor's ball); the one nearest the target kept."""
+    half = 0.5 * depth
+    n, per = root_poses.shape[0], len(SCALES) + len(OWN_SCALES)
+    rots, anchors = np.empty((n * per, 3, 3)), np.empty((n * per, 3))
+    scaled, centres = np.empty((n * per, angles.shape[1])), np.empty((n * per, 3))
+    chords, owner = np.empty(n * per), np.empty(n * per, np.int64)
+    count = 0
+    fallback = (root_poses[0][:3, :3].copy(), root_poses[0][:3, 3].copy(), angles[0].copy())
+    for s in range(n):
+        rot0, _, angles0, r, a, g, c = _starts(grid, device, local, root_poses[s], angles[s], widths, centre, radius,
+                                               depth)
+        if s == 0:
+            fallback = (rot0, root_poses[0][:3, 3].copy(), angles0)
+        for k in range(len(r)):
+            rots[count], anchors[count], scaled[count], centres[count], owner[count] = r[k], a[k], g[k], c[k], s
+            chords[count] = max(PATH_DEPTH, _path_dip(grid, c[k], a[k]))
+            count += 1
+    fits = np.empty(count)
+    for k in range(count):  # the short searches
+        r, a, g, _ = _descend(grid, device, local, rots[k], anchors[k].copy(), scaled[k].copy(), widths,
+                              centres[k].copy(), radius, half, INSIDE_LIMIT, 0, False, chords[k], screen)
+        rots[k], anchors[k], scaled[k] = r, a, g
+        fits[k] = _cost(grid, device, local, r, a, g, widths)[2]
+    best_fit, best = np.inf, fallback
+    ends = np.full(count, np.inf)  # the searched-on ends' mean |S|
+    order = np.argsort(fits, kind="mergesort")
+    taken = done = 0
+    while count > 0:
+        while taken < finish and done < count:
+            k = order[done]
+            done += 1
+            r, a, g, _ = _descend(grid, device, local, rots[k], anchors[k].copy(), scaled[k].copy(), widths,
+                                  centres[k].copy(), radius, half, INSIDE_LIMIT, 0, False, chords[k],
+                                  MAX_STEPS - screen)
+            if not _path_clear(grid, centre, a, CHORD_DEPTH) or (near[owner[k]] and _distance(a, centre) > radius):
+                continue
+            rots[k], anchors[k], scaled[k] = r, a, g
+            ends[k] = _cost(grid, device, local, r, a, g, widths)[2]
+            taken += 1
+        k = np.argmin(ends)
+        if ends[k] == np.inf:
+            break
+        settled = _settled(grid, device, fine, rots[k], anchors[k], scaled[k], widths, half, centre)
+        if near[owner[k]] and _distance(settled, centre) > radius:
+            ends[k] = np.inf
+            taken -= 1
+            continue
+        best_fit, best = ends[k], (rots[k], settled, scaled[k])
+        break
+    return _pose(best[0], best[1]), best[2], best_fit < np.inf
+
+
+@numba.njit(cache=True)
+def _starts(grid, device, local, root_pose, angles, widths, centre, radius, depth):
+    """The bounded searches' starts of `_search` from the pipeline's pose (root pose 4x4, hinge angles rad): the
+    first phase (no bound on depth but the objective's) from it, then the starts that rest (`_feasible`) from where
+    that ended and from the pipeline's own pose. (The pipeline's rotation, anchor and hinge angles unrolled; per
+    start that rests its rotation (n, 3, 3), anchor (n, 3) m, hinge angles (n, n_hinges) rad and the centre of its
+    anchor's ball (n, 3) m.)"""
     boxes, _, root_flap, _ = device
     rot0 = root_pose[:3, :3].copy()
     unrolled = _too_close(boxes, angles)  # the pipeline's pose with flaps too close: the search starts apart
@@ -221,13 +325,16 @@ def _search(grid, device, local, fine, root_pose, angles, widths, centre, radius
     anchor0 = _bounded(grid, root_pose[:3, 3].copy(), centre, radius)
     passing = _through_at(grid, device, angles0, widths, _pose(rot0, anchor0), half)
     rot, anchor, angles, passing = _descend(grid, device, local, rot0, anchor0, angles0, widths, centre, radius, half,
-                                            np.inf, passing, unrolled)
-    best_fit, best = np.inf, (rot0, root_pose[:3, 3].copy(), angles0)  # where none rests: the pipeline's, unrolled
+                                            np.inf, passing, unrolled, CHORD_DEPTH, MAX_STEPS)
     lifted, scaled, centres, resting = _feasible(grid, device, local, rot, anchor, angles, widths, half, centre, radius,
                                                  SCALES)
     own = _feasible(grid, device, local, rot0, anchor0, angles0, widths, half, centre, radius, OWN_SCALES)
     as_is = _distance(own[0][0], anchor0) == 0.0 and (own[1][0] == angles0).all()
-    for k in range(len(SCALES) + len(OWN_SCALES)):  # the first phase's end at each scale; then the pipeline's pose
+    n = len(SCALES) + len(OWN_SCALES)
+    rots, anchors, angles_out, centres_out = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, len(angles))), \
+        np.empty((n, 3))
+    count = 0
+    for k in range(n):  # the first phase's end at each scale; then the pipeline's pose
         if k < len(SCALES):
             if not resting[k]:
                 continue
@@ -237,20 +344,14 @@ def _search(grid, device, local, fine, root_pose, angles, widths, centre, radius
             if not own[3][j] or (j == 0 and resting[0] and not as_is):
                 continue
             r0, a0, g0, c0 = rot0, own[0][j], own[1][j], own[2][j]
-        r, a, g, _ = _descend(grid, device, local, r0, a0.copy(), g0.copy(), widths, c0.copy(), radius, half,
-                              INSIDE_LIMIT, 0, False)
-        if not _path_clear(grid, centre, a, CHORD_DEPTH):  # searched about a lifted centre, its end off the side
-            continue  # the device came from in a straight line from the snapped anchor (seed 0's cup_1, issue 37)
-        fit = _cost(grid, device, local, r, a, g, widths, np.inf, np.empty((0, 0)))[2]
-        if fit < best_fit:
-            best_fit, best = fit, (r, a, g)
-    if best_fit == np.inf:  # no lift of either pose, curled or flat, rests on the target from outside:
-        return _pose(best[0], best[1]), best[2], False  # the pipeline's pose, unrolled (its anchor's path is clear)
-    return _pose(best[0], _settled(grid, device, fine, best[0], best[1], best[2], widths, half, centre)), best[2], True
+        rots[count], anchors[count], angles_out[count], centres_out[count] = r0, a0, g0, c0
+        count += 1
+    return rot0, anchor0, angles0, rots[:count], anchors[:count], angles_out[:count], centres_out[:count]
 
 
 @numba.njit(cache=True)
-def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, half, inside_limit, passing, unrolled):
+def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, half, inside_limit, passing, unrolled,
+             chord_depth, steps):
     """One Levenberg-Marquardt search from a state: no sample deeper than inside_limit (m; inf: no bound but
     the objective's), no more flaps through the target than `passing`. (rot, anchor, angles, flaps through.)
     Within the bound on depth, a kept state's anchor must be reached from the snapped one in a straight line
@@ -258,7 +359,6 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
     edge to its wall cut the edge 4 mm deep on the exact mesh, which the grid's rounded edge hid; and held to
     PATH_DEPTH alone, a start whose own chord dipped 1-2 mm (the first phase's end at the edge of the ball on a
     convex target) never kept a step (docs/approximation.md, "Where the bounded search stalled")."""
-    chord_depth = CHORD_DEPTH if inside_limit == np.inf else max(PATH_DEPTH, _path_dip(grid, centre, anchor))
     boxes, _, _, limit = device
     start = (rot, anchor, angles, passing)
     kept = start  # the last state whose anchor the snapped one reaches in a straight line
@@ -267,7 +367,7 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
     small = 0
     frozen = np.zeros(len(angles), np.bool_)  # hinges a refused step curled into contact, held until a step is kept
     may_hold = unrolled  # only a search that starts unrolled at the contact holds hinges (module docstring)
-    for _ in range(MAX_STEPS):
+    for _ in range(steps):
         basis = _free_directions(jtr, s_anchor, g_anchor, anchor, centre, radius)
         for k in np.flatnonzero(frozen):
             basis[6 + k, :] = 0.0
@@ -337,8 +437,7 @@ def _lifted(grid, device, local, rot, anchor, angles, widths, inside_limit, boun
     lifted) the sum stops once it exceeds `bound`, the sum the trial must beat (`_cost`): the same steps kept, a
     refused trial's scan cut short."""
     normal = rot[:, 2].copy()
-    lifting = inside_limit < np.inf
-    values = np.empty((local.shape[0] if lifting else 0, local.shape[1] if lifting else 0))
+    values = np.empty((local.shape[0], local.shape[1]))
     cost, deepest, _ = _cost(grid, device, local, rot, anchor, angles, widths, bound, values)
     for _ in range(LIFT_TRIES):
         if deepest <= inside_limit:
@@ -347,7 +446,7 @@ def _lifted(grid, device, local, rot, anchor, angles, widths, inside_limit, boun
         lift = deepest - 0.5 * inside_limit
         anchor = anchor + lift * normal
         deepest = _deepest(grid, device, local, rot, anchor, angles, widths, values, lift)
-        cost = _cost(grid, device, local, rot, anchor, angles, widths, np.inf, np.empty((0, 0)))[0] \
+        cost = _cost(grid, device, local, rot, anchor, angles, widths)[0] \
             if deepest <= inside_limit else np.inf  # (the sum only where the lift rests: one still too deep is refused)
         if deepest - inside_limit > 0.5 * excess:
             break
@@ -669,22 +768,20 @@ def _evaluate(grid, device, local, rot, anchor, angles, widths):
 
 
 @numba.njit(cache=True)
-def _cost(grid, device, local, rot, anchor, angles, widths, bound, values):
+def _cost(grid, device, local, rot, anchor, angles, widths, bound=np.inf, values=None):
     """(The sum of r(S)^2 m^2, the deepest sample's depth in the target m, 0 if none is inside, the mean |S| m) at
     one state, without derivatives: what a trial step is judged by (the sum), and a search's ends (the mean |S|:
     `_search`). The sum grows flap by flap: once it exceeds `bound` (m^2) the scan stops, the sum returned above
     `bound` and the rest partial (a trial of the first phase that cannot lower the sum it must beat). values
-    (n_flaps, M): where it has the samples' shape, each sample's S (m) is written into it (where a lift starts
-    from: `_deepest`); an empty one: nothing is."""
+    (n_flaps, M), where given: each sample's S (m) is written into it (where a lift starts from: `_deepest`)."""
     _, hinges, root_flap, _ = device
     frames = _chain(hinges[1] * angles, widths, root_flap, _pose(rot, anchor))
-    store = values.shape[0] == local.shape[0] and values.shape[1] == local.shape[1]
     cost, lowest, total = 0.0, 0.0, 0.0
     for f in range(local.shape[0]):
         for p in range(local.shape[1]):
             x, y, z = _placed(frames[f], local[f, p])
             r = _value(grid, x, y, z)
-            if store:
+            if values is not None:
                 values[f, p] = r
             lowest = min(lowest, r)
             total += abs(r)
