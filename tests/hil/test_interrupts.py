@@ -10,6 +10,7 @@ import time
 
 import pytest
 
+from twin.commands.interrupts import STOP_SIGNALS
 from twin.link import protocol as P
 from twin.formats.scenario import scenario_of_steps, write_scenario
 from twin.link.serial_link import Link
@@ -28,9 +29,9 @@ MIRROR = ["mirror", "--angles=60,-45,20,30,90,-100", "--settle-limit-s", "5", "-
 def _start_moving(args, emu, tmp_path, within_s: float = 60.0, **popen):
     """The command started on the emulator, once its targets are in (within within_s) and the hinges moving:
     (process, the device time the targets arrived)."""
-    # SIGINT as a terminal gives it, whatever this run inherited: a suite started in the background by a
-    # non-interactive shell has SIGINT ignored, and a child that starts so never sees Ctrl-C
-    preexec = popen.pop("preexec_fn", None) or (lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # the stop signals as a terminal gives them, whatever this run inherited: a suite started in the background by a
+    # non-interactive shell has SIGINT ignored, one under nohup SIGHUP, and a child that starts so never sees them
+    preexec = popen.pop("preexec_fn", None) or (lambda: [signal.signal(s, signal.SIG_DFL) for s in STOP_SIGNALS])
     proc = subprocess.Popen(cli_command(*args, "--serial", emu.port, "--log", str(tmp_path / "session.jsonl")),
                             env=cli_env(), stderr=subprocess.PIPE, text=True, preexec_fn=preexec,
                             **{"stdout": subprocess.DEVNULL, **popen})
