@@ -132,29 +132,27 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
     local: (n_flaps, M, 3) sample points in each flap's frame at its width (m); widths (m)
     stay as given; centre (3,) m: the snapped anchor, which the anchor stays within
     `radius` of (of the point above it the start was lifted to, where no nearer start rests: `_feasible`).
-    The whole search runs compiled (`_search`).
+    The whole search runs compiled (`_search`, every bounded search to its end).
     Where no start rests from outside (`_feasible`), the pose returned is the pipeline's, unrolled, and False.
     """
-    pose = np.ascontiguousarray(root_pose, dtype=float)
-    widths = np.asarray(widths, float)
-    return _search(fields.grid, _device(spec), np.ascontiguousarray(local, dtype=float), _fine(spec, widths), pose,
-                   np.asarray(angles, float).copy(), widths, np.asarray(centre, float), float(radius),
-                   float(spec.depth))
+    return refine_best(fields, spec, local, np.array(root_pose, float)[None], np.array(angles, float)[None],
+                       np.zeros(1, np.bool_), widths, centre, radius, screen=MAX_STEPS)
 
 
 def refine_best(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_poses: np.ndarray, angles: np.ndarray,
-                near: np.ndarray, widths: np.ndarray, centre: np.ndarray,
-                radius: float = ANCHOR_RADIUS) -> tuple[np.ndarray, np.ndarray, bool]:
+                near: np.ndarray, widths: np.ndarray, centre: np.ndarray, radius: float = ANCHOR_RADIUS,
+                screen: int = SCREEN_STEPS) -> tuple[np.ndarray, np.ndarray, bool]:
     """`refine` from several of the pipeline's poses at once (root poses (n, 4, 4), hinge angles (n, n_hinges) rad),
-    screened (`_search_screened`): every bounded search of every pose is tried for SCREEN_STEPS trials, and only the
+    screened (`_search`): every bounded search of every pose is tried for `screen` trials (SCREEN_STEPS), and only the
     FINISHED whose ends lie nearest the target on the grid are searched on and settled; of those the nearest kept.
     An end of a pose marked `near` (n,) is taken only with its anchor within `radius` of `centre` (3,) m. Where no
     start rests, the first pose's as `refine` returns it, and False."""
     widths = np.asarray(widths, float)
-    return _search_screened(fields.grid, _device(spec), np.ascontiguousarray(local, dtype=float), _fine(spec, widths),
-                            np.ascontiguousarray(root_poses, dtype=float), np.ascontiguousarray(angles, dtype=float),
-                            np.asarray(near, np.bool_), widths, np.asarray(centre, float), float(radius),
-                            float(spec.depth), SCREEN_STEPS, FINISHED)
+    finish = FINISHED if screen < MAX_STEPS else len(SCALES) + len(OWN_SCALES)  # every search to its end: all of them
+    return _search(fields.grid, _device(spec), np.ascontiguousarray(local, dtype=float), _fine(spec, widths),
+                   np.ascontiguousarray(root_poses, dtype=float), np.ascontiguousarray(angles, dtype=float),
+                   np.asarray(near, np.bool_), widths, np.asarray(centre, float), float(radius), float(spec.depth),
+                   screen, finish)
 
 
 def _fine(spec: DeviceSpec, widths: np.ndarray) -> np.ndarray:
@@ -215,50 +213,30 @@ def uncurled(spec: DeviceSpec, angles) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def _search(grid, device, local, fine, root_pose, angles, widths, centre, radius, depth):
-    """Levenberg-Marquardt within the bounds (module docstring), in two phases: first with the bound on depth
-    left to the objective's tail (as before issue 37: from the pipeline's pose, which may lie in the target),
-    then from where that ended, lifted until it rests (`_feasible`), with the bound kept: from each of its
-    resting starts (curled as the first phase ended, halved, flat: each, also where the first phase's end rests as
-    it is, which had left the plates' flat pose untried: plate_0 6.9 -> 3.3 mm on two starts of bench_reachable's),
-    and from the pipeline's own pose (OWN_SCALES) flat, and curled where it rests as it is, or lifted until it rests
-    where the first phase's end curled (as it ended or eased) rests nowhere (seed 0's height_field_3 start 1: the
-    first phase curled the flaps under the slab, which no lift along the root's normal frees, and the halved and
-    flat ends stand on its side wall, 13.7 mm; the pipeline's curl lifted, 4.7 mm; lifted always, a search more on
-    most starts for the same fits elsewhere), the one whose samples lie nearest the target on the grid (mean |S|, what
-    the MSD measures) kept; its anchor settled (`_settled`). (One start, the
-    best by the objective before searching, left ours 11.0 % above the best pose within its bounds (median over
-    ten corpus shapes), 24.7 % worst; all of the first phase's, 9.1 % and 17.4 %: docs/approximation.md, "How
-    far the bounds allow". The pipeline's pose too: where it rests already, the first phase can dive into the
-    target from it and every lift of its end rest farther off, 7.80 mm MSD on an ellipsoid start where the
-    pipeline's pose rested at 7.15 mm.) (Root pose 4x4, hinge angles, whether the pose
-    rests on the target from outside.) Starting the bounded search from the pipeline's pose lifted alone left a
-    can's wrap 7 mm above it (MSD 14 mm, where the first phase ends on it at 2.6 mm)."""
-    rot0, anchor0, angles0, rots, anchors, scaled, centres = _starts(grid, device, local, root_pose, angles, widths,
-                                                                     centre, radius, depth)
-    half = 0.5 * depth
-    best_fit, best = np.inf, (rot0, root_pose[:3, 3].copy(), angles0)  # where none rests: the pipeline's, unrolled
-    for k in range(len(rots)):
-        r, a, g, _ = _descend(grid, device, local, rots[k], anchors[k].copy(), scaled[k].copy(), widths,
-                              centres[k].copy(), radius, half, INSIDE_LIMIT, 0, False,
-                              max(PATH_DEPTH, _path_dip(grid, centres[k], anchors[k])), MAX_STEPS)
-        if not _path_clear(grid, centre, a, CHORD_DEPTH):  # searched about a lifted centre, its end off the side
-            continue  # the device came from in a straight line from the snapped anchor (seed 0's cup_1, issue 37)
-        fit = _cost(grid, device, local, r, a, g, widths)[2]
-        if fit < best_fit:
-            best_fit, best = fit, (r, a, g)
-    if best_fit == np.inf:  # no lift of either pose, curled or flat, rests on the target from outside:
-        return _pose(best[0], best[1]), best[2], False  # the pipeline's pose, unrolled (its anchor's path is clear)
-    return _pose(best[0], _settled(grid, device, fine, best[0], best[1], best[2], widths, half, centre)), best[2], True
-
-
-@numba.njit(cache=True)
-def _search_screened(grid, device, local, fine, root_poses, angles, near, widths, centre, radius, depth, screen,
-                     finish):
-    """`refine_best`: `_search`'s bounded searches from every pose's starts (`_starts`), each tried for `screen`
-    trials; in the order of their ends' mean |S| on the grid, searched on for the rest of MAX_STEPS and settled until
-    `finish` of them are taken (an end the snapped anchor does not reach in a straight line is not, nor a `near`
-    pose's end outside the anchor's ball); the one nearest the target kept."""
+def _search(grid, device, local, fine, root_poses, angles, near, widths, centre, radius, depth, screen, finish):
+    """Levenberg-Marquardt within the bounds (module docstring) from each of the pipeline's root poses (n, 4, 4) and
+    hinge angles (n, n_hinges) rad, in two phases: first with the bound on depth left to the objective's tail (as
+    before issue 37: from the pipeline's pose, which may lie in the target), then from where that ended, lifted until
+    it rests (`_feasible`), with the bound kept: from each of its resting starts (curled as the first phase ended,
+    halved, flat: each, also where the first phase's end rests as it is, which had left the plates' flat pose
+    untried: plate_0 6.9 -> 3.3 mm on two starts of bench_reachable's), and from the pipeline's own pose (OWN_SCALES)
+    flat, and curled where it rests as it is, or lifted until it rests where the first phase's end curled (as it
+    ended or eased) rests nowhere (seed 0's height_field_3 start 1: the first phase curled the flaps under the slab,
+    which no lift along the root's normal frees, and the halved and flat ends stand on its side wall, 13.7 mm; the
+    pipeline's curl lifted, 4.7 mm; lifted always, a search more on most starts for the same fits elsewhere) (`_starts`).
+    Every such bounded search of every pose is tried for `screen` trials; in the order of their ends' mean |S| on the
+    grid (what the MSD measures), searched on for the rest of MAX_STEPS until `finish` of them are taken (an end the
+    snapped anchor does not reach in a straight line is not: seed 0's cup_1, issue 37; nor a `near` pose's end
+    outside the anchor's ball); the one nearest the target kept and its anchor settled (`_settled`; a `near` pose's
+    end that settling lifts out of the ball is dropped and the next taken). `refine` runs every search to its end
+    (`screen` MAX_STEPS), `refine_best` screens them. (One start, the best by the objective before searching, left
+    ours 11.0 % above the best pose within its bounds (median over ten corpus shapes), 24.7 % worst; all of the first
+    phase's, 9.1 % and 17.4 %: docs/approximation.md, "How far the bounds allow". The pipeline's pose too: where it
+    rests already, the first phase can dive into the target from it and every lift of its end rest farther off,
+    7.80 mm MSD on an ellipsoid start where the pipeline's pose rested at 7.15 mm. Starting the bounded search from
+    the pipeline's pose lifted alone left a can's wrap 7 mm above it, MSD 14 mm, where the first phase ends on it at
+    2.6 mm.) (Root pose 4x4, hinge angles rad, whether the pose rests on the target from outside; where none rests,
+    the first pose's, unrolled, and False.)"""
     half = 0.5 * depth
     n, per = root_poses.shape[0], len(SCALES) + len(OWN_SCALES)
     rots, anchors = np.empty((n * per, 3, 3)), np.empty((n * per, 3))
@@ -289,9 +267,10 @@ def _search_screened(grid, device, local, fine, root_poses, angles, near, widths
         while taken < finish and done < count:
             k = order[done]
             done += 1
-            r, a, g, _ = _descend(grid, device, local, rots[k], anchors[k].copy(), scaled[k].copy(), widths,
-                                  centres[k].copy(), radius, half, INSIDE_LIMIT, 0, False, chords[k],
-                                  MAX_STEPS - screen)
+            r, a, g = rots[k], anchors[k], scaled[k]
+            if screen < MAX_STEPS:
+                r, a, g, _ = _descend(grid, device, local, r, a.copy(), g.copy(), widths, centres[k].copy(), radius,
+                                      half, INSIDE_LIMIT, 0, False, chords[k], MAX_STEPS - screen)
             if not _path_clear(grid, centre, a, CHORD_DEPTH) or (near[owner[k]] and _distance(a, centre) > radius):
                 continue
             rots[k], anchors[k], scaled[k] = r, a, g
