@@ -16,7 +16,7 @@ from twin.device.kinematics import pose_matrix
 from twin.evaluation.starts import approach_starts
 from twin.morphpatch.approximation import VARIANTS, approximate, measured, root_pose
 from twin.morphpatch.fields import build_fields, exact_signed_distance
-from twin.morphpatch.refinement import ANCHOR_RADIUS, INSIDE_LIMIT, LIFT_REACH, uncurled
+from twin.morphpatch.refinement import ANCHOR_DEPTH, ANCHOR_RADIUS, INSIDE_LIMIT, LIFT_REACH, uncurled
 from twin.morphpatch.resting import DEEP_SHARE_MAX, DEEPEST_MAX, FLAP_APART_MIN, resting
 from twin.morphpatch.shapes import load_shape, shape_names, sweep_solid
 from twin.sim.gate import check_move
@@ -123,7 +123,10 @@ def test_ours_rests_and_fits_from_starts_nobody_tuned_for(spec, runs):
 
 def test_ours_keeps_the_anchor_where_the_user_brought_the_device(spec, runs):
     """Within ANCHOR_RADIUS of where the device snapped onto the target; or, where no pose within that ball rests
-    from outside, lifted off the target (its anchor outside it) by at most LIFT_REACH more."""
+    from outside, within the ball lifted with the start by at most LIFT_REACH more, its anchor no deeper in the target
+    than any anchor may be (ANCHOR_DEPTH): since the bounded search's step keeps the depth bound, it can bring the
+    anchor back down to the surface at the lifted ball's edge (torus start 6: 21.5 mm from the snapped point, 0.29 mm
+    in; before, its lifted ends there stood 18.6-23.1 mm off the surface)."""
     for name, (mesh, fields, starts, results) in runs.items():
         snapped = np.array([root_pose(fields, s, spec)[:3, 3] for s in starts])
         anchors = np.array([r.root_pose[:3, 3] for r in results["refined"]])
@@ -131,7 +134,7 @@ def test_ours_keeps_the_anchor_where_the_user_brought_the_device(spec, runs):
         lifted = away > ANCHOR_RADIUS + 1e-9
         assert away.max() <= ANCHOR_RADIUS + LIFT_REACH + 1e-9, name
         out = [r for r, up in zip(results["refined"], lifted) if up]
-        assert not out or anchor_depths(mesh, out).max() < 0, name
+        assert not out or anchor_depths(mesh, out).max() < ANCHOR_DEPTH, name
 
 
 def test_every_result_of_ours_passes_the_gates_range_and_collision_checks(spec, runs):

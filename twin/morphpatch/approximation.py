@@ -45,8 +45,7 @@ wider than a cavity it is lowered into (a cup from above its opening) can still 
 its anchor inside it (docs/approximation.md, "Starts and the approached side").
 Variant "refined" (ours, beyond the paper) is "full" followed by a bounded local
 least-squares refinement of the root pose and hinge angles (twin.morphpatch.refinement),
-and more from full's pose with the root turned a quarter about its normal and tilted by +-TILT
-about its hinge axis (`_refined`).
+and more from full's pose with the root turned a quarter about its normal (`_refined`).
 SI units throughout (m, rad, s); the result is the record twin.records.approximation.Approximation, whose
 file form (mm and degrees) is twin.formats.target's.
 """
@@ -86,17 +85,10 @@ PRINCIPAL_MIN_TILT = math.radians(3)  # ... or their RMS tilt from the normal be
 # the row cannot curl round (docs/approximation.md, "Turned starts"). Always, since issue 37's sixth session: it was
 # tried only where the objective at the turned start was at most 3 times the first refinement's end, but the start's
 # objective does not tell where its search ends (plate_0: turned starts 16-60 times the first end's, ending at 1.7 mm
-# where the first ended at 3.3)
+# where the first ended at 3.3). (The root tilted by +-0.5 rad about its hinge axis too, issue 37's eighth and ninth
+# sessions, not since the bounded searches' steps keep the depth bound: on the 40 corpus shapes x 3 starts as near
+# the target without them, in less time: docs/approximation.md, "Issue 37's tenth session")
 TURN = math.pi / 2
-# ... and with the root tilted by +-TILT (rad) about its hinge axis y (`_refined`): the traces of the best pose within
-# ours' bounds (bowl_3 in issue 37's fifth session, height_field_3's and plate_2's best restarts of bench_reachable in
-# its seventh) found its root turned about y, which no other start of ours is, and the search does not turn it that
-# far. On the 40 corpus shapes x 3 starts: 8.0 -> 4.5 % above the best at the median, 30 -> 38 of 40 within 15 %, for
-# about twice the time (docs/approximation.md, "Tilted starts"). A tilted end is taken only with its anchor within the
-# anchor's ball about the snapped point: a start lifted out of that ball takes the ball up along the root's normal,
-# which on a tilted root points sideways, off the point the device met (seed 5's ellipsoid start 9 of
-# tests/morphpatch/test_refinement.py: the anchor 20.13 mm from the snapped one and 0.36 mm inside the target)
-TILT = 0.5
 WIDTH_RANGE = (0.5, 1.5)  # flap widths stay within these multiples of the pitch
 
 
@@ -219,21 +211,18 @@ def _hinges_and_widths(fields: Fields, spec: DeviceSpec, lay: _Layouts, pose, hc
 
 
 def _refined(fields: Fields, spec: DeviceSpec, lay: _Layouts, centre, pose, angles):
-    """Ours: the refinement (twin.morphpatch.refinement.refine_best) from the pipeline's pose, from that pose with the
-    root turned by TURN about its normal and from it tilted by +-TILT about its hinge axis (step 6 redone at each),
-    their bounded searches screened together; of the ends that rest on the target from outside the one whose samples
-    lie nearer the target on the grid (mean |S|, what the MSD measures; the earlier on ties), a tilted one only with
-    its anchor within ANCHOR_RADIUS of the snapped anchor `centre` (3,) m: (root pose 4x4, hinge angles rad, whether
-    it rests). Flaps at the pitch: ours is a pose the device takes, judged as the device is built."""
+    """Ours: the refinement (twin.morphpatch.refinement.refine_best) from the pipeline's pose and from that pose with
+    the root turned by TURN about its normal (step 6 redone there), their bounded searches screened together; of the
+    ends that rest on the target from outside the one whose samples lie nearer the target on the grid (mean |S|, what
+    the MSD measures; the earlier on ties); the anchor within ANCHOR_RADIUS of the snapped anchor `centre` (3,) m or
+    of the point above it the start was lifted to: (root pose 4x4, hinge angles rad, whether it rests). Flaps at the
+    pitch: ours is a pose the device takes, judged as the device is built."""
     widths = np.full(spec.n_flaps, spec.flap_pitch)
-    poses, hinge_angles = [pose], [angles]
-    for axis, angle in ((2, TURN), (1, TILT), (1, -TILT)):
-        turned = pose.copy()
-        turned[:3, :3] = pose[:3, :3] @ _rot(axis, angle)
-        poses.append(turned)
-        hinge_angles.append(_hinges_and_widths(fields, spec, lay, turned, hcevf=False)[0])
-    return refine_best(fields, spec, lay.flap.local(widths), np.array(poses), np.array(hinge_angles),
-                       np.array([False, False, True, True]), widths, centre)
+    turned = pose.copy()
+    turned[:3, :3] = pose[:3, :3] @ _rot(2, TURN)
+    turned_angles = _hinges_and_widths(fields, spec, lay, turned, hcevf=False)[0]
+    return refine_best(fields, spec, lay.flap.local(widths), np.array([pose, turned]),
+                       np.array([angles, turned_angles]), widths, centre)
 
 
 def root_pose(fields: Fields, start, spec: DeviceSpec) -> np.ndarray:

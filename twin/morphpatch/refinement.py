@@ -23,8 +23,10 @@ with g_j = grad S(x_j), a_h and q_h hinge h's axis and a point on it in the worl
 
 Bounds, so every result is a pose the device can take where the user asked for it, resting on the
 target from outside (issue 37; docs/approximation.md, "Resting from outside"):
-- no touch-surface sample deeper in the target than INSIDE_LIMIT (on the grid): a trial step that
-  goes deeper is lifted back along the root's normal (`_lifted`) and refused if it still does; the
+- no touch-surface sample deeper in the target than INSIDE_LIMIT (on the grid): the step is solved with every
+  sample's S, linearised, kept above FLOOR x INSIDE_LIMIT deep (`_kept_out`: an active set of the samples it would
+  take deeper); a trial that still goes deeper (S is not linear) is lifted back along the root's normal (`_lifted`)
+  and refused if it still does; the
   search starts from poses that rest (`_feasible`: the first phase's end, its angles scaled down (SCALES),
   each lifted along its normal until it rests, by at most LIFT_REACH; where no lift within the anchor's ball
   rests, the ball goes up with the lift, and a curl that rests nowhere eased towards the next flatter scale; and
@@ -107,7 +109,7 @@ CURL_STEPS = 3  # a curl that rests at no lift is eased towards the next flatter
 LIFT_TRIES = 3  # a search step that goes deeper is lifted back along the normal at most this many times (`_lifted`)
 ANCHOR_RADIUS = 0.02  # m: the anchor stays this close to where the device snapped onto the target
 MAX_STEPS = 40  # Levenberg-Marquardt trials
-SCREEN_STEPS = 12  # `refine_best`: every bounded search of ours' four starts is tried for this many trials, then
+SCREEN_STEPS = 12  # `refine_best`: every bounded search of ours' two starts is tried for this many trials, then
 FINISHED = 3  # ... only this many of them, those whose ends lie nearest the target, searched on to MAX_STEPS and only
 # the nearest of those settled (issue 37's ninth session: 40 corpus shapes x 3 starts, CPU median 38 -> 30 ms, mean
 # MSD 9.136 -> 9.068 mm; 4 trials and 2 finished took 26 ms for 9.385 mm: a short search's end does not tell well
@@ -117,6 +119,13 @@ DAMPING = 1e-3  # initial damping, relative to the normal matrix's diagonal
 # search (with the tail objective and the two-step end, 3e-3 took 1 ms more in the benchmark's median for
 # the same mean MSD and HD drops to 0.5 %; with the one-step end, 1e-4 took about twice 3e-3's time)
 TOLERANCE = 6e-3
+FLOOR = 0.75  # the bounded searches' steps keep every sample's linearised S above FLOOR x INSIDE_LIMIT deep
+# (`_kept_out`; the lift of a trial still too deep leaves its deepest sample half the limit deep: the floor between.
+# Lifted after each trial instead, a step that took a sample deeper was refused or lifted off, and the search ended
+# at the bound short of where it slides along it: ours' mean MSD 9.07 -> 6.8 mm on the 40 corpus shapes x 3 starts,
+# docs/approximation.md, "Issue 37's tenth session")
+FLOOR_SLACK = 5e-5  # m: a sample predicted this little below that floor is let be
+ACTIVE_STEPS = 8  # at most this many samples join the step's active set (`_kept_out`)
 ANCHOR_DEPTH = 0.5e-3  # m: the anchor may sit this far inside the target, no farther (on the SDF grid)
 TAIL = 2e-2  # m: inside the target, a sample's residual grows as S sqrt(1 + (S/TAIL)^2) (module docstring)
 ON_LIMIT = 1e-5  # m: an anchor this close to a bound (its depth, the ball) is on it
@@ -136,22 +145,21 @@ def refine(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_pose: np.nd
     Where no start rests from outside (`_feasible`), the pose returned is the pipeline's, unrolled, and False.
     """
     return refine_best(fields, spec, local, np.array(root_pose, float)[None], np.array(angles, float)[None],
-                       np.zeros(1, np.bool_), widths, centre, radius, screen=MAX_STEPS)
+                       widths, centre, radius, screen=MAX_STEPS)
 
 
 def refine_best(fields: Fields, spec: DeviceSpec, local: np.ndarray, root_poses: np.ndarray, angles: np.ndarray,
-                near: np.ndarray, widths: np.ndarray, centre: np.ndarray, radius: float = ANCHOR_RADIUS,
+                widths: np.ndarray, centre: np.ndarray, radius: float = ANCHOR_RADIUS,
                 screen: int = SCREEN_STEPS) -> tuple[np.ndarray, np.ndarray, bool]:
     """`refine` from several of the pipeline's poses at once (root poses (n, 4, 4), hinge angles (n, n_hinges) rad),
     screened (`_search`): every bounded search of every pose is tried for `screen` trials (SCREEN_STEPS), and only the
-    FINISHED whose ends lie nearest the target on the grid are searched on and settled; of those the nearest kept.
-    An end of a pose marked `near` (n,) is taken only with its anchor within `radius` of `centre` (3,) m. Where no
-    start rests, the first pose's as `refine` returns it, and False."""
+    FINISHED whose ends lie nearest the target on the grid are searched on; of those the nearest kept and settled.
+    Where no start rests, the first pose's as `refine` returns it, and False."""
     widths = np.asarray(widths, float)
     finish = FINISHED if screen < MAX_STEPS else len(SCALES) + len(OWN_SCALES)  # every search to its end: all of them
     return _search(fields.grid, _device(spec), np.ascontiguousarray(local, dtype=float), _fine(spec, widths),
                    np.ascontiguousarray(root_poses, dtype=float), np.ascontiguousarray(angles, dtype=float),
-                   np.asarray(near, np.bool_), widths, np.asarray(centre, float), float(radius), float(spec.depth),
+                   widths, np.asarray(centre, float), float(radius), float(spec.depth),
                    screen, finish)
 
 
@@ -213,7 +221,7 @@ def uncurled(spec: DeviceSpec, angles) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def _search(grid, device, local, fine, root_poses, angles, near, widths, centre, radius, depth, screen, finish):
+def _search(grid, device, local, fine, root_poses, angles, widths, centre, radius, depth, screen, finish):
     """Levenberg-Marquardt within the bounds (module docstring) from each of the pipeline's root poses (n, 4, 4) and
     hinge angles (n, n_hinges) rad, in two phases: first with the bound on depth left to the objective's tail (as
     before issue 37: from the pipeline's pose, which may lie in the target), then from where that ended, lifted until
@@ -226,9 +234,8 @@ def _search(grid, device, local, fine, root_poses, angles, near, widths, centre,
     pipeline's curl lifted, 4.7 mm; lifted always, a search more on most starts for the same fits elsewhere) (`_starts`).
     Every such bounded search of every pose is tried for `screen` trials; in the order of their ends' mean |S| on the
     grid (what the MSD measures), searched on for the rest of MAX_STEPS until `finish` of them are taken (an end the
-    snapped anchor does not reach in a straight line is not: seed 0's cup_1, issue 37; nor a `near` pose's end
-    outside the anchor's ball); the one nearest the target kept and its anchor settled (`_settled`; a `near` pose's
-    end that settling lifts out of the ball is dropped and the next taken). `refine` runs every search to its end
+    snapped anchor does not reach in a straight line is not: seed 0's cup_1, issue 37); the one nearest the target
+    kept and its anchor settled (`_settled`). `refine` runs every search to its end
     (`screen` MAX_STEPS), `refine_best` screens them. (One start, the best by the objective before searching, left
     ours 11.0 % above the best pose within its bounds (median over ten corpus shapes), 24.7 % worst; all of the first
     phase's, 9.1 % and 17.4 %: docs/approximation.md, "How far the bounds allow". The pipeline's pose too: where it
@@ -241,7 +248,7 @@ def _search(grid, device, local, fine, root_poses, angles, near, widths, centre,
     n, per = root_poses.shape[0], len(SCALES) + len(OWN_SCALES)
     rots, anchors = np.empty((n * per, 3, 3)), np.empty((n * per, 3))
     scaled, centres = np.empty((n * per, angles.shape[1])), np.empty((n * per, 3))
-    chords, owner = np.empty(n * per), np.empty(n * per, np.int64)
+    chords = np.empty(n * per)
     count = 0
     fallback = (root_poses[0][:3, :3].copy(), root_poses[0][:3, 3].copy(), angles[0].copy())
     for s in range(n):
@@ -250,7 +257,7 @@ def _search(grid, device, local, fine, root_poses, angles, near, widths, centre,
         if s == 0:
             fallback = (rot0, root_poses[0][:3, 3].copy(), angles0)
         for k in range(len(r)):
-            rots[count], anchors[count], scaled[count], centres[count], owner[count] = r[k], a[k], g[k], c[k], s
+            rots[count], anchors[count], scaled[count], centres[count] = r[k], a[k], g[k], c[k]
             chords[count] = max(PATH_DEPTH, _path_dip(grid, c[k], a[k]))
             count += 1
     fits = np.empty(count)
@@ -259,34 +266,26 @@ def _search(grid, device, local, fine, root_poses, angles, near, widths, centre,
                               centres[k].copy(), radius, half, INSIDE_LIMIT, 0, False, chords[k], screen)
         rots[k], anchors[k], scaled[k] = r, a, g
         fits[k] = _cost(grid, device, local, r, a, g, widths)[2]
-    best_fit, best = np.inf, fallback
     ends = np.full(count, np.inf)  # the searched-on ends' mean |S|
     order = np.argsort(fits, kind="mergesort")
     taken = done = 0
-    while count > 0:
-        while taken < finish and done < count:
-            k = order[done]
-            done += 1
-            r, a, g = rots[k], anchors[k], scaled[k]
-            if screen < MAX_STEPS:
-                r, a, g, _ = _descend(grid, device, local, r, a.copy(), g.copy(), widths, centres[k].copy(), radius,
-                                      half, INSIDE_LIMIT, 0, False, chords[k], MAX_STEPS - screen)
-            if not _path_clear(grid, centre, a, CHORD_DEPTH) or (near[owner[k]] and _distance(a, centre) > radius):
-                continue
-            rots[k], anchors[k], scaled[k] = r, a, g
-            ends[k] = _cost(grid, device, local, r, a, g, widths)[2]
-            taken += 1
-        k = np.argmin(ends)
-        if ends[k] == np.inf:
-            break
-        settled = _settled(grid, device, fine, rots[k], anchors[k], scaled[k], widths, half, centre)
-        if near[owner[k]] and _distance(settled, centre) > radius:
-            ends[k] = np.inf
-            taken -= 1
+    while taken < finish and done < count:
+        k = order[done]
+        done += 1
+        r, a, g = rots[k], anchors[k], scaled[k]
+        if screen < MAX_STEPS:
+            r, a, g, _ = _descend(grid, device, local, r, a.copy(), g.copy(), widths, centres[k].copy(), radius,
+                                  half, INSIDE_LIMIT, 0, False, chords[k], MAX_STEPS - screen)
+        if not _path_clear(grid, centre, a, CHORD_DEPTH):
             continue
-        best_fit, best = ends[k], (rots[k], settled, scaled[k])
-        break
-    return _pose(best[0], best[1]), best[2], best_fit < np.inf
+        rots[k], anchors[k], scaled[k] = r, a, g
+        ends[k] = _cost(grid, device, local, r, a, g, widths)[2]
+        taken += 1
+    if count == 0 or ends.min() == np.inf:
+        return _pose(fallback[0], fallback[1]), fallback[2], False
+    k = np.argmin(ends)
+    return _pose(rots[k], _settled(grid, device, fine, rots[k], anchors[k], scaled[k], widths, half, centre)), \
+        scaled[k], True
 
 
 @numba.njit(cache=True)
@@ -333,7 +332,8 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
              chord_depth, steps):
     """One Levenberg-Marquardt search from a state: no sample deeper than inside_limit (m; inf: no bound but
     the objective's), no more flaps through the target than `passing`. (rot, anchor, angles, flaps through.)
-    Within the bound on depth, a kept state's anchor must be reached from the snapped one in a straight line
+    Within the bound on depth, each step keeps the samples' linearised S above FLOOR x inside_limit deep (`_kept_out`),
+    and a kept state's anchor must be reached from the snapped one in a straight line
     no deeper than the start's anchor is (at least PATH_DEPTH), not CHORD_DEPTH: a slide round a cup's bottom
     edge to its wall cut the edge 4 mm deep on the exact mesh, which the grid's rounded edge hid; and held to
     PATH_DEPTH alone, a start whose own chord dipped 1-2 mm (the first phase's end at the edge of the ball on a
@@ -341,7 +341,9 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
     boxes, _, _, limit = device
     start = (rot, anchor, angles, passing)
     kept = start  # the last state whose anchor the snapped one reaches in a straight line
-    cost, jtj, jtr, s_anchor, g_anchor = _evaluate(grid, device, local, rot, anchor, angles, widths)
+    lin = np.empty((local.shape[0], local.shape[1], 7))  # per sample S and its gradient's rows (`_normal_equations`)
+    mfs = np.empty((local.shape[0], 6 + len(angles), 6))
+    cost, jtj, jtr, s_anchor, g_anchor = _evaluate(grid, device, local, rot, anchor, angles, widths, lin, mfs)
     damping = DAMPING
     small = 0
     frozen = np.zeros(len(angles), np.bool_)  # hinges a refused step curled into contact, held until a step is kept
@@ -351,7 +353,11 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
         for k in np.flatnonzero(frozen):
             basis[6 + k, :] = 0.0
         lhs = basis.T @ jtj @ basis
-        step = -basis @ np.linalg.solve(lhs + damping * np.diag(np.diag(lhs) + 1e-12), basis.T @ jtr)
+        lhs = lhs + damping * np.diag(np.diag(lhs) + 1e-12)
+        if inside_limit == np.inf:
+            step = -basis @ np.linalg.solve(lhs, basis.T @ jtr)
+        else:
+            step = _kept_out(lhs, basis.T @ jtr, basis, lin, mfs, -FLOOR * inside_limit)
         if -(2.0 * jtr @ step + step @ jtj @ step) < TOLERANCE * cost:  # the model expects no real gain
             if not frozen.any():
                 break
@@ -384,7 +390,7 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
             damping *= 4.0
             continue
         if lower:
-            trial = _evaluate(grid, device, local, new_rot, new_anchor, new_angles, widths)
+            trial = _evaluate(grid, device, local, new_rot, new_anchor, new_angles, widths, lin, mfs)
             gain = cost - trial[0]
             rot, anchor, angles, passing = new_rot, new_anchor, new_angles, through
             held = frozen.any()  # a small gain with hinges held is not the search's end: they are let go now
@@ -402,6 +408,58 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
     if kept[3] > start[3]:  # no step adds a flap through the target; the anchor pulled into its ball may have
         return start
     return kept  # each step's path clear, the whole way from the snapped anchor not always
+
+
+@numba.njit(cache=True)
+def _kept_out(lhs, grad, basis, lin, mfs, floor):
+    """The damped step (in the full parameters) minimising the model 1/2 z^T lhs z + grad^T z over the columns of
+    `basis` with every sample's linearised S kept at or above `floor` (m): S_j + (M_f w_j) . step >= floor, lin
+    (n_flaps, M, 7) each sample's S and raw rows w_j = (g, x cross g), mfs (n_flaps, n, 6) each flap's M_f
+    (`_normal_equations`). Active set: the sample the step takes furthest below the floor joins it, the step is
+    solved with those samples on the floor, one whose multiplier is negative leaves it (at most ACTIVE_STEPS)."""
+    m = lhs.shape[0]
+    z0 = -np.linalg.solve(lhs, grad)
+    z = z0
+    rows = np.empty((ACTIVE_STEPS, m))
+    need = np.empty(ACTIVE_STEPS)
+    count = 0
+    u = np.empty(6)
+    for _ in range(ACTIVE_STEPS):
+        step = basis @ z
+        worst, wf, wp = -FLOOR_SLACK, -1, -1
+        for f in range(lin.shape[0]):
+            for k in range(6):
+                total = 0.0
+                for i in range(len(step)):
+                    total += mfs[f, i, k] * step[i]
+                u[k] = total
+            for p in range(lin.shape[1]):
+                v = lin[f, p, 0] - floor
+                for k in range(6):
+                    v += lin[f, p, 1 + k] * u[k]
+                if v < worst:
+                    worst, wf, wp = v, f, p
+        if wf < 0:
+            break
+        rows[count] = basis.T @ (mfs[wf] @ lin[wf, wp, 1:])
+        need[count] = floor - lin[wf, wp, 0]
+        count += 1
+        while count > 0:
+            a = rows[:count]
+            k_mat = np.linalg.solve(lhs, np.ascontiguousarray(a.T))
+            s_mat = a @ k_mat
+            s_mat += 1e-12 * (np.trace(s_mat) + 1e-30) * np.eye(count)
+            mu = np.linalg.solve(s_mat, need[:count] - a @ z0)
+            j = np.argmin(mu)
+            if mu[j] >= 0.0:
+                z = z0 + k_mat @ mu
+                break
+            rows[j:count - 1] = rows[j + 1:count].copy()
+            need[j:count - 1] = need[j + 1:count].copy()
+            count -= 1
+        if count == 0:
+            z = z0
+    return basis @ z
 
 
 @numba.njit(cache=True)
@@ -723,9 +781,9 @@ def _out_of_target(grid, p):
 
 
 @numba.njit(cache=True)
-def _evaluate(grid, device, local, rot, anchor, angles, widths):
+def _evaluate(grid, device, local, rot, anchor, angles, widths, lin, mfs):
     """(sum of r(S)^2 m^2, J^T J, J^T r, S and grad S at the anchor) at one state; J over (anchor, rotation,
-    hinge angles)."""
+    hinge angles). lin, mfs: `_normal_equations`' per-sample S and rows, per-flap maps (written)."""
     _, hinges, root_flap, _ = device
     moved, sign, inner, half = hinges
     pose = np.eye(4)
@@ -741,7 +799,7 @@ def _evaluate(grid, device, local, rot, anchor, angles, widths):
         for i in range(3):
             axes[h, i] = frames[f, i, 1] * sign[h]
             on_axis[h, i] = frames[f, i, 3] + frames[f, i, 0] * half[h] * widths[f]
-    cost, jtj, jtr = _normal_equations(grid, frames, local, moved, axes, on_axis, anchor)
+    cost, jtj, jtr = _normal_equations(grid, frames, local, moved, axes, on_axis, anchor, lin, mfs)
     v, gx, gy, gz = _interpolate(grid, anchor[0], anchor[1], anchor[2])
     return cost, jtj, jtr, v, np.array([gx, gy, gz])
 
@@ -821,9 +879,10 @@ def _hinges(spec: DeviceSpec) -> tuple:
 
 
 @numba.njit(cache=True, fastmath={"reassoc", "contract"})
-def _normal_equations(grid, frames, local, moved, axes, on_axis, anchor):
+def _normal_equations(grid, frames, local, moved, axes, on_axis, anchor, lin, mfs):
     """Sum of r(S)^2, J^T J (n, n) and J^T r (n,) over the flaps' samples `local` (n_flaps, M, 3) placed by
-    their frames, S and grad S interpolated on the grid as they are placed (no arrays of points).
+    their frames, S and grad S interpolated on the grid as they are placed (no arrays of points). Written: lin
+    (n_flaps, M, 7) each sample's S (m) and raw rows w = (g, x cross g), mfs (n_flaps, n, 6) each flap's M_f.
 
     A sample's Jacobian row is linear in w = r'(S) (g, x cross g): row = M_f w, with M_f fixed per flap
     (module docstring), so the samples are summed per flap as w w^T and w r first.
@@ -837,6 +896,8 @@ def _normal_equations(grid, frames, local, moved, axes, on_axis, anchor):
         for p in range(local.shape[1]):
             x, y, z = _placed(frames[f], local[f, p])
             r, gx, gy, gz = _interpolate(grid, x, y, z)
+            lin[f, p, 0], lin[f, p, 1], lin[f, p, 2], lin[f, p, 3] = r, gx, gy, gz
+            lin[f, p, 4], lin[f, p, 5], lin[f, p, 6] = y * gz - z * gy, z * gx - x * gz, x * gy - y * gx
             t = min(r, 0.0) / TAIL  # the residual r k and its derivative d (module docstring)
             k = math.sqrt(1.0 + t * t)
             d = (1.0 + 2.0 * t * t) / k
@@ -875,6 +936,7 @@ def _normal_equations(grid, frames, local, moved, axes, on_axis, anchor):
                 q0, q1, q2 = on_axis[h, 0], on_axis[h, 1], on_axis[h, 2]
                 mf[6 + h, 0], mf[6 + h, 1], mf[6 + h, 2] = -(a1 * q2 - a2 * q1), -(a2 * q0 - a0 * q2), -(a0 * q1 - a1 * q0)
                 mf[6 + h, 3], mf[6 + h, 4], mf[6 + h, 5] = a0, a1, a2
+        mfs[f] = mf
         for i in range(n):  # J^T J += M_f ww M_f^T, J^T r += M_f ws, in loops (BLAS calls cost more here)
             for b in range(6):
                 mw[i, b] = 0.0
