@@ -416,21 +416,27 @@ def _kept_out(lhs, grad, basis, lin, mfs, floor):
     `basis` with every sample's linearised S kept at or above `floor` (m): S_j + (M_f w_j) . step >= floor, lin
     (n_flaps, M, 7) each sample's S and raw rows w_j = (g, x cross g), mfs (n_flaps, n, 6) each flap's M_f
     (`_normal_equations`). Active set: the sample the step takes furthest below the floor joins it, the step is
-    solved with those samples on the floor, one whose multiplier is negative leaves it (at most ACTIVE_STEPS)."""
-    m = lhs.shape[0]
-    z0 = -np.linalg.solve(lhs, grad)
+    solved with those samples on the floor, one whose multiplier is negative leaves it (at most ACTIVE_STEPS).
+    lhs is factored once (`_cholesky`); each sample that joins costs one solve with its factor, lhs^-1 a_j."""
+    n, m = basis.shape
+    factor = _cholesky(lhs)
+    z0 = _solved(factor, grad)
+    for i in range(m):
+        z0[i] = -z0[i]
     z = z0
-    rows = np.empty((ACTIVE_STEPS, m))
+    rows = np.empty((ACTIVE_STEPS, m))  # the active samples' constraint rows a_j (in the basis' coordinates)
+    cols = np.empty((ACTIVE_STEPS, m))  # ... and lhs^-1 a_j
     need = np.empty(ACTIVE_STEPS)
     count = 0
     u = np.empty(6)
+    w = np.empty(n)
     for _ in range(ACTIVE_STEPS):
-        step = basis @ z
+        step = _times(basis, z)
         worst, wf, wp = -FLOOR_SLACK, -1, -1
         for f in range(lin.shape[0]):
             for k in range(6):
                 total = 0.0
-                for i in range(len(step)):
+                for i in range(n):
                     total += mfs[f, i, k] * step[i]
                 u[k] = total
             for p in range(lin.shape[1]):
@@ -441,25 +447,102 @@ def _kept_out(lhs, grad, basis, lin, mfs, floor):
                     worst, wf, wp = v, f, p
         if wf < 0:
             break
-        rows[count] = basis.T @ (mfs[wf] @ lin[wf, wp, 1:])
+        for i in range(n):  # the sample's row: basis^T M_f w_j
+            total = 0.0
+            for k in range(6):
+                total += mfs[wf, i, k] * lin[wf, wp, 1 + k]
+            w[i] = total
+        for j in range(m):
+            total = 0.0
+            for i in range(n):
+                total += basis[i, j] * w[i]
+            rows[count, j] = total
+        cols[count] = _solved(factor, rows[count])
         need[count] = floor - lin[wf, wp, 0]
         count += 1
         while count > 0:
-            a = rows[:count]
-            k_mat = np.linalg.solve(lhs, np.ascontiguousarray(a.T))
-            s_mat = a @ k_mat
-            s_mat += 1e-12 * (np.trace(s_mat) + 1e-30) * np.eye(count)
-            mu = np.linalg.solve(s_mat, need[:count] - a @ z0)
+            s_mat = np.empty((count, count))
+            rhs = np.empty(count)
+            for i in range(count):
+                for j in range(count):
+                    s_mat[i, j] = _dot(rows[i], cols[j])
+                rhs[i] = need[i] - _dot(rows[i], z0)
+            ridge = 1e-12 * (np.trace(s_mat) + 1e-30)
+            for i in range(count):
+                s_mat[i, i] += ridge
+            mu = _solved(_cholesky(s_mat), rhs)
             j = np.argmin(mu)
             if mu[j] >= 0.0:
-                z = z0 + k_mat @ mu
+                z = z0.copy()
+                for i in range(count):
+                    z += mu[i] * cols[i]
                 break
             rows[j:count - 1] = rows[j + 1:count].copy()
+            cols[j:count - 1] = cols[j + 1:count].copy()
             need[j:count - 1] = need[j + 1:count].copy()
             count -= 1
         if count == 0:
             z = z0
-    return basis @ z
+    return _times(basis, z)
+
+
+@numba.njit(cache=True)
+def _times(a, x):
+    """a @ x for a small matrix (n, m) and vector (m,), in loops (numba's @ is a BLAS call each, which costs more)."""
+    out = np.zeros(a.shape[0])
+    for i in range(a.shape[0]):
+        total = 0.0
+        for j in range(a.shape[1]):
+            total += a[i, j] * x[j]
+        out[i] = total
+    return out
+
+
+@numba.njit(cache=True)
+def _dot(a, b):
+    """a . b of two short vectors, in a loop."""
+    total = 0.0
+    for i in range(len(a)):
+        total += a[i] * b[i]
+    return total
+
+
+@numba.njit(cache=True)
+def _cholesky(a):
+    """The lower Cholesky factor of a small symmetric positive definite matrix (in loops: a LAPACK call through numba
+    costs more than the factorisation of a 12 x 12 matrix)."""
+    n = a.shape[0]
+    low = np.zeros((n, n))
+    for j in range(n):
+        d = a[j, j]
+        for k in range(j):
+            d -= low[j, k] * low[j, k]
+        d = math.sqrt(max(d, 1e-300))
+        low[j, j] = d
+        for i in range(j + 1, n):
+            total = a[i, j]
+            for k in range(j):
+                total -= low[i, k] * low[j, k]
+            low[i, j] = total / d
+    return low
+
+
+@numba.njit(cache=True)
+def _solved(low, b):
+    """x with (low low^T) x = b, low a lower Cholesky factor (`_cholesky`)."""
+    n = len(b)
+    x = np.empty(n)
+    for i in range(n):
+        total = b[i]
+        for k in range(i):
+            total -= low[i, k] * x[k]
+        x[i] = total / low[i, i]
+    for i in range(n - 1, -1, -1):
+        total = x[i]
+        for k in range(i + 1, n):
+            total -= low[k, i] * x[k]
+        x[i] = total / low[i, i]
+    return x
 
 
 @numba.njit(cache=True)
