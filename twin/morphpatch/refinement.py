@@ -355,7 +355,7 @@ def _descend(grid, device, local, rot, anchor, angles, widths, centre, radius, h
         lhs = basis.T @ jtj @ basis
         lhs = lhs + damping * np.diag(np.diag(lhs) + 1e-12)
         if inside_limit == np.inf:
-            step = -basis @ np.linalg.solve(lhs, basis.T @ jtr)
+            step = -_times(basis, _solved(_cholesky(lhs), basis.T @ jtr))
         else:
             step = _kept_out(lhs, basis.T @ jtr, basis, lin, mfs, -FLOOR * inside_limit)
         if -(2.0 * jtr @ step + step @ jtj @ step) < TOLERANCE * cost:  # the model expects no real gain
