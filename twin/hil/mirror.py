@@ -26,6 +26,7 @@ from twin.device.spec import DeviceSpec
 from twin.formats.run import run_start
 from twin.records.trace import Trace, joined
 from twin.hil.device_gains import device_gains
+from twin.hil.rest import REST_COUNTS, REST_TIME, motion
 from twin.link import protocol as P
 from twin.link.serial_link import Link
 from twin.sim.gate import GateRefused, GateReport, check_move, enforce
@@ -66,8 +67,6 @@ def faults_text(faults: int) -> str:
 TIME_SLACK = 0.02  # s the device may lead or lag the prediction before a difference counts as a deviation
 STALE_FRAMES_S = 0.5  # s of host time a run goes on skipping frames stamped before its t = 0
 HOST_SLACK_S = 2.0  # s of host time a move is watched beyond its deadline in device time (a backlog of frames)
-REST_COUNTS = 2  # the device is at rest when no hinge moves more than this ...
-REST_TIME = 0.05  # ... in this many seconds
 
 
 class FrameTimes:
@@ -96,16 +95,17 @@ class FrameTimes:
 
 
 def wait_for_rest(link: Link, spec: DeviceSpec, timeout: float = 3.0) -> P.StateMsg:
-    """The device's state once no hinge has moved more than REST_COUNTS in REST_TIME s."""
+    """The device's state once it is at rest (twin.hil.rest) over REST_TIME s or more."""
     state = link.get_state()
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         time.sleep(REST_TIME)
         now = link.get_state()
-        if np.abs(np.asarray(now.counts) - state.counts).max() <= REST_COUNTS:
+        moved = motion(state, now)
+        if moved.at_rest:
             return now
         state = now
-    raise DeviceNotReady(f"the device is still moving after {timeout:.0f} s; nothing was sent")
+    raise DeviceNotReady(f"the device is still moving after {timeout:.0f} s ({moved.text(spec)}); nothing was sent")
 
 
 def start_meta(prior: P.StateMsg, state: P.StateMsg) -> dict:
@@ -137,19 +137,22 @@ def mirror(link: Link, spec: DeviceSpec, targets, tolerance_deg: float = 5.0, se
         raise DeviceNotReady(f"device is in {P.enum_name(P.State, state.state)} (faults: {faults_text(state.faults)}); "
                              "clear it first (vrscroll status --clear-fault)")
     gains = device_gains(link, spec.n_hinges)
+    twin = Twin(spec, gains, hinges=hinges, mount=mount)  # before the wait: a process's first takes 1.3-1.7 s
     state = wait_for_rest(link, spec)
-    twin = Twin(spec, gains, hinges=hinges, mount=mount)
-    for _ in range(3):  # gate from the present state; again if the device moved while the twin simulated
+    for _ in range(3):  # gate from the present state; again from the new one if the device left the start simulated
         start = angle_from_counts(spec, state.counts)
         report = check_move(spec, start, targets, gains, settle_limit=settle_limit, twin=twin,
                             integral=state.integral_duty)
         link.log("gate", **report.to_dict())
         now = link.get_state()
-        if np.abs(np.asarray(now.counts) - state.counts).max() <= REST_COUNTS:
+        moved = motion(state, now)
+        if moved.kept_start(spec):
             break
         state = now
     else:
-        raise DeviceNotReady("the device kept moving while the twin simulated the move; nothing was sent")
+        raise DeviceNotReady(f"the device kept moving while the twin simulated the move ({moved.text(spec)}; at rest "
+                             f"is at most {REST_COUNTS} counts per {REST_TIME} s and a drift within the settle band, "
+                             f"{spec.settle_band} counts); nothing was sent")
     try:
         enforce(report, override)
     except GateRefused:
