@@ -95,17 +95,20 @@ class FrameTimes:
 
 
 def wait_for_rest(link: Link, spec: DeviceSpec, timeout: float = 3.0) -> P.StateMsg:
-    """The device's state once it is at rest (twin.hil.rest) over REST_TIME s or more."""
+    """The device's state once it is at rest (twin.hil.rest) over REST_TIME s or more; DeviceNotReady after
+    `timeout` s."""
     state = link.get_state()
     deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    while True:  # judged at least once, whatever the timeout
         time.sleep(REST_TIME)
         now = link.get_state()
         moved = motion(state, now)
         if moved.at_rest:
             return now
+        if time.monotonic() >= deadline:
+            raise DeviceNotReady(f"the device is still moving after {timeout:.0f} s ({moved.text(spec)}); "
+                                 "nothing was sent")
         state = now
-    raise DeviceNotReady(f"the device is still moving after {timeout:.0f} s ({moved.text(spec)}); nothing was sent")
 
 
 def start_meta(prior: P.StateMsg, state: P.StateMsg) -> dict:
